@@ -1,0 +1,335 @@
+"""InverseRFT: infer the stress maps alpha_x, alpha_z from composite force observations."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import warnings
+from dataclasses import dataclass
+
+import gpytorch
+import torch
+from gpytorch.constraints import GreaterThan
+from gpytorch.distributions import MultivariateNormal
+from gpytorch.mlls import ExactMarginalLogLikelihood
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from ..rft.contacts import Contacts
+from ..rft.stress_maps import mirror_to_canonical
+from .encoding import encode_contacts, encode_points
+from .kernels import AngleRBFKernel, RFTCompositeKernel
+from .likelihoods import ForceNoiseLikelihood
+from .means import GenericShapeMean
+
+__all__ = ["Posterior", "CompositeExactGP", "InverseRFT"]
+
+
+@dataclass
+class Posterior:
+    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z)."""
+
+    mean: Tensor
+    variance: Tensor
+
+    @property
+    def stddev(self) -> Tensor:
+        return self.variance.clamp_min(0).sqrt()
+
+    def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
+        """Central credible interval of the marginals."""
+        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+        return self.mean - z * self.stddev, self.mean + z * self.stddev
+
+
+class CompositeExactGP(gpytorch.models.ExactGP):
+    """A batch of two exact GPs (x and z maps) observed through RFT-weighted sums.
+
+    Inputs are composite rows (2, T, 3M) (see ``gp.encoding``), targets the forces (2, T).
+    """
+
+    def __init__(self, train_inputs: Tensor, train_targets: Tensor, likelihood: ForceNoiseLikelihood,
+                 mean_module: gpytorch.means.Mean, covar_module: RFTCompositeKernel) -> None:
+        super().__init__(train_inputs, train_targets, likelihood)
+        self.mean_module = mean_module
+        self.covar_module = covar_module
+
+    def forward(self, x: Tensor) -> MultivariateNormal:
+        return MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+def _as_forces(forces, T: int, dtype, device) -> Tensor:
+    f = torch.as_tensor(forces, dtype=dtype, device=device)
+    if f.ndim != 2 or f.shape[-1] != 2:
+        raise ValueError(f"forces must be (T, 2) = (F_x, F_z) in N, got shape {tuple(f.shape)}")
+    if f.shape[0] != T:
+        raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T} time steps")
+    bad = ~torch.isfinite(f)
+    if bad.any():
+        i = int(bad.any(-1).nonzero()[0])
+        raise ValueError(f"forces contains NaN or inf (first at sample {i}); mask or drop those samples")
+    return f
+
+
+class InverseRFT(nn.Module):
+    r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
+    from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
+
+    Holds a real ``gpytorch.models.ExactGP`` (``.gp``, a batch of two GPs for x and z) whose
+    kernel returns the lazy ``W K W^T`` and a ``ForceNoiseLikelihood`` (``.likelihood``); both work
+    with gpytorch's own ``ExactMarginalLogLikelihood``.
+
+    Args:
+        contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
+        forces: (T, 2) measured (F_x, F_z) in N.
+        prior_mean: "zero" (the paper) or "physics" (generic Li et al. shape x learned scales).
+        tied_noise: one noise variance for both axes (the paper) instead of one per axis.
+        dtype: inference dtype (float64 by default; float32 works).
+        solver: "cholesky" (exact, the default) or "gpytorch" (use gpytorch's own settings, e.g.
+            CG/Lanczos above ``gpytorch.settings.max_cholesky_size``).
+
+    Example:
+        >>> model = InverseRFT(contacts, forces)
+        >>> model.fit(n_iter=300, lr=0.05)
+        >>> post = model.stress_map(beta, gamma)        # .mean, .variance: (..., 2) in N/cm^3
+        >>> pred = model.predict_forces(new_contacts)   # .mean, .variance: (T', 2) in N
+    """
+
+    def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
+                 dtype: torch.dtype = torch.float64, solver: str = "cholesky") -> None:
+        super().__init__()
+        if not isinstance(contacts, Contacts):
+            raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
+        if contacts.beta.ndim != 2:
+            raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
+        if prior_mean not in ("zero", "physics"):
+            raise ValueError(f"prior_mean must be 'zero' or 'physics', got {prior_mean!r}")
+        if solver not in ("cholesky", "gpytorch"):
+            raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
+        T = len(contacts)
+        if T < 2:
+            raise ValueError(f"need at least 2 force observations, got {T}")
+        device = contacts.beta.device
+        c = contacts.to(dtype=dtype, device=device)
+        f = _as_forces(forces, T, dtype, device)
+        for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
+            if not (w != 0).any():
+                raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+        self.prior_mean_kind, self.solver, self.dtype = prior_mean, solver, dtype
+        self.train_contacts, self.train_forces = c, f
+        self.n_segments = c.n_segments
+        x, y = encode_contacts(c), f.T.contiguous()
+
+        # Data-scaled initial values and bounds (forces in N, maps in N/cm^3).
+        s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
+        power = y.pow(2).mean(-1)
+        rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
+        noise_floor = max(float(power.min()) * rel_floor, 1e-12)
+        self.likelihood = ForceNoiseLikelihood(tied=tied_noise, noise_constraint=GreaterThan(noise_floor))
+        base = AngleRBFKernel(batch_shape=torch.Size([2]))
+        kernel = RFTCompositeKernel(base)
+        mean = GenericShapeMean() if prior_mean == "physics" else gpytorch.means.ZeroMean(batch_shape=torch.Size([2]))
+        self.gp = CompositeExactGP(x, y, self.likelihood, mean, kernel)
+        self.to(device=device, dtype=dtype)
+        with torch.no_grad():
+            resid = y
+            if prior_mean == "physics":
+                g = mean.shape_map.to(dtype)(c.beta, c.gamma)
+                shape_f = torch.stack([(c.weight_x * g[..., 0]).sum(-1), (c.weight_z * g[..., 1]).sum(-1)])
+                scales = ((y * shape_f).sum(-1) / shape_f.pow(2).sum(-1).clamp_min(1e-300)).clamp_min(1e-3)
+                mean.scales = scales
+                resid = y - scales[:, None] * shape_f
+            base.outputscale = (resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300)).clamp_min(1e-6)
+            base.lengthscale = torch.ones(2, 1, 4, dtype=dtype)
+            self.likelihood.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+        self.loss_history: list[float] = []
+        self.eval()
+
+    # ---- convenience views ---------------------------------------------------------------
+    @property
+    def kernel(self) -> AngleRBFKernel:
+        """The angle kernel holding the hyperparameters (lengthscale (2, 1, 4), outputscale (2,))."""
+        return self.gp.covar_module.base_kernel
+
+    def hyperparameters(self) -> dict[str, list]:
+        """Current hyperparameters, readable (lengthscales per embedding dim, variances)."""
+        out = {
+            "lengthscale_x": self.kernel.lengthscale[0, 0].tolist(),
+            "lengthscale_z": self.kernel.lengthscale[1, 0].tolist(),
+            "outputscale": self.kernel.outputscale.tolist(),
+            "noise": self.likelihood.noise.tolist(),
+        }
+        if self.prior_mean_kind == "physics":
+            out["mean_scales"] = self.gp.mean_module.scales.tolist()
+        return out
+
+    def _settings(self):
+        stack = contextlib.ExitStack()
+        if self.solver == "cholesky":
+            stack.enter_context(gpytorch.settings.max_cholesky_size(2**31))
+        return stack
+
+    # ---- training ------------------------------------------------------------------------
+    def mll(self) -> ExactMarginalLogLikelihood:
+        """gpytorch's exact marginal log likelihood of this model (per observation, per axis)."""
+        return ExactMarginalLogLikelihood(self.likelihood, self.gp)
+
+    def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
+        """Adam on the exact marginal likelihood. Returns the loss per step (the negative log
+        likelihood per force sample, summed over the two axes). Ctrl-C stops early and keeps
+        what was learned."""
+        if int(n_iter) < 0 or not math.isfinite(lr) or lr <= 0:
+            raise ValueError(f"need n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
+        self.train()
+        mll = self.mll()
+        opt = torch.optim.Adam(self.gp.parameters(), lr=lr)
+        history: list[float] = []
+        bar = tqdm(range(int(n_iter)), desc="I-RFT fit", disable=not progress, leave=False)
+        i = 0
+        try:
+            for i in bar:
+                opt.zero_grad(set_to_none=True)
+                with self._settings():
+                    out = self.gp(*self.gp.train_inputs)
+                    loss = -mll(out, self.gp.train_targets).sum()
+                loss.backward()
+                opt.step()
+                history.append(loss.item())
+                if progress:
+                    bar.set_postfix(loss=f"{history[-1]:.4g}")
+        except KeyboardInterrupt:
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
+                          stacklevel=2)
+        except NotPSDError as e:
+            raise NotPSDError(
+                f"the force covariance W K W^T + noise is not positive definite even with gpytorch's jitter "
+                f"(step {i}); hyperparameters then: {self.hyperparameters()}. Try a lower lr, a larger noise "
+                f"floor, or float64."
+            ) from e
+        finally:
+            bar.close()
+            self.eval()
+        self.loss_history.extend(history)
+        return history
+
+    # ---- prediction ----------------------------------------------------------------------
+    def _ensure_width(self, M: int) -> None:
+        """Widen the training rows with zero-weight padding so test rows with M segments fit."""
+        if M > self.n_segments:
+            self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M), strict=False)
+            self.n_segments = M
+
+    def _predict_rows(self, rows: Tensor, variance: bool = True, chunk: int = 4096) -> tuple[Tensor, Tensor | None]:
+        """Posterior of composite rows (2, N, 3M): mean (2, N), variance (2, N) or None."""
+        self.eval()
+        grad = rows.requires_grad
+        means, variances = [], []
+        ctx = contextlib.nullcontext() if grad else torch.no_grad()
+        with ctx, self._settings(), gpytorch.settings.skip_posterior_variances(not variance), \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore", gpytorch.utils.warnings.GPInputWarning)
+            for i in range(0, rows.shape[-2], chunk):
+                try:
+                    out = self.gp(rows[..., i:i + chunk, :])
+                except NotPSDError as e:
+                    raise NotPSDError(f"training covariance not positive definite; hyperparameters: "
+                                      f"{self.hyperparameters()}") from e
+                means.append(out.mean)
+                if variance:
+                    variances.append(out.variance)
+        return torch.cat(means, -1), (torch.cat(variances, -1) if variance else None)
+
+    def stress_map(self, beta, gamma) -> Posterior:
+        """Posterior of (alpha_x, alpha_z) at angles of any broadcast shape S (rad).
+
+        Angles outside the canonical square are mapped in by the mirror identity. Returns mean and
+        variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2).
+        """
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self.train_forces.device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.train_forces.device)
+        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        for name, v in (("beta", beta), ("gamma", gamma)):
+            if not torch.isfinite(v).all():
+                raise ValueError(f"{name} contains NaN or inf")
+        S = beta.shape
+        bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
+        mean, var = self._predict_rows(encode_points(bc, gc, sx, self.n_segments))
+        return Posterior(mean.T.reshape(*S, 2), var.T.reshape(*S, 2))
+
+    def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
+        """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
+        beta, gamma = torch.broadcast_tensors(torch.as_tensor(beta), torch.as_tensor(gamma))
+        S = beta.shape
+        bc, gc, sx = mirror_to_canonical(beta.reshape(-1).to(self.dtype), gamma.reshape(-1).to(self.dtype))
+        mean, _ = self._predict_rows(encode_points(bc, gc, sx, self.n_segments), variance=False)
+        return mean.T.reshape(*S, 2)
+
+    def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False) -> Posterior:
+        """Posterior of the forces (F_x, F_z) for contacts of shape (..., T, M).
+
+        Args:
+            variance: "exact" (w^T Sigma w, segments correlated) or "independent" (the paper's
+                sum_m w_m^2 sigma^2(theta_m)).
+            include_noise: add the learned observation noise (predict a measurement).
+
+        Returns:
+            Posterior with mean and variance (..., T, 2) in N and N^2. Differentiable in the
+            contact angles and weights.
+        """
+        if not isinstance(contacts, Contacts):
+            raise TypeError(f"contacts must be a Contacts, got {type(contacts).__name__}")
+        if variance not in ("exact", "independent"):
+            raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
+        c = contacts.to(dtype=self.dtype, device=self.train_forces.device)
+        lead, M = c.shape[:-1], c.n_segments
+        flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
+        self._ensure_width(M)
+        # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
+        touching = ((flat.weight_x != 0) | (flat.weight_z != 0)).any(-1)
+        N = flat.shape[0]
+        mean = flat.beta.new_zeros(2, N)
+        var = flat.beta.new_zeros(2, N)
+        if touching.any():
+            sub = flat[touching]
+            m_sub, v_sub = self._predict_rows(encode_contacts(sub, self.n_segments),
+                                              variance=(variance == "exact"))
+            if variance == "independent":
+                act = (sub.weight_x != 0) | (sub.weight_z != 0)
+                b, g = sub.beta[act], sub.gamma[act]
+                _, seg_var = self._predict_rows(encode_points(b, g, torch.ones_like(b), self.n_segments))
+                w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
+                per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
+                per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
+                v_sub = per_seg.sum(-1)
+            mean = mean.masked_scatter(touching.expand(2, N), m_sub)
+            var = var.masked_scatter(touching.expand(2, N), v_sub)
+        if include_noise:
+            var = var + self.likelihood.noise[:, None]
+        return Posterior(mean.T.reshape(*lead, 2), var.T.reshape(*lead, 2))
+
+    # ---- persistence ---------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write training data, options and the state dict to one file (torch.save)."""
+        torch.save({
+            "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
+            "forces": self.train_forces.cpu(),
+            "options": {"prior_mean": self.prior_mean_kind, "tied_noise": self.likelihood.tied,
+                        "solver": self.solver, "dtype": str(self.dtype).replace("torch.", "")},
+            "state_dict": self.state_dict(),
+            "loss_history": self.loss_history,
+        }, path)
+
+    @classmethod
+    def load(cls, path, map_location=None) -> InverseRFT:
+        """Rebuild a model written by ``save``."""
+        d = torch.load(path, map_location=map_location, weights_only=True)
+        opts = dict(d["options"])
+        opts["dtype"] = getattr(torch, opts["dtype"])
+        model = cls(Contacts(**d["contacts"]), d["forces"], **opts)
+        model.load_state_dict(d["state_dict"])
+        model.loss_history = list(d.get("loss_history", []))
+        return model
+
+    def extra_repr(self) -> str:
+        return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}"

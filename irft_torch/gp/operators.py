@@ -1,0 +1,225 @@
+"""The RFT-weighted covariance W K W^T as a lazy linear_operator LinearOperator."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from linear_operator.operators import LinearOperator
+from torch import Tensor
+
+__all__ = ["RFTKernelLinearOperator", "rbf", "memory_budget"]
+
+
+class memory_budget:
+    """Bytes one dense block of kernel evaluations may take (default 1 GiB).
+
+    Use as a context manager (``with memory_budget(2**28): ...``) or read ``memory_budget.value()``.
+    """
+
+    _value = 2**30
+
+    def __init__(self, nbytes: int) -> None:
+        self.nbytes = int(nbytes)
+
+    @classmethod
+    def value(cls) -> int:
+        return cls._value
+
+    def __enter__(self):
+        self._old, memory_budget._value = memory_budget._value, self.nbytes
+        return self
+
+    def __exit__(self, *exc) -> None:
+        memory_budget._value = self._old
+
+
+def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
+    """outputscale * exp(-|a_i - b_j|^2 / 2) for pre-scaled inputs a (..., n, D), b (..., m, D)."""
+    sq = a.pow(2).sum(-1)[..., :, None] + b.pow(2).sum(-1)[..., None, :] - 2 * a @ b.mT
+    return outputscale * torch.exp(-0.5 * sq.clamp_min(0.0))
+
+
+def _gather_rows(table: Tensor, index: Tensor) -> Tensor:
+    """table (*B, U, k), index (*B, T, M) -> (*B, T, M, k): table rows picked per batch."""
+    B = index.shape[:-2]
+    U, k = table.shape[-2:]
+    nb = math.prod(B)
+    table = table.expand(*B, U, k).reshape(nb * U, k)
+    offset = (torch.arange(nb, device=index.device) * U).view(nb, 1)
+    flat = (index.reshape(nb, -1) + offset).reshape(-1)
+    return table[flat].reshape(*index.shape, k)
+
+
+def _scatter_rows(values: Tensor, index: Tensor, U: int) -> Tensor:
+    """values (*B, T, M, k) summed into rows index (*B, T, M) of a (*B, U, k) zero table."""
+    B = index.shape[:-2]
+    k = values.shape[-1]
+    nb = math.prod(B)
+    offset = (torch.arange(nb, device=index.device) * U).view(nb, 1)
+    flat = (index.reshape(nb, -1) + offset).reshape(-1)
+    out = values.new_zeros(nb * U, k).index_add(0, flat, values.reshape(-1, k))
+    return out.reshape(*B, U, k)
+
+
+def _compress(beta: Tensor, gamma: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Move each row's non-zero-weight segments first and drop columns that are zero everywhere."""
+    active = weight != 0
+    keep = max(int(active.sum(-1).max()) if active.numel() else 0, 1)
+    if keep == weight.shape[-1] and bool(active.all()):
+        return beta, gamma, weight
+    order = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[..., :keep]
+    pick = lambda v: torch.take_along_dim(v, order, dim=-1)  # noqa: E731
+    return pick(beta), pick(gamma), pick(weight)
+
+
+class RFTKernelLinearOperator(LinearOperator):
+    r"""Lazy :math:`L\,K(X_1, X_2)\,R^\top` with :math:`K = s\,\exp(-\tfrac12\|x_1 - x_2\|^2)`.
+
+    Row t of L holds weights ``left_weight[t, :]`` at table rows ``left_index[t, :]`` (and likewise
+    R): for composite RFT observations the tables are the distinct segment angle pairs,
+    embedded and divided by the lengthscales, and L, R are the segment weights (depth x area),
+    so the operator is W K W^T (or the cross-covariance W_* K W^T). W is never formed.
+
+    Args:
+        x1: (*B, U1, D) left table, already divided by the lengthscales.
+        x2: (*B, U2, D) right table.
+        outputscale: (*B, 1, 1) signal variance s.
+        left_index: (*B, T1, M1) long, rows of ``x1``.
+        left_weight: (*B, T1, M1) weights (0 for padding).
+        right_index, right_weight: (*B, T2, M2).
+
+    Shape: (*B, T1, T2). Gradients reach ``x1``, ``x2``, ``outputscale`` and the weights.
+    """
+
+    def __init__(self, x1: Tensor, x2: Tensor, outputscale: Tensor, left_index: Tensor, left_weight: Tensor,
+                 right_index: Tensor, right_weight: Tensor) -> None:
+        super().__init__(x1, x2, outputscale, left_index, left_weight, right_index, right_weight)
+        self.x1, self.x2, self.outputscale = x1, x2, outputscale
+        self.left_index, self.left_weight = left_index, left_weight
+        self.right_index, self.right_weight = right_index, right_weight
+
+    # ---- construction from segments ------------------------------------------------------
+    @classmethod
+    def from_segments(cls, b1: Tensor, g1: Tensor, w1: Tensor, b2: Tensor, g2: Tensor, w2: Tensor,
+                      lengthscale: Tensor, outputscale: Tensor, batch_shape: torch.Size,
+                      same_inputs: bool = False) -> RFTKernelLinearOperator:
+        """Build W1 K W2^T from per-row segment angles and weights (each (*batch, T, M)).
+
+        ``lengthscale`` (*batch, 1, 4) and ``outputscale`` (*batch,) are the base kernel's.
+        """
+        from .kernels import embed_angles
+
+        def expand(*v):
+            return [t.expand(*batch_shape, *t.shape[-2:]) for t in v]
+
+        b1, g1, w1 = _compress(*expand(b1, g1, w1))
+        if same_inputs:
+            b2, g2, w2 = b1, g1, w1
+        else:
+            b2, g2, w2 = _compress(*expand(b2, g2, w2))
+        a1, a2 = w1 != 0, w2 != 0
+        sides = [(b1, g1, a1)] if same_inputs else [(b1, g1, a1), (b2, g2, a2)]
+        pairs = torch.cat([torch.stack([b[a], g[a]], -1) for b, g, a in sides])
+        if pairs.shape[0] == 0:
+            pairs = b1.new_zeros(1, 2)
+            inverse = torch.zeros(0, dtype=torch.long, device=b1.device)
+        elif any(t.requires_grad for t in (b1, g1, b2, g2)):
+            inverse = torch.arange(pairs.shape[0], device=b1.device)  # keep every entry's gradient
+        else:
+            pairs, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+        n1 = int(a1.sum())
+        i1 = torch.zeros(w1.shape, dtype=torch.long, device=w1.device).masked_scatter(a1, inverse[:n1])
+        if same_inputs:
+            i2 = i1
+        else:
+            i2 = torch.zeros(w2.shape, dtype=torch.long, device=w2.device).masked_scatter(a2, inverse[n1:])
+        table = embed_angles(pairs[:, 0], pairs[:, 1]) / lengthscale  # (*batch, U, 4)
+        table = table.expand(*batch_shape, *table.shape[-2:])
+        s = outputscale.expand(batch_shape)[..., None, None]
+        return cls(table, table, s, i1, w1, i2, w2)
+
+    # ---- the LinearOperator contract -----------------------------------------------------
+    def _size(self) -> torch.Size:
+        return torch.Size((*self.left_index.shape[:-1], self.right_index.shape[-2]))
+
+    def _transpose_nonbatch(self) -> RFTKernelLinearOperator:
+        return self.__class__(self.x2, self.x1, self.outputscale, self.right_index, self.right_weight,
+                              self.left_index, self.left_weight)
+
+    def _row_chunk(self, per_row: int) -> int:
+        """Rows per block so that a block of ``per_row`` elements per row fits the budget."""
+        itemsize = self.x1.element_size()
+        nb = max(1, math.prod(self.batch_shape))
+        return max(1, memory_budget.value() // max(1, itemsize * nb * per_row))
+
+    def _matmul(self, rhs: Tensor) -> Tensor:
+        B = torch.broadcast_shapes(self.batch_shape, rhs.shape[:-2])
+        if B != self.batch_shape:
+            return self._expand_batch(B)._matmul(rhs)
+        rhs = rhs.expand(*B, *rhs.shape[-2:]) if rhs.shape[:-2] != B else rhs
+        U1, U2 = self.x1.shape[-2], self.x2.shape[-2]
+        # R^T rhs: scatter each observation's weighted rhs row onto its segments' table rows
+        v = _scatter_rows(self.right_weight[..., None] * rhs[..., :, None, :], self.right_index, U2)
+        chunk = self._row_chunk(U2)
+        kv = torch.cat([rbf(self.x1[..., i:i + chunk, :], self.x2, self.outputscale) @ v
+                        for i in range(0, U1, chunk)], dim=-2)
+        return (self.left_weight[..., None] * _gather_rows(kv, self.left_index)).sum(-2)
+
+    def to_dense(self) -> Tensor:
+        T1 = self.left_index.shape[-2]
+        M1 = self.left_index.shape[-1]
+        U2 = self.x2.shape[-2]
+        T2, M2 = self.right_index.shape[-2:]
+        chunk = self._row_chunk(M1 * U2 + T2 * M2)
+        blocks = []
+        for i in range(0, T1, chunk):
+            li, lw = self.left_index[..., i:i + chunk, :], self.left_weight[..., i:i + chunk, :]
+            c = li.shape[-2]
+            seg = _gather_rows(self.x1, li).reshape(*self.batch_shape, c * M1, -1)
+            k = rbf(seg, self.x2, self.outputscale).reshape(*self.batch_shape, c, M1, U2)
+            g = (lw[..., None] * k).sum(-2)  # (*B, c, U2): W_rows K
+            cols = _gather_rows(g.mT, self.right_index)  # (*B, T2, M2, c)
+            blocks.append((self.right_weight[..., None] * cols).sum(-2).mT)
+        return torch.cat(blocks, dim=-2)
+
+    def _segment_block(self, x1, x2, s, lw, rw) -> Tensor:
+        d2 = (x1[..., :, None, :] - x2[..., None, :, :]).pow(2).sum(-1)
+        return (lw[..., :, None] * (s * torch.exp(-0.5 * d2)) * rw[..., None, :]).sum((-1, -2))
+
+    def _diagonal(self) -> Tensor:
+        x1 = _gather_rows(self.x1, self.left_index)
+        x2 = _gather_rows(self.x2, self.right_index)
+        return self._segment_block(x1, x2, self.outputscale[..., None, :, :], self.left_weight, self.right_weight)
+
+    def _get_indices(self, row_index, col_index, *batch_indices) -> Tensor:
+        bl = tuple(b.unsqueeze(-1) for b in batch_indices)
+        li = self.left_index[(*batch_indices, row_index)]
+        ri = self.right_index[(*batch_indices, col_index)]
+        lw = self.left_weight[(*batch_indices, row_index)]
+        rw = self.right_weight[(*batch_indices, col_index)]
+        x1 = self.x1[(*bl, li)]
+        x2 = self.x2[(*bl, ri)]
+        s = self.outputscale[(*batch_indices,)] if batch_indices else self.outputscale
+        return self._segment_block(x1, x2, s, lw, rw)
+
+    def _getitem(self, row_index, col_index, *batch_indices) -> LinearOperator:
+        if any(torch.is_tensor(b) for b in batch_indices):
+            return super()._getitem(row_index, col_index, *batch_indices)
+        b = tuple(batch_indices)
+        return self.__class__(
+            self.x1[b], self.x2[b], self.outputscale[b],
+            self.left_index[(*b, row_index)], self.left_weight[(*b, row_index)],
+            self.right_index[(*b, col_index)], self.right_weight[(*b, col_index)],
+        )
+
+    def to(self, *args, **kwargs) -> RFTKernelLinearOperator:
+        """Move to a device / floating dtype; the index tensors stay long."""
+        from linear_operator.utils.generic import _to_helper
+
+        device, dtype = _to_helper(*args, **kwargs)
+        return self.__class__(*(a.to(device=device, dtype=dtype if a.dtype.is_floating_point else None)
+                                for a in self._args))
+
+    def _expand_batch(self, batch_shape) -> RFTKernelLinearOperator:
+        return self.__class__(*(a.expand(*batch_shape, *a.shape[-2:]) for a in self._args))
