@@ -93,6 +93,7 @@ class RFTCompositeKernel(Kernel):
     def __init__(self, base_kernel: AngleRBFKernel, **kwargs) -> None:
         super().__init__(batch_shape=base_kernel.batch_shape, **kwargs)
         self.base_kernel = base_kernel
+        self._structure_key, self._structure = None, None
 
     def forward(self, x1: Tensor, x2: Tensor, diag: bool = False, last_dim_is_batch: bool = False, **params):
         if last_dim_is_batch:
@@ -102,10 +103,20 @@ class RFTCompositeKernel(Kernel):
         if diag:
             return _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
         batch = torch.broadcast_shapes(x1.shape[:-2], x2.shape[:-2], self.batch_shape)
-        return RFTKernelLinearOperator.from_segments(
-            b1, g1, w1, b2, g2, w2, self.base_kernel.lengthscale, self.base_kernel.outputscale, batch,
-            same_inputs=x1 is x2 or (x1.shape == x2.shape and torch.equal(x1, x2)),
-        )
+        # The index structure (compressed segments, distinct angle pairs) depends only on the
+        # inputs, not on the hyperparameters: reuse it while the same input tensors come back
+        # (every training step).
+        key = (id(x1), x1._version, id(x2), x2._version, tuple(x1.shape), tuple(x2.shape), batch,
+               x1.requires_grad or x2.requires_grad)
+        if self._structure_key != key or x1.requires_grad or x2.requires_grad:
+            structure = RFTKernelLinearOperator.segment_structure(
+                b1, g1, w1, b2, g2, w2, batch, same_inputs=x1 is x2 or (x1.shape == x2.shape and torch.equal(x1, x2)))
+            if not (x1.requires_grad or x2.requires_grad):
+                self._structure_key, self._structure = key, structure
+        else:
+            structure = self._structure
+        return RFTKernelLinearOperator.from_structure(
+            structure, self.base_kernel.lengthscale, self.base_kernel.outputscale, batch)
 
     def num_outputs_per_input(self, x1: Tensor, x2: Tensor) -> int:
         return 1

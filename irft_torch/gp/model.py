@@ -186,9 +186,9 @@ class InverseRFT(nn.Module):
         opt = torch.optim.Adam(self.gp.parameters(), lr=lr)
         history: list[float] = []
         bar = tqdm(range(int(n_iter)), desc="I-RFT fit", disable=not progress, leave=False)
-        i = 0
+        step = 0
         try:
-            for i in bar:
+            for step in bar:
                 opt.zero_grad(set_to_none=True)
                 with self._settings():
                     out = self.gp(*self.gp.train_inputs)
@@ -204,7 +204,7 @@ class InverseRFT(nn.Module):
         except NotPSDError as e:
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite even with gpytorch's jitter "
-                f"(step {i}); hyperparameters then: {self.hyperparameters()}. Try a lower lr, a larger noise "
+                f"(step {step}); hyperparameters then: {self.hyperparameters()}. Try a lower lr, a larger noise "
                 f"floor, or float64."
             ) from e
         finally:

@@ -35,9 +35,17 @@ class memory_budget:
 
 
 def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
-    """outputscale * exp(-|a_i - b_j|^2 / 2) for pre-scaled inputs a (..., n, D), b (..., m, D)."""
-    sq = a.pow(2).sum(-1)[..., :, None] + b.pow(2).sum(-1)[..., None, :] - 2 * a @ b.mT
-    return outputscale * torch.exp(-0.5 * sq.clamp_min(0.0))
+    """outputscale * exp(-|a_i - b_j|^2 / 2) for pre-scaled inputs a (..., n, D), b (..., m, D).
+
+    One matmul of augmented vectors gives the exponent: [a, log s - |a|^2/2, 1] . [b, 1, -|b|^2/2]
+    = log s - |a - b|^2 / 2, then one exp: two passes over the (n, m) block instead of six.
+    """
+    log_s = torch.log(outputscale).expand(*a.shape[:-2], 1, 1).expand(*a.shape[:-1], 1)
+    one_a = torch.ones_like(a[..., :1])
+    one_b = torch.ones_like(b[..., :1])
+    a_aug = torch.cat([a, log_s - 0.5 * a.pow(2).sum(-1, keepdim=True), one_a], dim=-1)
+    b_aug = torch.cat([b, one_b, -0.5 * b.pow(2).sum(-1, keepdim=True)], dim=-1)
+    return torch.exp(a_aug @ b_aug.mT)
 
 
 def _gather_rows(table: Tensor, index: Tensor) -> Tensor:
@@ -100,15 +108,14 @@ class RFTKernelLinearOperator(LinearOperator):
         self.right_index, self.right_weight = right_index, right_weight
 
     # ---- construction from segments ------------------------------------------------------
-    @classmethod
-    def from_segments(cls, b1: Tensor, g1: Tensor, w1: Tensor, b2: Tensor, g2: Tensor, w2: Tensor,
-                      lengthscale: Tensor, outputscale: Tensor, batch_shape: torch.Size,
-                      same_inputs: bool = False) -> RFTKernelLinearOperator:
-        """Build W1 K W2^T from per-row segment angles and weights (each (*batch, T, M)).
+    @staticmethod
+    def segment_structure(b1: Tensor, g1: Tensor, w1: Tensor, b2: Tensor, g2: Tensor, w2: Tensor,
+                          batch_shape: torch.Size, same_inputs: bool = False) -> dict:
+        """Compressed segments and their distinct angle pairs; independent of hyperparameters.
 
-        ``lengthscale`` (*batch, 1, 4) and ``outputscale`` (*batch,) are the base kernel's.
+        Inputs are per-row segment angles and weights (*batch, T, M). Zero-weight segments are
+        dropped; when no input needs a gradient, equal angle pairs share one table row.
         """
-        from .kernels import embed_angles
 
         def expand(*v):
             return [t.expand(*batch_shape, *t.shape[-2:]) for t in v]
@@ -134,10 +141,26 @@ class RFTKernelLinearOperator(LinearOperator):
             i2 = i1
         else:
             i2 = torch.zeros(w2.shape, dtype=torch.long, device=w2.device).masked_scatter(a2, inverse[n1:])
+        return {"pairs": pairs, "i1": i1, "w1": w1, "i2": i2, "w2": w2}
+
+    @classmethod
+    def from_structure(cls, structure: dict, lengthscale: Tensor, outputscale: Tensor,
+                       batch_shape: torch.Size) -> RFTKernelLinearOperator:
+        """W1 K W2^T with the base kernel's ``lengthscale`` (*batch, 1, 4), ``outputscale`` (*batch,)."""
+        from .kernels import embed_angles
+
+        pairs = structure["pairs"]
         table = embed_angles(pairs[:, 0], pairs[:, 1]) / lengthscale  # (*batch, U, 4)
         table = table.expand(*batch_shape, *table.shape[-2:])
         s = outputscale.expand(batch_shape)[..., None, None]
-        return cls(table, table, s, i1, w1, i2, w2)
+        return cls(table, table, s, structure["i1"], structure["w1"], structure["i2"], structure["w2"])
+
+    @classmethod
+    def from_segments(cls, b1, g1, w1, b2, g2, w2, lengthscale, outputscale, batch_shape,
+                      same_inputs: bool = False) -> RFTKernelLinearOperator:
+        """Build W1 K W2^T from per-row segment angles and weights (each (*batch, T, M))."""
+        structure = cls.segment_structure(b1, g1, w1, b2, g2, w2, batch_shape, same_inputs)
+        return cls.from_structure(structure, lengthscale, outputscale, batch_shape)
 
     # ---- the LinearOperator contract -----------------------------------------------------
     def _size(self) -> torch.Size:
@@ -178,7 +201,7 @@ class RFTKernelLinearOperator(LinearOperator):
             c = li.shape[-2]
             seg = _gather_rows(self.x1, li).reshape(*self.batch_shape, c * M1, -1)
             k = rbf(seg, self.x2, self.outputscale).reshape(*self.batch_shape, c, M1, U2)
-            g = (lw[..., None] * k).sum(-2)  # (*B, c, U2): W_rows K
+            g = (lw[..., None, :] @ k).squeeze(-2)  # (*B, c, U2): W_rows K, as one batched matmul
             cols = _gather_rows(g.mT, self.right_index)  # (*B, T2, M2, c)
             blocks.append((self.right_weight[..., None] * cols).sum(-2).mT)
         return torch.cat(blocks, dim=-2)

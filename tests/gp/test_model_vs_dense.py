@@ -34,7 +34,8 @@ def set_hypers(model, seed=1):
 
 
 def references(model, c, f):
-    ls, os, noise = model.kernel.lengthscale.detach(), model.kernel.outputscale.detach(), model.likelihood.noise.detach()
+    ls, os = model.kernel.lengthscale.detach(), model.kernel.outputscale.detach()
+    noise = model.likelihood.noise.detach()
     out = []
     for a, w in enumerate((c.weight_x, c.weight_z)):
         mean = None
