@@ -88,6 +88,9 @@ class InverseRFT(nn.Module):
         dtype: inference dtype (float64 by default; float32 works).
         solver: "cholesky" (exact, the default) or "gpytorch" (use gpytorch's own settings, e.g.
             CG/Lanczos above ``gpytorch.settings.max_cholesky_size``).
+        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an
+            angle (an I-toe samples beta = 0 only) the likelihood cannot move it, so it sets how far
+            the map extrapolates.
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -97,7 +100,8 @@ class InverseRFT(nn.Module):
     """
 
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
-                 dtype: torch.dtype = torch.float64, solver: str = "cholesky") -> None:
+                 dtype: torch.dtype = torch.float64, solver: str = "cholesky",
+                 lengthscale: float = 1.0) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -105,6 +109,8 @@ class InverseRFT(nn.Module):
             raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
         if prior_mean not in ("zero", "physics"):
             raise ValueError(f"prior_mean must be 'zero' or 'physics', got {prior_mean!r}")
+        if not (math.isfinite(lengthscale) and lengthscale > 0.05):
+            raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
         if solver not in ("cholesky", "gpytorch"):
             raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
         T = len(contacts)
@@ -117,6 +123,7 @@ class InverseRFT(nn.Module):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
         self.prior_mean_kind, self.solver, self.dtype = prior_mean, solver, dtype
+        self.init_lengthscale = float(lengthscale)
         self.train_contacts, self.train_forces = c, f
         self.n_segments = c.n_segments
         x, y = encode_contacts(c), f.T.contiguous()
@@ -141,7 +148,7 @@ class InverseRFT(nn.Module):
                 mean.scales = scales
                 resid = y - scales[:, None] * shape_f
             base.outputscale = (resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300)).clamp_min(1e-6)
-            base.lengthscale = torch.ones(2, 1, 4, dtype=dtype)
+            base.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.likelihood.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         self.loss_history: list[float] = []
         self.eval()
@@ -315,6 +322,7 @@ class InverseRFT(nn.Module):
             "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
             "forces": self.train_forces.cpu(),
             "options": {"prior_mean": self.prior_mean_kind, "tied_noise": self.likelihood.tied,
+                        "lengthscale": self.init_lengthscale,
                         "solver": self.solver, "dtype": str(self.dtype).replace("torch.", "")},
             "state_dict": self.state_dict(),
             "loss_history": self.loss_history,

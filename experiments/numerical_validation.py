@@ -1,0 +1,14 @@
+"""The I-RFT paper's numerical validation (Section V-A): Tables I and II and Fig. 5, rerun.
+
+    python experiments/numerical_validation.py [--out experiments/results] [--quick]
+
+Same as ``irft reproduce``; the study itself lives in ``irft_torch.reproduce`` so that the
+installed command can run it.
+"""
+
+import sys
+
+from irft_torch.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main(["reproduce", *sys.argv[1:]]))

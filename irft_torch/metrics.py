@@ -1,0 +1,127 @@
+"""Map and force metrics, sampling coverage and redundancy, calibration.
+
+All functions take tensors of equal shape (an estimate and the ground truth over an evaluation
+grid or a time series) and return Python floats. Percentages are in percent (0-100).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .rft.contacts import Contacts
+
+__all__ = [
+    "rmse", "mae", "r2", "pearson", "acr_percent", "rmse_percent", "mae_percent", "calibration",
+    "coverage_area", "redundancy", "map_metrics",
+]
+
+
+def _pair(estimate: Tensor, truth: Tensor) -> tuple[Tensor, Tensor]:
+    e = torch.as_tensor(estimate, dtype=torch.float64).reshape(-1)
+    t = torch.as_tensor(truth, dtype=torch.float64).reshape(-1)
+    if e.shape != t.shape:
+        raise ValueError(f"estimate has {e.numel()} values, truth has {t.numel()}")
+    if e.numel() == 0:
+        raise ValueError("empty estimate")
+    if not (torch.isfinite(e).all() and torch.isfinite(t).all()):
+        raise ValueError("estimate or truth contains NaN or inf")
+    return e, t
+
+
+def _range(t: Tensor) -> float:
+    r = float(t.max() - t.min())
+    if r <= 0:
+        raise ValueError("the ground truth is constant: a range-normalized metric is undefined")
+    return r
+
+
+def rmse(estimate, truth) -> float:
+    """sqrt(mean((estimate - truth)^2))."""
+    e, t = _pair(estimate, truth)
+    return float((e - t).pow(2).mean().sqrt())
+
+
+def mae(estimate, truth) -> float:
+    """mean(|estimate - truth|)."""
+    e, t = _pair(estimate, truth)
+    return float((e - t).abs().mean())
+
+
+def r2(estimate, truth) -> float:
+    """Coefficient of determination 1 - SS_res / SS_tot (can be negative)."""
+    e, t = _pair(estimate, truth)
+    ss_tot = float((t - t.mean()).pow(2).sum())
+    if ss_tot <= 0:
+        raise ValueError("the ground truth is constant: R^2 is undefined")
+    return 1.0 - float((e - t).pow(2).sum()) / ss_tot
+
+
+def pearson(estimate, truth) -> float:
+    """Pearson correlation coefficient (nan if either is constant)."""
+    e, t = _pair(estimate, truth)
+    ec, tc = e - e.mean(), t - t.mean()
+    den = float(ec.norm() * tc.norm())
+    return float((ec * tc).sum()) / den if den > 0 else math.nan
+
+
+def acr_percent(estimate, truth, tolerance: float = 0.05) -> float:
+    """Accurate-coverage ratio: % of points whose |error| <= tolerance x range(truth) (paper's ACR%)."""
+    e, t = _pair(estimate, truth)
+    return 100.0 * float(((e - t).abs() <= tolerance * _range(t)).double().mean())
+
+
+def rmse_percent(estimate, truth) -> float:
+    """RMSE as % of range(truth)."""
+    e, t = _pair(estimate, truth)
+    return 100.0 * rmse(e, t) / _range(t)
+
+
+def mae_percent(estimate, truth) -> float:
+    """MAE as % of range(truth)."""
+    e, t = _pair(estimate, truth)
+    return 100.0 * mae(e, t) / _range(t)
+
+
+def calibration(mean, stddev, truth, level: float = 0.95) -> float:
+    """Share (0-1) of points whose truth lies in the central ``level`` posterior interval."""
+    m, t = _pair(mean, truth)
+    s, _ = _pair(stddev, truth)
+    z = math.sqrt(2) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
+    return float(((m - t).abs() <= z * s).double().mean())
+
+
+def _cells(contacts: Contacts, n_cells: int) -> Tensor:
+    """Flat indices of the (beta, gamma) cells of every segment in contact."""
+    on = (contacts.weight_z != 0) | (contacts.weight_x != 0)
+    b, g = contacts.beta[on].double(), contacts.gamma[on].double()
+    ib = ((b + math.pi / 2) / math.pi * n_cells).floor().clamp(0, n_cells - 1).long()
+    ig = ((g + math.pi / 2) / math.pi * n_cells).floor().clamp(0, n_cells - 1).long()
+    return ib * n_cells + ig
+
+
+def coverage_area(contacts: Contacts, n_cells: int = 50) -> float:
+    """Share (0-1) of an n_cells x n_cells grid over the canonical square holding at least one
+    segment in contact (the sampled area of the paper's coverage figure)."""
+    cells = _cells(contacts, n_cells)
+    return cells.unique().numel() / n_cells**2
+
+
+def redundancy(contacts: Contacts, n_cells: int = 50) -> float:
+    """1 - N_unique / N_total over segments in contact, N_unique counting distinct cells of an
+    n_cells x n_cells grid (so that angles equal to round-off count as one)."""
+    cells = _cells(contacts, n_cells)
+    if cells.numel() == 0:
+        raise ValueError("no segment is in contact")
+    return 1.0 - cells.unique().numel() / cells.numel()
+
+
+def map_metrics(estimate, truth) -> dict[str, float]:
+    """The paper's Table I row: rmse, mae, r2, pearson, acr_percent (and rmse/mae percent)."""
+    return {
+        "rmse": rmse(estimate, truth), "mae": mae(estimate, truth), "r2": r2(estimate, truth),
+        "pearson": pearson(estimate, truth), "acr_percent": acr_percent(estimate, truth),
+        "rmse_percent": rmse_percent(estimate, truth), "mae_percent": mae_percent(estimate, truth),
+    }

@@ -1,0 +1,330 @@
+"""The I-RFT paper's numerical validation (Section V-A, Tables I and II, Fig. 5), rerun.
+
+Used by ``irft reproduce`` and ``experiments/numerical_validation.py``. Every choice the paper
+leaves open is a field of ``StudySettings`` and is written into the report.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from tqdm.auto import tqdm
+
+from . import metrics
+from .gp.model import InverseRFT
+from .rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
+
+__all__ = ["StudySettings", "PAPER_TABLE1", "PAPER_TABLE2", "run_study"]
+
+CONFIGS = ("I-toe gait 1", "I-toe gait 2", "C-toe gait 1", "C-toe gait 2")
+
+# The paper's Table I: (rmse, mae, r2, pearson, acr%) per (config, axis).
+PAPER_TABLE1 = {
+    ("I-toe gait 1", "X"): (0.0552, 0.0356, 0.1652, 0.6757, 49.59),
+    ("I-toe gait 1", "Z"): (0.1301, 0.0797, 0.0525, 0.4348, 35.28),
+    ("I-toe gait 2", "X"): (0.0369, 0.0275, 0.6271, 0.8562, 41.72),
+    ("I-toe gait 2", "Z"): (0.0385, 0.0254, 0.9169, 0.9841, 66.20),
+    ("C-toe gait 1", "X"): (0.0236, 0.0186, 0.8477, 0.9246, 49.67),
+    ("C-toe gait 1", "Z"): (0.0305, 0.0242, 0.9480, 0.9753, 54.86),
+    ("C-toe gait 2", "X"): (0.0332, 0.0232, 0.6983, 0.8364, 47.18),
+    ("C-toe gait 2", "Z"): (0.0201, 0.0133, 0.9772, 0.9906, 87.05),
+}
+# The paper's Table II: RMSE% and MAE% at noise variance 0 / 0.05 / 0.2.
+PAPER_TABLE2 = {
+    ("I-toe gait 1", "X"): ((18.26, 18.41, 19.33), (11.63, 12.42, 13.40)),
+    ("I-toe gait 1", "Z"): ((28.97, 28.11, 22.65), (17.30, 20.71, 16.95)),
+    ("I-toe gait 2", "X"): ((11.79, 14.42, 15.31), (8.79, 10.81, 11.56)),
+    ("I-toe gait 2", "Z"): ((8.89, 10.03, 16.62), (5.73, 6.04, 10.76)),
+    ("C-toe gait 1", "X"): ((6.95, 9.36, 25.42), (5.49, 7.61, 21.21)),
+    ("C-toe gait 1", "Z"): ((7.53, 11.95, 16.97), (5.79, 9.75, 12.44)),
+    ("C-toe gait 2", "X"): ((10.72, 12.86, 14.55), (7.64, 9.44, 10.54)),
+    ("C-toe gait 2", "Z"): ((3.68, 16.18, 35.37), (2.41, 13.50, 23.11)),
+}
+
+
+@dataclass
+class StudySettings:
+    """Every choice of the study; the paper's where it states one, ours (documented) elsewhere."""
+
+    toe_length: float = 0.020  # I-toe, m (paper)
+    toe_radius: float = 0.020  # C-toe, m (paper)
+    toe_width: float = 0.008  # m (paper)
+    n_segments: int = 10  # (paper)
+    c_opening: str = "left"  # ours: the C's open side faces -x, its convex side leads the motion
+    rectangle: tuple[float, float, float] = (0.05, 0.40, 0.05)  # penetration, shear, extraction (paper)
+    rectangle_start: tuple[float, float] = (-0.20, 0.0)  # ours: the toe starts at the surface
+    spline_points: tuple = ((-0.20, 0.0), (-0.10, -0.05), (0.10, 0.0), (0.20, -0.05))  # (paper), m
+    n_steps: int = 100  # ours: samples per path, evenly spaced in arc length (fixed rate, 0.02 m/s)
+    truth_scale: tuple[float, float] = (0.452, 0.417)  # implied by the paper's Table I (rft_facts.md)
+    grid: int = 50  # ours: evaluation grid of grid x grid cell centres over [-pi/2, pi/2]^2
+    n_iter: int = 150  # ours: Adam steps
+    lr: float = 0.05  # ours
+    tied_noise: bool = True  # the paper's single noise variance
+    noise_levels: tuple[float, ...] = (0.0, 0.05, 0.2)  # variance of the multiplicative factor (paper)
+    noise_seeds: tuple[int, ...] = (0, 1, 2)  # ours
+    lengthscale: float = 1.0  # ours: initial lengthscale of every embedding dimension
+    lengthscale_sensitivity: tuple[float, ...] = (2.0, 4.0)  # extra I-toe fits in the report
+    seed: int = 0
+    quick: bool = False
+
+    @classmethod
+    def quick_settings(cls) -> StudySettings:
+        return cls(n_steps=60, grid=30, n_iter=100, noise_levels=(0.0, 0.2), noise_seeds=(0,),
+                   lengthscale_sensitivity=(), quick=True)
+
+
+@dataclass
+class FitResult:
+    config: str
+    prior_mean: str
+    noise: float
+    seed: int
+    truth: str
+    lengthscale: float = 1.0
+    metrics: dict = field(default_factory=dict)  # axis -> metrics dict
+    maps: dict = field(default_factory=dict)
+
+
+def _toe(config: str, s: StudySettings):
+    if config.startswith("I"):
+        return IToe(s.toe_length, s.toe_width, n_segments=s.n_segments)
+    return CToe(s.toe_radius, s.toe_width, n_segments=s.n_segments, opening=s.c_opening)
+
+
+def _path(config: str, s: StudySettings):
+    if config.endswith("1"):
+        return rectangle_path(*s.rectangle, start=s.rectangle_start, n_steps=s.n_steps)
+    return spline_path(s.spline_points, n_steps=s.n_steps)
+
+
+def _grid(s: StudySettings) -> tuple[torch.Tensor, torch.Tensor]:
+    edges = torch.linspace(-math.pi / 2, math.pi / 2, s.grid + 1, dtype=torch.float64)
+    c = (edges[1:] + edges[:-1]) / 2
+    return torch.meshgrid(c, c, indexing="ij")
+
+
+def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None) -> FitResult:
+    toe, path = _toe(config, s), _path(config, s)
+    c = contacts(toe, path)
+    f = forces(truth_map, c)
+    if noise > 0:
+        g = torch.Generator().manual_seed(1000 * seed + int(noise * 1000))
+        f = f * (1 + math.sqrt(noise) * torch.randn(f.shape, generator=g, dtype=f.dtype))
+    torch.manual_seed(s.seed)
+    ls = s.lengthscale if lengthscale is None else lengthscale
+    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls)
+    model.fit(n_iter=s.n_iter, lr=s.lr, progress=False)
+    B, G = _grid(s)
+    post = model.stress_map(B, G)
+    true = truth_map(B, G)
+    res = FitResult(config, prior_mean, noise, seed, truth_name, ls)
+    for a, axis in enumerate("XZ"):
+        m = metrics.map_metrics(post.mean[..., a], true[..., a])
+        m["calibration95"] = metrics.calibration(post.mean[..., a], post.stddev[..., a], true[..., a])
+        res.metrics[axis] = m
+    if keep_maps:
+        res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
+                    "truth": true, "B": B, "G": G, "coverage": metrics.coverage_area(c),
+                    "redundancy": metrics.redundancy(c)}
+    return res
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.4f}" if abs(v) < 100 else f"{v:.2f}"
+
+
+def run_study(out_dir: str | Path = "experiments/results", settings: StudySettings | None = None,
+              progress: bool = True, figures: bool = True) -> dict:
+    """Run Table I (zero and physics prior means, the paper's scale and the unscaled generic map)
+    and the Table II noise study; write CSVs, figures and ``report.md`` into ``out_dir``."""
+    s = settings or StudySettings()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_default_dtype(torch.float64)
+    paper_truth = FourierStressMap.generic(*s.truth_scale)
+    unscaled = FourierStressMap.generic()
+    jobs = []
+    for config in CONFIGS:
+        jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", True))
+        jobs.append((config, "physics", 0.0, 0, paper_truth, "paper scale", False))
+        jobs.append((config, "zero", 0.0, 0, unscaled, "unscaled", False))
+        for noise in s.noise_levels:
+            if noise == 0:
+                continue
+            for seed in s.noise_seeds:
+                jobs.append((config, "zero", noise, seed, paper_truth, "paper scale", False))
+        if config.startswith("I"):
+            for ls in s.lengthscale_sensitivity:
+                jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", False, ls))
+    t0 = time.perf_counter()
+    results: list[FitResult] = []
+    for job in tqdm(jobs, desc="irft reproduce", disable=not progress):
+        results.append(_fit_one(*job[:6], s, keep_maps=job[6], lengthscale=job[7] if len(job) > 7 else None))
+    elapsed = time.perf_counter() - t0
+
+    def pick(config, prior="zero", noise=0.0, truth="paper scale", ls=None):
+        ls = s.lengthscale if ls is None else ls
+        return [r for r in results
+                if (r.config, r.prior_mean, r.noise, r.truth, r.lengthscale) == (config, prior, noise, truth, ls)]
+
+    # Table I (zero mean, the paper's model, at the paper's scale)
+    cols = ["rmse", "mae", "r2", "pearson", "acr_percent"]
+    with open(out / "table1.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["config", "axis", *cols])
+        for config in CONFIGS:
+            r = pick(config)[0]
+            for axis in "XZ":
+                w.writerow([config, axis, *(_fmt(r.metrics[axis][k]) for k in cols)])
+    with open(out / "table1_prior_means.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["config", "axis", "truth", "prior_mean", *cols, "calibration95"])
+        for config in CONFIGS:
+            for truth, prior in (("paper scale", "zero"), ("paper scale", "physics"), ("unscaled", "zero")):
+                r = pick(config, prior, 0.0, truth)[0]
+                for axis in "XZ":
+                    w.writerow([config, axis, truth, prior, *(_fmt(r.metrics[axis][k]) for k in cols),
+                                _fmt(r.metrics[axis]["calibration95"])])
+    # Table II: mean and spread over seeds
+    table2 = {}
+    with open(out / "table2.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["config", "axis", "noise", "rmse_percent", "mae_percent", "rmse_percent_std", "mae_percent_std",
+                    "n_seeds"])
+        for config in CONFIGS:
+            for axis in "XZ":
+                for noise in s.noise_levels:
+                    rs = pick(config, "zero", noise)
+                    rp = torch.tensor([r.metrics[axis]["rmse_percent"] for r in rs])
+                    mp = torch.tensor([r.metrics[axis]["mae_percent"] for r in rs])
+                    sd = (lambda v: float(v.std()) if len(v) > 1 else 0.0)  # noqa: E731
+                    table2[(config, axis, noise)] = (float(rp.mean()), float(mp.mean()), sd(rp), sd(mp))
+                    w.writerow([config, axis, noise, _fmt(float(rp.mean())), _fmt(float(mp.mean())),
+                                _fmt(sd(rp)), _fmt(sd(mp)), len(rs)])
+    if figures:
+        _figures(out, [pick(c)[0] for c in CONFIGS])
+    _report(out, s, results, pick, table2, elapsed)
+    return {"results": results, "elapsed_s": elapsed, "out_dir": str(out)}
+
+
+def _figures(out: Path, results: list[FitResult]) -> None:
+    from . import plotting
+
+    plt = plotting.plt
+    ext = (-math.pi / 2, math.pi / 2, -math.pi / 2, math.pi / 2)
+    for r in results:
+        m = r.maps
+        fig = plt.figure(figsize=(16, 8), constrained_layout=True)
+        gs = fig.add_gridspec(2, 5)
+        plotting.plot_toe_path(m["toe"], m["path"], ax=fig.add_subplot(gs[0, :2]))
+        plotting.plot_coverage(m["contacts"], ax=fig.add_subplot(gs[1, :2]),
+                               title=f"coverage {100 * m['coverage']:.1f} %, redundancy {m['redundancy']:.2f}")
+        for a, axis in enumerate("xz"):
+            for j, (vals, title, cmap, sym) in enumerate((
+                    (m["mean"][..., a], f"reconstructed alpha_{axis}", "RdBu_r", True),
+                    ((m["mean"] - m["truth"])[..., a], f"error alpha_{axis}", "RdBu_r", True),
+                    (m["std"][..., a], f"posterior std alpha_{axis}", "viridis", False))):
+                ax = fig.add_subplot(gs[a, 2 + j])
+                plotting._image(ax, vals, title, cmap=cmap, symmetric=sym)
+                ax.set_xlim(ext[0], ext[1])
+        fig.suptitle(r.config)
+        plotting.save(fig, out / f"fig5_{r.config.replace(' ', '_').replace('-', '')}.png")
+
+
+def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None:
+    lines = ["# I-RFT numerical validation, rerun", "",
+             f"Written by `irft reproduce`{' --quick' if s.quick else ''} in {elapsed:.0f} s "
+             f"({len(results)} fits). Tables: `table1.csv`, `table1_prior_means.csv`, `table2.csv`; "
+             "figures `fig5_*.png`.", "",
+             "## Choices (the paper's where it states them, ours otherwise)", "",
+             "| setting | value |", "|---|---|"]
+    for f in dataclasses.fields(s):
+        lines.append(f"| {f.name} | {getattr(s, f.name)} |")
+    lines += ["",
+              "- Ground truth: the generic Li et al. map scaled by (0.452, 0.417), the scale implied by the "
+              "paper's Table I (std of its truth 0.0604 / 0.1335 over the square). Absolute RMSEs compare with "
+              "the paper's only at that scale; the unscaled map is reported too.",
+              "- The toe does not rotate along either path (the paper does not say it does). The I-toe is "
+              "horizontal; the C-toe's open side faces -x (`c_opening`), so it is not symmetric about the "
+              "vertical: with a cup (open side up) alpha_x(beta, +-pi/2) is odd in beta and F_x cancels "
+              "exactly while the toe penetrates and extracts, leaving only the shear to inform alpha_x.",
+              "- Model: the paper's (two GPs, ARD RBF on (sin 2b, cos 2b, sin g, cos g), tied Gaussian noise, "
+              "zero mean), exact marginal likelihood, Adam; evaluation on grid cell centres.",
+              "- Table II noise: each force sample and axis multiplied by 1 + sqrt(var) N(0, 1); RMSE% and MAE% "
+              "normalized by the range of the truth over our grid (the paper's Table II implies a per-run "
+              "normalization that differs from row to row; we use one range per axis for every row).", "",
+              "## Table I (zero mean, paper's scale): ours next to the paper's", "",
+              "| config | axis | RMSE ours / paper | MAE ours / paper | R2 ours / paper | Pearson ours / paper "
+              "| ACR% ours / paper | RMSE and ACR at least as good |", "|---|---|---|---|---|---|---|---|"]
+    keys = ["rmse", "mae", "r2", "pearson", "acr_percent"]
+    worse = []
+    for config in CONFIGS:
+        r = pick(config)[0]
+        for axis in "XZ":
+            p = PAPER_TABLE1[(config, axis)]
+            ours = [r.metrics[axis][k] for k in keys]
+            ok = ours[0] <= p[0] and ours[4] >= p[4]
+            if not ok:
+                worse.append(f"{config} {axis}")
+            cells = " | ".join(f"{_fmt(o)} / {_fmt(q)}" for o, q in zip(ours, p))
+            lines.append(f"| {config} | {axis} | {cells} | {'yes' if ok else 'no'} |")
+    lines += ["", f"Cells where our RMSE or ACR is worse than the paper's: {', '.join(worse) or 'none'}.", "",
+              "Why: the I-toe samples only beta = 0 (see the lengthscale sensitivity below: what the map does "
+              "away from beta = 0 is the prior's choice, not the data's), and the paper's C-toe placement and "
+              "rotation along the path are not stated; ours does not rotate, so on gait 1 every shear sample "
+              "repeats the same 10 angle pairs and only their weighted sum is constrained. The physics-informed "
+              "mean removes both limits when the medium has the generic shape (next table); the noise-free "
+              "truth here is exactly that shape, so its near-zero errors are an upper bound, not a claim about "
+              "real media (see the DEM validation).", "",
+              "## Zero mean vs physics-informed mean (generic shape x learned scales)", "",
+              "| config | axis | RMSE zero / physics | ACR% zero / physics | 95% calibration zero / physics "
+              "| RMSE unscaled truth (zero mean) |", "|---|---|---|---|---|---|"]
+    for config in CONFIGS:
+        z, ph, un = pick(config)[0], pick(config, "physics")[0], pick(config, "zero", 0.0, "unscaled")[0]
+        for axis in "XZ":
+            mz, mp = z.metrics[axis], ph.metrics[axis]
+            lines.append(f"| {config} | {axis} | {_fmt(mz['rmse'])} / {_fmt(mp['rmse'])} | "
+                         f"{_fmt(mz['acr_percent'])} / {_fmt(mp['acr_percent'])} | "
+                         f"{_fmt(mz['calibration95'])} / {_fmt(mp['calibration95'])} | "
+                         f"{_fmt(un.metrics[axis]['rmse'])} |")
+    lines += ["", "## Table II: RMSE% / MAE% against noise (mean +- std over seeds), ours | paper", "",
+              "| config | axis | " + " | ".join(f"noise {n}" for n in s.noise_levels) + " |",
+              "|---|---|" + "---|" * len(s.noise_levels)]
+    paper_levels = (0.0, 0.05, 0.2)
+    for config in CONFIGS:
+        for axis in "XZ":
+            cells = []
+            for n in s.noise_levels:
+                rp, mp, rs, ms = table2[(config, axis, n)]
+                pr = PAPER_TABLE2[(config, axis)]
+                j = paper_levels.index(n) if n in paper_levels else None
+                paper = f" | paper {pr[0][j]:.2f} / {pr[1][j]:.2f}" if j is not None else ""
+                cells.append(f"{rp:.2f}+-{rs:.2f} / {mp:.2f}+-{ms:.2f}{paper}")
+            lines.append(f"| {config} | {axis} | " + " | ".join(cells) + " |")
+    if s.lengthscale_sensitivity:
+        lines += ["", "## Sensitivity of the I-toe rows to the initial lengthscale (RMSE X / Z)", "",
+                  "An I-toe samples beta = 0 only, so the two beta lengthscales get no gradient from the "
+                  "likelihood and keep their initial value: it alone decides how far the map extrapolates across "
+                  "beta. Longer lengthscales help X and hurt Z; the paper's I-toe gait 1 pattern (X fair, Z poor) "
+                  "is what long beta lengthscales give.", "",
+                  "| config | " + " | ".join(f"lengthscale {v}" for v in (s.lengthscale, *s.lengthscale_sensitivity))
+                  + " | paper |", "|---|" + "---|" * (len(s.lengthscale_sensitivity) + 2)]
+        for config in CONFIGS[:2]:
+            cells = []
+            for v in (s.lengthscale, *s.lengthscale_sensitivity):
+                r = pick(config, ls=v)[0]
+                cells.append(f"{_fmt(r.metrics['X']['rmse'])} / {_fmt(r.metrics['Z']['rmse'])}")
+            p = PAPER_TABLE1[(config, "X")][0], PAPER_TABLE1[(config, "Z")][0]
+            lines.append(f"| {config} | " + " | ".join(cells) + f" | {p[0]} / {p[1]} |")
+    lines += ["", "## Sampling coverage", "", "| config | coverage of a 50 x 50 grid | redundancy |", "|---|---|---|"]
+    for config in CONFIGS:
+        m = pick(config)[0].maps
+        if m:
+            lines.append(f"| {config} | {100 * m['coverage']:.1f} % | {m['redundancy']:.2f} |")
+    (out / "report.md").write_text("\n".join(lines) + "\n")

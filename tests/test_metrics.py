@@ -1,0 +1,61 @@
+"""Metrics on hand-made cases."""
+
+import math
+
+import pytest
+import torch
+
+from irft_torch import metrics as M
+from irft_torch.rft import Contacts
+
+
+def test_perfect_estimate():
+    t = torch.linspace(0, 1, 11)
+    assert M.rmse(t, t) == 0 and M.mae(t, t) == 0
+    assert M.r2(t, t) == 1 and M.pearson(t, t) == pytest.approx(1)
+    assert M.acr_percent(t, t) == 100 and M.rmse_percent(t, t) == 0
+
+
+def test_constant_offset():
+    t = torch.linspace(0, 2, 5)  # range 2, values 0, .5, 1, 1.5, 2; var (ss_tot) = 2.5
+    e = t + 0.3
+    assert M.rmse(e, t) == pytest.approx(0.3) and M.mae(e, t) == pytest.approx(0.3)
+    assert M.r2(e, t) == pytest.approx(1 - 5 * 0.09 / 2.5)
+    assert M.pearson(e, t) == pytest.approx(1.0)  # an offset keeps the correlation
+    assert M.rmse_percent(e, t) == pytest.approx(15.0) and M.mae_percent(e, t) == pytest.approx(15.0)
+    assert M.acr_percent(e, t) == 0.0  # 0.3 > 5 % of range 2 = 0.1
+    assert M.acr_percent(t + 0.05, t) == 100.0
+
+
+def test_known_correlation_and_sign():
+    t = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert M.pearson(-t, t) == pytest.approx(-1.0)
+    e = torch.tensor([1.0, 3.0, 2.0, 4.0])  # by hand: sum of products 4, norms sqrt 5 each: r = 0.8
+    assert M.pearson(e, t) == pytest.approx(0.8)
+    assert M.r2(torch.full((4,), 2.5), t) == pytest.approx(0.0)  # predicting the mean
+
+
+def test_calibration():
+    truth = torch.zeros(1000)
+    mean = torch.linspace(-3, 3, 1000)
+    want = (mean.abs() <= 1.959964).double().mean().item()
+    assert M.calibration(mean, torch.ones(1000), truth) == pytest.approx(want)
+
+
+def test_coverage_and_redundancy_by_hand():
+    b = torch.tensor([[0.0, 0.0], [0.0, 1.0], [0.001, 0.0]])
+    g = torch.tensor([[0.0, 0.0], [0.5, 0.5], [0.0, -1.0]])
+    w = torch.tensor([[1.0, 1.0], [1.0, 0.0], [1.0, 1.0]])  # one segment out of contact
+    c = Contacts(b, g, -w, w)
+    # in contact: (0,0) x2, (0,.5), (.001,0) [same cell as (0,0)], (0,-1): 3 distinct cells of 5
+    assert M.redundancy(c, n_cells=10) == pytest.approx(1 - 3 / 5)
+    assert M.coverage_area(c, n_cells=10) == pytest.approx(3 / 100)
+
+
+def test_bad_metric_input():
+    with pytest.raises(ValueError, match="constant"):
+        M.r2(torch.ones(3), torch.ones(3))
+    with pytest.raises(ValueError, match="NaN"):
+        M.rmse(torch.tensor([math.nan]), torch.tensor([0.0]))
+    with pytest.raises(ValueError, match="estimate has 2 values, truth has 3"):
+        M.mae(torch.ones(2), torch.ones(3))
