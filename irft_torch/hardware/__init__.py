@@ -1,0 +1,28 @@
+"""Sensing only: motor model, five-bar leg statics, ODrive CAN frames, logs, the paper's signal
+pipeline and a simulated leg on a virtual bus. Imports neither ``gp`` nor plotting."""
+
+from .can_log import LogData, LogReadError, MotorSeries, ResampledLog, read_log, record
+from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .motor import MotorModel, kt_from_kv
+from .odrive_can import COMMANDS, Frame, FrameError, arbitration_id, decode, encode, request, split_id
+from .pipeline import (
+                       Dataset,
+                       ForceTrace,
+                       average_trials,
+                       build_dataset,
+                       forces_from_log,
+                       load_dataset,
+                       save_dataset,
+                       subtract_air,
+                       zero_phase_filter,
+)
+from .simulated_leg import FakeODrive, SimulatedLeg, SimulationTruth
+
+__all__ = [
+    "MotorModel", "kt_from_kv", "FiveBarLeg", "SingularConfigurationWarning",
+    "COMMANDS", "Frame", "FrameError", "arbitration_id", "split_id", "encode", "decode", "request",
+    "MotorSeries", "LogData", "ResampledLog", "LogReadError", "read_log", "record",
+    "ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
+    "Dataset", "build_dataset", "save_dataset", "load_dataset",
+    "FakeODrive", "SimulatedLeg", "SimulationTruth",
+]

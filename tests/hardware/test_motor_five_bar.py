@@ -1,0 +1,96 @@
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from irft_torch.hardware import FiveBarLeg, MotorModel, SingularConfigurationWarning, kt_from_kv
+
+
+def test_torque_constant_conventions():
+    assert kt_from_kv(85) == pytest.approx(0.0973, abs=1e-4)  # the paper's U8-II
+    assert kt_from_kv(85, "si") / kt_from_kv(85) == pytest.approx(60 / (2 * math.pi) / 8.27)
+    assert kt_from_kv(85) / kt_from_kv(85, "si") == pytest.approx(0.866, abs=1e-3)  # ODrive's = 0.866 x SI
+    m = MotorModel(0.0973, direction=-1, gear_ratio=6.0, zero_offset=0.2)
+    assert m.torque(2.0).item() == pytest.approx(-2 * 6 * 0.0973)
+    assert m.current(m.torque(1.5)).item() == pytest.approx(1.5)
+    assert m.joint_angle(m.encoder_turns(0.7)).item() == pytest.approx(0.7)
+    assert m.joint_angle(6.0).item() == pytest.approx(-2 * math.pi + 0.2)  # 6 motor turns = 1 joint turn
+    with pytest.raises(ValueError, match="direction"):
+        MotorModel(0.1, direction=2)
+    with pytest.raises(ValueError, match="torque_constant"):
+        MotorModel(97.3)  # N m per mA would be a unit slip
+
+
+LEGS = [FiveBarLeg(0.1, 0.2), FiveBarLeg(0.12, 0.25, hip_spacing=0.08)]
+
+
+@pytest.mark.parametrize("leg", LEGS)
+def test_jacobian_against_finite_differences(leg):
+    q = torch.tensor([[0.5, -0.4], [0.9, 0.1], [0.2, -0.9]], dtype=torch.float64)
+    J = leg.jacobian(q)
+    eps = 1e-6
+    for j in range(2):
+        dq = torch.zeros(2, dtype=torch.float64)
+        dq[j] = eps
+        fd = (leg.forward_kinematics(q + dq) - leg.forward_kinematics(q - dq)) / (2 * eps)
+        torch.testing.assert_close(J[..., :, j], fd, atol=1e-8, rtol=1e-7)
+
+
+def test_symmetric_leg_hand_derived_statics():
+    """Coaxial five-bar: q1 = th + g, q2 = th - g, L(g) = l1 cos g + sqrt(l2^2 - l1^2 sin^2 g);
+    F_radial = (tau1 - tau2) / L'(g), F_tangential = (tau1 + tau2) / L (hardware_facts.md)."""
+    l1, l2, th, g = 0.1, 0.2, 0.3, 0.8
+    leg = FiveBarLeg(l1, l2)
+    q = torch.tensor([th + g, th - g], dtype=torch.float64)
+    L = l1 * math.cos(g) + math.sqrt(l2**2 - l1**2 * math.sin(g) ** 2)
+    dL = -l1 * math.sin(g) - l1**2 * math.sin(g) * math.cos(g) / math.sqrt(l2**2 - l1**2 * math.sin(g) ** 2)
+    torch.testing.assert_close(leg.forward_kinematics(q), torch.tensor([L * math.sin(th), -L * math.cos(th)]))
+    tau = torch.tensor([0.7, -0.2], dtype=torch.float64)
+    # J^-T tau in radial/tangential components (radial = along the leg, away from the hip)
+    radial = (tau[0] - tau[1]) / dL
+    tangential = (tau[0] + tau[1]) / L
+    e_r = torch.tensor([math.sin(th), -math.cos(th)])
+    e_t = torch.tensor([math.cos(th), math.sin(th)])  # d/d th of the toe direction
+    want = -(radial * e_r + tangential * e_t)  # ground force is -J^-T tau
+    force, valid = leg.ground_force(q, tau)
+    assert bool(valid)
+    torch.testing.assert_close(force, want)
+
+
+@pytest.mark.parametrize("leg", LEGS)
+def test_ground_force_against_numpy_solve_and_roundtrip(leg):
+    rng = np.random.default_rng(0)
+    q = torch.as_tensor(np.stack([rng.uniform(0.3, 0.9, 20), rng.uniform(-0.9, -0.3, 20)], -1))
+    tau = torch.as_tensor(rng.normal(size=(20, 2)))
+    force, valid = leg.ground_force(q, tau)
+    J = leg.jacobian(q).numpy()
+    for i in range(20):
+        if valid[i]:
+            np.testing.assert_allclose(force[i].numpy(), -np.linalg.solve(J[i].T, tau[i].numpy()), rtol=1e-9)
+    # a known static load through torques and back
+    load = torch.tensor([3.0, 25.0], dtype=torch.float64).expand(20, 2)
+    back, ok = leg.ground_force(q, leg.holding_torques(q, load))
+    torch.testing.assert_close(back[ok], load[ok])
+
+
+def test_ik_inverts_fk_and_names_unreachable_points():
+    leg = FiveBarLeg(0.15, 0.3, hip_spacing=0.05)
+    p = torch.tensor([[0.05, -0.3], [-0.1, -0.25], [0.12, -0.35]], dtype=torch.float64)
+    torch.testing.assert_close(leg.forward_kinematics(leg.inverse_kinematics(p)), p)
+    with pytest.raises(ValueError, match=r"p\[1\].*outside the leg's workspace"):
+        leg.inverse_kinematics(torch.tensor([[0.0, -0.3], [0.0, -0.9]], dtype=torch.float64))
+
+
+def test_singular_configurations_are_masked_not_huge():
+    leg = FiveBarLeg(0.1, 0.2)
+    q = torch.tensor([[0.6, -0.6], [1e-7, -1e-7], [0.4, -0.2]], dtype=torch.float64)  # row 1: stretched
+    with pytest.warns(SingularConfigurationWarning, match="1 of 3"):
+        force, valid = leg.ground_force(q, torch.ones(3, 2, dtype=torch.float64))
+    assert valid.tolist() == [True, False, True]
+    assert torch.isnan(force[1]).all() and torch.isfinite(force[[0, 2]]).all()
+    assert leg.condition_number(q)[1] > 1e3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        leg.ground_force(q[[0, 2]], torch.ones(2, 2, dtype=torch.float64))

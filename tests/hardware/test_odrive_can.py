@@ -1,0 +1,96 @@
+import math
+import pathlib
+import struct
+
+import can
+import cantools
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from irft_torch.hardware import FrameError, decode, encode, request, split_id
+
+SHARED = pathlib.Path(__file__).resolve().parents[3] / "shared" / "reference" / "odrive"
+DBC = SHARED / "odrive-cansimple.dbc"
+
+
+def test_real_frames_from_an_odrive_board():
+    # mrniu_hw_validation_frames.txt: heartbeat with a watchdog error, and a bus voltage reply
+    hb = decode(can.Message(arbitration_id=0x021, data=bytes.fromhex("0008000001000000"), is_extended_id=False))
+    assert (hb.node, hb.command, hb.values["axis_error"], hb.values["axis_state"]) == (1, "heartbeat", 0x800, 1)
+    v = decode(can.Message(arbitration_id=0x037, data=bytes.fromhex("e091404200000000"), is_extended_id=False))
+    assert v.command == "get_bus_voltage_current" and v.values["bus_voltage"] == pytest.approx(48.142456, abs=1e-6)
+    # the report's encoder position bit pattern 0xc0cebe99 = -6.460766315 turns, little-endian on the wire
+    data = bytes.fromhex("99becec0") + struct.pack("<f", 0.5)
+    e = decode(can.Message(arbitration_id=0x029, data=data, is_extended_id=False))
+    assert e.values["pos_estimate"] == pytest.approx(-6.460766315, abs=1e-6)
+
+
+@pytest.mark.skipif(not DBC.exists(), reason="shared/reference/odrive DBC not present")
+def test_encode_matches_the_official_dbc():
+    db = cantools.database.load_file(str(DBC))
+    m = encode("set_input_pos", 3, input_pos=1.5, vel_ff=-0.25, torque_ff=0.123)
+    assert db.decode_message(m.arbitration_id & 0x1F, m.data) == pytest.approx(
+        {"Input_Pos": 1.5, "Vel_FF": -0.25, "Torque_FF": 0.123})
+    m = encode("get_iq", 5, iq_setpoint=2.5, iq_measured=-1.25)
+    assert split_id(m.arbitration_id) == (5, 0x14)
+    assert db.decode_message(0x14, m.data) == {"Iq_Setpoint": 2.5, "Iq_Measured": -1.25}
+    m = encode("heartbeat", 2, axis_error=0x800, axis_state=8, motor_error_flag=1, encoder_error_flag=0,
+               controller_flags=0x81)
+    d = db.decode_message(0x01, m.data, decode_choices=False)
+    assert d == {"Axis_Error": 0x800, "Axis_State": 8, "Motor_Error_Flag": 1, "Encoder_Error_Flag": 0,
+                 "Controller_Error_Flag": 1, "Trajectory_Done_Flag": 1}
+    back = decode(m).values
+    assert back["controller_error_flag"] == 1 and back["trajectory_done_flag"] == 1
+
+
+def test_byte_layouts_by_hand_and_firmware_06():
+    m = encode("get_encoder_estimates", 1, pos_estimate=2.0, vel_estimate=-3.0)
+    assert m.arbitration_id == 0x029 and bytes(m.data) == struct.pack("<ff", 2.0, -3.0) and not m.is_extended_id
+    t = encode("get_torques", 4, firmware="0.6", torque_target=0.5, torque_estimate=0.25)
+    assert t.arbitration_id == (4 << 5 | 0x1C) and bytes(t.data) == struct.pack("<ff", 0.5, 0.25)
+    assert decode(t, "0.6").values == {"torque_target": 0.5, "torque_estimate": 0.25}
+    with pytest.raises(FrameError, match="unknown command 0x1c"):
+        decode(t, "0.5")  # 0x1C is Get_ADC_Voltage in 0.5.x, not a torque
+    hb6 = encode("heartbeat", 0, firmware="0.6", axis_error=0, axis_state=8, procedure_result=3,
+                 trajectory_done_flag=1)
+    assert bytes(hb6.data) == bytes([0, 0, 0, 0, 8, 3, 1, 0])
+    r = request("get_iq", 1)
+    assert r.is_remote_frame and r.arbitration_id == 0x034 and r.dlc == 8
+    assert decode(r).values == {"remote": True}
+
+
+def test_malformed_frames_are_named():
+    with pytest.raises(FrameError, match="3 data bytes, expected 8") as e:
+        decode(can.Message(arbitration_id=0x034, data=b"\x00\x01\x02", is_extended_id=False))
+    assert e.value.reason == "wrong length"
+    nan = struct.pack("<ff", 0.0, math.nan)
+    with pytest.raises(FrameError, match="non-finite iq_measured"):
+        decode(can.Message(arbitration_id=0x034, data=nan, is_extended_id=False))
+    with pytest.raises(FrameError, match="extended id"):
+        decode(can.Message(arbitration_id=0x034, data=bytes(8), is_extended_id=True))
+    with pytest.raises(ValueError, match="firmware"):
+        decode(can.Message(arbitration_id=0x034, data=bytes(8)), firmware="0.4")
+
+
+@settings(max_examples=10_000, deadline=None)
+@given(arb=st.integers(0, 0x7FF), data=st.binary(min_size=0, max_size=8), rtr=st.booleans(),
+       ext=st.booleans(), fw=st.sampled_from(["0.5", "0.6"]))
+def test_fuzz_decoder_never_crashes(arb, data, rtr, ext, fw):
+    msg = can.Message(arbitration_id=arb, data=data, is_remote_frame=rtr, is_extended_id=ext,
+                      dlc=8 if rtr else len(data))
+    try:
+        f = decode(msg, fw)
+    except FrameError:
+        return
+    for v in f.values.values():
+        assert not isinstance(v, float) or math.isfinite(v)
+
+
+@settings(max_examples=300, deadline=None)
+@given(node=st.integers(0, 63), a=st.floats(-1e6, 1e6, width=32), b=st.floats(-1e6, 1e6, width=32))
+def test_float_roundtrip(node, a, b):
+    for cmd, names in (("get_iq", ("iq_setpoint", "iq_measured")), ("get_encoder_estimates",
+                                                                     ("pos_estimate", "vel_estimate"))):
+        f = decode(encode(cmd, node, **dict(zip(names, (a, b)))))
+        assert (f.node, f.command) == (node, cmd) and [f.values[n] for n in names] == [a, b]
