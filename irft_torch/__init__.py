@@ -6,8 +6,8 @@
     forces = irft.rft.forces(smap, contacts)
 """
 
-from . import gp, rft
+from . import gp, hardware, metrics, rft
 from .gp import InverseRFT, Posterior
 
 __version__ = "0.1.0"
-__all__ = ["rft", "gp", "InverseRFT", "Posterior", "__version__"]
+__all__ = ["rft", "gp", "hardware", "metrics", "InverseRFT", "Posterior", "__version__"]

@@ -148,7 +148,165 @@ def _register_reproduce(sub) -> None:
     p.set_defaults(func=cmd_reproduce)
 
 
-_EXTRA_COMMANDS: list = [_register_reproduce]
+def cmd_record(a) -> int:
+    import can
+
+    from .hardware import record
+
+    bus = can.Bus(channel=a.channel, interface=a.interface, **({"bitrate": a.bitrate} if a.bitrate else {}))
+    try:
+        poll = [(cmd, n) for n in a.nodes for cmd in a.poll]
+        n = record(bus, a.out, duration=a.duration, poll=tuple(poll), rate=a.rate, firmware=a.firmware)
+    finally:
+        bus.shutdown()
+    print(f"wrote {n} frames to {a.out}")
+    return 0
+
+
+def _leg_and_motors(a):
+    from .hardware import FiveBarLeg, MotorModel
+
+    leg = FiveBarLeg(a.l1, a.l2, hip_spacing=a.hip_spacing, max_condition=a.max_condition)
+    kt = a.kt if a.kt is not None else MotorModel.from_kv(a.kv, a.kt_convention).torque_constant
+    motors = tuple(MotorModel(kt, direction=d, gear_ratio=a.gear_ratio, zero_offset=z)
+                   for d, z in zip(a.directions, a.zero_offsets))
+    return leg, motors
+
+
+def cmd_ingest(a) -> int:
+    import warnings
+
+    from .hardware import (
+        average_trials,
+        build_dataset,
+        forces_from_log,
+        read_log,
+        save_dataset,
+        subtract_air,
+        zero_phase_filter,
+    )
+
+    leg, motors = _leg_and_motors(a)
+
+    def trace(path):
+        data = read_log(path, firmware=a.firmware, nodes=set(a.nodes), on_error=a.on_error)
+        for issue in data.issues:
+            print(f"{path}: {issue}")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            t = forces_from_log(data.resample(tuple(a.nodes), rate=a.rate), leg, motors)
+        for w in caught:
+            print(f"{path}: {w.message}")
+        return t
+
+    air = average_trials([trace(p) for p in a.air]) if a.air else None
+    trials = []
+    for p in a.logs:
+        t = trace(p)
+        if air is not None:
+            t = subtract_air(t, air)
+        trials.append(zero_phase_filter(t, a.filter_window))
+    avg = average_trials(trials)
+    ds = build_dataset(avg, leg, make_toe(a), a.hip_height)
+    save_dataset(a.out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in (a.air or [])])
+    dropped = len(avg.time) - len(ds)
+    print(f"wrote {a.out}: {len(ds)} samples x {ds.contacts.n_segments} segments"
+          + (f" ({dropped} masked samples dropped)" if dropped else ""))
+    return 0
+
+
+def cmd_fit(a) -> int:
+    from . import plotting
+    from .gp import InverseRFT
+    from .hardware import load_dataset
+
+    ds = load_dataset(a.dataset)
+    if a.max_samples and len(ds) > a.max_samples:
+        keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
+        print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (the exact GP is cubic in samples; "
+              "raise --max-samples to use more)")
+        ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
+    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean)
+    model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model.save(out / "model.pt")
+    B, G = plotting.angle_grid(64)
+    post = model.stress_map(B, G)
+    fig, axes = plotting.plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
+    for i, name in enumerate("xz"):
+        plotting._image(axes[i, 0], post.mean[..., i], f"posterior mean alpha_{name}")
+        plotting._image(axes[i, 1], post.stddev[..., i], f"posterior std alpha_{name}", cmap="viridis",
+                        symmetric=False)
+    plotting.save(fig, out / "stress_map.png")
+    pred = model.predict_forces(ds.contacts)
+    plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, pred.stddev), out / "forces.png")
+    rng = (ds.forces.amax(0) - ds.forces.amin(0)).clamp_min(1e-12)
+    nrmse = ((pred.mean - ds.forces).pow(2).mean(0).sqrt() / rng * 100).tolist()
+    print(f"wrote {out}/model.pt, stress_map.png, forces.png; force RMSE {nrmse[0]:.2f} % (x), "
+          f"{nrmse[1]:.2f} % (z) of range")
+    return 0
+
+
+def add_leg_args(p) -> None:
+    g = p.add_argument_group("leg and motors (SI units)")
+    g.add_argument("--l1", type=float, default=0.15, help="proximal link, m (default 0.15)")
+    g.add_argument("--l2", type=float, default=0.30, help="distal link, m (default 0.30)")
+    g.add_argument("--hip-spacing", type=float, default=0.0, help="distance between motor axes, m")
+    g.add_argument("--hip-height", type=float, default=0.25, help="motor axes above the sand surface, m")
+    g.add_argument("--max-condition", type=float, default=50.0, help="mask samples with cond(J) above this")
+    g.add_argument("--kt", type=float, default=0.0973, help="torque constant, N m/A (default U8-II 0.0973)")
+    g.add_argument("--kv", type=float, help="motor KV (rpm/V), instead of --kt")
+    g.add_argument("--kt-convention", choices=["odrive", "si"], default="odrive", help="k_t from KV: 8.27/KV or SI")
+    g.add_argument("--directions", type=int, nargs=2, default=[1, 1], help="motor direction signs (+1/-1)")
+    g.add_argument("--zero-offsets", type=float, nargs=2, default=[0.0, 0.0], help="joint angle at encoder 0, rad")
+    g.add_argument("--gear-ratio", type=float, default=1.0, help="motor turns per joint turn (1: direct drive)")
+
+
+def _register_hardware(sub) -> None:
+    p = sub.add_parser("record", help="log a live CAN bus (ODrive CANSimple) to a python-can log file",
+                       description="Poll the motor controllers by RTR and write every frame to a log "
+                                   "(.log, .asc, .blf by suffix).")
+    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan, pcan, virtual, ...)")
+    p.add_argument("--channel", default="can0")
+    p.add_argument("--bitrate", type=int, help="bit rate, if the interface needs it")
+    p.add_argument("--out", required=True, help="log file; the suffix picks the format")
+    p.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
+    p.add_argument("--rate", type=float, default=200.0, help="polling rate, Hz (default 200)")
+    p.add_argument("--nodes", type=int, nargs="+", default=[0, 1], help="controller node ids (default 0 1)")
+    p.add_argument("--poll", nargs="+", default=["get_iq"], help="Get_* commands to poll (default get_iq)")
+    p.add_argument("--firmware", choices=["0.5", "0.6"], default="0.5")
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("ingest", help="logs -> forces -> air subtraction, filter, trial average -> dataset",
+                       description="Turn motor logs of repeated trials (and in-air runs along the same path) "
+                                   "into an I-RFT dataset (contacts + forces, npz).")
+    p.add_argument("logs", nargs="+", help="log files of the trials in sand")
+    p.add_argument("--air", nargs="*", default=[], help="log files of the same path in air")
+    p.add_argument("--out", required=True, help="dataset .npz")
+    p.add_argument("--nodes", type=int, nargs=2, default=[0, 1], help="node ids of motor 1 and motor 2")
+    p.add_argument("--firmware", choices=["0.5", "0.6"], default="0.5")
+    p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
+    p.add_argument("--filter-window", type=int, default=5, help="zero-phase moving average, samples (default 5)")
+    p.add_argument("--on-error", choices=["raise", "warn"], default="raise",
+                   help="a truncated log: stop with an error (default) or use what was read")
+    add_leg_args(p)
+    add_toe_args(p)
+    p.set_defaults(func=cmd_ingest)
+
+    p = sub.add_parser("fit", help="fit I-RFT to a dataset; write the map, its uncertainty and figures",
+                       description="Fit InverseRFT to an ingested dataset and write model.pt and figures.")
+    p.add_argument("dataset", help="dataset .npz from irft ingest")
+    p.add_argument("--out", default="irft_fit", help="output directory (default irft_fit)")
+    p.add_argument("--n-iter", type=int, default=300)
+    p.add_argument("--lr", type=float, default=0.05)
+    p.add_argument("--prior-mean", choices=["zero", "physics"], default="zero")
+    p.add_argument("--max-samples", type=int, default=300, help="thin to this many samples (default 300; 0: all)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_fit)
+
+
+_EXTRA_COMMANDS: list = [_register_reproduce, _register_hardware]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -157,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     a = parser.parse_args(argv)
     try:
         return a.func(a)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, OSError) as e:
         print(f"irft {a.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -8,6 +8,7 @@ slightly different speeds or start times line up at the same place.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,8 +111,9 @@ def average_trials(trials: list[ForceTrace], n_points: int | None = None) -> For
     ref = trials[0]
     forces = np.stack([_interp_valid(s, t.arc_length, t.force, t.valid) for t in trials])
     qs = np.stack([_interp_valid(s, t.arc_length, t.q, np.ones(len(t.time), bool)) for t in trials])
-    with np.errstate(invalid="ignore"):
-        force = np.nanmean(forces, axis=0) if np.isfinite(forces).any() else forces[0]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all trials masked at a point: stays NaN
+        force = np.nanmean(forces, axis=0)
     valid = np.isfinite(force).all(1)
     q = qs.mean(0)
     time = np.interp(s, ref.arc_length, ref.time)
