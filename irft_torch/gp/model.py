@@ -18,7 +18,8 @@ from tqdm.auto import tqdm
 
 from ..rft.contacts import Contacts
 from ..rft.stress_maps import mirror_to_canonical
-from .encoding import encode_contacts, encode_points
+from .encoding import encode_contacts
+from .grid import AngleGrid, GridRFT
 from .kernels import AngleRBFKernel, RFTCompositeKernel
 from .likelihoods import ForceNoiseLikelihood
 from .means import GenericShapeMean
@@ -88,6 +89,10 @@ class InverseRFT(nn.Module):
         dtype: inference dtype (float64 by default; float32 works).
         solver: "cholesky" (exact, the default) or "gpytorch" (use gpytorch's own settings, e.g.
             CG/Lanczos above ``gpytorch.settings.max_cholesky_size``).
+        method: "exact" (gpytorch ExactGP, the lazy W K W^T), "grid" (the maps on a grid_size
+            (beta, gamma) grid with bilinear interpolation: cost per step independent of the number of
+            samples), or "auto": grid once more than ``exact_max_segments`` segment samples touch
+            the ground (a long recording never runs out of memory).
         lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an
             angle (an I-toe samples beta = 0 only) the likelihood cannot move it, so it sets how far
             the map extrapolates.
@@ -101,7 +106,8 @@ class InverseRFT(nn.Module):
 
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky",
-                 lengthscale: float = 1.0) -> None:
+                 lengthscale: float = 1.0, method: str = "auto", grid_size: tuple[int, int] = (32, 32),
+                 exact_max_segments: int = 20_000) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -111,6 +117,8 @@ class InverseRFT(nn.Module):
             raise ValueError(f"prior_mean must be 'zero' or 'physics', got {prior_mean!r}")
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
+        if method not in ("auto", "exact", "grid"):
+            raise ValueError(f"method must be 'auto', 'exact' or 'grid', got {method!r}")
         if solver not in ("cholesky", "gpytorch"):
             raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
         T = len(contacts)
@@ -133,11 +141,25 @@ class InverseRFT(nn.Module):
         power = y.pow(2).mean(-1)
         rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
-        self.likelihood = ForceNoiseLikelihood(tied=tied_noise, noise_constraint=GreaterThan(noise_floor))
-        base = AngleRBFKernel(batch_shape=torch.Size([2]))
-        kernel = RFTCompositeKernel(base)
-        mean = GenericShapeMean() if prior_mean == "physics" else gpytorch.means.ZeroMean(batch_shape=torch.Size([2]))
-        self.gp = CompositeExactGP(x, y, self.likelihood, mean, kernel)
+        n_segments = int(((c.weight_x != 0) | (c.weight_z != 0)).sum())
+        if method == "auto":
+            method = "grid" if n_segments > exact_max_segments else "exact"
+        self.method = method
+        if method == "exact":
+            self.likelihood = ForceNoiseLikelihood(tied=tied_noise, noise_constraint=GreaterThan(noise_floor))
+            base = AngleRBFKernel(batch_shape=torch.Size([2]))
+            kernel = RFTCompositeKernel(base)
+            mean = (GenericShapeMean() if prior_mean == "physics"
+                    else gpytorch.means.ZeroMean(batch_shape=torch.Size([2])))
+            self.gp = CompositeExactGP(x, y, self.likelihood, mean, kernel)
+            self.grid_model = None
+        else:
+            self.gp = None
+            self.grid_model = GridRFT(AngleGrid(*grid_size), tied_noise=tied_noise, noise_floor=noise_floor,
+                                      dtype=dtype, physics_mean=(prior_mean == "physics"))
+            self.likelihood = self.grid_model.likelihood
+            base = self.grid_model.kernel
+            mean = self.grid_model.mean_module
         self.to(device=device, dtype=dtype)
         with torch.no_grad():
             resid = y
@@ -150,6 +172,9 @@ class InverseRFT(nn.Module):
             base.outputscale = (resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300)).clamp_min(1e-6)
             base.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.likelihood.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+        self._appended: list = []
+        if self.grid_model is not None:
+            self.grid_model.set_data(c, f)
         self.loss_history: list[float] = []
         self.eval()
 
@@ -157,7 +182,11 @@ class InverseRFT(nn.Module):
     @property
     def kernel(self) -> AngleRBFKernel:
         """The angle kernel holding the hyperparameters (lengthscale (2, 1, 4), outputscale (2,))."""
-        return self.gp.covar_module.base_kernel
+        return self.grid_model.kernel if self.gp is None else self.gp.covar_module.base_kernel
+
+    @property
+    def mean_module(self):
+        return self.grid_model.mean_module if self.gp is None else self.gp.mean_module
 
     def hyperparameters(self) -> dict[str, list]:
         """Current hyperparameters, readable (lengthscales per embedding dim, variances)."""
@@ -168,7 +197,7 @@ class InverseRFT(nn.Module):
             "noise": self.likelihood.noise.tolist(),
         }
         if self.prior_mean_kind == "physics":
-            out["mean_scales"] = self.gp.mean_module.scales.tolist()
+            out["mean_scales"] = self.mean_module.scales.tolist()
         return out
 
     def _settings(self):
@@ -179,8 +208,19 @@ class InverseRFT(nn.Module):
 
     # ---- training ------------------------------------------------------------------------
     def mll(self) -> ExactMarginalLogLikelihood:
-        """gpytorch's exact marginal log likelihood of this model (per observation, per axis)."""
+        """gpytorch's exact marginal log likelihood of this model (exact path only)."""
+        if self.gp is None:
+            raise RuntimeError("the grid path has no gpytorch ExactGP; use model.loss()")
         return ExactMarginalLogLikelihood(self.likelihood, self.gp)
+
+    def loss(self) -> Tensor:
+        """Negative log marginal likelihood per force sample, summed over the two axes."""
+        if self.gp is None:
+            return -self.grid_model.log_marginal_likelihood().sum()
+        self.train()
+        with self._settings():
+            out = self.gp(*self.gp.train_inputs)
+            return -self.mll()(out, self.gp.train_targets).sum()
 
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
         """Adam on the exact marginal likelihood. Returns the loss per step (the negative log
@@ -189,17 +229,15 @@ class InverseRFT(nn.Module):
         if int(n_iter) < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
-        mll = self.mll()
-        opt = torch.optim.Adam(self.gp.parameters(), lr=lr)
+        params = self.gp.parameters() if self.gp is not None else self.grid_model.parameters()
+        opt = torch.optim.Adam(params, lr=lr)
         history: list[float] = []
-        bar = tqdm(range(int(n_iter)), desc="I-RFT fit", disable=not progress, leave=False)
+        bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
-                with self._settings():
-                    out = self.gp(*self.gp.train_inputs)
-                    loss = -mll(out, self.gp.train_targets).sum()
+                loss = self.loss()
                 loss.backward()
                 opt.step()
                 history.append(loss.item())
@@ -208,7 +246,7 @@ class InverseRFT(nn.Module):
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
                           stacklevel=2)
-        except NotPSDError as e:
+        except (NotPSDError, torch.linalg.LinAlgError) as e:
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite even with gpytorch's jitter "
                 f"(step {step}); hyperparameters then: {self.hyperparameters()}. Try a lower lr, a larger noise "
@@ -217,18 +255,39 @@ class InverseRFT(nn.Module):
         finally:
             bar.close()
             self.eval()
+            if self.grid_model is not None:
+                self.grid_model._cache = None
         self.loss_history.extend(history)
         return history
+
+    def add_data(self, contacts: Contacts, forces) -> InverseRFT:
+        """Streaming: add force samples with the hyperparameters fixed (no refit). On the grid path
+        this only adds to the sufficient statistics; the posterior equals a batch fit's."""
+        if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
+            raise ValueError("contacts must be a Contacts of shape (T, M)")
+        c = contacts.to(dtype=self.dtype, device=self.train_forces.device)
+        f = _as_forces(forces, len(c), self.dtype, self.train_forces.device)
+        if self.grid_model is not None:
+            self.grid_model.add_data(c, f)
+            self._appended.append((c, f))
+            return self
+        self.train_contacts = Contacts.cat([self.train_contacts, c])
+        self.train_forces = torch.cat([self.train_forces, f])
+        M = max(self.n_segments, c.n_segments)
+        self.n_segments = M
+        self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M),
+                               targets=self.train_forces.T.contiguous(), strict=False)
+        return self
 
     # ---- prediction ----------------------------------------------------------------------
     def _ensure_width(self, M: int) -> None:
         """Widen the training rows with zero-weight padding so test rows with M segments fit."""
-        if M > self.n_segments:
+        if self.gp is not None and M > self.n_segments:
             self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M), strict=False)
             self.n_segments = M
 
     def _predict_rows(self, rows: Tensor, variance: bool = True, chunk: int = 4096) -> tuple[Tensor, Tensor | None]:
-        """Posterior of composite rows (2, N, 3M): mean (2, N), variance (2, N) or None."""
+        """Exact path: posterior of composite rows (2, N, 3M): mean (2, N), variance (2, N) or None."""
         self.eval()
         grad = rows.requires_grad
         means, variances = [], []
@@ -247,29 +306,46 @@ class InverseRFT(nn.Module):
                     variances.append(out.variance)
         return torch.cat(means, -1), (torch.cat(variances, -1) if variance else None)
 
-    def stress_map(self, beta, gamma) -> Posterior:
-        """Posterior of (alpha_x, alpha_z) at angles of any broadcast shape S (rad).
+    def _posterior_of(self, c: Contacts, variance: bool = True) -> tuple[Tensor, Tensor | None]:
+        """Posterior of the weighted sums of contacts c (N, M): mean, variance (2, N)."""
+        if self.gp is not None:
+            self._ensure_width(c.n_segments)
+            return self._predict_rows(encode_contacts(c, self.n_segments), variance)
+        gm = self.grid_model
+        idx, w = gm.grid.interpolation(c.beta, c.gamma)  # (N, M, 4)
+        N = idx.shape[0]
+        val = torch.stack([(c.weight_x[..., None] * w).reshape(N, -1), (c.weight_z[..., None] * w).reshape(N, -1)])
+        prior = None
+        if gm.mean_module is not None:
+            a = gm.mean_module.shape_map(c.beta, c.gamma)
+            prior = gm.mean_module.scales[:, None] * torch.stack(
+                [(c.weight_x * a[..., 0]).sum(-1), (c.weight_z * a[..., 1]).sum(-1)])
+        return gm.predict_rows(idx.reshape(N, -1), val, variance, prior)
 
-        Angles outside the canonical square are mapped in by the mirror identity. Returns mean and
-        variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2).
-        """
+    def _points(self, beta, gamma) -> tuple[Contacts, torch.Size]:
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self.train_forces.device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.train_forces.device)
         beta, gamma = torch.broadcast_tensors(beta, gamma)
         for name, v in (("beta", beta), ("gamma", gamma)):
             if not torch.isfinite(v).all():
                 raise ValueError(f"{name} contains NaN or inf")
-        S = beta.shape
         bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
-        mean, var = self._predict_rows(encode_points(bc, gc, sx, self.n_segments))
+        return Contacts(bc[:, None], gc[:, None], sx[:, None], torch.ones_like(bc)[:, None]), beta.shape
+
+    def stress_map(self, beta, gamma) -> Posterior:
+        """Posterior of (alpha_x, alpha_z) at angles of any broadcast shape S (rad).
+
+        Angles outside the canonical square are mapped in by the mirror identity. Returns mean and
+        variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2).
+        """
+        pts, S = self._points(beta, gamma)
+        mean, var = self._posterior_of(pts)
         return Posterior(mean.T.reshape(*S, 2), var.T.reshape(*S, 2))
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
-        beta, gamma = torch.broadcast_tensors(torch.as_tensor(beta), torch.as_tensor(gamma))
-        S = beta.shape
-        bc, gc, sx = mirror_to_canonical(beta.reshape(-1).to(self.dtype), gamma.reshape(-1).to(self.dtype))
-        mean, _ = self._predict_rows(encode_points(bc, gc, sx, self.n_segments), variance=False)
+        pts, S = self._points(beta, gamma)
+        mean, _ = self._posterior_of(pts, variance=False)
         return mean.T.reshape(*S, 2)
 
     def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False) -> Posterior:
@@ -291,7 +367,6 @@ class InverseRFT(nn.Module):
         c = contacts.to(dtype=self.dtype, device=self.train_forces.device)
         lead, M = c.shape[:-1], c.n_segments
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
-        self._ensure_width(M)
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
         touching = ((flat.weight_x != 0) | (flat.weight_z != 0)).any(-1)
         N = flat.shape[0]
@@ -299,12 +374,12 @@ class InverseRFT(nn.Module):
         var = flat.beta.new_zeros(2, N)
         if touching.any():
             sub = flat[touching]
-            m_sub, v_sub = self._predict_rows(encode_contacts(sub, self.n_segments),
-                                              variance=(variance == "exact"))
+            m_sub, v_sub = self._posterior_of(sub, variance=(variance == "exact"))
             if variance == "independent":
                 act = (sub.weight_x != 0) | (sub.weight_z != 0)
                 b, g = sub.beta[act], sub.gamma[act]
-                _, seg_var = self._predict_rows(encode_points(b, g, torch.ones_like(b), self.n_segments))
+                ones = torch.ones_like(b)[:, None]
+                _, seg_var = self._posterior_of(Contacts(b[:, None], g[:, None], ones, ones))
                 w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
                 per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
                 per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
@@ -318,11 +393,17 @@ class InverseRFT(nn.Module):
     # ---- persistence ---------------------------------------------------------------------
     def save(self, path) -> None:
         """Write training data, options and the state dict to one file (torch.save)."""
+        contacts, forces = self.train_contacts, self.train_forces
+        if self._appended:  # grid path: samples streamed in after construction
+            contacts = Contacts.cat([contacts] + [c for c, _ in self._appended])
+            forces = torch.cat([forces] + [f for _, f in self._appended])
         torch.save({
-            "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
-            "forces": self.train_forces.cpu(),
+            "contacts": {k: v.cpu() for k, v in contacts.as_dict().items()},
+            "forces": forces.cpu(),
             "options": {"prior_mean": self.prior_mean_kind, "tied_noise": self.likelihood.tied,
-                        "lengthscale": self.init_lengthscale,
+                        "lengthscale": self.init_lengthscale, "method": self.method,
+                        "grid_size": (self.grid_model.grid.n_beta, self.grid_model.grid.n_gamma)
+                        if self.grid_model is not None else (32, 32),
                         "solver": self.solver, "dtype": str(self.dtype).replace("torch.", "")},
             "state_dict": self.state_dict(),
             "loss_history": self.loss_history,
@@ -340,4 +421,5 @@ class InverseRFT(nn.Module):
         return model
 
     def extra_repr(self) -> str:
-        return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}"
+        return (f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, "
+                f"method={self.method!r}")
