@@ -103,19 +103,27 @@ class GridStatistics:
             idx, val = self.rows(c[i:i + chunk])
             y = f[i:i + chunk].T  # (2, t)
             pair = (idx[:, :, None] * U + idx[:, None, :]).reshape(-1)
+            # Rows whose x weights are the z weights up to one sign (any toe that does not turn)
+            # give the same outer products for both axes: one pass serves both.
+            same = bool(((val[0] == val[1]).all(-1) | (val[0] == -val[1]).all(-1)).all())
+            flat_idx = idx.reshape(-1)
+            bulk = pair.numel() > U * U  # a dense histogram pays off only when it is not mostly empty
             for a in range(2):
-                outer = (val[a][:, :, None] * val[a][:, None, :]).reshape(-1)
-                self.P[a] += torch.bincount(pair, weights=outer, minlength=U * U).reshape(U, U)
-                self.b[a] += torch.bincount(idx.reshape(-1), weights=(val[a] * y[a][:, None]).reshape(-1),
-                                            minlength=U)
+                if not (a == 1 and same):
+                    outer = (val[a][:, :, None] * val[a][:, None, :]).reshape(-1)
+                    inc = torch.bincount(pair, weights=outer, minlength=U * U) if bulk else None
+                if bulk:
+                    self.P[a] += inc.reshape(U, U)
+                else:
+                    self.P[a].view(-1).index_add_(0, pair, outer)  # cost ~ the row's nonzeros, not U^2
+                self.b[a].index_add_(0, flat_idx, (val[a] * y[a][:, None]).reshape(-1))
             self.yy += y.pow(2).sum(-1)
             if self.mean_shape is not None:
                 cc = c[i:i + chunk]
                 a_ = self.mean_shape(cc.beta, cc.gamma)
                 g = torch.stack([(cc.weight_x * a_[..., 0]).sum(-1), (cc.weight_z * a_[..., 1]).sum(-1)])
                 for a in range(2):
-                    self.bg[a] += torch.bincount(idx.reshape(-1), weights=(val[a] * g[a][:, None]).reshape(-1),
-                                                 minlength=U)
+                    self.bg[a].index_add_(0, flat_idx, (val[a] * g[a][:, None]).reshape(-1))
                 self.gg += g.pow(2).sum(-1)
                 self.yg += (g * y).sum(-1)
             self.n += idx.shape[0]

@@ -107,7 +107,7 @@ class InverseRFT(nn.Module):
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky",
                  lengthscale: float = 1.0, method: str = "auto", grid_size: tuple[int, int] = (32, 32),
-                 exact_max_segments: int = 20_000) -> None:
+                 exact_max_segments: int = 6_000) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.utils.checkpoint
 from linear_operator.operators import LinearOperator
 from torch import Tensor
 
@@ -12,12 +13,14 @@ __all__ = ["RFTKernelLinearOperator", "rbf", "memory_budget"]
 
 
 class memory_budget:
-    """Bytes one dense block of kernel evaluations may take (default 1 GiB).
+    """Bytes one dense block of kernel evaluations may take (default 256 MiB). Blocks are
+    recomputed in the backward pass (activation checkpointing), so peak memory stays near this
+    budget whatever the problem size.
 
     Use as a context manager (``with memory_budget(2**28): ...``) or read ``memory_budget.value()``.
     """
 
-    _value = 2**30
+    _value = 2**28
 
     def __init__(self, nbytes: int) -> None:
         self.nbytes = int(nbytes)
@@ -79,6 +82,33 @@ def _compress(beta: Tensor, gamma: Tensor, weight: Tensor) -> tuple[Tensor, Tens
     order = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[..., :keep]
     pick = lambda v: torch.take_along_dim(v, order, dim=-1)  # noqa: E731
     return pick(beta), pick(gamma), pick(weight)
+
+
+# When a side's table has at most this many rows per segment slot, the weights are scattered into a
+# dense (T x U) matrix and the operator is evaluated as L K R^T with matrix products: repeated
+# angle pairs (an I-toe, a plate at fixed tilt and direction) then cost O(T U^2 + T^2 U).
+DENSE_WEIGHTS_MAX_RATIO = 64
+
+
+def _dense_weights(index: Tensor, weight: Tensor, U: int) -> Tensor:
+    """(*B, T, M) indices and weights -> dense (*B, T, U) with the weights summed per table row."""
+    return torch.zeros(*index.shape[:-1], U, dtype=weight.dtype, device=weight.device).scatter_add(-1, index, weight)
+
+
+def _use_dense_weights(U1: int, M1: int, U2: int, M2: int) -> bool:
+    return U1 <= DENSE_WEIGHTS_MAX_RATIO * M1 and U2 <= DENSE_WEIGHTS_MAX_RATIO * M2
+
+
+def _dense_rows(x1, x2, s, li, lw, ri, rw) -> Tensor:
+    """Rows of L K R^T for the observations in li, lw (*B, c, M1): (*B, c, T2)."""
+    B = li.shape[:-2]
+    c, M1 = li.shape[-2:]
+    U2 = x2.shape[-2]
+    seg = _gather_rows(x1, li).reshape(*B, c * M1, -1)
+    k = rbf(seg, x2, s).reshape(*B, c, M1, U2)
+    g = (lw[..., None, :] @ k).squeeze(-2)  # (*B, c, U2): W_rows K, as one batched matmul
+    cols = _gather_rows(g.mT, ri)  # (*B, T2, M2, c)
+    return (rw[..., None] * cols).sum(-2).mT
 
 
 class RFTKernelLinearOperator(LinearOperator):
@@ -190,20 +220,28 @@ class RFTKernelLinearOperator(LinearOperator):
         return (self.left_weight[..., None] * _gather_rows(kv, self.left_index)).sum(-2)
 
     def to_dense(self) -> Tensor:
-        T1 = self.left_index.shape[-2]
-        M1 = self.left_index.shape[-1]
-        U2 = self.x2.shape[-2]
+        T1, M1 = self.left_index.shape[-2:]
+        U1, U2 = self.x1.shape[-2], self.x2.shape[-2]
         T2, M2 = self.right_index.shape[-2:]
+        if _use_dense_weights(U1, M1, U2, M2):
+            K = rbf(self.x1, self.x2, self.outputscale)
+            L = _dense_weights(self.left_index, self.left_weight, U1)
+            R = _dense_weights(self.right_index, self.right_weight, U2)
+            return L @ K @ R.mT
         chunk = self._row_chunk(M1 * U2 + T2 * M2)
+        if chunk >= T1:
+            return _dense_rows(self.x1, self.x2, self.outputscale, self.left_index, self.left_weight,
+                               self.right_index, self.right_weight)
+        needs_grad = torch.is_grad_enabled() and any(
+            a.requires_grad for a in (self.x1, self.x2, self.outputscale, self.left_weight, self.right_weight))
         blocks = []
         for i in range(0, T1, chunk):
-            li, lw = self.left_index[..., i:i + chunk, :], self.left_weight[..., i:i + chunk, :]
-            c = li.shape[-2]
-            seg = _gather_rows(self.x1, li).reshape(*self.batch_shape, c * M1, -1)
-            k = rbf(seg, self.x2, self.outputscale).reshape(*self.batch_shape, c, M1, U2)
-            g = (lw[..., None, :] @ k).squeeze(-2)  # (*B, c, U2): W_rows K, as one batched matmul
-            cols = _gather_rows(g.mT, self.right_index)  # (*B, T2, M2, c)
-            blocks.append((self.right_weight[..., None] * cols).sum(-2).mT)
+            args = (self.x1, self.x2, self.outputscale, self.left_index[..., i:i + chunk, :],
+                    self.left_weight[..., i:i + chunk, :], self.right_index, self.right_weight)
+            if needs_grad:
+                blocks.append(torch.utils.checkpoint.checkpoint(_dense_rows, *args, use_reentrant=False))
+            else:
+                blocks.append(_dense_rows(*args))
         return torch.cat(blocks, dim=-2)
 
     def _segment_block(self, x1, x2, s, lw, rw) -> Tensor:

@@ -32,7 +32,8 @@ def test_interpolation_is_exact_on_nodes_and_periodic_in_beta():
     torch.testing.assert_close(dense, torch.eye(48))
     i1, w1 = grid.interpolation(torch.tensor([1.55]), torch.tensor([0.1]))
     i2, w2 = grid.interpolation(torch.tensor([1.55 - P]), torch.tensor([0.1]))
-    torch.testing.assert_close(torch.zeros(48).scatter_add(0, i1[0], w1[0]), torch.zeros(48).scatter_add(0, i2[0], w2[0]))
+    torch.testing.assert_close(torch.zeros(48).scatter_add(0, i1[0], w1[0]),
+                               torch.zeros(48).scatter_add(0, i2[0], w2[0]))
 
 
 @pytest.mark.parametrize("physics", [False, True])

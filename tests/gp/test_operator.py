@@ -72,8 +72,11 @@ class TestRFTKernelLinearOperatorRectangular(RectangularLinearOperatorTestCase, 
         return dense(linear_op)
 
 
-def test_memory_budget_chunks_give_the_same_matrix():
+def test_memory_budget_chunks_and_both_algebras_give_the_same_matrix(monkeypatch):
     from irft_torch.gp import memory_budget
+    from irft_torch.gp import operators
+
+    monkeypatch.setattr(operators, "DENSE_WEIGHTS_MAX_RATIO", 0)  # force the gather path
 
     op = make(batch=(2,), T1=6, M=3, U=30, seed=3)
     full = op.to_dense()
@@ -82,3 +85,29 @@ def test_memory_budget_chunks_give_the_same_matrix():
         torch.testing.assert_close(op.to_dense(), full)
         torch.testing.assert_close(op._matmul(rhs), full @ rhs)
     torch.testing.assert_close(full, dense(op))
+    monkeypatch.setattr(operators, "DENSE_WEIGHTS_MAX_RATIO", 1000)  # the dense-weights path
+    torch.testing.assert_close(op.to_dense(), full)
+    # gradients through the checkpointed blocks equal those of one block
+    x1 = op.x1.clone().requires_grad_(True)
+    args = (x1, x1, op.outputscale, op.left_index, op.left_weight, op.left_index, op.left_weight)
+    monkeypatch.setattr(operators, "DENSE_WEIGHTS_MAX_RATIO", 0)
+    g_full = torch.autograd.grad(operators.RFTKernelLinearOperator(*args).to_dense().pow(2).sum(), x1)[0]
+    with memory_budget(64):
+        g_chunk = torch.autograd.grad(operators.RFTKernelLinearOperator(*args).to_dense().pow(2).sum(), x1)[0]
+    torch.testing.assert_close(g_full, g_chunk)
+
+
+class TestRFTKernelLinearOperatorGatherPath(TestRFTKernelLinearOperatorBatch):
+    """The same battery on the gather algebra (large tables), forced."""
+
+    def setUp(self):
+        from irft_torch.gp import operators
+
+        self._old = operators.DENSE_WEIGHTS_MAX_RATIO
+        operators.DENSE_WEIGHTS_MAX_RATIO = 0
+        super().setUp() if hasattr(super(), "setUp") else None
+
+    def tearDown(self):
+        from irft_torch.gp import operators
+
+        operators.DENSE_WEIGHTS_MAX_RATIO = self._old
