@@ -33,7 +33,8 @@ def fold_data(runs, stride, min_depth):
     out = []
     for r in runs:
         c, f = dem_data.run_contacts(r, stride=stride, min_depth=min_depth)
-        out.append((r, c, f, dem_data.run_stress(r, min_depth), dem_data._canonical(r)))
+        out.append((r, c, f, dem_data.run_stress(r, min_depth), dem_data._canonical(r),
+                    dem_data.run_stress_rft(r, min_depth)))
     return out
 
 
@@ -41,9 +42,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="directory of the DEM csv files")
     ap.add_argument("--out", default="experiments/results")
-    ap.add_argument("--stride", type=int, default=40, help="use every n-th 1 ms sample (default 40)")
+    ap.add_argument("--stride", type=int, default=200, help="use every n-th 1 ms sample (default 200)")
     ap.add_argument("--min-depth", type=float, default=1.0, help="cm (default 1, as the per-run slopes)")
-    ap.add_argument("--n-iter", type=int, default=100)
+    ap.add_argument("--n-iter", type=int, default=80)
     ap.add_argument("--all-gammas", action="store_true")
     a = ap.parse_args()
     torch.set_default_dtype(torch.float64)
@@ -56,7 +57,7 @@ def main() -> None:
     betas = sorted({r.beta_deg for r in runs})
     generic = FourierStressMap.generic()
     names = ["I-RFT", "I-RFT + physics mean", "generic x LS scales", "plain GP on run stresses"]
-    stress = {n: [] for n in names}  # (pred (2,), measured (2,), std (2,) or None)
+    stress = {n: [] for n in names}  # (pred (2,), measured slope (2,), std (2,) or None, measured RFT (2,))
     force_err = {n: [] for n in names}
     fig_maps = None
     for beta in betas:
@@ -78,15 +79,15 @@ def main() -> None:
         plain = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), al, method="exact")
         plain.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models["plain GP on run stresses"] = plain
-        for r, c, f, meas, (bc, gc) in test:
+        for r, c, f, meas, (bc, gc), meas_rft in test:
             for n, m in models.items():
                 b, gm = torch.tensor([bc]), torch.tensor([gc])
                 if isinstance(m, irft.InverseRFT):
                     post = m.stress_map(b, gm)
-                    stress[n].append((post.mean[0].tolist(), meas, post.stddev[0].tolist()))
+                    stress[n].append((post.mean[0].tolist(), meas, post.stddev[0].tolist(), meas_rft))
                     pred = m.predict_forces(c).mean if n != "plain GP on run stresses" else irft.rft.forces(m, c)
                 else:
-                    stress[n].append((m(b, gm)[0].tolist(), meas, None))
+                    stress[n].append((m(b, gm)[0].tolist(), meas, None, meas_rft))
                     pred = irft.rft.forces(m, c)
                 force_err[n].append((pred - f).detach().numpy())
         if beta == 45.0:
@@ -100,26 +101,37 @@ def main() -> None:
              f"({'all gammas' if a.all_gammas else 'gamma >= 45 deg'}), {len(betas)} folds, every {a.stride} ms, "
              f"centre depth > {a.min_depth} cm, {a.n_iter} Adam steps; {time.perf_counter() - t0:.0f} s. "
              f"Reader: {report.summary()}.", "",
-             "| model | stress RMSE x (N/cm^3) | stress RMSE z | force RMSE x (N) | force RMSE z | "
-             "runs inside 95 % interval x | z |", "|---|---|---|---|---|---|---|"]
+             "| model | stress RMSE x, slope (N/cm^3) | z, slope | x, RFT (through origin) | z, RFT "
+             "| force RMSE x (N) | force RMSE z | runs inside 95 % interval (RFT stress) x | z |",
+             "|---|---|---|---|---|---|---|---|---|"]
     results = {}
     for n in names:
         P = np.array([s[0] for s in stress[n]])
         Mm = np.array([s[1] for s in stress[n]])
+        Mr = np.array([s[3] for s in stress[n]])
         srmse = np.sqrt(((P - Mm) ** 2).mean(0))
+        rrmse = np.sqrt(((P - Mr) ** 2).mean(0))
         fe = np.concatenate(force_err[n])
         frmse = np.sqrt((fe**2).mean(0))
         if stress[n][0][2] is not None:
             S = np.array([s[2] for s in stress[n]])
-            cal = (np.abs(P - Mm) <= 1.96 * S).mean(0)
+            cal = (np.abs(P - Mr) <= 1.96 * S).mean(0)
             cal_s = f"{100 * cal[0]:.0f} % | {100 * cal[1]:.0f} %"
         else:
             cal_s = "- | -"
         results[n] = (srmse, frmse)
-        lines.append(f"| {n} | {srmse[0]:.4f} | {srmse[1]:.4f} | {frmse[0]:.3f} | {frmse[1]:.3f} | {cal_s} |")
+        lines.append(f"| {n} | {srmse[0]:.4f} | {srmse[1]:.4f} | {rrmse[0]:.4f} | {rrmse[1]:.4f} | {frmse[0]:.3f} | "
+                     f"{frmse[1]:.3f} | {cal_s} |")
         print(lines[-1])
-    lines += ["| README: generic x fitted scales | 0.0166 | 0.0173 | | | | |",
-              "| README: plain GP on per-run stresses | 0.0153 | 0.0125 | | | | |", "",
+    lines += ["| README: generic x fitted scales | 0.0166 | 0.0173 | | | | | | |",
+              "| README: plain GP on per-run stresses | 0.0153 | 0.0125 | | | | | | |", "",
+              "Two per-run targets: 'slope' is the README's (force against centre depth with an intercept, over "
+              "the plate area); 'RFT' is what an RFT map means, F = alpha x depth x area through the origin. On "
+              "this data the force/depth lines have large intercepts (the two targets differ by 0.06 N/cm^3 rms in "
+              "x, as much as the runs' spread), so a model of F = sum w alpha cannot match the slope target; the "
+              "plain GP is trained on the slope target itself. We could not reproduce the README's generic-scale "
+              "bar exactly: its scales (0.27, 0.18) differ from the slopes we measure (LS scales 0.34, 0.22; "
+              "LOBO RMSE 0.0189, 0.0201 with the README's own method).",
               "Stress RMSE compares each model's stress per depth at a held-out run's (beta, gamma) with that "
               "run's force/depth slope over the plate area (N/cm^3); force RMSE is over every held-out sample.",
               "Angle mapping (DEM -> DESIGN.md): see `irft_torch/dem_data.py` (beta_c = beta, gamma_c = gamma, "
@@ -140,7 +152,7 @@ def main() -> None:
                 ax.plot([d[4][0] for d in test], [d[4][1] for d in test], "m*", ms=9)
         plotting.save(fig, out / "dem_maps.png")
         fig, axes = plotting.plt.subplots(len(test), 2, figsize=(11, 2.2 * len(test)), constrained_layout=True)
-        for k, (r, c, f, _, _) in enumerate(test):
+        for k, (r, c, f, *_) in enumerate(test):
             pred = m.predict_forces(c)
             for i in range(2):
                 ax = axes[k, i]

@@ -29,7 +29,7 @@ import torch
 
 from .rft.contacts import Contacts
 
-__all__ = ["DEMRun", "DEMReadReport", "read_runs", "run_contacts", "run_stress", "PLATE_LENGTH_CM",
+__all__ = ["DEMRun", "DEMReadReport", "read_runs", "run_contacts", "run_stress", "run_stress_rft", "PLATE_LENGTH_CM",
            "PLATE_WIDTH_CM", "TILT_SIGN"]
 
 PLATE_LENGTH_CM = 3.81
@@ -194,3 +194,17 @@ def run_stress(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
     vx = -math.cos(math.radians(run.gamma_deg))
     sign_x = 1.0 if vx < 0 else -1.0
     return sign_x * coef[0, 0] / area, coef[0, 1] / area
+
+
+def run_stress_rft(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
+    """The run's stress per depth as RFT defines it, F = alpha x sum_m depth_m x area_m (a fit
+    through the origin over samples deeper than min_depth cm), canonical convention, N/cm^3.
+
+    Unlike ``run_stress`` (slope with an intercept) this is the quantity an RFT map predicts; the
+    two differ where the force/depth line does not pass through the origin."""
+    c, f = run_contacts(run, min_depth=min_depth)
+    if len(c) < 3:
+        raise ValueError(f"run {run.label}: fewer than 3 samples deeper than {min_depth} cm")
+    w = c.weight_z.sum(-1)
+    sign_x = float(torch.sign(c.weight_x[0, 0]))
+    return (sign_x * float((f[:, 0] * w).sum() / (w * w).sum()), float((f[:, 1] * w).sum() / (w * w).sum()))

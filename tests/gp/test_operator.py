@@ -73,8 +73,7 @@ class TestRFTKernelLinearOperatorRectangular(RectangularLinearOperatorTestCase, 
 
 
 def test_memory_budget_chunks_and_both_algebras_give_the_same_matrix(monkeypatch):
-    from irft_torch.gp import memory_budget
-    from irft_torch.gp import operators
+    from irft_torch.gp import memory_budget, operators
 
     monkeypatch.setattr(operators, "DENSE_WEIGHTS_MAX_RATIO", 0)  # force the gather path
 
