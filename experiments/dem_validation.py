@@ -140,16 +140,9 @@ def main() -> None:
         from irft_torch import plotting
 
         m, train, test = fig_maps
-        B, G = plotting.angle_grid(48)
-        post = m.stress_map(B, G)
-        fig, axes = plotting.plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
-        for i, ax_name in enumerate("xz"):
-            plotting._image(axes[i, 0], post.mean[..., i], f"I-RFT alpha_{ax_name} (beta 45 held out)")
-            plotting._image(axes[i, 1], post.stddev[..., i], f"posterior std alpha_{ax_name}", cmap="viridis",
-                            symmetric=False)
-            for ax in axes[i]:
-                ax.plot([d[4][0] for d in train], [d[4][1] for d in train], "k.", ms=4)
-                ax.plot([d[4][0] for d in test], [d[4][1] for d in test], "m*", ms=9)
+        points = ([d[4][0] for d in train], [d[4][1] for d in train]), ([d[4][0] for d in test],
+                                                                       [d[4][1] for d in test])
+        fig = plotting.plot_posterior_map(m, 48, "I-RFT (beta 45 held out)", points=points)
         plotting.save(fig, out / "dem_maps.png")
         fig, axes = plotting.plt.subplots(len(test), 2, figsize=(11, 2.2 * len(test)), constrained_layout=True)
         for k, (r, c, f, *_) in enumerate(test):

@@ -231,13 +231,7 @@ def cmd_fit(a) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     model.save(out / "model.pt")
-    B, G = plotting.angle_grid(64)
-    post = model.stress_map(B, G)
-    fig, axes = plotting.plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
-    for i, name in enumerate("xz"):
-        plotting._image(axes[i, 0], post.mean[..., i], f"posterior mean alpha_{name}")
-        plotting._image(axes[i, 1], post.stddev[..., i], f"posterior std alpha_{name}", cmap="viridis",
-                        symmetric=False)
+    fig = plotting.plot_posterior_map(model)
     plotting.save(fig, out / "stress_map.png")
     pred = model.predict_forces(ds.contacts)
     plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, pred.stddev), out / "forces.png")

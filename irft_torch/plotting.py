@@ -13,7 +13,8 @@ matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["angle_grid", "plot_stress_map", "plot_toe_path", "plot_coverage", "plot_forces", "save"]
+__all__ = ["angle_grid", "plot_stress_map", "plot_posterior_map", "plot_toe_path", "plot_coverage", "plot_forces",
+           "save"]
 
 P = math.pi
 
@@ -47,6 +48,21 @@ def plot_stress_map(stress_map, n: int = 64, title: str = "", axes=None):
     _image(axes[0], a[..., 0], rf"{title} $\alpha_x$".strip())
     _image(axes[1], a[..., 1], rf"{title} $\alpha_z$".strip())
     return axes[0].figure
+
+
+def plot_posterior_map(model, n: int = 64, title: str = "", points=None):
+    """Posterior mean and standard deviation of a fitted model's alpha_x, alpha_z (2 x 2 panels);
+    ``points`` (beta, gamma) sequences are marked on every panel (e.g. the sampled angle pairs)."""
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
+    B, G = angle_grid(n)
+    post = model.stress_map(B, G)
+    for i, name in enumerate("xz"):
+        _image(axes[i, 0], post.mean[..., i], f"{title} posterior mean alpha_{name}".strip())
+        _image(axes[i, 1], post.stddev[..., i], f"posterior std alpha_{name}", cmap="viridis", symmetric=False)
+        for ax in axes[i]:
+            for style, (pb, pg) in zip(("k.", "m*"), points or ()):
+                ax.plot(pb, pg, style, ms=5 if style == "k." else 9)
+    return fig
 
 
 def plot_toe_path(toe, path, n_snapshots: int = 6, ax=None):

@@ -23,6 +23,13 @@ def make(batch=(), T1=6, T2=6, M=3, U=20, seed=0, square=True):
     return RFTKernelLinearOperator(x, x.clone(), s, li, lw, ri, rw)
 
 
+def with_grads(op):
+    for a in op._args:
+        if a.dtype.is_floating_point:
+            a.requires_grad_(True)
+    return op
+
+
 def dense(op):
     """Explicit W K W^T from the operator's raw arguments (no operator code involved)."""
     x1, x2, s, li, lw, ri, rw = op._args
@@ -39,11 +46,7 @@ class TestRFTKernelLinearOperator(LinearOperatorTestCase, unittest.TestCase):
     should_test_sample = False
 
     def create_linear_op(self):
-        op = make()
-        for a in op._args:
-            if a.dtype.is_floating_point:
-                a.requires_grad_(True)
-        return op
+        return with_grads(make())
 
     def evaluate_linear_op(self, linear_op):
         return dense(linear_op)
@@ -51,22 +54,14 @@ class TestRFTKernelLinearOperator(LinearOperatorTestCase, unittest.TestCase):
 
 class TestRFTKernelLinearOperatorBatch(TestRFTKernelLinearOperator):
     def create_linear_op(self):
-        op = make(batch=(2,), seed=1)
-        for a in op._args:
-            if a.dtype.is_floating_point:
-                a.requires_grad_(True)
-        return op
+        return with_grads(make(batch=(2,), seed=1))
 
 
 class TestRFTKernelLinearOperatorRectangular(RectangularLinearOperatorTestCase, unittest.TestCase):
     seed = 0
 
     def create_linear_op(self):
-        op = make(T1=5, T2=7, square=False, seed=2)
-        for a in op._args:
-            if a.dtype.is_floating_point:
-                a.requires_grad_(True)
-        return op
+        return with_grads(make(T1=5, T2=7, square=False, seed=2))
 
     def evaluate_linear_op(self, linear_op):
         return dense(linear_op)
