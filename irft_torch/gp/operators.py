@@ -155,23 +155,26 @@ class RFTKernelLinearOperator(LinearOperator):
             b2, g2, w2 = b1, g1, w1
         else:
             b2, g2, w2 = _compress(*expand(b2, g2, w2))
-        a1, a2 = w1 != 0, w2 != 0
-        sides = [(b1, g1, a1)] if same_inputs else [(b1, g1, a1), (b2, g2, a2)]
-        pairs = torch.cat([torch.stack([b[a], g[a]], -1) for b, g, a in sides])
-        if pairs.shape[0] == 0:
-            pairs = b1.new_zeros(1, 2)
-            inverse = torch.zeros(0, dtype=torch.long, device=b1.device)
-        elif any(t.requires_grad for t in (b1, g1, b2, g2)):
-            inverse = torch.arange(pairs.shape[0], device=b1.device)  # keep every entry's gradient
-        else:
-            pairs, inverse = torch.unique(pairs, dim=0, return_inverse=True)
-        n1 = int(a1.sum())
-        i1 = torch.zeros(w1.shape, dtype=torch.long, device=w1.device).masked_scatter(a1, inverse[:n1])
-        if same_inputs:
-            i2 = i1
-        else:
-            i2 = torch.zeros(w2.shape, dtype=torch.long, device=w2.device).masked_scatter(a2, inverse[n1:])
-        return {"pairs": pairs, "i1": i1, "w1": w1, "i2": i2, "w2": w2}
+        grad = any(t.requires_grad for t in (b1, g1, b2, g2))
+
+        def table(b, g, w):
+            """Distinct angle pairs of the non-zero-weight segments and each segment's row in them."""
+            a = w != 0
+            pairs = torch.stack([b[a], g[a]], -1)
+            if pairs.shape[0] == 0:
+                return b.new_zeros(1, 2), torch.zeros(w.shape, dtype=torch.long, device=w.device)
+            if grad:
+                inverse = torch.arange(pairs.shape[0], device=b.device)  # keep every entry's gradient
+            else:
+                pairs, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+            return pairs, torch.zeros(w.shape, dtype=torch.long, device=w.device).masked_scatter(a, inverse)
+
+        # Each side gets its own table: a cross-covariance (test rows x training rows) then only
+        # evaluates the kernel between the pairs each side actually uses.
+        pairs1, i1 = table(b1, g1, w1)
+        pairs2, i2 = (pairs1, i1) if same_inputs else table(b2, g2, w2)
+        return {"pairs1": pairs1, "pairs2": pairs2, "i1": i1, "w1": w1, "i2": i2, "w2": w2,
+                "same": same_inputs}
 
     @classmethod
     def from_structure(cls, structure: dict, lengthscale: Tensor, outputscale: Tensor,
@@ -179,11 +182,14 @@ class RFTKernelLinearOperator(LinearOperator):
         """W1 K W2^T with the base kernel's ``lengthscale`` (*batch, 1, 4), ``outputscale`` (*batch,)."""
         from .kernels import embed_angles
 
-        pairs = structure["pairs"]
-        table = embed_angles(pairs[:, 0], pairs[:, 1]) / lengthscale  # (*batch, U, 4)
-        table = table.expand(*batch_shape, *table.shape[-2:])
+        def scaled(pairs):
+            t = embed_angles(pairs[:, 0], pairs[:, 1]) / lengthscale  # (*batch, U, 4)
+            return t.expand(*batch_shape, *t.shape[-2:])
+
+        x1 = scaled(structure["pairs1"])
+        x2 = x1 if structure["same"] else scaled(structure["pairs2"])
         s = outputscale.expand(batch_shape)[..., None, None]
-        return cls(table, table, s, structure["i1"], structure["w1"], structure["i2"], structure["w2"])
+        return cls(x1, x2, s, structure["i1"], structure["w1"], structure["i2"], structure["w2"])
 
     @classmethod
     def from_segments(cls, b1, g1, w1, b2, g2, w2, lengthscale, outputscale, batch_shape,
