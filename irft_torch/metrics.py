@@ -15,7 +15,7 @@ from .rft.contacts import Contacts
 
 __all__ = [
     "rmse", "mae", "r2", "pearson", "acr_percent", "rmse_percent", "mae_percent", "calibration",
-    "coverage_area", "redundancy", "map_metrics",
+    "coverage_area", "redundancy", "map_metrics", "integrated_autocorrelation_time",
 ]
 
 
@@ -125,3 +125,32 @@ def map_metrics(estimate, truth) -> dict[str, float]:
         "pearson": pearson(estimate, truth), "acr_percent": acr_percent(estimate, truth),
         "rmse_percent": rmse_percent(estimate, truth), "mae_percent": mae_percent(estimate, truth),
     }
+
+
+def integrated_autocorrelation_time(x, window: float = 5.0) -> float:
+    """tau = 1 + 2 sum_{k>=1} rho(k), in samples, of a series (n,) (e.g. force residuals).
+
+    The variance of a mean of n correlated samples is tau times that of n independent ones, so
+    n / tau is the effective sample size and thinning by tau gives nearly independent samples.
+    The sum stops at the first lag k >= ``window`` x tau(k) (Sokal's automatic window).
+    For an AR(1) series with coefficient phi, tau = (1 + phi) / (1 - phi).
+    """
+    v = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
+    if v.numel() < 4:
+        raise ValueError(f"need at least 4 samples, got {v.numel()}")
+    if not torch.isfinite(v).all():
+        raise ValueError("x contains NaN or inf")
+    v = v - v.mean()
+    n = v.numel()
+    size = 1 << (2 * n - 1).bit_length()
+    spec = torch.fft.rfft(v, size)
+    acf = torch.fft.irfft(spec * spec.conj(), size)[:n]
+    if acf[0] <= 0:
+        return 1.0
+    rho = (acf / acf[0]).tolist()
+    tau = 1.0
+    for k in range(1, n):
+        tau += 2.0 * rho[k]
+        if k >= window * tau:
+            break
+    return max(tau, 1.0)

@@ -59,13 +59,100 @@ def test_real_data_mapping_correlates_with_the_generic_map():
     assert len(runs) == 48
     gen = FourierStressMap.generic()
     meas = np.array([D.run_stress(r) for r in runs])
-    pred = np.array([gen(*map(torch.tensor, D._canonical(r))).tolist() for r in runs])
+    pred = np.array([gen(*map(torch.tensor, D.canonical_angles(r))).tolist() for r in runs])
     corr = [np.corrcoef(meas[:, k], pred[:, k])[0, 1] for k in range(2)]
     assert corr[0] > 0.94 and corr[1] > 0.93, corr  # README: about 0.95 for both axes
     # the other tilt sign would be wrong: x correlation collapses
     D.TILT_SIGN, old = 1.0, D.TILT_SIGN
     try:
-        wrong = np.array([gen(*map(torch.tensor, D._canonical(r))).tolist() for r in runs])
+        wrong = np.array([gen(*map(torch.tensor, D.canonical_angles(r))).tolist() for r in runs])
     finally:
         D.TILT_SIGN = old
     assert np.corrcoef(meas[:, 0], wrong[:, 0])[0, 1] < 0.5
+
+
+def _ramp_run(beta_deg, gamma_deg, alpha, offset, noise=0.0, n=3000, seed=0):
+    """A synthetic run: the centre goes from 3 cm above z_top to 9 cm below it; forces from RFT's law
+    written out by hand for the plate cut into 10 equal segments, depth below z_top - offset."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 1e-3
+    z_top = np.full(n, 9.0)
+    zc = 12.0 - 12.0 * t / t[-1]
+    tilt = -math.radians(beta_deg)
+    offsets = [-3.81 / 2 + (k + 0.5) * 3.81 / 10 for k in range(10)]  # segment centres along the plate
+    area = 3.81 / 10 * 2.54
+    w = sum(np.clip(z_top - offset - (zc + s * math.sin(tilt)), 0, None) * area for s in offsets)
+    sign = 1.0 if -math.cos(math.radians(gamma_deg)) < 0 else -1.0
+    force = np.stack([sign * alpha[0] * w, np.zeros(n), alpha[1] * w], 1) + noise * rng.standard_normal((n, 3))
+    centre = np.stack([np.zeros(n), np.zeros(n), zc], 1)
+    return D.DEMRun(beta_deg, gamma_deg, t, force, centre, z_top)
+
+
+def test_rft_stress_keeps_the_x_sign_when_the_first_segment_is_above_the_surface():
+    # a plate tilted 45 deg: its upper half is still in the air when the centre is 1 cm deep, so the
+    # first kept sample has weight_x[0, 0] = 0 (the sign once read from it, which zeroed alpha_x)
+    run = _ramp_run(45.0, 63.0, (0.11, 0.15), offset=0.0)
+    c, _ = D.run_contacts(run, min_depth=0.5)
+    assert c.weight_x[0, 0] == 0 and c.weight_x[0, -1] > 0
+    ax, az = D.run_stress_rft(run, min_depth=0.5)
+    assert ax == pytest.approx(0.11, rel=1e-9) and az == pytest.approx(0.15, rel=1e-9)
+    # motion toward +x (gamma > 90 deg in the DEM's convention): the canonical sign flips back
+    run = _ramp_run(45.0, 120.0, (0.07, 0.2), offset=0.0)
+    ax, az = D.run_stress_rft(run, min_depth=0.5)
+    assert ax == pytest.approx(0.07, rel=1e-9) and az == pytest.approx(0.2, rel=1e-9)
+
+
+def test_surface_offset_is_recovered_and_makes_slope_and_rft_stress_agree():
+    runs = [_ramp_run(b, g, (0.05 + 0.001 * b, 0.2), offset=1.3, noise=0.05, seed=i)
+            for i, (b, g) in enumerate([(0, 90), (30, 63), (-45, 72), (60, 81)])]
+    best, curve = D.calibrate_surface_offset(runs)
+    assert best == pytest.approx(1.3, abs=1e-9)
+    assert curve.shape == (31, 2) and curve[:, 1].argmin() == 13
+    for r in runs:
+        slope = np.array(D.run_stress(r, min_depth=3.0))  # fully submerged: the slope is alpha exactly
+        naive = np.array(D.run_stress_rft(r, min_depth=3.0))
+        fixed = np.array(D.run_stress_rft(r, min_depth=0.0, surface_offset=best))
+        np.testing.assert_allclose(fixed, slope, atol=3e-3)
+        assert abs(naive[1] - slope[1]) > 0.02  # through the origin below z_top, the intercept biases it
+    with pytest.raises(ValueError, match="surface_offset"):
+        D.run_contacts(runs[0], surface_offset=-1.0)
+    with pytest.raises(ValueError, match="at least one run"):
+        D.calibrate_surface_offset([])
+
+
+def test_slope_standard_error_matches_the_white_noise_formula():
+    run = _ramp_run(0.0, 90.0, (0.0, 0.2), offset=0.0, noise=0.5, n=4000, seed=3)
+    se_x, se_z = D.run_stress_se(run, min_depth=1.0)
+    d = run.depth[run.depth > 1.0]
+    want = 0.5 / math.sqrt(((d - d.mean()) ** 2).sum()) / (3.81 * 2.54)  # OLS slope error / area
+    assert se_z == pytest.approx(want, rel=0.1) and se_x == pytest.approx(want, rel=0.1)
+
+
+@needs_data
+def test_real_data_surface_calibration_and_slopes_within_their_noise():
+    runs, _ = D.read_runs(DATA)
+    runs = [r for r in runs if r.gamma_deg >= 45]
+    best, _ = D.calibrate_surface_offset(runs)
+    assert 1.2 <= best <= 2.4, best  # a grain diameter or two below the highest grain's top
+    slope = np.array([D.run_stress(r) for r in runs])
+    se = np.array([D.run_stress_se(r) for r in runs])
+    naive = np.array([D.run_stress_rft(r, min_depth=0.0) for r in runs])
+    fixed = np.array([D.run_stress_rft(r, min_depth=0.0, surface_offset=best) for r in runs])
+    rms = lambda v: np.sqrt((v**2).mean(0))  # noqa: E731
+    assert (rms(fixed - slope) < 2 * rms(se)).all(), (rms(fixed - slope), rms(se))
+    assert (rms(fixed - slope) < 0.5 * rms(naive - slope)).all(), (rms(fixed - slope), rms(naive - slope))
+
+
+@needs_data
+def test_dem_validation_experiment_runs_small(tmp_path):
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "dem_validation.py"
+    spec = importlib.util.spec_from_file_location("dem_validation", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.main(["--data", str(DATA), "--out", str(tmp_path), "--stride", "1000", "--n-iter", "3"])
+    text = (tmp_path / "dem_validation.md").read_text()
+    for name in mod.IRFT + mod.BASELINES:
+        assert f"| {name} |" in text
+    assert (tmp_path / "dem_maps.png").exists() and (tmp_path / "dem_forces_heldout.png").exists()

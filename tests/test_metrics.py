@@ -59,3 +59,21 @@ def test_bad_metric_input():
         M.rmse(torch.tensor([math.nan]), torch.tensor([0.0]))
     with pytest.raises(ValueError, match="estimate has 2 values, truth has 3"):
         M.mae(torch.ones(2), torch.ones(3))
+
+
+def test_integrated_autocorrelation_time_of_ar1():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for phi in (0.0, 0.8):
+        e = rng.standard_normal(100_000)
+        x = np.empty_like(e)
+        x[0] = e[0]
+        for i in range(1, len(e)):  # AR(1): tau = (1 + phi) / (1 - phi)
+            x[i] = phi * x[i - 1] + e[i]
+        want = (1 + phi) / (1 - phi)
+        assert M.integrated_autocorrelation_time(x) == pytest.approx(want, rel=0.1)
+    with pytest.raises(ValueError, match="at least 4"):
+        M.integrated_autocorrelation_time([1.0, 2.0])
+    with pytest.raises(ValueError, match="NaN"):
+        M.integrated_autocorrelation_time([1.0, float("nan"), 2.0, 3.0, 4.0])
