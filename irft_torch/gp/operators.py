@@ -9,7 +9,7 @@ import torch.utils.checkpoint
 from linear_operator.operators import LinearOperator
 from torch import Tensor
 
-__all__ = ["RFTKernelLinearOperator", "rbf", "memory_budget"]
+__all__ = ["RFTKernelLinearOperator", "rbf", "memory_budget", "unique_pairs"]
 
 
 class memory_budget:
@@ -71,6 +71,22 @@ def _scatter_rows(values: Tensor, index: Tensor, U: int) -> Tensor:
     flat = (index.reshape(nb, -1) + offset).reshape(-1)
     out = values.new_zeros(nb * U, k).index_add(0, flat, values.reshape(-1, k))
     return out.reshape(*B, U, k)
+
+
+def unique_pairs(pairs: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.unique(pairs, dim=0, return_inverse=True)`` for (n, 2) float pairs, by three 1-D uniques
+    of the columns' bit patterns (row-wise unique sorts rows generically and is ~10x slower). Rows
+    equal bit for bit share an entry; the order of the distinct rows may differ from torch's."""
+    if pairs.shape[0] == 0:
+        return pairs, torch.zeros(0, dtype=torch.long, device=pairs.device)
+    ints = {8: torch.int64, 4: torch.int32, 2: torch.int16}[pairs.element_size()]
+    bits = pairs.contiguous().view(ints)
+    _, ia = torch.unique(bits[:, 0], return_inverse=True)
+    ub, ib = torch.unique(bits[:, 1], return_inverse=True)
+    key, inverse = torch.unique(ia * ub.numel() + ib, return_inverse=True)
+    first = torch.full((key.numel(),), pairs.shape[0], dtype=torch.long, device=pairs.device)
+    first = first.scatter_reduce(0, inverse, torch.arange(pairs.shape[0], device=pairs.device), "amin")
+    return pairs[first], inverse
 
 
 def _compress(beta: Tensor, gamma: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -166,7 +182,7 @@ class RFTKernelLinearOperator(LinearOperator):
             if grad:
                 inverse = torch.arange(pairs.shape[0], device=b.device)  # keep every entry's gradient
             else:
-                pairs, inverse = torch.unique(pairs, dim=0, return_inverse=True)
+                pairs, inverse = unique_pairs(pairs)
             return pairs, torch.zeros(w.shape, dtype=torch.long, device=w.device).masked_scatter(a, inverse)
 
         # Each side gets its own table: a cross-covariance (test rows x training rows) then only

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Path", "rectangle_path", "spline_path", "rotating_leg_path", "pose_path"]
+__all__ = ["Path", "rectangle_path", "spline_path", "course_path", "rotating_leg_path", "pose_path"]
 
 
 @dataclass(frozen=True)
@@ -195,6 +195,72 @@ def spline_path(
     velocity = speed * tangent / torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
     zeros = torch.zeros(n_steps, dtype=dtype)
     return Path(time, torch.stack([xq, z], dim=-1), zeros, velocity, zeros.clone())
+
+
+def _knot_values(name: str, values, dtype) -> Tensor:
+    v = values if isinstance(values, Tensor) else torch.as_tensor(values, dtype=dtype)
+    v = v.to(dtype).reshape(-1) if v.ndim == 0 else v.to(dtype)
+    if v.ndim != 1 or v.shape[0] < 1:
+        raise ValueError(f"{name} must be a scalar or a 1-D sequence of knot values, got shape {tuple(v.shape)}")
+    if not torch.isfinite(v).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return v
+
+
+def _profile(values: Tensor, s: Tensor, length: float) -> tuple[Tensor, Tensor]:
+    """A natural cubic spline through K knots evenly spaced over [0, length], and its slope, at s."""
+    if values.shape[0] == 1:
+        return values.expand(s.shape[0]), torch.zeros_like(s)
+    knots = torch.linspace(0.0, length, values.shape[0], dtype=values.dtype)
+    return _spline_eval(knots, values, _natural_cubic_spline(knots, values), s)
+
+
+def course_path(
+    course,
+    length: float,
+    start: tuple[float, float] = (-0.20, 0.0),
+    heading=0.0,
+    n_steps: int = 200,
+    speed: float = 0.02,
+    substeps: int = 8,
+    dtype=torch.float64,
+) -> Path:
+    """A path of exactly ``length`` metres given by its direction of motion along the arc length.
+
+    The body origin starts at ``start`` (x, z) [m] and moves at constant ``speed`` [m/s] in the
+    direction ``course(s)`` [rad, counter-clockwise from +x: -pi/2 is straight down], a natural cubic
+    spline through the K values of ``course`` at knots evenly spaced over s in [0, length] (K = 1:
+    a straight line). The toe's ``heading`` [rad] is a constant or likewise a spline through K_h knot
+    values (the toe then turns, with angular velocity speed x d heading / ds). Samples are evenly
+    spaced in arc length; positions are the velocity integrated by the trapezoidal rule on
+    ``substeps`` sub-intervals per sample.
+
+    Because the length is fixed by construction, equal-length probes are compared fairly, and the
+    path is differentiable in ``course`` and ``heading`` when they are tensors that require grad
+    (gradient-based probe design).
+    """
+    L = float(length)
+    if not math.isfinite(L) or L <= 0:
+        raise ValueError(f"length must be a positive finite path length in metres, got {length}")
+    if L > 5.0:
+        raise ValueError(f"length={L} m is implausibly large: lengths are in metres (cm or mm passed?)")
+    n_steps = _check_count("n_steps", n_steps)
+    speed = _check_speed(speed)
+    substeps = _check_count("substeps", substeps, minimum=1)
+    course = _knot_values("course", course, dtype)
+    heading = _knot_values("heading", heading, dtype)
+    x0, z0 = (float(c) for c in start)
+    n_fine = (n_steps - 1) * substeps + 1
+    s_fine = torch.linspace(0.0, L, n_fine, dtype=dtype)
+    psi, _ = _profile(course, s_fine, L)
+    direction = torch.stack([torch.cos(psi), torch.sin(psi)], dim=-1)  # unit velocity direction
+    ds = L / (n_fine - 1)
+    increments = 0.5 * ds * (direction[1:] + direction[:-1])
+    offset = torch.cat([direction.new_zeros(1, 2), increments.cumsum(0)])
+    position = (offset + torch.tensor([x0, z0], dtype=dtype))[::substeps]
+    s = s_fine[::substeps]
+    h, dh = _profile(heading, s, L)
+    return Path(s / speed, position, h, speed * direction[::substeps], speed * dh)
 
 
 def rotating_leg_path(

@@ -105,3 +105,17 @@ class TestRFTKernelLinearOperatorGatherPath(TestRFTKernelLinearOperatorBatch):
         from irft_torch.gp import operators
 
         operators.DENSE_WEIGHTS_MAX_RATIO = self._old
+
+
+def test_unique_pairs_agrees_with_torch_unique():
+    from irft_torch.gp.operators import unique_pairs
+
+    g = torch.Generator().manual_seed(4)
+    for dtype in (torch.float64, torch.float32):
+        pairs = (torch.randint(0, 9, (500, 2), generator=g) / 7.0).to(dtype)
+        u, inv = unique_pairs(pairs)
+        assert torch.equal(u[inv], pairs)  # every row is its table entry, bit for bit
+        want = torch.unique(pairs, dim=0)
+        assert u.shape == want.shape and torch.equal(torch.unique(u, dim=0), want)
+    u, inv = unique_pairs(torch.zeros(0, 2, dtype=torch.float64))
+    assert u.shape == (0, 2) and inv.shape == (0,)

@@ -92,3 +92,44 @@ def test_bad_paths():
         rectangle_path(n_steps=1)
     with pytest.raises(ValueError, match="direction"):
         rotating_leg_path(direction="left")
+
+
+def test_course_path_straight_and_circular_against_closed_forms():
+    from irft_torch.rft import course_path
+
+    p = course_path(-math.pi / 4, 0.3, start=(0.1, 0.0), n_steps=31, speed=0.05)
+    torch.testing.assert_close(p.position[-1], torch.tensor([0.1 + 0.3 / math.sqrt(2), -0.3 / math.sqrt(2)]))
+    torch.testing.assert_close(p.velocity.norm(dim=1), torch.full((31,), 0.05))
+    assert p.time[-1].item() == pytest.approx(0.3 / 0.05)
+    # a course turning at a constant rate (two knots: a linear spline) is a circle of radius 1/kappa
+    psi0, kappa, L = -math.pi / 2, 8.0, 0.35
+    p = course_path([psi0, psi0 + kappa * L], L, start=(0.0, 0.0), n_steps=71, substeps=16)
+    s = torch.linspace(0, L, 71)
+    x = (torch.sin(psi0 + kappa * s) - math.sin(psi0)) / kappa
+    z = -(torch.cos(psi0 + kappa * s) - math.cos(psi0)) / kappa
+    torch.testing.assert_close(p.position, torch.stack([x, z], -1), atol=1e-6, rtol=0)
+    assert p.length.item() == pytest.approx(L, rel=1e-3)  # chords of an arc, 70 of them
+
+
+def test_course_path_heading_rate_and_gradient():
+    from irft_torch.rft import course_path
+
+    heading = torch.tensor([0.0, 0.4, -0.2])
+    p = course_path([-1.0, 0.0, 0.5], 0.4, heading=heading, n_steps=401, speed=0.02)
+    fd = pose_path(p.time, p.position[:, 0], p.position[:, 1], p.heading)  # finite differences in time
+    torch.testing.assert_close(p.angular_velocity[5:-5], fd.angular_velocity[5:-5], atol=2e-5, rtol=1e-3)
+    torch.testing.assert_close(p.velocity[5:-5], fd.velocity[5:-5], atol=1e-6, rtol=1e-4)
+    course = torch.tensor([-1.0, 0.0, 0.5], requires_grad=True)
+    end = course_path(course, 0.4, n_steps=21).position[-1, 1]
+    (g,) = torch.autograd.grad(end, course)
+    h = 1e-6
+    for k in range(3):
+        e = torch.zeros(3)
+        e[k] = h
+        fd_k = (course_path(course.detach() + e, 0.4, n_steps=21).position[-1, 1]
+                - course_path(course.detach() - e, 0.4, n_steps=21).position[-1, 1]) / (2 * h)
+        assert g[k].item() == pytest.approx(fd_k.item(), rel=1e-6)
+    with pytest.raises(ValueError, match="length"):
+        course_path([0.0], 40.0)
+    with pytest.raises(ValueError, match="course contains NaN"):
+        course_path([0.0, float("nan")], 0.2)

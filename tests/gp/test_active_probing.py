@@ -1,0 +1,235 @@
+"""Active probing: information gain and integrated variance against a dense reference (explicit W,
+explicit K, torch Cholesky), for a fitted model and for the prior, on both forms of the belief;
+conditioning, greedy design (the chain rule of information), and gradients."""
+
+import math
+
+import pytest
+import torch
+
+import irft_torch as irft
+from irft_torch.gp.active_probing import ProbeScorer, Region, greedy_design
+from irft_torch.gp.grid import AngleGrid
+from irft_torch.rft import Contacts, FourierStressMap
+
+from .dense_reference import W_dense, k_dense
+from .test_model_vs_dense import random_contacts, set_hypers
+
+
+def angles(c):
+    return torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+
+
+def dense_cov(ls, os, noise, train, blocks, interp=None):
+    """Per axis: the posterior covariance of the stacked weighted sums of ``blocks`` (a list of
+    Contacts) after observing ``train`` (None: the prior), from explicit W and K. With ``interp``
+    (a function Contacts -> dense (2, T, U) interpolation rows and the node angles (U, 2)) the blocks
+    are read from the map's posterior at the nodes instead."""
+    out = []
+    for a, wname in enumerate(("weight_x", "weight_z")):
+        k = lambda A, B: k_dense(A, B, ls[a, 0], os[a])  # noqa: E731
+        Ws = torch.block_diag(*[W_dense(getattr(c, wname)) for c in blocks])
+        ths = torch.cat([angles(c) for c in blocks])
+        if interp is not None:
+            nodes = interp["nodes"]
+            Ws = torch.cat([interp["phi"](c)[a] for c in blocks])
+            ths = nodes
+        Kss = k(ths, ths)
+        if train is not None:
+            W = W_dense(getattr(train, wname))
+            th = angles(train)
+            S = W @ k(th, th) @ W.T + noise[a] * torch.eye(W.shape[0])
+            Kst = k(ths, th) @ W.T
+            Kss = Kss - Kst @ torch.linalg.solve(S, Kst.T)
+        out.append(Ws @ Kss @ Ws.T)
+    return out
+
+
+def eig_dense(covs, noise):
+    return sum(0.5 * torch.logdet(torch.eye(S.shape[0]) + S / noise[a]) for a, S in enumerate(covs))
+
+
+def iv_dense(covs, noise, os, region, n_cand):
+    """covs over [region points, candidate]: integrated variance now and after the candidate."""
+    now = after = 0.0
+    n = region.beta.numel()
+    for a, S in enumerate(covs):
+        var = torch.diagonal(S[:n, :n])
+        k = S[:n, n:]
+        post = var - torch.diagonal(k @ torch.linalg.solve(S[n:, n:] + noise[a] * torch.eye(n_cand), k.T))
+        now = now + (region.weight * var).sum() / os[a]
+        after = after + (region.weight * post).sum() / os[a]
+    return now, after
+
+
+def hypers(model):
+    return (model.kernel.lengthscale.detach(), model.kernel.outputscale.detach(), model.likelihood.noise.detach())
+
+
+@pytest.fixture
+def model():
+    c = random_contacts(T=20, M=3, seed=21)
+    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method="exact")
+    set_hypers(m, seed=3)
+    return m
+
+
+def test_exact_information_gain_and_integrated_variance_match_dense(model):
+    ls, os, noise = hypers(model)
+    scorer = ProbeScorer.from_model(model, method="exact")
+    cand = random_contacts(T=8, M=4, seed=22)  # more segments than the training rows: no padding needed
+    want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand]), noise)
+    assert scorer.information_gain(cand).item() == pytest.approx(want.item(), rel=1e-8)
+    for region in (Region.square(5), Region.sign_change(6)):
+        covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
+        now, after = iv_dense(covs, noise, os, region, len(cand))
+        assert scorer.integrated_variance(region=region).item() == pytest.approx(now.item(), rel=1e-8)
+        assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
+        assert after < now
+    torch.testing.assert_close(scorer.covariance(cand), torch.stack(dense_cov(ls, os, noise, model.train_contacts,
+                                                                              [cand])), rtol=1e-8, atol=1e-12)
+
+
+def test_prior_scorer_matches_dense():
+    ls = 0.3 + torch.rand(2, 1, 4, generator=torch.Generator().manual_seed(5))
+    os, noise = torch.tensor([0.05, 0.2]), torch.tensor([0.03, 0.07])
+    scorer = ProbeScorer.prior(ls, os, noise)
+    cand = random_contacts(T=7, M=3, seed=30)
+    region = Region.square(4)
+    assert scorer.information_gain(cand).item() == pytest.approx(eig_dense(dense_cov(ls, os, noise, None, [cand]),
+                                                                           noise).item(), rel=1e-8)
+    now, after = iv_dense(dense_cov(ls, os, noise, None, [region.contacts(), cand]), noise, os, region, len(cand))
+    assert now.item() == pytest.approx(2.0, rel=1e-12)  # the prior: each axis' variance is its prior variance
+    assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
+
+
+def test_conditioning_equals_refitting_with_the_probe_and_leaves_the_model_alone(model):
+    ls, os, noise = hypers(model)
+    scorer = ProbeScorer.from_model(model, method="exact")
+    c1, c2 = random_contacts(T=6, M=3, seed=40), random_contacts(T=5, M=5, seed=41)
+    after = scorer.condition(c1)
+    both = Contacts.cat([model.train_contacts, c1])
+    want = eig_dense(dense_cov(ls, os, noise, both, [c2]), noise)
+    assert after.information_gain(c2).item() == pytest.approx(want.item(), rel=1e-8)
+    assert len(model.train_contacts) == 20 and len(scorer._belief.train) == 20
+    # from the prior too: conditioning the prior on data is the posterior given that data
+    prior = ProbeScorer.prior(ls, os, noise).condition(model.train_contacts)
+    assert prior.information_gain(c2).item() == pytest.approx(scorer.information_gain(c2).item(), rel=1e-8)
+
+
+def test_greedy_information_adds_up_to_the_joint_information(model):
+    """Chain rule: the EIG scores of a greedy sequence sum to the EIG of observing all of it."""
+    ls, os, noise = hypers(model)
+    cands = [random_contacts(T=5, M=3, seed=50 + i) for i in range(5)]
+    steps = greedy_design(ProbeScorer.from_model(model, method="exact"), cands, budget=3, criterion="eig")
+    chosen = [cands[s.index] for s in steps]
+    joint = eig_dense(dense_cov(ls, os, noise, model.train_contacts, chosen), noise)
+    assert sum(s.score for s in steps) == pytest.approx(joint.item(), rel=1e-8)
+    assert len({s.index for s in steps}) == 3
+    # the first pick is the single most informative candidate (checked against dense)
+    single = [eig_dense(dense_cov(ls, os, noise, model.train_contacts, [c]), noise).item() for c in cands]
+    assert steps[0].index == max(range(5), key=single.__getitem__)
+    ivs = [s.integrated_variance for s in steps]
+    assert ivs[0] > ivs[1] > ivs[2]
+
+
+def test_grid_form_matches_dense_posterior_at_the_nodes(model):
+    """On an exact model, the grid form is the exact posterior at the nodes read by interpolation."""
+    ls, os, noise = hypers(model)
+    grid = AngleGrid(8, 7)
+    scorer = ProbeScorer.from_model(model, method="grid", grid_size=(8, 7))
+    b, g = grid.nodes()
+    B, G = torch.meshgrid(b, g, indexing="ij")
+
+    def phi(c):  # dense interpolation rows from the (separately tested) bilinear weights
+        idx, w = grid.interpolation(c.beta, c.gamma)
+        T = idx.shape[0]
+        out = torch.zeros(2, T, grid.size)
+        for a, wt in enumerate((c.weight_x, c.weight_z)):
+            out[a] = out[a].scatter_add(1, idx.reshape(T, -1), (wt[..., None] * w).reshape(T, -1))
+        return out
+
+    interp = {"nodes": torch.stack([B.reshape(-1), G.reshape(-1)], -1), "phi": phi}
+    cand = random_contacts(T=6, M=3, seed=60)
+    region = Region.square(4)
+    covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand], interp)
+    now, after = iv_dense(covs, noise, os, region, len(cand))
+    assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
+    want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand], interp), noise)
+    assert scorer.information_gain(cand).item() == pytest.approx(want.item(), rel=1e-8)
+
+
+def test_grid_model_scorer_is_the_grid_posterior():
+    """On the grid path the scorer's map variance is the model's own posterior variance."""
+    c = random_contacts(T=60, M=4, seed=70)
+    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method="grid", grid_size=(12, 10))
+    set_hypers(m, seed=4)
+    m.grid_model._cache = None
+    scorer = ProbeScorer.from_model(m)
+    assert scorer.method == "grid"
+    bq = torch.linspace(-1.5, 1.5, 7)
+    gq = torch.linspace(-1.4, 1.4, 7)
+    torch.testing.assert_close(scorer.map_variance(bq, gq), m.stress_map(bq, gq).variance, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="no exact form"):
+        ProbeScorer.from_model(m, method="exact")
+
+
+def test_grid_and_exact_rank_probes_alike():
+    toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
+    probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=60, seed=3)
+    train = Contacts.cat([p.contacts() for p in probes[:2]])
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="exact")
+    ex = ProbeScorer.from_model(m, method="exact").score(probes[2:])
+    gr = ProbeScorer.from_model(m, method="grid").score(probes[2:])
+    torch.testing.assert_close(gr, ex, rtol=0.02, atol=0)
+    assert int(torch.argmin(gr)) == int(torch.argmin(ex))
+    ranks = lambda v: torch.argsort(torch.argsort(v)).double()  # noqa: E731
+    rho = torch.corrcoef(torch.stack([ranks(ex), ranks(gr)]))[0, 1]
+    assert rho > 0.9
+
+
+@pytest.mark.parametrize("method", ["exact", "grid"])
+def test_scores_are_differentiable_in_the_path(method):
+    """d IV / d course knot against central finite differences, through path -> contacts -> score."""
+    scorer = ProbeScorer.prior(0.8, (0.05, 0.1), (0.02, 0.05), method=method)
+    toe = irft.rft.CToe(0.02, 0.008, n_segments=6, opening="left")
+    base = torch.tensor([-1.2, -0.2, 0.1, 0.3])
+
+    def iv(course):
+        path = irft.rft.course_path(course, 0.2, start=(0.0, 0.0), heading=0.3, n_steps=40)
+        return scorer.integrated_variance(irft.rft.contacts(toe, path), Region.square(6))
+
+    course = base.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(iv(course), course)
+    h = 1e-6
+    for k in range(4):
+        e = torch.zeros(4)
+        e[k] = h
+        fd = (iv(base + e) - iv(base - e)) / (2 * h)
+        assert grad[k].item() == pytest.approx(fd.item(), rel=1e-4, abs=1e-8)
+
+
+def test_no_contact_teaches_nothing_and_bad_input_is_named(model):
+    scorer = ProbeScorer.from_model(model, method="exact")
+    cand = random_contacts(T=5, M=3, seed=80)
+    air = Contacts(cand.beta, cand.gamma, torch.zeros_like(cand.weight_x), torch.zeros_like(cand.weight_z))
+    assert scorer.information_gain(air).item() == pytest.approx(0.0, abs=1e-12)
+    assert scorer.integrated_variance(air).item() == pytest.approx(scorer.integrated_variance().item(), rel=1e-12)
+    weak = Contacts(cand.beta, cand.gamma, cand.weight_x * 0.01, cand.weight_z * 0.01)
+    assert scorer.rank([weak, cand], "eig")[0][0] == 1
+    assert scorer.rank([weak, cand], "variance")[0][0] == 1
+    with pytest.raises(ValueError, match="criterion"):
+        scorer.score([cand], "entropy")
+    with pytest.raises(TypeError, match="Contacts or have a contacts"):
+        scorer.score(["not a probe"])
+    with pytest.raises(ValueError, match="method"):
+        ProbeScorer.from_model(model, method="fast")
+    with pytest.raises(ValueError, match="noise must be positive"):
+        ProbeScorer.prior(noise=-1.0)
+    with pytest.raises(ValueError, match="weight must be >= 0"):
+        Region(torch.zeros(3), torch.zeros(3), torch.tensor([1.0, -1.0, 0.5]))
+    with pytest.raises(ValueError, match="one shape"):
+        Region(torch.zeros(3), torch.zeros(2), torch.ones(3))
+    with pytest.raises(ValueError, match="budget"):
+        greedy_design(scorer, [cand], budget=-1)
+    assert math.isfinite(scorer.information_gain(cand).item())
