@@ -20,7 +20,7 @@ from . import metrics
 from .gp.model import InverseRFT
 from .rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
 
-__all__ = ["StudySettings", "PAPER_TABLE1", "PAPER_TABLE2", "run_study"]
+__all__ = ["StudySettings", "PAPER_TABLE1", "PAPER_TABLE2", "CONFIGS", "configuration", "run_study"]
 
 CONFIGS = ("I-toe gait 1", "I-toe gait 2", "C-toe gait 1", "C-toe gait 2")
 
@@ -101,6 +101,14 @@ def _path(config: str, s: StudySettings):
     if config.endswith("1"):
         return rectangle_path(*s.rectangle, start=s.rectangle_start, n_steps=s.n_steps)
     return spline_path(s.spline_points, n_steps=s.n_steps)
+
+
+def configuration(config: str, settings: StudySettings | None = None):
+    """The toe and path of one of the paper's four configurations (``CONFIGS``), as the study runs them."""
+    if config not in CONFIGS:
+        raise ValueError(f"config must be one of {CONFIGS}, got {config!r}")
+    s = settings or StudySettings()
+    return _toe(config, s), _path(config, s)
 
 
 def _grid(s: StudySettings) -> tuple[torch.Tensor, torch.Tensor]:

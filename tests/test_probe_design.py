@@ -44,3 +44,22 @@ def test_design_from_scratch_and_with_eig_and_bad_input():
     with pytest.raises(ValueError, match="from_course"):
         optimize_probe(scorer, init=no_spec)
     torch.manual_seed(0)
+
+
+def test_active_probing_experiment_runs_quick(tmp_path):
+    import importlib.util
+    import pathlib
+    import sys
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "active_probing.py"
+    spec = importlib.util.spec_from_file_location("active_probing_experiment", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
+    spec.loader.exec_module(mod)
+    mod.main(["--quick", "--out", str(tmp_path), "--media", "generic", "--seeds", "0"])
+    text = (tmp_path / "active_probing.md").read_text()
+    for name in ("I-toe gait 1", "C-toe gait 2", "paper's four in turn", "designed"):
+        assert f"| {name} |" in text
+    rows = (tmp_path / "active_probing.csv").read_text().splitlines()
+    assert len(rows) == 1 + 6 * 2  # six strategies x two probes
+    assert (tmp_path / "active_probing_generic.png").exists() and (tmp_path / "active_probing_paths.png").exists()

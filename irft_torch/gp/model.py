@@ -73,6 +73,26 @@ def _as_forces(forces, T: int, dtype, device) -> Tensor:
     return f
 
 
+def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
+    """(T, 2) relative noise standard deviations; ones when ``noise_scale`` is None."""
+    if noise_scale is None:
+        return torch.ones(T, 2, dtype=dtype, device=device)
+    s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
+    if s.ndim == 1 and s.shape[0] == T:
+        s = s[:, None].expand(T, 2)
+    if s.shape != (T, 2):
+        raise ValueError(f"noise_scale must be (T,) or (T, 2) with T = {T}, got shape {tuple(s.shape)}")
+    if not (torch.isfinite(s).all() and (s > 0).all()):
+        raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
+    return s.contiguous()
+
+
+def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
+    """Divide each composite observation (its force and its segment weights) by its noise scale:
+    F_t / s_t = sum_m (w_tm / s_t) alpha(theta_tm) + eps_t, eps_t ~ N(0, sigma^2), exactly."""
+    return Contacts(c.beta, c.gamma, c.weight_x / s[:, :1], c.weight_z / s[:, 1:]), f / s
+
+
 class InverseRFT(nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
@@ -96,6 +116,12 @@ class InverseRFT(nn.Module):
         lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an
             angle (an I-toe samples beta = 0 only) the likelihood cannot move it, so it sets how far
             the map extrapolates.
+        noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and
+            axis): the noise of sample t has variance ``noise * noise_scale[t]**2``. For noise
+            proportional to the force (e.g. a current sensor's gain error), pass
+            ``sqrt(forces**2 + floor**2)``. Applied exactly by whitening each observation (its force
+            and weights divided by its scale), so every path (exact, grid, streaming) supports it;
+            ``train_contacts`` and ``train_forces`` hold the whitened data. Default: homoscedastic.
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -107,7 +133,7 @@ class InverseRFT(nn.Module):
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky",
                  lengthscale: float = 1.0, method: str = "auto", grid_size: tuple[int, int] = (32, 32),
-                 exact_max_segments: int = 6_000) -> None:
+                 exact_max_segments: int = 6_000, noise_scale=None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -127,6 +153,8 @@ class InverseRFT(nn.Module):
         device = contacts.beta.device
         c = contacts.to(dtype=dtype, device=device)
         f = _as_forces(forces, T, dtype, device)
+        self.noise_scale = _as_noise_scale(noise_scale, T, dtype, device)
+        c, f = _whiten(c, f, self.noise_scale)
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
@@ -260,13 +288,18 @@ class InverseRFT(nn.Module):
         self.loss_history.extend(history)
         return history
 
-    def add_data(self, contacts: Contacts, forces) -> InverseRFT:
+    def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit). On the grid path
-        this only adds to the sufficient statistics; the posterior equals a batch fit's."""
+        this only adds to the sufficient statistics; the posterior equals a batch fit's.
+        ``noise_scale``: as in the constructor, for the new samples."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
-        c = contacts.to(dtype=self.dtype, device=self.train_forces.device)
-        f = _as_forces(forces, len(c), self.dtype, self.train_forces.device)
+        device = self.train_forces.device
+        c = contacts.to(dtype=self.dtype, device=device)
+        f = _as_forces(forces, len(c), self.dtype, device)
+        scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
+        c, f = _whiten(c, f, scale)
+        self.noise_scale = torch.cat([self.noise_scale, scale])
         if self.grid_model is not None:
             self.grid_model.add_data(c, f)
             self._appended.append((c, f))
@@ -348,13 +381,16 @@ class InverseRFT(nn.Module):
         mean, _ = self._posterior_of(pts, variance=False)
         return mean.T.reshape(*S, 2)
 
-    def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False) -> Posterior:
+    def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False,
+                       noise_scale=None) -> Posterior:
         """Posterior of the forces (F_x, F_z) for contacts of shape (..., T, M).
 
         Args:
             variance: "exact" (w^T Sigma w, segments correlated) or "independent" (the paper's
                 sum_m w_m^2 sigma^2(theta_m)).
             include_noise: add the learned observation noise (predict a measurement).
+            noise_scale: with ``include_noise``, the new samples' relative noise scales (..., T) or
+                (..., T, 2), as in the constructor (default 1).
 
         Returns:
             Posterior with mean and variance (..., T, 2) in N and N^2. Differentiable in the
@@ -386,9 +422,16 @@ class InverseRFT(nn.Module):
                 v_sub = per_seg.sum(-1)
             mean = mean.masked_scatter(touching.expand(2, N), m_sub)
             var = var.masked_scatter(touching.expand(2, N), v_sub)
+        var = var.T.reshape(*lead, 2)
         if include_noise:
-            var = var + self.likelihood.noise[:, None]
-        return Posterior(mean.T.reshape(*lead, 2), var.T.reshape(*lead, 2))
+            scale = torch.ones((), dtype=var.dtype, device=var.device) if noise_scale is None else \
+                torch.as_tensor(noise_scale, dtype=var.dtype, device=var.device)
+            if scale.ndim == len(lead):
+                scale = scale[..., None]
+            if not (torch.isfinite(scale).all() and (scale > 0).all()):
+                raise ValueError("noise_scale must be positive and finite")
+            var = var + self.likelihood.noise * scale.pow(2)
+        return Posterior(mean.T.reshape(*lead, 2), var)
 
     # ---- persistence ---------------------------------------------------------------------
     def save(self, path) -> None:
@@ -397,9 +440,12 @@ class InverseRFT(nn.Module):
         if self._appended:  # grid path: samples streamed in after construction
             contacts = Contacts.cat([contacts] + [c for c, _ in self._appended])
             forces = torch.cat([forces] + [f for _, f in self._appended])
+        s = self.noise_scale  # undo the whitening: the file holds the measured forces
+        contacts = Contacts(contacts.beta, contacts.gamma, contacts.weight_x * s[:, :1], contacts.weight_z * s[:, 1:])
         torch.save({
             "contacts": {k: v.cpu() for k, v in contacts.as_dict().items()},
-            "forces": forces.cpu(),
+            "forces": (forces * s).cpu(),
+            "noise_scale": s.cpu(),
             "options": {"prior_mean": self.prior_mean_kind, "tied_noise": self.likelihood.tied,
                         "lengthscale": self.init_lengthscale, "method": self.method,
                         "grid_size": (self.grid_model.grid.n_beta, self.grid_model.grid.n_gamma)
@@ -415,7 +461,7 @@ class InverseRFT(nn.Module):
         d = torch.load(path, map_location=map_location, weights_only=True)
         opts = dict(d["options"])
         opts["dtype"] = getattr(torch, opts["dtype"])
-        model = cls(Contacts(**d["contacts"]), d["forces"], **opts)
+        model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
         model.load_state_dict(d["state_dict"])
         model.loss_history = list(d.get("loss_history", []))
         return model

@@ -149,3 +149,66 @@ def test_mirror_outside_canonical_square():
     outside = m.stress_map(b, g)
     torch.testing.assert_close(outside.mean, inside.mean * torch.tensor([-1.0, 1.0]))
     torch.testing.assert_close(outside.variance, inside.variance)
+
+
+@pytest.mark.parametrize("method", ["exact", "grid"])
+def test_relative_noise_scale_is_heteroscedastic_noise_exactly(method, tmp_path):
+    """noise_scale s: noise variance sigma^2 s_t^2 per sample. Against a dense model with
+    S = A K A^T + sigma^2 diag(s^2), no whitening in the reference (A = W for the exact path, the
+    interpolation Phi over the grid's nodes for the grid path), and through save/load."""
+    from .dense_reference import W_dense, k_dense
+
+    c = random_contacts(T=24, M=3, seed=13)
+    f = irft.rft.forces(FourierStressMap.generic(0.5, 0.4), c)
+    s = 0.5 + torch.rand(24, 2, generator=torch.Generator().manual_seed(2))
+    model = irft.InverseRFT(c, f, noise_scale=s, method=method, grid_size=(10, 9))
+    set_hypers(model, seed=6)
+    if method == "grid":
+        model.grid_model._cache = None
+        grid = model.grid_model.grid
+        b, g = grid.nodes()
+        B, G = torch.meshgrid(b, g, indexing="ij")
+        th = torch.stack([B.reshape(-1), G.reshape(-1)], -1)
+        idx, iw = grid.interpolation(c.beta, c.gamma)
+        A = [torch.zeros(24, grid.size).scatter_add(1, idx.reshape(24, -1), (w[..., None] * iw).reshape(24, -1))
+             for w in (c.weight_x, c.weight_z)]
+    else:
+        th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+        A = [W_dense(c.weight_x), W_dense(c.weight_z)]
+    ls, os = model.kernel.lengthscale.detach(), model.kernel.outputscale.detach()
+    noise = model.likelihood.noise.detach()
+    total = 0.0
+    for a in range(2):
+        S = A[a] @ k_dense(th, th, ls[a, 0], os[a]) @ A[a].T + noise[a] * torch.diag(s[:, a] ** 2)
+        mll = torch.distributions.MultivariateNormal(torch.zeros(24), S).log_prob(f[:, a])
+        total = total + (mll + torch.log(s[:, a]).sum()) / 24  # the whitened likelihood's Jacobian term
+    # the grid factors carry a 1e-8 jitter: agreement to ~1e-6 there
+    assert -model.loss().item() == pytest.approx(total.item(), rel=1e-8 if method == "exact" else 1e-6)
+    thq = (torch.rand(15, 2, generator=torch.Generator().manual_seed(3)) - 0.5) * P
+    post = model.stress_map(thq[:, 0], thq[:, 1])
+    for a in range(2):
+        S = A[a] @ k_dense(th, th, ls[a, 0], os[a]) @ A[a].T + noise[a] * torch.diag(s[:, a] ** 2)
+        if method == "exact":
+            ks = k_dense(thq, th, ls[a, 0], os[a]) @ A[a].T
+            kss = os[a]
+        else:
+            iq, wq = grid.interpolation(thq[:, 0], thq[:, 1])
+            E = torch.zeros(15, grid.size).scatter_add(1, iq, wq)
+            Kn = k_dense(th, th, ls[a, 0], os[a])
+            ks, kss = E @ Kn @ A[a].T, torch.diagonal(E @ Kn @ E.T)
+        mu = ks @ torch.linalg.solve(S, f[:, a])
+        var = kss - (ks * torch.linalg.solve(S, ks.T).T).sum(-1)
+        tol = 1e-8 if method == "exact" else 1e-6
+        torch.testing.assert_close(post.mean[:, a], mu, rtol=tol, atol=1e-10)
+        torch.testing.assert_close(post.variance[:, a], var, rtol=tol, atol=1e-10)
+    model.save(tmp_path / "m.pt")
+    back = irft.InverseRFT.load(tmp_path / "m.pt")
+    torch.testing.assert_close(back.noise_scale, s)
+    assert back.loss().item() == pytest.approx(model.loss().item(), rel=1e-10)
+    pred = model.predict_forces(c[:4], include_noise=True, noise_scale=s[:4])
+    plain = model.predict_forces(c[:4])
+    torch.testing.assert_close(pred.variance - plain.variance, noise * s[:4] ** 2)
+    with pytest.raises(ValueError, match="noise_scale must be"):
+        irft.InverseRFT(c, f, noise_scale=torch.ones(5))
+    with pytest.raises(ValueError, match="positive"):
+        irft.InverseRFT(c, f, noise_scale=-torch.ones(24))
