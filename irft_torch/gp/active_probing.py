@@ -332,12 +332,14 @@ class ProbeScorer:
         S = self._belief.cov(h, h)
         return 0.5 * (S + S.mT)
 
-    def information_gain(self, contacts) -> Tensor:
-        """EIG of observing the candidate's forces, nats, summed over the two axes (scalar)."""
+    def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
+        """EIG of observing the candidate's forces, nats: summed over the two maps (scalar), or
+        ``per_axis`` (2,) = (alpha_x, alpha_z) (each map is seen only through its own force axis)."""
         S = self.covariance(contacts)
         eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         L = psd_safe_cholesky(eye + S / self.noise[:, None, None])
-        return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum()
+        eig = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        return eig if per_axis else eig.sum()
 
     def _region(self, region: Region | None) -> tuple[Region, _Handle, Tensor]:
         if region is None:
@@ -352,24 +354,26 @@ class ProbeScorer:
             self._regions[key] = (region, h, var)
         return self._regions[key]
 
-    def integrated_variance(self, contacts=None, region: Region | None = None) -> Tensor:
+    def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
         """Expected integrated map variance over ``region`` (default: the whole square) after
-        observing the candidate (now, if None), each axis divided by its prior variance, summed over
-        the axes (scalar): 2 = the prior, 0 = known."""
+        observing the candidate (now, if None), each map's divided by its prior variance: summed over
+        the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
         region, hr, var = self._region(region)
         w = region.weight.to(var)
         if contacts is None:
-            return ((var * w).sum(-1) / self.outputscale).sum()
-        hc = self._belief.handle(self._cast(contacts))
-        return self._integrated_variance_after(hr, var, w, hc)
+            iv = (var * w).sum(-1) / self.outputscale
+        else:
+            iv = self._integrated_variance_after(hr, var, w, self._belief.handle(self._cast(contacts)))
+        return iv if per_axis else iv.sum()
 
     def _integrated_variance_after(self, hr: _Handle, var: Tensor, w: Tensor, hc: _Handle) -> Tensor:
+        """Per map (2,)."""
         k = self._belief.cov(hr, hc)  # (2, N, T_c)
         S = self._belief.cov(hc, hc)
         S = 0.5 * (S + S.mT) + self.noise[:, None, None] * torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         L = psd_safe_cholesky(S)
         B = torch.linalg.solve_triangular(L, k.mT, upper=False)  # (2, T_c, N)
-        return (((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale).sum()
+        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale
 
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
@@ -383,7 +387,7 @@ class ProbeScorer:
             return torch.stack([self.information_gain(c) for c in cands])
         reg, hr, var = self._region(region)
         w = reg.weight.to(var)
-        return torch.stack([self._integrated_variance_after(hr, var, w, self._belief.handle(c)) for c in cands])
+        return torch.stack([self._integrated_variance_after(hr, var, w, self._belief.handle(c)).sum() for c in cands])
 
     def rank(self, candidates: Sequence, criterion: str = "variance",
              region: Region | None = None) -> list[tuple[int, float]]:

@@ -86,6 +86,19 @@ def test_exact_information_gain_and_integrated_variance_match_dense(model):
         assert scorer.integrated_variance(region=region).item() == pytest.approx(now.item(), rel=1e-8)
         assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
         assert after < now
+        # per map: the x map is seen only through F_x, so its share uses only the x block
+        n = region.beta.numel()
+        Sx = covs[0]
+        kx = Sx[:n, n:]
+        post_x = torch.diagonal(Sx[:n, :n]) - torch.diagonal(
+            kx @ torch.linalg.solve(Sx[n:, n:] + noise[0] * torch.eye(len(cand)), kx.T))
+        after_x = (region.weight * post_x).sum() / os[0]
+        per = scorer.integrated_variance(cand, region, per_axis=True)
+        assert per.shape == (2,) and per[0].item() == pytest.approx(after_x.item(), rel=1e-8)
+        assert per.sum().item() == pytest.approx(after.item(), rel=1e-12)
+    cov_x = dense_cov(ls, os, noise, model.train_contacts, [cand])[0]
+    eig_x = 0.5 * torch.logdet(torch.eye(len(cand)) + cov_x / noise[0])
+    assert scorer.information_gain(cand, per_axis=True)[0].item() == pytest.approx(eig_x.item(), rel=1e-8)
     torch.testing.assert_close(scorer.covariance(cand), torch.stack(dense_cov(ls, os, noise, model.train_contacts,
                                                                               [cand])), rtol=1e-8, atol=1e-12)
 
