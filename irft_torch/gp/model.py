@@ -217,7 +217,8 @@ class InverseRFT(nn.Module):
         return self.grid_model.mean_module if self.gp is None else self.gp.mean_module
 
     def hyperparameters(self) -> dict[str, list]:
-        """Current hyperparameters, readable (lengthscales per embedding dim, variances)."""
+        """Current hyperparameters, readable (lengthscales per embedding dim, variances). ``noise`` is
+        the force noise variance per axis in N^2 (with ``noise_scale``, that of a sample of scale 1)."""
         out = {
             "lengthscale_x": self.kernel.lengthscale[0, 0].tolist(),
             "lengthscale_z": self.kernel.lengthscale[1, 0].tolist(),
