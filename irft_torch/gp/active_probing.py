@@ -133,6 +133,12 @@ class _Handle:
     side: dict | None = None
 
 
+def _plus_noise(S: Tensor, noise: Tensor) -> Tensor:
+    """(S + S^T) / 2 + diag(noise_a) per axis: a force covariance (2, T, T) plus the force noise."""
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return 0.5 * (S + S.mT) + noise[:, None, None] * eye
+
+
 def _side(c: Contacts) -> dict:
     """One side of a W1 K W2^T: the contacts' non-zero segments and their distinct angle pairs."""
     b, g, w = _axis_stack(c)
@@ -149,7 +155,7 @@ class _ExactBelief:
         self.train_side = _side(self.train) if self.train is not None else None
         if self.train is not None and L is None:
             K = self.kernel(self.train_side, self.train_side)
-            L = psd_safe_cholesky(K + self.noise[:, None, None] * torch.eye(K.shape[-1], dtype=K.dtype))
+            L = psd_safe_cholesky(_plus_noise(K, self.noise))
         self.L = L
 
     def kernel(self, side1: dict, side2: dict) -> Tensor:
@@ -172,7 +178,7 @@ class _ExactBelief:
 
     def condition(self, h: _Handle) -> _ExactBelief:
         S = self.cov(h, h)
-        L22 = psd_safe_cholesky(0.5 * (S + S.mT) + self.noise[:, None, None] * torch.eye(S.shape[-1], dtype=S.dtype))
+        L22 = psd_safe_cholesky(_plus_noise(S, self.noise))
         if self.train is None:
             return _ExactBelief(self.lengthscale, self.outputscale, self.noise, h.contacts, L22)
         T, Tc = self.L.shape[-1], L22.shape[-1]
@@ -206,7 +212,7 @@ class _GridBelief:
 
     def condition(self, h: _Handle) -> _GridBelief:
         S = self.cov(h, h)
-        L = psd_safe_cholesky(0.5 * (S + S.mT) + self.noise[:, None, None] * torch.eye(S.shape[-1], dtype=S.dtype))
+        L = psd_safe_cholesky(_plus_noise(S, self.noise))
         X = torch.linalg.solve_triangular(L, h.b, upper=False)
         Sigma = self.Sigma - X.mT @ X
         return _GridBelief(self.grid, 0.5 * (Sigma + Sigma.mT), self.outputscale, self.noise)
@@ -369,9 +375,7 @@ class ProbeScorer:
     def _integrated_variance_after(self, hr: _Handle, var: Tensor, w: Tensor, hc: _Handle) -> Tensor:
         """Per map (2,)."""
         k = self._belief.cov(hr, hc)  # (2, N, T_c)
-        S = self._belief.cov(hc, hc)
-        S = 0.5 * (S + S.mT) + self.noise[:, None, None] * torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-        L = psd_safe_cholesky(S)
+        L = psd_safe_cholesky(_plus_noise(self._belief.cov(hc, hc), self.noise))
         B = torch.linalg.solve_triangular(L, k.mT, upper=False)  # (2, T_c, N)
         return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale
 
@@ -382,7 +386,7 @@ class ProbeScorer:
             raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
         cands = [self._cast(c) for c in candidates]
         if not cands:
-            return torch.zeros(0, dtype=self.noise.dtype)
+            return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
         if criterion == "eig":
             return torch.stack([self.information_gain(c) for c in cands])
         reg, hr, var = self._region(region)
