@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .metrics import integrated_autocorrelation_time
 from .rft.contacts import Contacts
 
 __all__ = ["DEMRun", "DEMReadReport", "read_runs", "canonical_angles", "run_contacts", "run_stress", "run_stress_se",
@@ -204,25 +205,9 @@ def _check_offset(surface_offset: float) -> None:
         raise ValueError(f"surface_offset must be a depth in cm in [0, {PLATE_LENGTH_CM * 3:g}), got {surface_offset}")
 
 
-def run_stress(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
-    """Per-run stress per depth (alpha_x, alpha_z) in N/cm^3: the slope of force against centre depth
-    (depth > min_depth cm, least squares with an intercept) divided by the plate area, in the
-    canonical convention (the x force of motion toward -x flips sign). The data README's recipe."""
-    m = run.depth > min_depth
-    if m.sum() < 3:
-        raise ValueError(f"run {run.label}: fewer than 3 samples deeper than {min_depth} cm")
-    d = run.depth[m]
-    A = np.stack([d, np.ones_like(d)], 1)
-    coef, *_ = np.linalg.lstsq(A, run.force[m][:, [0, 2]], rcond=None)
-    area = PLATE_LENGTH_CM * PLATE_WIDTH_CM
-    return _sign_x(run) * coef[0, 0] / area, coef[0, 1] / area
-
-
-def run_stress_se(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
-    """Standard errors (N/cm^3) of ``run_stress``: the least-squares slope's error with the residuals'
-    autocorrelation accounted for (white-noise error x sqrt(integrated autocorrelation time))."""
-    from .metrics import integrated_autocorrelation_time
-
+def _depth_regression(run: DEMRun, min_depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares of (F_x, F_z) on [centre depth, 1] over samples deeper than min_depth cm:
+    the design matrix (n, 2), the coefficients (2, 2) (slope row, intercept row) and residuals (n, 2)."""
     m = run.depth > min_depth
     if m.sum() < 3:
         raise ValueError(f"run {run.label}: fewer than 3 samples deeper than {min_depth} cm")
@@ -230,12 +215,27 @@ def run_stress_se(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
     A = np.stack([d, np.ones_like(d)], 1)
     F = run.force[m][:, [0, 2]]
     coef, *_ = np.linalg.lstsq(A, F, rcond=None)
-    resid = F - A @ coef
+    return A, coef, F - A @ coef
+
+
+def run_stress(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
+    """Per-run stress per depth (alpha_x, alpha_z) in N/cm^3: the slope of force against centre depth
+    (depth > min_depth cm, least squares with an intercept) divided by the plate area, in the
+    canonical convention (the x force of motion toward -x flips sign). The data README's recipe."""
+    _, coef, _ = _depth_regression(run, min_depth)
+    area = PLATE_LENGTH_CM * PLATE_WIDTH_CM
+    return _sign_x(run) * coef[0, 0] / area, coef[0, 1] / area
+
+
+def run_stress_se(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
+    """Standard errors (N/cm^3) of ``run_stress``: the least-squares slope's error with the residuals'
+    autocorrelation accounted for (white-noise error x sqrt(integrated autocorrelation time))."""
+    A, _, resid = _depth_regression(run, min_depth)
     cov00 = np.linalg.inv(A.T @ A)[0, 0]
     area = PLATE_LENGTH_CM * PLATE_WIDTH_CM
     out = []
     for k in range(2):
-        var = float(resid[:, k] @ resid[:, k]) / (len(d) - 2)
+        var = float(resid[:, k] @ resid[:, k]) / (len(A) - 2)
         tau = integrated_autocorrelation_time(resid[:, k])
         out.append(math.sqrt(var * cov00 * tau) / area)
     return out[0], out[1]

@@ -389,9 +389,7 @@ class ProbeScorer:
             return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
         if criterion == "eig":
             return torch.stack([self.information_gain(c) for c in cands])
-        reg, hr, var = self._region(region)
-        w = reg.weight.to(var)
-        return torch.stack([self._integrated_variance_after(hr, var, w, self._belief.handle(c)).sum() for c in cands])
+        return torch.stack([self.integrated_variance(c, region) for c in cands])
 
     def rank(self, candidates: Sequence, criterion: str = "variance",
              region: Region | None = None) -> list[tuple[int, float]]:

@@ -254,9 +254,8 @@ def course_path(
     s_fine = torch.linspace(0.0, L, n_fine, dtype=dtype)
     psi, _ = _profile(course, s_fine, L)
     direction = torch.stack([torch.cos(psi), torch.sin(psi)], dim=-1)  # unit velocity direction
-    ds = L / (n_fine - 1)
-    increments = 0.5 * ds * (direction[1:] + direction[:-1])
-    offset = torch.cat([direction.new_zeros(1, 2), increments.cumsum(0)])
+    offset = torch.cumulative_trapezoid(direction, dx=L / (n_fine - 1), dim=0)
+    offset = torch.cat([direction.new_zeros(1, 2), offset])
     position = (offset + torch.tensor([x0, z0], dtype=dtype))[::substeps]
     s = s_fine[::substeps]
     h, dh = _profile(heading, s, L)

@@ -81,22 +81,20 @@ class ProbeBounds:
         if not (tlo <= thi and abs(tlo) <= math.pi and abs(thi) <= math.pi):
             raise ValueError(f"tilt_range must be (min <= max) within [-pi, pi] rad, got {self.tilt_range}")
 
+    def _excess(self, path: Path) -> Tensor:
+        """(T, 6) how far each sample lies beyond each bound (m, or rad for the tilt); 0 inside."""
+        x, z, h = path.position[:, 0], path.position[:, 1], path.heading
+        return torch.relu(torch.stack([-self.max_depth - z, z - self.max_height, self.x_range[0] - x,
+                                       x - self.x_range[1], self.tilt_range[0] - h, h - self.tilt_range[1]], -1))
+
     def violation(self, path: Path) -> Tensor:
         """How far the path leaves the workspace: the sum over samples of the squared distance
         outside each bound, m^2 (0 inside; differentiable)."""
-        x, z = path.position[:, 0], path.position[:, 1]
-        out = (torch.relu(-self.max_depth - z) ** 2 + torch.relu(z - self.max_height) ** 2
-               + torch.relu(self.x_range[0] - x) ** 2 + torch.relu(x - self.x_range[1]) ** 2)
-        h = path.heading
-        out = out + torch.relu(self.tilt_range[0] - h) ** 2 + torch.relu(h - self.tilt_range[1]) ** 2
-        return out.sum()
+        return self._excess(path).pow(2).sum()
 
     def contains(self, path: Path, tol: float = 1e-9) -> bool:
         """Whether every sample lies inside the bounds (within ``tol`` m)."""
-        x, z, h = path.position[:, 0], path.position[:, 1], path.heading
-        return bool((z >= -self.max_depth - tol).all() and (z <= self.max_height + tol).all()
-                    and (x >= self.x_range[0] - tol).all() and (x <= self.x_range[1] + tol).all()
-                    and (h >= self.tilt_range[0] - tol).all() and (h <= self.tilt_range[1] + tol).all())
+        return bool((self._excess(path) <= tol).all())
 
 
 def _waypoint_course(g: torch.Generator, start_x: float, length: float, bounds: ProbeBounds,
