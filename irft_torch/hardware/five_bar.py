@@ -10,6 +10,12 @@ b_i = (p - knee_i) . d knee_i / d q_i, the Jacobian is J = A^-1 diag(b) and
 J^-T tau = sum_i tau_i (p - knee_i) / b_i. For the symmetric coaxial leg (Minitaur family) this
 is F_radial = (tau1 - tau2) / L'(g), F_tangential = (tau1 + tau2) / L.
 
+Extension (``extension`` = l3 > 0, e.g. the Traveler's 0.05 m): the toe sits l3 beyond the distal
+joint p along the leg axis (the line from the origin through p), toe = p + l3 p / |p|. Its
+Jacobian is M J_p with M = I + (l3 / |p|)(I - u u^T), u = p / |p|: the radial part of a force is
+unchanged and the tangential part is scaled by |p| / (|p| + l3) (F_tangential = (tau1 + tau2) /
+(L + l3) for the symmetric leg). With l3 = 0 (the default) nothing changes.
+
 Sign: ``tau`` is the torque the motors apply to hold the leg (what tau = k_t I measures). In
 static balance tau + J^T F_ground = 0, so the force of the ground on the toe is -J^-T tau.
 """
@@ -39,12 +45,15 @@ class FiveBarLeg:
         l2: distal link length, m (default 0.2).
         hip_spacing: distance between the two motor axes along x, m (0: coaxial).
         max_condition: samples whose Jacobian condition number exceeds this are masked.
+        extension: l3, how far the toe sits beyond the distal joint along the leg axis (origin to
+            distal joint), m (default 0: the toe is the distal joint).
     """
 
     l1: float = 0.10
     l2: float = 0.20
     hip_spacing: float = 0.0
     max_condition: float = 50.0
+    extension: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("l1", "l2"):
@@ -55,6 +64,8 @@ class FiveBarLeg:
                 raise ValueError(f"{name}={v} m: lengths are in metres (millimetres passed?)")
         if not (math.isfinite(self.hip_spacing) and self.hip_spacing >= 0):
             raise ValueError(f"hip_spacing must be >= 0 (m), got {self.hip_spacing}")
+        if not (math.isfinite(self.extension) and 0 <= self.extension <= 2.0):
+            raise ValueError(f"extension must be a length >= 0 in metres, got {self.extension}")
 
     def hips(self, dtype=torch.float64) -> Tensor:
         """(2, 2) motor axis positions."""
@@ -72,6 +83,13 @@ class FiveBarLeg:
     def forward_kinematics(self, q) -> Tensor:
         """Toe position (..., 2) [m] from joint angles q (..., 2) [rad]; NaN where unreachable."""
         q = torch.as_tensor(q, dtype=torch.float64) if not torch.is_tensor(q) else q
+        p = self._distal_joint(q)
+        if self.extension == 0:
+            return p
+        return p + self.extension * p / torch.linalg.vector_norm(p, dim=-1, keepdim=True)
+
+    def _distal_joint(self, q: Tensor) -> Tensor:
+        """Where the two distal links meet (..., 2) [m] (the toe when ``extension`` is 0)."""
         knees, _ = self._knees(q)
         k1, k2 = knees[..., 0, :], knees[..., 1, :]
         mid = (k1 + k2) / 2
@@ -88,6 +106,11 @@ class FiveBarLeg:
         """Joint angles (..., 2) [rad] placing the toe at p (..., 2) [m] (knee 1 on the +x side of
         its hip-to-toe line, knee 2 on the -x side, as forward_kinematics assumes)."""
         p = torch.as_tensor(p, dtype=torch.float64) if not torch.is_tensor(p) else p
+        if self.extension > 0:  # back from the toe to the distal joint, along the leg axis
+            r = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
+            if (r <= self.extension).any():
+                raise ValueError(f"toe positions must be farther than extension={self.extension} m from the origin")
+            p = p * (1 - self.extension / r)
         hips = self.hips(p.dtype).to(p.device)
         rel = p[..., None, :] - hips  # (..., 2, 2)
         r = torch.linalg.vector_norm(rel, dim=-1)
@@ -106,10 +129,17 @@ class FiveBarLeg:
         return torch.linalg.solve(A, torch.diag_embed(b))
 
     def _statics(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        p = self.forward_kinematics(q)
+        """A, b with J = A^-1 diag(b)."""
+        p = self._distal_joint(q)
         knees, dknees = self._knees(q)
         A = p[..., None, :] - knees  # rows p - knee_i
         b = (A * dknees).sum(-1)
+        if self.extension > 0:  # J = M J_p, so A -> A M^-1; M^-1 = u u^T + r / (r + l3) (I - u u^T)
+            r = torch.linalg.vector_norm(p, dim=-1, keepdim=True)[..., None]
+            u = (p[..., :, None] / r)
+            uu = u @ u.mT
+            eye = torch.eye(2, dtype=p.dtype, device=p.device)
+            A = A @ (uu + r / (r + self.extension) * (eye - uu))
         return A, b
 
     def condition_number(self, q) -> Tensor:
@@ -168,7 +198,7 @@ class FiveBarLeg:
                 raise ValueError(f"heading must be a number or 'link1'/'link2', got {heading!r}")
             knees, _ = self._knees(q)
             i = 0 if heading == "link1" else 1
-            d = p - knees[..., i, :]
+            d = self._distal_joint(q) - knees[..., i, :]
             h = torch.atan2(d[..., 1], d[..., 0]) + math.pi / 2  # 0 when the link points straight down
         else:
             h = torch.full(p.shape[:-1], float(heading), dtype=p.dtype)
