@@ -1,41 +1,75 @@
 """Figures (matplotlib). Never imported by the core modules.
 
-Every function draws into a given axes (or a new figure) and returns the figure.
+Every function draws into given axes (or a new figure) and returns the figure. Importing this
+module never changes matplotlib's backend: in Jupyter the figures show inline, in a script they
+go wherever the script's backend sends them. Code that only writes files and may run without a
+display selects a headless backend itself, in its ``main`` (``matplotlib.use("Agg")``) or with
+``MPLBACKEND=Agg`` in the environment, never at import.
+
+Map figures follow one layout: truth | estimate | error (estimate - truth, signed) | posterior
+std, one row per axis (alpha_x, alpha_z); truth and estimate share one colour scale per row,
+error and std share another (so an error larger than the std it should stay within is visible
+at a glance), and the sampled (beta, gamma) pairs are marked on the std panel.
 """
 
 from __future__ import annotations
 
 import math
 
-import matplotlib
+import matplotlib.pyplot as plt
+import torch
 
-matplotlib.use("Agg", force=False)
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-
-__all__ = ["angle_grid", "plot_stress_map", "plot_posterior_map", "plot_toe_path", "plot_coverage", "plot_forces",
-           "save"]
+__all__ = ["angle_grid", "sampled_angles", "plot_stress_map", "plot_map_comparison", "plot_posterior_map",
+           "plot_toe_path", "plot_coverage", "plot_forces", "save"]
 
 P = math.pi
+UNIT = "N/cm$^3$"
 
 
 def angle_grid(n: int = 64, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
-    """A regular n x n (beta, gamma) grid over [-pi/2, pi/2]^2 (cell centres), each (n, n)."""
+    """A regular n x n (beta, gamma) grid over [-pi/2, pi/2]^2 (cell centres), each (n, n).
+
+    Example:
+        >>> beta, gamma = angle_grid(48)   # then model.stress_map(beta, gamma)
+    """
     edges = torch.linspace(-P / 2, P / 2, n + 1, dtype=dtype)
     centres = (edges[1:] + edges[:-1]) / 2
     return torch.meshgrid(centres, centres, indexing="ij")
 
 
-def _image(ax, values, title, cmap="RdBu_r", symmetric=True, label="N/cm$^3$"):
-    v = values.detach().cpu().numpy()
-    lim = max(abs(v.min()), abs(v.max()), 1e-12) if symmetric else None
-    im = ax.imshow(v.T, origin="lower", extent=(-P / 2, P / 2, -P / 2, P / 2), cmap=cmap,
-                   vmin=-lim if symmetric else None, vmax=lim if symmetric else None, aspect="auto")
+def sampled_angles(contacts) -> tuple[torch.Tensor, torch.Tensor]:
+    """(beta, gamma), each (K,), of the K segment samples of ``contacts`` that touch the ground."""
+    on = (contacts.weight_z != 0) | (contacts.weight_x != 0)
+    return contacts.beta[on].detach().cpu(), contacts.gamma[on].detach().cpu()
+
+
+def _np(v):
+    return torch.as_tensor(v).detach().cpu().double().numpy()
+
+
+def _image(ax, values, title, cmap="RdBu_r", symmetric=True, label=UNIT, vmin=None, vmax=None):
+    """One (n, n) map over the canonical square (first index beta, second gamma)."""
+    v = _np(values)
+    if symmetric and vmin is None and vmax is None:
+        lim = max(abs(v.min()), abs(v.max()), 1e-12)
+        vmin, vmax = -lim, lim
+    im = ax.imshow(v.T, origin="lower", extent=(-P / 2, P / 2, -P / 2, P / 2), cmap=cmap, vmin=vmin, vmax=vmax,
+                   aspect="auto", interpolation="nearest")
     ax.set_xlabel(r"$\beta$ (rad)")
     ax.set_ylabel(r"$\gamma$ (rad)")
     ax.set_title(title)
     ax.figure.colorbar(im, ax=ax, label=label)
     return im
+
+
+def _points(ax, points):
+    """Mark point sets: the first as small black dots (sampled pairs), a second as magenta stars."""
+    styles = (dict(marker=".", color="k", ms=3, ls="", alpha=0.6, label="sampled"),
+              dict(marker="*", color="m", ms=9, ls="", label="held out"))
+    for style, (pb, pg) in zip(styles, points or ()):
+        ax.plot(_np(pb).ravel(), _np(pg).ravel(), **style)
+    ax.set_xlim(-P / 2, P / 2)
+    ax.set_ylim(-P / 2, P / 2)
 
 
 def plot_stress_map(stress_map, n: int = 64, title: str = "", axes=None):
@@ -50,18 +84,63 @@ def plot_stress_map(stress_map, n: int = 64, title: str = "", axes=None):
     return axes[0].figure
 
 
-def plot_posterior_map(model, n: int = 64, title: str = "", points=None):
-    """Posterior mean and standard deviation of a fitted model's alpha_x, alpha_z (2 x 2 panels);
-    ``points`` (beta, gamma) sequences are marked on every panel (e.g. the sampled angle pairs)."""
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
+def plot_map_comparison(truth, mean, std, points=None, title: str = "", truth_label: str = "truth", axes=None):
+    """truth | estimate | error (estimate - truth, signed) | std, for alpha_x (top) and alpha_z (bottom).
+
+    Args:
+        truth, mean, std: (n, n, 2) maps over ``angle_grid(n)`` (N/cm^3).
+        points: optional sequence of (beta, gamma) point sets, drawn on the std panel (the first
+            as dots: the sampled pairs, e.g. ``sampled_angles(contacts)``; a second as stars).
+        truth_label: what the truth is ("truth", "simulated sand", ...).
+    Returns:
+        the figure (2 x 4 panels).
+    """
+    if axes is None:
+        fig, axes = plt.subplots(2, 4, figsize=(18, 7.5), constrained_layout=True)
+    truth, mean, std = (torch.as_tensor(v).detach().cpu().double() for v in (truth, mean, std))
+    err = mean - truth
+    for i, name in enumerate("xz"):
+        lim = float(torch.cat([truth[..., i].abs().flatten(), mean[..., i].abs().flatten()]).max().clamp_min(1e-12))
+        elim = float(torch.cat([err[..., i].abs().flatten(), std[..., i].flatten()]).max().clamp_min(1e-12))
+        rmse = float(err[..., i].pow(2).mean().sqrt())
+        _image(axes[i][0], truth[..., i], rf"{truth_label} $\alpha_{name}$", vmin=-lim, vmax=lim)
+        _image(axes[i][1], mean[..., i], rf"estimate (posterior mean) $\alpha_{name}$", vmin=-lim, vmax=lim)
+        _image(axes[i][2], err[..., i], rf"error: estimate $-$ {truth_label}, $\alpha_{name}$" + f"\nRMSE {rmse:.3g}",
+               cmap="PuOr_r", vmin=-elim, vmax=elim)
+        _image(axes[i][3], std[..., i], rf"posterior std $\alpha_{name}$ (same scale as |error|)",
+               cmap="viridis", vmin=0.0, vmax=elim)
+        _points(axes[i][3], points)
+        if points:
+            axes[i][3].legend(loc="upper right", fontsize=7, framealpha=0.8)
+    if title:
+        axes[0][0].figure.suptitle(title)
+    return axes[0][0].figure
+
+
+def plot_posterior_map(model, n: int = 64, title: str = "", points=None, truth=None, truth_label: str = "truth"):
+    """A fitted model's maps over ``angle_grid(n)``.
+
+    With ``truth`` (a callable (beta, gamma) -> (..., 2), e.g. the simulated medium): the 2 x 4
+    comparison of ``plot_map_comparison``. Without: posterior mean | posterior std (2 x 2).
+    ``points`` (a sequence of (beta, gamma) sets) defaults to the model's own sampled angle pairs
+    (``model.train_contacts``), marked on every std panel.
+    """
     B, G = angle_grid(n)
     post = model.stress_map(B, G)
+    mean, std = post.mean.detach(), post.variance.detach().clamp_min(0).sqrt()
+    if points is None and getattr(model, "train_contacts", None) is not None:
+        points = [sampled_angles(model.train_contacts)]
+    if truth is not None:
+        with torch.no_grad():
+            true = truth(B, G)
+        return plot_map_comparison(true, mean, std, points, title, truth_label)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
     for i, name in enumerate("xz"):
-        _image(axes[i, 0], post.mean[..., i], f"{title} posterior mean alpha_{name}".strip())
-        _image(axes[i, 1], post.stddev[..., i], f"posterior std alpha_{name}", cmap="viridis", symmetric=False)
-        for ax in axes[i]:
-            for style, (pb, pg) in zip(("k.", "m*"), points or ()):
-                ax.plot(pb, pg, style, ms=5 if style == "k." else 9)
+        _image(axes[i, 0], mean[..., i], rf"{title} posterior mean $\alpha_{name}$".strip())
+        _image(axes[i, 1], std[..., i], rf"posterior std $\alpha_{name}$", cmap="viridis", symmetric=False)
+        _points(axes[i, 1], points)
+        if points:
+            axes[i, 1].legend(loc="upper right", fontsize=7, framealpha=0.8)
     return fig
 
 
@@ -75,12 +154,12 @@ def plot_toe_path(toe, path, n_snapshots: int = 6, ax=None):
     pos = path.position.detach().cpu() * 100
     ax.plot(pos[:, 0], pos[:, 1], "b-", lw=1.5, label="path")
     idx = torch.linspace(0, len(path) - 1, n_snapshots).round().long()
-    for i in idx:
+    for j, i in enumerate(idx):
         c, t, L = k.position[i].detach().cpu(), k.tangent[i].detach().cpu(), toe.lengths.cpu()
         a, b = (c - t * L[:, None] / 2) * 100, (c + t * L[:, None] / 2) * 100
-        for s0, s1 in zip(a, b):
-            ax.plot([s0[0], s1[0]], [s0[1], s1[1]], "r-", lw=2)
-    ax.axhline(0.0, color="k", ls="--", lw=1)
+        for s, (s0, s1) in enumerate(zip(a, b)):
+            ax.plot([s0[0], s1[0]], [s0[1], s1[1]], "r-", lw=2, label="toe" if j == 0 and s == 0 else None)
+    ax.axhline(0.0, color="k", ls="--", lw=1, label="surface")
     ax.set_xlabel("x (cm)")
     ax.set_ylabel("z (cm)")
     ax.set_aspect("equal")
@@ -91,8 +170,8 @@ def plot_coverage(contacts, ax=None, title="sampled (beta, gamma)"):
     """Submerged segments' angle pairs in the canonical square."""
     if ax is None:
         fig, ax = plt.subplots(figsize=(4, 4), constrained_layout=True)
-    m = contacts.weight_z > 0
-    ax.scatter(contacts.beta[m].detach().cpu(), contacts.gamma[m].detach().cpu(), s=3, alpha=0.5)
+    b, g = sampled_angles(contacts)
+    ax.scatter(b, g, s=3, alpha=0.5)
     ax.set_xlim(-P / 2, P / 2)
     ax.set_ylim(-P / 2, P / 2)
     ax.set_xlabel(r"$\beta$ (rad)")
@@ -101,26 +180,43 @@ def plot_coverage(contacts, ax=None, title="sampled (beta, gamma)"):
     return ax.figure
 
 
-def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=("measured", "predicted")):
-    """F_x and F_z against time (T,), optionally with a prediction and its +-2 std band."""
+def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
+    """F_x (top) and F_z (bottom) in N against the time since the first sample, in s.
+
+    Args:
+        time: (T,) sample times in s; any origin (epoch seconds included): the axis starts at 0.
+        forces: (T, 2) the forces to show.
+        predicted: optional (T, 2) prediction, drawn over them, with
+        std: its (T, 2) standard deviation, drawn as a shaded, outlined +-2 std band.
+        labels: (forces label, prediction label). Defaults: ("force", ...) alone, ("data",
+            "I-RFT prediction") with a prediction; say "measured" only for measured forces.
+    """
+    if labels is None:
+        labels = ("data", "I-RFT prediction") if predicted is not None else ("force", "")
     if axes is None:
-        fig, axes = plt.subplots(2, 1, figsize=(7, 5), sharex=True, constrained_layout=True)
-    t = torch.as_tensor(time).detach().cpu()
-    for i, name in enumerate(("$F_x$ (N)", "$F_z$ (N)")):
+        fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True, constrained_layout=True)
+    t = torch.as_tensor(time).detach().cpu().double()
+    t = t - t[0]
+    for i, name in enumerate((r"$F_x$ (N)", r"$F_z$ (N)")):
         ax = axes[i]
-        ax.plot(t, forces[:, i].detach().cpu(), "k-", lw=1, label=labels[0])
+        ax.plot(t, _np(forces[:, i]), "k-", lw=1, label=labels[0])
         if predicted is not None:
-            p = predicted[:, i].detach().cpu()
-            ax.plot(t, p, "C1-", lw=1, label=labels[1])
+            p = torch.as_tensor(predicted[:, i]).detach().cpu().double()
+            ax.plot(t, p, "C1-", lw=1.2, label=labels[1])
             if std is not None:
-                s = std[:, i].detach().cpu()
-                ax.fill_between(t, p - 2 * s, p + 2 * s, color="C1", alpha=0.25)
+                s = torch.as_tensor(std[:, i]).detach().cpu().double()
+                ax.fill_between(t, p - 2 * s, p + 2 * s, color="C1", alpha=0.35, lw=0,
+                                label=r"$\pm 2\sigma$ (95 %) band")
+                ax.plot(t, p - 2 * s, color="C1", lw=0.6, ls=":")
+                ax.plot(t, p + 2 * s, color="C1", lw=0.6, ls=":")
         ax.set_ylabel(name)
-    axes[0].legend()
-    axes[-1].set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+    axes[-1].set_xlabel("time since the first sample (s)")
     return axes[0].figure
 
 
 def save(fig, path) -> None:
+    """Write ``fig`` (PNG, 120 dpi) and close it."""
     fig.savefig(path, dpi=120)
     plt.close(fig)

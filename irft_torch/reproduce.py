@@ -143,6 +143,47 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
     return res
 
 
+DEFINITIONS = (
+    "## What the numbers mean",
+    "",
+    "Every map metric compares the posterior mean with the ground truth over the evaluation grid "
+    "(grid x grid cell centres of the canonical square [-pi/2, pi/2]^2), one axis (alpha_x or alpha_z) at "
+    "a time; e = estimate - truth at each grid point, range = max(truth) - min(truth) over the grid.",
+    "",
+    "| metric | definition | unit |",
+    "|---|---|---|",
+    "| RMSE | sqrt(mean(e^2)) | N/cm^3 |",
+    "| MAE | mean(abs(e)) | N/cm^3 |",
+    "| R2 | 1 - sum(e^2) / sum((truth - mean(truth))^2) (negative when worse than a constant) | - |",
+    "| Pearson | correlation coefficient of estimate and truth over the grid | - |",
+    "| ACR% (accurate-coverage ratio) | share of grid points with abs(e) <= 5 % of range | % |",
+    "| RMSE%, MAE% | RMSE and MAE as % of range | % |",
+    "| 95% calibration | share of grid points whose truth lies within mean +- 1.96 posterior std "
+    "(0.95 if the uncertainty is calibrated; lower: overconfident) | 0-1 |",
+    "| coverage | share of the 50 x 50 cells of the canonical square holding at least one segment sample "
+    "in contact (the sampled area) | % |",
+    "| redundancy | 1 - (distinct cells) / (segment samples in contact), on the same 50 x 50 cells (0: every "
+    "sample in a new cell; near 1: the path revisits the same angle pairs) | 0-1 |",
+)
+
+
+def _table2_rows(levels, table2) -> list[str]:
+    """Markdown rows of Table II: per noise level one 'ours' cell and one 'paper' cell (2 + 2 x levels)."""
+    paper_levels = (0.0, 0.05, 0.2)
+    rows = []
+    for config in CONFIGS:
+        for axis in "XZ":
+            cells = []
+            pr = PAPER_TABLE2[(config, axis)]
+            for n in levels:
+                rp, mp, rs, ms = table2[(config, axis, n)]
+                j = paper_levels.index(n) if n in paper_levels else None
+                cells.append(f"{rp:.2f}+-{rs:.2f} / {mp:.2f}+-{ms:.2f}")
+                cells.append(f"{pr[0][j]:.2f} / {pr[1][j]:.2f}" if j is not None else "-")
+            rows.append(f"| {config} | {axis} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def _fmt(v: float) -> str:
     return f"{v:.4f}" if abs(v) < 100 else f"{v:.2f}"
 
@@ -222,26 +263,24 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
 
 
 def _figures(out: Path, results: list[FitResult]) -> None:
+    """Fig. 5, one PNG per configuration: the toe on its path and the sampled (beta, gamma) pairs
+    (left); truth | estimate | signed error (estimate - truth) | posterior std with the sampled
+    pairs, for alpha_x (top) and alpha_z (bottom)."""
     from . import plotting
 
-    plt = plotting.plt
-    ext = (-math.pi / 2, math.pi / 2, -math.pi / 2, math.pi / 2)
     for r in results:
         m = r.maps
-        fig = plt.figure(figsize=(16, 8), constrained_layout=True)
-        gs = fig.add_gridspec(2, 5)
-        plotting.plot_toe_path(m["toe"], m["path"], ax=fig.add_subplot(gs[0, :2]))
-        plotting.plot_coverage(m["contacts"], ax=fig.add_subplot(gs[1, :2]),
-                               title=f"coverage {100 * m['coverage']:.1f} %, redundancy {m['redundancy']:.2f}")
-        for a, axis in enumerate("xz"):
-            for j, (vals, title, cmap, sym) in enumerate((
-                    (m["mean"][..., a], f"reconstructed alpha_{axis}", "RdBu_r", True),
-                    ((m["mean"] - m["truth"])[..., a], f"error alpha_{axis}", "RdBu_r", True),
-                    (m["std"][..., a], f"posterior std alpha_{axis}", "viridis", False))):
-                ax = fig.add_subplot(gs[a, 2 + j])
-                plotting._image(ax, vals, title, cmap=cmap, symmetric=sym)
-                ax.set_xlim(ext[0], ext[1])
-        fig.suptitle(r.config)
+        fig = plotting.plt.figure(figsize=(24, 8), constrained_layout=True)
+        gs = fig.add_gridspec(2, 6, width_ratios=(1.6, 1, 1, 1, 1, 1))
+        plotting.plot_toe_path(m["toe"], m["path"], ax=fig.add_subplot(gs[0, 0]))
+        plotting.plot_coverage(m["contacts"], ax=fig.add_subplot(gs[1, 0]),
+                               title=f"sampled pairs: coverage {100 * m['coverage']:.1f} %, "
+                                     f"redundancy {m['redundancy']:.2f}")
+        axes = [[fig.add_subplot(gs[a, 1 + j]) for j in range(4)] for a in range(2)]
+        plotting.plot_map_comparison(m["truth"], m["mean"], m["std"], [plotting.sampled_angles(m["contacts"])],
+                                     axes=axes)
+        fig.suptitle(f"{r.config}: truth | estimate | error = estimate - truth | posterior std "
+                     f"(alpha in N/cm$^3$; error and std share one scale per row)")
         plotting.save(fig, out / f"fig5_{r.config.replace(' ', '_').replace('-', '')}.png")
 
 
@@ -250,6 +289,7 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None
              f"Written by `irft reproduce`{' --quick' if s.quick else ''} in {elapsed:.0f} s "
              f"({len(results)} fits). Tables: `table1.csv`, `table1_prior_means.csv`, `table2.csv`; "
              "figures `fig5_*.png`.", "",
+             *DEFINITIONS, "",
              "## Choices (the paper's where it states them, ours otherwise)", "",
              "| setting | value |", "|---|---|"]
     for f in dataclasses.fields(s):
@@ -268,6 +308,8 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None
               "normalized by the range of the truth over our grid (the paper's Table II implies a per-run "
               "normalization that differs from row to row; we use one range per axis for every row).", "",
               "## Table I (zero mean, paper's scale): ours next to the paper's", "",
+              "Each cell is ours / the paper's; RMSE and MAE in N/cm^3, ACR% the share of grid points within 5 % of "
+              "the truth's range (definitions above).", "",
               "| config | axis | RMSE ours / paper | MAE ours / paper | R2 ours / paper | Pearson ours / paper "
               "| ACR% ours / paper | RMSE and ACR at least as good |", "|---|---|---|---|---|---|---|---|"]
     keys = ["rmse", "mae", "r2", "pearson", "acr_percent"]
@@ -301,20 +343,12 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None
                          f"{_fmt(mz['acr_percent'])} / {_fmt(mp['acr_percent'])} | "
                          f"{_fmt(mz['calibration95'])} / {_fmt(mp['calibration95'])} | "
                          f"{_fmt(un.metrics[axis]['rmse'])} |")
-    lines += ["", "## Table II: RMSE% / MAE% against noise (mean +- std over seeds), ours | paper", "",
-              "| config | axis | " + " | ".join(f"noise {n}" for n in s.noise_levels) + " |",
-              "|---|---|" + "---|" * len(s.noise_levels)]
-    paper_levels = (0.0, 0.05, 0.2)
-    for config in CONFIGS:
-        for axis in "XZ":
-            cells = []
-            for n in s.noise_levels:
-                rp, mp, rs, ms = table2[(config, axis, n)]
-                pr = PAPER_TABLE2[(config, axis)]
-                j = paper_levels.index(n) if n in paper_levels else None
-                paper = f" | paper {pr[0][j]:.2f} / {pr[1][j]:.2f}" if j is not None else ""
-                cells.append(f"{rp:.2f}+-{rs:.2f} / {mp:.2f}+-{ms:.2f}{paper}")
-            lines.append(f"| {config} | {axis} | " + " | ".join(cells) + " |")
+    lines += ["", "## Table II: RMSE% / MAE% against noise, ours (mean +- std over seeds) and the paper's", "",
+              "Each cell is RMSE% / MAE%; 'paper' columns are the paper's Table II at the same noise variance "
+              "(a dash where the paper has no such level).", "",
+              "| config | axis | " + " | ".join(f"ours, noise {n} | paper, noise {n}" for n in s.noise_levels) + " |",
+              "|---|---|" + "---|---|" * len(s.noise_levels)]
+    lines += _table2_rows(s.noise_levels, table2)
     if s.lengthscale_sensitivity:
         lines += ["", "## Sensitivity of the I-toe rows to the initial lengthscale (RMSE X / Z)", "",
                   "An I-toe samples beta = 0 only, so the two beta lengthscales get no gradient from the "
@@ -330,7 +364,10 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None
                 cells.append(f"{_fmt(r.metrics['X']['rmse'])} / {_fmt(r.metrics['Z']['rmse'])}")
             p = PAPER_TABLE1[(config, "X")][0], PAPER_TABLE1[(config, "Z")][0]
             lines.append(f"| {config} | " + " | ".join(cells) + f" | {p[0]} / {p[1]} |")
-    lines += ["", "## Sampling coverage", "", "| config | coverage of a 50 x 50 grid | redundancy |", "|---|---|---|"]
+    lines += ["", "## Sampling coverage", "",
+              "Coverage: share of the 50 x 50 cells of the square holding a segment sample in contact; redundancy: "
+              "1 - distinct cells / segment samples in contact (see 'What the numbers mean').", "",
+              "| config | coverage of a 50 x 50 grid | redundancy |", "|---|---|---|"]
     for config in CONFIGS:
         m = pick(config)[0].maps
         if m:

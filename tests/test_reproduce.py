@@ -1,6 +1,8 @@
-"""`irft reproduce --quick`: every output, the paper's columns, identical tables on a rerun."""
+"""`irft reproduce --quick`: every output, the paper's columns, well-formed report tables, identical
+tables on a rerun."""
 
 import csv
+import re
 
 from irft_torch.cli import main
 
@@ -8,6 +10,24 @@ from irft_torch.cli import main
 def read(path):
     with open(path) as fh:
         return list(csv.DictReader(fh))
+
+
+def markdown_tables(text):
+    """Every table of a markdown document as (header cells, [row cells]); a table starts at a header
+    line followed by a |---| separator."""
+    lines, tables, i = text.splitlines(), [], 0
+    split = lambda line: [c.strip() for c in line.strip().strip("|").split("|")]  # noqa: E731
+    while i < len(lines) - 1:
+        if lines[i].startswith("|") and re.fullmatch(r"\|(-+\|)+", lines[i + 1].strip()):
+            header, rows, i = split(lines[i]), [], i + 2
+            assert len(split(lines[i - 1])) == len(header), f"separator width differs from header {header}"
+            while i < len(lines) and lines[i].startswith("|"):
+                rows.append(split(lines[i]))
+                i += 1
+            tables.append((header, rows))
+        else:
+            i += 1
+    return tables
 
 
 def test_reproduce_quick_writes_everything_and_is_deterministic(tmp_path):
@@ -31,3 +51,38 @@ def test_reproduce_quick_writes_everything_and_is_deterministic(tmp_path):
     run_study(b, StudySettings.quick_settings(), progress=False, figures=False)
     assert (a / "table1.csv").read_text() == (b / "table1.csv").read_text()
     assert (a / "table2.csv").read_text() == (b / "table2.csv").read_text()
+
+
+def test_report_tables_are_well_formed_and_define_their_metrics(tmp_path):
+    from irft_torch.reproduce import StudySettings, run_study
+
+    s = StudySettings(n_steps=30, grid=16, n_iter=10, noise_levels=(0.0, 0.05, 0.2), noise_seeds=(0,),
+                      lengthscale_sensitivity=(), quick=True)
+    run_study(tmp_path, s, progress=False, figures=False)
+    report = (tmp_path / "report.md").read_text()
+    tables = markdown_tables(report)
+    assert len(tables) >= 5
+    for header, rows in tables:  # every row has exactly the header's cells (the old Table II had 8 under 5)
+        assert rows and all(len(r) == len(header) for r in rows), header
+    # Table II: the paper's cells sit under the paper's column for the same noise level.
+    # Values typed from Table II of the paper (reference/irft_paper.tex), RMSE% / MAE%.
+    (header, rows), = [t for t in tables if "paper, noise 0.05" in t[0]]
+    assert header == ["config", "axis", "ours, noise 0.0", "paper, noise 0.0", "ours, noise 0.05",
+                      "paper, noise 0.05", "ours, noise 0.2", "paper, noise 0.2"]
+    row = {(r[0], r[1]): dict(zip(header, r)) for r in rows}
+    assert row[("C-toe gait 2", "Z")]["paper, noise 0.0"] == "3.68 / 2.41"
+    assert row[("C-toe gait 2", "Z")]["paper, noise 0.05"] == "16.18 / 13.50"
+    assert row[("C-toe gait 2", "Z")]["paper, noise 0.2"] == "35.37 / 23.11"
+    assert row[("I-toe gait 1", "X")]["paper, noise 0.05"] == "18.41 / 12.42"
+    assert re.fullmatch(r"[\d.]+\+-[\d.]+ / [\d.]+\+-[\d.]+", row[("I-toe gait 1", "X")]["ours, noise 0.05"])
+    # every metric the tables use is defined in the report
+    (dh, drows), = [t for t in tables if dh_is(t[0])]
+    defined = {r[0] for r in drows}
+    for name in ("RMSE", "MAE", "R2", "Pearson", "ACR% (accurate-coverage ratio)", "95% calibration", "coverage",
+                 "redundancy"):
+        assert name in defined
+    assert "5 % of range" in report and "1.96 posterior std" in report
+
+
+def dh_is(header):
+    return header == ["metric", "definition", "unit"]
