@@ -7,11 +7,11 @@ variance (or its negative information gain). The workspace (``ProbeBounds``: dep
 range, tilt) is a quadratic penalty during the descent; the probe returned is the best iterate
 that lies inside it.
 
-    from irft_torch.probe_design import optimize_probe
+    from irft_torch.design import optimize_probe
     designed = optimize_probe(scorer, init=probe, bounds=ProbeBounds(max_depth=0.05))
     designed.probe, designed.score, designed.history
 
-This module joins physics (``rft``) and inference (``gp``); neither imports it.
+This package joins physics (``rft``) and inference (``gp``); neither imports it.
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .gp.active_probing import ProbeScorer, Region
-from .rft.contacts import contacts
-from .rft.paths import course_path
-from .rft.probes import Probe, ProbeBounds
-from .rft.toes import Toe
+from ..rft.contacts import contacts
+from ..rft.paths import course_path
+from ..rft.probes import Probe, ProbeBounds
+from ..rft.toes import Toe
+from .scoring import ProbeScorer, Region
 
 __all__ = ["DesignedProbe", "optimize_probe", "default_spec"]
 

@@ -1,15 +1,21 @@
-"""Inference only: the angle kernel, the RFT-weighted LinearOperator, the force likelihood, the
-prior means and the InverseRFT model."""
+"""Inference only: the angle kernel, the RFT-weighted LinearOperator, the backends (observations,
+distinct pairs, spectral) behind one interface, and the InverseRFT front door."""
 
+from .backends import (FeatureStatistics, FunctionalPosterior, ObservationsBackend, PairsBackend, RFTBackend,
+                       SpectralBackend, make_backend)
+from .embedding import embed_angles, rbf
 from .encoding import decode_rows, encode_contacts, encode_points, encode_rows
-from .kernels import AngleRBFKernel, RFTCompositeKernel, embed_angles
-from .likelihoods import ForceNoise, ForceNoiseLikelihood
+from .fourier import FourierBasis
+from .hyperparameters import RFTHyperparameters
+from .kernels import AngleKernel, RFTCompositeKernel, angle_covariance
 from .means import GenericShapeMean
-from .model import CompositeExactGP, InverseRFT, Posterior
-from .operators import RFTKernelLinearOperator, memory_budget, rbf
+from .model import InverseRFT, ModelFileError, Posterior
+from .operators import RFTKernelLinearOperator, memory_budget, unique_pairs
 
 __all__ = [
-    "embed_angles", "AngleRBFKernel", "RFTCompositeKernel", "RFTKernelLinearOperator", "rbf", "memory_budget",
-    "ForceNoise", "ForceNoiseLikelihood", "GenericShapeMean", "CompositeExactGP", "InverseRFT", "Posterior",
-    "encode_rows", "decode_rows", "encode_contacts", "encode_points",
+    "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",
+    "memory_budget", "unique_pairs", "GenericShapeMean", "RFTHyperparameters", "FourierBasis", "RFTBackend",
+    "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
+    "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
+    "encode_points",
 ]

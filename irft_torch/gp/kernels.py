@@ -1,74 +1,71 @@
-"""Kernels over the stress-map angles and over composite (RFT-weighted) observations."""
+"""The kernel over stress-map angles (a stock gpytorch ScaleKernel(RBFKernel) on the embedding) and the
+composite kernel over RFT-weighted observations (a lazy W K W^T)."""
 
 from __future__ import annotations
 
 import torch
-from gpytorch.constraints import GreaterThan, Interval, Positive
-from gpytorch.kernels import Kernel
+from gpytorch.constraints import GreaterThan, Interval
+from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
 from torch import Tensor
 
+from .embedding import embed_angles, rbf
 from .encoding import decode_rows
-from .operators import RFTKernelLinearOperator, rbf
+from .operators import RFTKernelLinearOperator
 
-__all__ = ["embed_angles", "AngleRBFKernel", "RFTCompositeKernel"]
+__all__ = ["embed_angles", "AngleKernel", "RFTCompositeKernel", "angle_covariance"]
 
-
-def embed_angles(beta: Tensor, gamma: Tensor) -> Tensor:
-    """phi(beta, gamma) = (sin 2beta, cos 2beta, sin gamma, cos gamma), shape S + (4,).
-
-    Period pi in beta (a segment is the same segment turned by pi), period 2 pi in gamma.
-    """
-    return torch.stack([torch.sin(2 * beta), torch.cos(2 * beta), torch.sin(gamma), torch.cos(gamma)], dim=-1)
+BATCH = torch.Size([2])  # the (x, z) maps: a batch of two independent GPs
 
 
-class AngleRBFKernel(Kernel):
-    r"""ARD RBF on the angle embedding, with its own signal variance:
+class AngleKernel(ScaleKernel):
+    r"""``ScaleKernel(RBFKernel(ard_num_dims=4, batch_shape=[2]))`` on the angle embedding
+    phi = (sin 2beta, cos 2beta, sin gamma, cos gamma): the stock gpytorch parts, so that priors,
+    constraints and state dicts are gpytorch's own.
 
     .. math::
         k(\theta, \theta') = \sigma_f^2 \exp\Big(-\tfrac12 \sum_{d=1}^{4}
             (\phi_d(\theta) - \phi_d(\theta'))^2 / \ell_d^2\Big)
 
-    Inputs are angle pairs ``(..., n, 2)`` = (beta, gamma) in rad. Hyperparameters: ``lengthscale``
-    (*batch, 1, 4) (>= 0.05 by default) and ``outputscale`` (*batch,) in (N/cm^3)^2.
+    Called on embeddings (..., n, 4) it is gpytorch's RBF. The backends evaluate it on angle
+    pairs through :func:`irft_torch.gp.embedding.rbf` (one fused matmul), with this module's
+    ``lengthscale`` (2, 1, 4) and ``outputscale`` (2,) ((N/cm^3)^2); a test checks the two agree.
+
+    Args:
+        batch_shape: default (2,) = the x and z maps.
+        lengthscale_constraint: default ``GreaterThan(0.05)``.
 
     Example:
-        >>> k = AngleRBFKernel(batch_shape=torch.Size([2]))
-        >>> k(torch.zeros(5, 2), torch.ones(3, 2)).shape
-        torch.Size([2, 5, 3])
+        >>> k = AngleKernel()
+        >>> k.lengthscale.shape, k.outputscale.shape
+        (torch.Size([2, 1, 4]), torch.Size([2]))
     """
 
-    has_lengthscale = True
-
-    def __init__(self, batch_shape: torch.Size = torch.Size(), lengthscale_constraint: Interval | None = None,
-                 outputscale_constraint: Interval | None = None, **kwargs) -> None:
-        super().__init__(ard_num_dims=4, batch_shape=batch_shape,
-                         lengthscale_constraint=lengthscale_constraint or GreaterThan(0.05), **kwargs)
-        self.register_parameter("raw_outputscale", torch.nn.Parameter(torch.zeros(*batch_shape)))
-        self.register_constraint("raw_outputscale", outputscale_constraint or Positive())
-        self.outputscale = 1.0
+    def __init__(self, batch_shape: torch.Size = BATCH, lengthscale_constraint: Interval | None = None,
+                 lengthscale_prior=None, outputscale_prior=None) -> None:
+        base = RBFKernel(ard_num_dims=4, batch_shape=batch_shape,
+                         lengthscale_constraint=lengthscale_constraint or GreaterThan(0.05),
+                         lengthscale_prior=lengthscale_prior)
+        super().__init__(base, batch_shape=batch_shape, outputscale_prior=outputscale_prior)
 
     @property
-    def outputscale(self) -> Tensor:
-        return self.raw_outputscale_constraint.transform(self.raw_outputscale)
+    def lengthscale(self) -> Tensor:
+        """(*batch, 1, 4): lengthscales of (sin 2beta, cos 2beta, sin gamma, cos gamma), dimensionless."""
+        return self.base_kernel.lengthscale
 
-    @outputscale.setter
-    def outputscale(self, value) -> None:
+    @lengthscale.setter
+    def lengthscale(self, value) -> None:
         value = torch.as_tensor(value, dtype=self.raw_outputscale.dtype, device=self.raw_outputscale.device)
-        self.initialize(raw_outputscale=self.raw_outputscale_constraint.inverse_transform(value))
+        self.base_kernel.lengthscale = value.expand_as(self.base_kernel.raw_lengthscale)
 
     def scaled_embedding(self, beta: Tensor, gamma: Tensor) -> Tensor:
-        """phi / lengthscale, shape (*batch, n, 4) for angles (..., n)."""
+        """phi / lengthscale: angles (n,) -> (*batch, n, 4)."""
         return embed_angles(beta, gamma) / self.lengthscale
 
-    def forward(self, x1: Tensor, x2: Tensor, diag: bool = False, last_dim_is_batch: bool = False, **params):
-        if last_dim_is_batch:
-            raise NotImplementedError("AngleRBFKernel does not support last_dim_is_batch")
-        a = self.scaled_embedding(x1[..., 0], x1[..., 1])
-        b = self.scaled_embedding(x2[..., 0], x2[..., 1])
-        os = self.outputscale[..., None]
-        if diag:
-            return os * torch.exp(-0.5 * (a - b).pow(2).sum(-1))
-        return rbf(a, b, os[..., None])
+
+def angle_covariance(kernel: AngleKernel, beta1: Tensor, gamma1: Tensor, beta2: Tensor, gamma2: Tensor) -> Tensor:
+    """Prior covariance of the two maps between angle pairs (n1,) and (n2,): (2, n1, n2)."""
+    return rbf(kernel.scaled_embedding(beta1, gamma1), kernel.scaled_embedding(beta2, gamma2),
+               kernel.outputscale[..., None, None])
 
 
 class RFTCompositeKernel(Kernel):
@@ -81,16 +78,15 @@ class RFTCompositeKernel(Kernel):
     segments) are evaluated once when no input needs a gradient.
 
     Args:
-        base_kernel: the kernel over angles, an :class:`AngleRBFKernel` (its hyperparameters are
-            this kernel's hyperparameters).
+        base_kernel: the :class:`AngleKernel` (its hyperparameters are this kernel's).
 
     Example:
-        >>> kern = RFTCompositeKernel(AngleRBFKernel())
+        >>> kern = RFTCompositeKernel(AngleKernel())
         >>> rows = encode_rows(beta, gamma, weight)          # (T, 3M)
-        >>> K = kern(rows)                                   # lazy (T, T)
+        >>> K = kern(rows)                                   # lazy (2, T, T)
     """
 
-    def __init__(self, base_kernel: AngleRBFKernel, **kwargs) -> None:
+    def __init__(self, base_kernel: AngleKernel, **kwargs) -> None:
         super().__init__(batch_shape=base_kernel.batch_shape, **kwargs)
         self.base_kernel = base_kernel
         self._structure_key, self._structure = None, None
@@ -122,11 +118,11 @@ class RFTCompositeKernel(Kernel):
         return 1
 
 
-def _composite_diag(base: AngleRBFKernel, b1, g1, w1, b2, g2, w2) -> Tensor:
+def _composite_diag(base: AngleKernel, b1, g1, w1, b2, g2, w2) -> Tensor:
     """Row-wise sum_{m, m'} w1_m w2_m' k(theta1_m, theta2_m'), shape (*batch, T)."""
     ls = base.lengthscale.unsqueeze(-2)  # (*batch, 1, 1, 4)
     a = embed_angles(b1, g1) / ls
     b = embed_angles(b2, g2) / ls
-    d2 = (a[..., :, None, :] - b[..., None, :, :]).pow(2).sum(-1)  # (*batch, T, M, M)
-    k = base.outputscale[..., None, None, None] * torch.exp(-0.5 * d2)
+    k = rbf(a, b, base.outputscale[..., None, None, None])  # (*batch, T, M, M)
     return (w1[..., :, None] * k * w2[..., None, :]).sum((-1, -2))
+

@@ -38,6 +38,11 @@ class GenericShapeMean(Mean):
         value = torch.as_tensor(value, dtype=self.raw_scales.dtype).clamp_min(1e-8)
         self.initialize(raw_scales=self.raw_scales_constraint.inverse_transform(value))
 
+    def shape_forces(self, contacts) -> Tensor:
+        """The generic shape's forces on ``contacts`` (N, M), without the scales: (2, N) = (x, z)."""
+        a = self.shape_map.to(contacts.beta.dtype)(contacts.beta, contacts.gamma)  # (N, M, 2)
+        return torch.stack([(contacts.weight_x * a[..., 0]).sum(-1), (contacts.weight_z * a[..., 1]).sum(-1)])
+
     def forward(self, x: Tensor) -> Tensor:
         if x.dim() < 3 or x.shape[-3] != 2:
             raise ValueError(f"GenericShapeMean expects (..., 2, T, 3M) rows, got {tuple(x.shape)}")

@@ -9,7 +9,9 @@ import torch.utils.checkpoint
 from linear_operator.operators import LinearOperator
 from torch import Tensor
 
-__all__ = ["RFTKernelLinearOperator", "rbf", "memory_budget", "unique_pairs"]
+from .embedding import embed_angles, rbf
+
+__all__ = ["RFTKernelLinearOperator", "memory_budget", "unique_pairs"]
 
 
 class memory_budget:
@@ -35,20 +37,6 @@ class memory_budget:
 
     def __exit__(self, *exc) -> None:
         memory_budget._value = self._old
-
-
-def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
-    """outputscale * exp(-|a_i - b_j|^2 / 2) for pre-scaled inputs a (..., n, D), b (..., m, D).
-
-    One matmul of augmented vectors gives the exponent: [a, log s - |a|^2/2, 1] . [b, 1, -|b|^2/2]
-    = log s - |a - b|^2 / 2, then one exp: two passes over the (n, m) block instead of six.
-    """
-    log_s = torch.log(outputscale).expand(*a.shape[:-2], 1, 1).expand(*a.shape[:-1], 1)
-    one_a = torch.ones_like(a[..., :1])
-    one_b = torch.ones_like(b[..., :1])
-    a_aug = torch.cat([a, log_s - 0.5 * a.pow(2).sum(-1, keepdim=True), one_a], dim=-1)
-    b_aug = torch.cat([b, one_b, -0.5 * b.pow(2).sum(-1, keepdim=True)], dim=-1)
-    return torch.exp(a_aug @ b_aug.mT)
 
 
 def _gather_rows(table: Tensor, index: Tensor) -> Tensor:
@@ -196,8 +184,6 @@ class RFTKernelLinearOperator(LinearOperator):
     def from_structure(cls, structure: dict, lengthscale: Tensor, outputscale: Tensor,
                        batch_shape: torch.Size) -> RFTKernelLinearOperator:
         """W1 K W2^T with the base kernel's ``lengthscale`` (*batch, 1, 4), ``outputscale`` (*batch,)."""
-        from .kernels import embed_angles
-
         def scaled(pairs):
             t = embed_angles(pairs[:, 0], pairs[:, 1]) / lengthscale  # (*batch, U, 4)
             return t.expand(*batch_shape, *t.shape[-2:])
@@ -267,8 +253,8 @@ class RFTKernelLinearOperator(LinearOperator):
         return torch.cat(blocks, dim=-2)
 
     def _segment_block(self, x1, x2, s, lw, rw) -> Tensor:
-        d2 = (x1[..., :, None, :] - x2[..., None, :, :]).pow(2).sum(-1)
-        return (lw[..., :, None] * (s * torch.exp(-0.5 * d2)) * rw[..., None, :]).sum((-1, -2))
+        """sum_{m, m'} lw_m k(x1_m, x2_m') rw_m' for rows of gathered segments (..., n, M, D)."""
+        return (lw[..., :, None] * rbf(x1, x2, s) * rw[..., None, :]).sum((-1, -2))
 
     def _diagonal(self) -> Tensor:
         x1 = _gather_rows(self.x1, self.left_index)

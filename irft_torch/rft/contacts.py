@@ -110,6 +110,26 @@ class Contacts:
         parts = [p.pad_segments(M) for p in parts]
         return cls(*(torch.cat([getattr(p, f.name) for p in parts], dim=-2) for f in fields(cls)))
 
+    @classmethod
+    def points(cls, beta, gamma, dtype=None, device=None) -> Contacts:
+        """Point evaluations of the maps as one-segment functionals: angles of any broadcast shape
+        (rad) -> Contacts (N, 1), N = their number, mapped into the canonical square (the mirror
+        identity's sign on weight_x, 1 on weight_z), so that the "forces" of these contacts are
+        (alpha_x(beta, gamma), alpha_z(beta, gamma)) in N/cm^3.
+        """
+        from .stress_maps import mirror_to_canonical
+
+        dtype = dtype or (beta.dtype if isinstance(beta, Tensor) and beta.dtype.is_floating_point
+                          else torch.get_default_dtype())
+        beta = torch.as_tensor(beta, dtype=dtype, device=device)
+        gamma = torch.as_tensor(gamma, dtype=dtype, device=device)
+        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        for name, v in (("beta", beta), ("gamma", gamma)):
+            if not torch.isfinite(v).all():
+                raise ValueError(f"{name} contains NaN or inf")
+        bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
+        return cls(bc[:, None], gc[:, None], sx[:, None], torch.ones_like(bc)[:, None])
+
     def as_dict(self) -> dict[str, Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 

@@ -1,0 +1,10 @@
+"""What to measure next: probe scores (information gain, integrated variance), greedy and
+gradient-based gait/toe design. Uses ``gp`` only through a backend's ``posterior``,
+``cross_covariance`` and ``condition`` (like botorch's acquisition/ and optim/ on a model's
+posterior); neither ``gp`` nor ``rft`` imports it."""
+
+from .optimize import DesignedProbe, default_spec, optimize_probe
+from .scoring import DesignStep, ProbeScorer, Region, force_relative, greedy_design
+
+__all__ = ["ProbeScorer", "Region", "DesignStep", "greedy_design", "force_relative", "optimize_probe",
+           "DesignedProbe", "default_spec"]

@@ -1,0 +1,351 @@
+r"""Score a candidate probe (toe + path) by what it would teach, before running it.
+
+A GP's posterior covariance does not depend on the measured values, so the information a probe
+would bring follows from its contacts alone. For a candidate with contacts c (T_c rows), per map
+axis a in (x, z), let S_a be the current posterior covariance of its forces (T_c x T_c, segments
+correlated: w^T Sigma w) and sigma_a^2 the force noise. Then
+
+    EIG = sum_a 1/2 log | I + S_a / sigma_a^2 |            (nats: the mutual information between
+                                                            the maps and the probe's forces)
+    IV  = sum_a sum_j r_j [ v_a(theta_j) - k_aj^T (S_a + sigma_a^2 I)^-1 k_aj ] / s_a
+                                                           (the expected integrated variance of the
+                                                            maps over a region after the probe)
+
+with v_a(theta_j) the current map variance at the region's points theta_j, k_aj the posterior
+covariance between the map there and the probe's forces, r_j the region's weights (summing to 1)
+and s_a the prior variance, so IV is 2 for the prior and 0 for maps known exactly.
+
+Every number comes from the belief's backend (``posterior``, ``cross_covariance``, ``condition``):
+no factorization here, in the way botorch's ``qNegIntegratedPosteriorVariance`` sits on a model's
+``posterior`` and ``fantasize``. Heteroscedastic noise: a candidate's samples are whitened by their
+``noise_scale`` exactly as ``InverseRFT`` whitens training samples.
+
+Example:
+    >>> scorer = ProbeScorer.from_model(model)              # or ProbeScorer.prior(...)
+    >>> scores = scorer.score([p.contacts() for p in probes], criterion="variance")
+    >>> steps = greedy_design(scorer, probes, budget=3)
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from linear_operator.utils.cholesky import psd_safe_cholesky
+from torch import Tensor
+
+from ..gp.backends import RFTBackend, make_backend
+from ..gp.backends.observations import PriorBackend
+from ..gp.hyperparameters import RFTHyperparameters
+from ..rft.contacts import Contacts
+from ..rft.stress_maps import mirror_to_canonical
+
+__all__ = ["Region", "ProbeScorer", "DesignStep", "greedy_design"]
+
+
+# ---- regions of interest -------------------------------------------------------------------
+@dataclass
+class Region:
+    """Points of the (beta, gamma) square with weights, over which the map variance is integrated.
+
+    Attributes:
+        beta, gamma: (N,) angles in rad (mapped into the canonical square on construction).
+        weight: (N,) non-negative weights, normalized to sum to 1 on construction.
+    """
+
+    beta: Tensor
+    gamma: Tensor
+    weight: Tensor
+
+    def __post_init__(self) -> None:
+        b, g, w = (torch.as_tensor(v, dtype=torch.get_default_dtype()) for v in (self.beta, self.gamma, self.weight))
+        if b.ndim != 1 or b.shape != g.shape or b.shape != w.shape or b.numel() == 0:
+            raise ValueError(f"Region needs beta, gamma, weight of one shape (N,), got {tuple(b.shape)}, "
+                             f"{tuple(g.shape)}, {tuple(w.shape)}")
+        for name, v in (("beta", b), ("gamma", g), ("weight", w)):
+            if not torch.isfinite(v).all():
+                raise ValueError(f"Region.{name} contains NaN or inf")
+        if (w < 0).any() or w.sum() <= 0:
+            raise ValueError("Region.weight must be >= 0 with a positive sum")
+        self.beta, self.gamma, _ = mirror_to_canonical(b, g)
+        self.weight = w / w.sum()
+
+    @classmethod
+    def square(cls, n: int = 16, dtype=torch.float64) -> Region:
+        """An n x n grid of cell centres over the canonical square, equal weights."""
+        e = torch.linspace(-math.pi / 2, math.pi / 2, n + 1, dtype=dtype)
+        c = (e[1:] + e[:-1]) / 2
+        B, G = torch.meshgrid(c, c, indexing="ij")
+        return cls(B.reshape(-1), G.reshape(-1), torch.ones(n * n, dtype=dtype))
+
+    @classmethod
+    def sign_change(cls, n: int = 16, gamma_min: float = math.pi / 3, dtype=torch.float64) -> Region:
+        """The region the I-RFT paper calls informative: gamma > ``gamma_min`` (default pi/3), where
+        alpha_x changes sign with beta."""
+        sq = cls.square(n, dtype)
+        return cls(sq.beta, sq.gamma, (sq.gamma > gamma_min).to(dtype))
+
+    def contacts(self) -> Contacts:
+        """The region's points as (N, 1) point evaluations (weight 1 on both axes)."""
+        one = torch.ones_like(self.beta)[:, None]
+        return Contacts(self.beta[:, None], self.gamma[:, None], one, one)
+
+
+def _as_contacts(c) -> Contacts:
+    """A Contacts, or anything with a ``contacts()`` method (an ``rft.Probe``)."""
+    if isinstance(c, Contacts):
+        out = c
+    elif hasattr(c, "contacts"):
+        out = c.contacts()
+    else:
+        raise TypeError(f"a candidate must be a Contacts or have a contacts() method (a Probe), got {type(c).__name__}")
+    if out.beta.ndim != 2:
+        raise ValueError(f"a candidate's contacts must be (T, M), got {tuple(out.shape)}")
+    return out
+
+
+def _plus_noise(S: Tensor, noise: Tensor) -> Tensor:
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return 0.5 * (S + S.mT) + noise[:, None, None] * eye
+
+
+NoiseScale = Callable[[Contacts], Tensor] | Tensor | None
+
+
+# ---- the scorer --------------------------------------------------------------------------------
+class ProbeScorer:
+    """The current belief over alpha_x, alpha_z (a backend with fixed hyperparameters), to score many
+    candidate probes.
+
+    Build it with ``ProbeScorer.from_model(model)`` (a fitted ``InverseRFT``) or
+    ``ProbeScorer.prior(...)`` (nothing measured yet). Candidates are ``Contacts`` (T, M) or
+    ``rft.Probe``s. Scores are differentiable in the candidates' contact tensors.
+
+    Args:
+        backend: the belief.
+        noise_scale: relative noise standard deviation of a candidate's samples, as ``InverseRFT``'s
+            ``noise_scale``: None (1), or a function of the candidate's whitened-free contacts
+            returning (T,) or (T, 2) (e.g. from the predicted force: see ``force_relative``).
+
+    Attributes:
+        method: the backend's name.
+        outputscale: (2,) prior variances s_a of the maps, (N/cm^3)^2.
+        noise: (2,) force noise variances sigma_a^2 of a sample of scale 1, N^2.
+    """
+
+    def __init__(self, backend: RFTBackend, noise_scale: NoiseScale = None) -> None:
+        self.backend = backend
+        self.noise_scale = noise_scale
+        self._regions: dict[int, tuple[Region, Contacts, Tensor]] = {}
+        self._square: Region | None = None
+
+    @property
+    def method(self) -> str:
+        return self.backend.name
+
+    @property
+    def outputscale(self) -> Tensor:
+        return self.backend.hypers.outputscale.detach()
+
+    @property
+    def noise(self) -> Tensor:
+        return self.backend.hypers.noise.detach()
+
+    # ---- construction ----------------------------------------------------------------------
+    @classmethod
+    def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
+                   grid_size=None) -> ProbeScorer:
+        """The posterior of a (fitted) ``InverseRFT``, with its hyperparameters fixed.
+
+        Args:
+            method: None (the model's own backend) or a backend to rebuild on the model's data with
+                its hyperparameters: "observations" (alias "exact"), "pairs", "spectral" (alias
+                "grid"), "auto".
+            noise_scale: as the constructor's. A model fitted with a ``noise_scale`` scores with unit
+                scale (and warns) unless one is given.
+        """
+        if grid_size is not None:
+            warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
+        if method == "grid":
+            method = "spectral"
+        if method is not None and method not in ("auto", "exact", "observations", "pairs", "spectral"):
+            raise ValueError(f"method must be None, 'auto', 'observations', 'pairs' or 'spectral', got {method!r}")
+        if noise_scale is None and not torch.all(model.noise_scale == 1):
+            warnings.warn("the model was fitted with a noise_scale; candidates are scored with unit noise scale "
+                          "unless ProbeScorer gets noise_scale=", stacklevel=2)
+        backend = model.backend
+        if method is not None and method != backend.name and not (method == "exact" and backend.name == "observations"):
+            backend = make_backend(method, model.hypers, model.train_contacts, model.train_forces,
+                                   tol=getattr(model, "tol", 1e-7))
+        return cls(backend, noise_scale)
+
+    @classmethod
+    def prior(cls, lengthscale=1.0, outputscale=0.1, noise=0.01, method: str = "exact", dtype=torch.float64,
+              noise_scale: NoiseScale = None, grid_size=None) -> ProbeScorer:
+        """The prior: nothing measured yet.
+
+        Args:
+            lengthscale: of every embedding dimension, a float or a (2, 1, 4) tensor (as the model's).
+            outputscale: prior variance of the maps, (N/cm^3)^2, a float or (2,) for (x, z).
+            noise: force noise variance, N^2, a float or (2,).
+            method: "exact" (the lazy W K W^T; conditioning gives an observations backend) or
+                "spectral" (a Fourier basis; faster for many candidates). "grid" is read as "spectral".
+        """
+        if method == "grid":
+            method = "spectral"
+        if method not in ("exact", "observations", "spectral"):
+            raise ValueError(f"method must be 'exact' or 'spectral', got {method!r}")
+        ls = torch.as_tensor(lengthscale, dtype=dtype).expand(2, 1, 4).clone()
+        os = torch.as_tensor(outputscale, dtype=dtype).expand(2).clone()
+        nz = torch.as_tensor(noise, dtype=dtype).expand(2).clone()
+        for name, v in (("lengthscale", ls), ("outputscale", os), ("noise", nz)):
+            if not (torch.isfinite(v).all() and (v > 0).all()):
+                raise ValueError(f"{name} must be positive and finite, got {v.tolist()}")
+        hypers = RFTHyperparameters(noise_floor=float(nz.min()) * 1e-3).to(dtype)
+        with torch.no_grad():
+            hypers.lengthscale, hypers.outputscale, hypers.noise = ls, os, nz
+        if method == "spectral":
+            empty = Contacts(*(torch.zeros(0, 1, dtype=dtype) for _ in range(4)))
+            return cls(make_backend("spectral", hypers, empty, torch.zeros(0, 2, dtype=dtype)), noise_scale)
+        return cls(PriorBackend(hypers), noise_scale)
+
+    # ---- candidates --------------------------------------------------------------------------------
+    def _cast(self, c) -> Contacts:
+        """The candidate on the belief's dtype and device, whitened by its noise scale."""
+        c = _as_contacts(c)
+        c = c.to(dtype=self.noise.dtype, device=self.noise.device)
+        if self.noise_scale is None:
+            return c
+        s = self.noise_scale(c) if callable(self.noise_scale) else self.noise_scale
+        s = torch.as_tensor(s, dtype=c.beta.dtype, device=c.beta.device)
+        if s.ndim == 1:
+            s = s[:, None].expand(len(c), 2)
+        if s.shape != (len(c), 2) or not (torch.isfinite(s).all() and (s > 0).all()):
+            raise ValueError(f"noise_scale must give positive finite (T,) or (T, 2) scales for T = {len(c)}, "
+                             f"got shape {tuple(s.shape)}")
+        return Contacts(c.beta, c.gamma, c.weight_x / s[:, :1], c.weight_z / s[:, 1:])
+
+    def covariance(self, contacts) -> Tensor:
+        """Posterior covariance (2, T, T) of a candidate's (whitened) forces, noise not included, N^2."""
+        return self.backend.posterior(self._cast(contacts), covariance=True).covariance
+
+    def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
+        """EIG of observing the candidate's forces, nats: summed over the two maps (scalar), or
+        ``per_axis`` (2,) = (alpha_x, alpha_z) (each map is seen only through its own force axis)."""
+        S = self.covariance(contacts)
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+        L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) / self.noise[:, None, None])
+        eig = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        return eig if per_axis else eig.sum()
+
+    def _region(self, region: Region | None) -> tuple[Region, Contacts, Tensor]:
+        if region is None:
+            self._square = self._square or Region.square(dtype=self.noise.dtype)
+            region = self._square
+        key = id(region)  # the cache holds the region, so its id is not reused while cached
+        if key not in self._regions or self._regions[key][0] is not region:
+            r = region.contacts().to(dtype=self.noise.dtype, device=self.noise.device)
+            with torch.no_grad():
+                var = self.backend.posterior(r).variance  # (2, N)
+            self._regions[key] = (region, r, var)
+        return self._regions[key]
+
+    def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
+        """Expected integrated map variance over ``region`` (default: the whole square) after
+        observing the candidate (now, if None), each map's divided by its prior variance: summed over
+        the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
+        region, rc, var = self._region(region)
+        w = region.weight.to(var)
+        if contacts is None:
+            iv = (var * w).sum(-1) / self.outputscale
+        else:
+            c = self._cast(contacts)
+            k = self.backend.cross_covariance(rc, c)  # (2, N, T_c)
+            S = self.backend.posterior(c, covariance=True).covariance
+            L = psd_safe_cholesky(_plus_noise(S, self.noise))
+            B = torch.linalg.solve_triangular(L, k.mT, upper=False)  # (2, T_c, N)
+            iv = ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale
+        return iv if per_axis else iv.sum()
+
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
+        """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
+        better) or its information gain ("eig", nats, higher is better)."""
+        if criterion not in ("variance", "eig"):
+            raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
+        cands = list(candidates)
+        if not cands:
+            return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
+        if criterion == "eig":
+            return torch.stack([self.information_gain(c) for c in cands])
+        return torch.stack([self.integrated_variance(c, region) for c in cands])
+
+    def rank(self, candidates: Sequence, criterion: str = "variance",
+             region: Region | None = None) -> list[tuple[int, float]]:
+        """(index, score) pairs, best first."""
+        with torch.no_grad():
+            s = self.score(candidates, criterion, region).tolist()
+        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
+        return [(i, s[i]) for i in order]
+
+    def condition(self, contacts) -> ProbeScorer:
+        """The belief after observing the candidate's forces (whatever their values): a new scorer;
+        this one and the model are unchanged."""
+        with torch.no_grad():
+            return ProbeScorer(self.backend.condition(self._cast(contacts)), self.noise_scale)
+
+    def map_variance(self, beta, gamma) -> Tensor:
+        """Current posterior variance of (alpha_x, alpha_z) at angles of broadcast shape S: S + (2,)."""
+        pts = Contacts.points(beta, gamma, dtype=self.noise.dtype, device=self.noise.device)
+        S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
+        with torch.no_grad():
+            v = self.backend.posterior(pts).variance
+        return v.T.reshape(*S, 2)
+
+
+def force_relative(model, floor: float) -> Callable[[Contacts], Tensor]:
+    """A candidate noise scale proportional to the model's predicted force, sqrt(F^2 + floor^2) (N):
+    the counterpart of fitting with ``noise_scale=(forces**2 + floor**2).sqrt()``."""
+
+    def scale(c: Contacts) -> Tensor:
+        with torch.no_grad():
+            f = model.predict_forces(c).mean
+        return (f.pow(2) + floor**2).sqrt()
+
+    return scale
+
+
+@dataclass
+class DesignStep:
+    """One pick of ``greedy_design``: the candidate's index, its score when picked, and the
+    integrated variance over the region once it is observed (2 = prior, 0 = known)."""
+
+    index: int
+    score: float
+    integrated_variance: float
+
+
+def greedy_design(scorer: ProbeScorer, candidates: Sequence, budget: int, criterion: str = "variance",
+                  region: Region | None = None) -> list[DesignStep]:
+    """Pick ``budget`` probes one after another, each the best given the ones before (the belief is
+    conditioned on every pick; the posterior variance does not depend on the values). Neither the
+    scorer nor any model is changed.
+
+    With criterion "eig", the scores add up to the information of the whole sequence (chain rule).
+    """
+    if int(budget) != budget or budget < 0:
+        raise ValueError(f"budget must be an integer >= 0, got {budget}")
+    cands = [_as_contacts(c) for c in candidates]
+    left = list(range(len(cands)))
+    steps: list[DesignStep] = []
+    current = scorer
+    for _ in range(min(int(budget), len(cands))):
+        j, score = current.rank([cands[i] for i in left], criterion, region)[0]
+        idx = left.pop(j)
+        current = current.condition(cands[idx])
+        with torch.no_grad():
+            iv = float(current.integrated_variance(region=region))
+        steps.append(DesignStep(idx, score, iv))
+    return steps

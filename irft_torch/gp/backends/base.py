@@ -1,0 +1,127 @@
+"""The interface every inference backend implements, and what its posterior returns.
+
+A backend holds training data (already whitened by the noise scales and mapped into the canonical
+square) and the shared :class:`RFTHyperparameters`. It computes one covariance, W K W^T + noise,
+in whatever space is smallest, and answers four questions:
+
+- ``loss()``: the negative log marginal likelihood per force sample, summed over the two axes
+  (gpytorch's ``ExactMarginalLogLikelihood`` normalization, registered hyperparameter priors
+  included), differentiable in the hyperparameters;
+- ``posterior(contacts)``: the posterior of the weighted sums of any contacts (a composite force,
+  or a map value: a one-segment functional, ``Contacts.points``), marginal or joint;
+- ``condition(contacts, forces=None)``: a new backend that has also seen these observations
+  (without forces: as if they equalled their posterior mean, which leaves the mean unchanged and
+  gives the exact posterior covariance; the covariance never depends on the values);
+- ``add_data(contacts, forces)``: the same, in place (streaming).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ...rft.contacts import Contacts
+from ..hyperparameters import RFTHyperparameters
+
+__all__ = ["FunctionalPosterior", "RFTBackend", "touching"]
+
+
+@dataclass
+class FunctionalPosterior:
+    """Posterior of N linear functionals of each map, axis order (x, z).
+
+    Attributes:
+        mean: (2, N).
+        variance: (2, N), or None when not asked for.
+        covariance: (2, N, N) joint covariance, or None when not asked for.
+    """
+
+    mean: Tensor
+    variance: Tensor | None = None
+    covariance: Tensor | None = None
+
+
+def touching(c: Contacts) -> Tensor:
+    """(T,) bool: rows with at least one segment of non-zero weight on either axis."""
+    return ((c.weight_x != 0) | (c.weight_z != 0)).any(-1)
+
+
+class RFTBackend(nn.Module):
+    """Base class of the exact backends ("observations", "pairs", "spectral").
+
+    Args:
+        hypers: the shared hyperparameters (a submodule: it is trained through the backend).
+        contacts: training contacts (T, M), whitened and canonical.
+        forces: (T, 2) whitened forces in N.
+    """
+
+    name = "base"
+
+    def __init__(self, hypers: RFTHyperparameters, contacts: Contacts, forces: Tensor) -> None:
+        super().__init__()
+        self.hypers = hypers
+        self.n_samples = len(contacts)
+
+    # ---- to implement ------------------------------------------------------------------------
+    def negative_log_likelihood(self) -> Tensor:
+        """-log p(F | hyperparameters) / T per axis, (2,)."""
+        raise NotImplementedError
+
+    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
+        raise NotImplementedError
+
+    def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
+        """Posterior covariance (2, N1, N2) between the weighted sums of two sets of contacts."""
+        raise NotImplementedError
+
+    def condition(self, contacts: Contacts, forces: Tensor | None = None) -> RFTBackend:
+        raise NotImplementedError
+
+    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
+        raise NotImplementedError
+
+    # ---- shared ------------------------------------------------------------------------------
+    def loss(self) -> Tensor:
+        """Negative log marginal likelihood per force sample summed over both axes, minus the log
+        density of any registered hyperparameter prior divided by T (MAP), as gpytorch's
+        ``ExactMarginalLogLikelihood`` does."""
+        return self.negative_log_likelihood().sum() - self.log_prior() / max(self.n_samples, 1)
+
+    def log_prior(self) -> Tensor:
+        """Sum of the log densities of the hyperparameter priors registered on the shared modules."""
+        total = self.hypers.kernel.raw_outputscale.new_zeros(())
+        for _, module, prior, closure, _ in self.hypers.named_priors():
+            total = total + prior.log_prob(closure(module)).sum()
+        return total
+
+    @contextlib.contextmanager
+    def fitting(self):
+        """Inside a fit loop: the caller calls ``refresh`` itself (every few steps), so per-step
+        checks are skipped."""
+        old, self._in_fit = getattr(self, "_in_fit", False), True
+        try:
+            yield self
+        finally:
+            self._in_fit = old
+
+    def refresh(self) -> bool:
+        """Called during fitting: adapt to the current hyperparameters if needed (the spectral basis
+        grows when a lengthscale shrinks). Returns whether anything changed."""
+        return False
+
+    def truncation_error(self) -> Tensor:
+        """(2,) bound on |k - k_used| / outputscale, per map: 0 for the exact-arithmetic backends."""
+        return self.hypers.kernel.outputscale.detach().new_zeros(2)
+
+    def describe(self) -> str:
+        return f"{self.name}: T={self.n_samples}"
+
+    @staticmethod
+    def _gaussian_nll(quad: Tensor, logdet: Tensor, n: int) -> Tensor:
+        """0.5 (quad + logdet + n log 2 pi) / n."""
+        return 0.5 * (quad + logdet + n * math.log(2 * math.pi)) / n
+

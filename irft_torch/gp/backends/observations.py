@@ -1,0 +1,186 @@
+"""The "observations" backend: a gpytorch ExactGP over composite force observations, its kernel
+returning the lazy W K W^T (``RFTKernelLinearOperator``). The reference implementation, and the
+choice for few samples with many distinct angle pairs (a rotating toe, short recordings)."""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+
+import gpytorch
+import torch
+from gpytorch.distributions import MultivariateNormal
+from gpytorch.mlls import ExactMarginalLogLikelihood
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+
+from ...rft.contacts import Contacts
+from ..encoding import encode_contacts
+from ..kernels import BATCH, RFTCompositeKernel
+from ..operators import RFTKernelLinearOperator
+from .base import FunctionalPosterior, RFTBackend
+
+__all__ = ["CompositeExactGP", "ObservationsBackend", "PriorBackend"]
+
+
+class CompositeExactGP(gpytorch.models.ExactGP):
+    """A batch of two exact GPs (x and z maps) observed through RFT-weighted sums.
+
+    Inputs are composite rows (2, T, 3M) (see ``gp.encoding``), targets the forces (2, T).
+    """
+
+    def __init__(self, train_inputs: Tensor, train_targets: Tensor, likelihood, mean_module, covar_module) -> None:
+        super().__init__(train_inputs, train_targets, likelihood)
+        self.mean_module = mean_module
+        self.covar_module = covar_module
+
+    def forward(self, x: Tensor) -> MultivariateNormal:
+        return MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+class ObservationsBackend(RFTBackend):
+    """Exact I-RFT in the T-dimensional space of the observations (gpytorch's ExactGP).
+
+    Args:
+        hypers: shared hyperparameters (their kernel, likelihood and mean become the GP's).
+        contacts, forces: whitened training data (T, M), (T, 2).
+        solver: "cholesky" (exact, the default) or "gpytorch" (gpytorch's own settings: CG/Lanczos
+            above ``gpytorch.settings.max_cholesky_size``).
+    """
+
+    name = "observations"
+
+    def __init__(self, hypers, contacts: Contacts, forces: Tensor, solver: str = "cholesky") -> None:
+        super().__init__(hypers, contacts, forces)
+        if solver not in ("cholesky", "gpytorch"):
+            raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
+        self.solver = solver
+        self.train_contacts, self.train_forces = contacts, forces
+        self.n_segments = contacts.n_segments
+        mean = hypers.mean if hypers.mean is not None else gpytorch.means.ZeroMean(batch_shape=BATCH)
+        self.gp = CompositeExactGP(encode_contacts(contacts), forces.T.contiguous(), hypers.likelihood, mean,
+                                   RFTCompositeKernel(hypers.kernel))
+
+    def _settings(self):
+        stack = contextlib.ExitStack()
+        if self.solver == "cholesky":
+            stack.enter_context(gpytorch.settings.max_cholesky_size(2**31))
+        return stack
+
+    def mll(self) -> ExactMarginalLogLikelihood:
+        """gpytorch's exact marginal log likelihood object for this GP."""
+        return ExactMarginalLogLikelihood(self.hypers.likelihood, self.gp)
+
+    def negative_log_likelihood(self) -> Tensor:
+        self.gp.train()
+        with self._settings():
+            out = self.gp(*self.gp.train_inputs)
+            return -self.hypers.likelihood(out).log_prob(self.gp.train_targets) / self.n_samples
+
+    def _ensure_width(self, M: int) -> None:
+        """Widen the training rows with zero-weight padding so test rows with M segments fit."""
+        if M > self.n_segments:
+            self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M), strict=False)
+            self.n_segments = M
+
+    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False,
+                  chunk: int = 4096) -> FunctionalPosterior:
+        self._ensure_width(contacts.n_segments)
+        rows = encode_contacts(contacts, self.n_segments)
+        self.gp.eval()
+        grad = rows.requires_grad
+        ctx = contextlib.nullcontext() if grad else torch.no_grad()
+        means, variances = [], []
+        covar = None
+        with ctx, self._settings(), gpytorch.settings.skip_posterior_variances(not (variance or covariance)), \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore", gpytorch.utils.warnings.GPInputWarning)
+            try:
+                if covariance:
+                    out = self.gp(rows)
+                    means, covar = [out.mean], out.covariance_matrix
+                    covar = 0.5 * (covar + covar.mT)
+                    variances = [torch.diagonal(covar, dim1=-2, dim2=-1)]
+                else:
+                    for i in range(0, rows.shape[-2], chunk):
+                        out = self.gp(rows[..., i:i + chunk, :])
+                        means.append(out.mean)
+                        if variance:
+                            variances.append(out.variance)
+            except NotPSDError as e:
+                raise NotPSDError(f"training covariance not positive definite; hyperparameters: "
+                                  f"{self.hypers.as_dict()}") from e
+        return FunctionalPosterior(torch.cat(means, -1), torch.cat(variances, -1) if variances else None, covar)
+
+    def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
+        both = Contacts.cat([c1, c2])
+        cov = self.posterior(both, covariance=True).covariance
+        return cov[..., :len(c1), len(c1):]
+
+    def _with_data(self, c: Contacts, f: Tensor) -> ObservationsBackend:
+        return ObservationsBackend(self.hypers, Contacts.cat([self.train_contacts, c]),
+                                   torch.cat([self.train_forces, f.to(self.train_forces)]), self.solver)
+
+    def condition(self, contacts: Contacts, forces: Tensor | None = None) -> ObservationsBackend:
+        if forces is None:
+            with torch.no_grad():
+                forces = self.posterior(contacts, variance=False).mean.T
+        return self._with_data(contacts, forces)
+
+    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
+        self.train_contacts = Contacts.cat([self.train_contacts, contacts])
+        self.train_forces = torch.cat([self.train_forces, forces.to(self.train_forces)])
+        self.n_segments = max(self.n_segments, contacts.n_segments)
+        self.n_samples = len(self.train_contacts)
+        self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, self.n_segments),
+                               targets=self.train_forces.T.contiguous(), strict=False)
+
+
+class PriorBackend(RFTBackend):
+    """No data yet: the prior of the maps (exact, through the lazy W K W^T). ``condition`` turns it
+    into an :class:`ObservationsBackend`. For designing the first probes."""
+
+    name = "prior"
+
+    def __init__(self, hypers) -> None:
+        nn_init = RFTBackend.__init__
+        empty = Contacts(*(torch.zeros(0, 1, dtype=hypers.kernel.raw_outputscale.dtype,
+                                       device=hypers.kernel.raw_outputscale.device) for _ in range(4)))
+        nn_init(self, hypers, empty, empty.beta.new_zeros(0, 2))
+
+    def _op(self, c1: Contacts, c2: Contacts | None):
+        k = self.hypers.kernel
+        ls, os = k.lengthscale.detach(), k.outputscale.detach()
+        w1 = torch.stack([c1.weight_x, c1.weight_z])
+        if c2 is None:
+            return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c1.beta[None],
+                                                         c1.gamma[None], w1, ls, os, BATCH, same_inputs=True)
+        w2 = torch.stack([c2.weight_x, c2.weight_z])
+        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
+                                                     w2, ls, os, BATCH)
+
+    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
+        mean = self.hypers.mean_of(contacts)
+        if mean is None:
+            mean = contacts.beta.new_zeros(2, len(contacts))
+        out = FunctionalPosterior(mean)
+        if covariance:
+            out.covariance = self._op(contacts, None).to_dense()
+            out.variance = torch.diagonal(out.covariance, dim1=-2, dim2=-1)
+        elif variance:
+            out.variance = self._op(contacts, None).diagonal()
+        return out
+
+    def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
+        return self._op(c1, c2).to_dense()
+
+    def condition(self, contacts: Contacts, forces: Tensor | None = None) -> ObservationsBackend:
+        if forces is None:
+            forces = self.posterior(contacts, variance=False).mean.T
+        return ObservationsBackend(self.hypers, contacts, forces.detach())
+
+    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
+        raise TypeError("a PriorBackend holds no data: use condition(), or build InverseRFT(contacts, forces)")
+
+    def negative_log_likelihood(self) -> Tensor:
+        raise TypeError("a PriorBackend holds no data: there is no likelihood to evaluate")

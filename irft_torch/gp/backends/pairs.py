@@ -1,0 +1,145 @@
+r"""The "pairs" backend: exact inference in the space of the recording's distinct angle pairs.
+
+When only U distinct (beta, gamma) pairs occur (a flat toe, a plate at fixed tilt and direction,
+a toe that does not turn on a straight stroke), W = W_U P with W_U (T x U) the weights summed per
+pair, so W K W^T = W_U K_UU W_U^T: the weight-space algebra (``weight_space``) with u = the map at
+the U pairs and Sigma = K_UU, exact, O(U^3) per step whatever T.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ...rft.contacts import Contacts
+from ..kernels import BATCH, angle_covariance
+from ..operators import RFTKernelLinearOperator, unique_pairs
+from .weight_space import FeatureStatistics, WeightSpaceBackend
+
+__all__ = ["PairsBackend", "distinct_pairs"]
+
+
+def distinct_pairs(c: Contacts) -> tuple[Tensor, Tensor]:
+    """Distinct angle pairs (U, 2) of the segments in contact (either axis) and each segment's row
+    in them (T, M) (0 for segments not in contact, whose weights are 0)."""
+    active = (c.weight_x != 0) | (c.weight_z != 0)
+    pairs = torch.stack([c.beta[active], c.gamma[active]], -1)
+    if pairs.shape[0] == 0:
+        return c.beta.new_zeros(1, 2), torch.zeros(c.shape, dtype=torch.long, device=c.beta.device)
+    table, inverse = unique_pairs(pairs.detach())
+    return table, torch.zeros(c.shape, dtype=torch.long, device=c.beta.device).masked_scatter(active, inverse)
+
+
+class PairsBackend(WeightSpaceBackend):
+    """Exact I-RFT in the U-dimensional space of distinct angle pairs.
+
+    Args:
+        hypers: shared hyperparameters.
+        contacts, forces: whitened training data (T, M), (T, 2).
+    """
+
+    name = "pairs"
+
+    def __init__(self, hypers, contacts: Contacts, forces: Tensor) -> None:
+        super().__init__(hypers, contacts, forces)
+        self.table, _ = distinct_pairs(contacts)
+        self._set_stats(self._statistics(contacts, forces, self.table))
+
+    @property
+    def n_pairs(self) -> int:
+        return self.table.shape[0]
+
+    def describe(self) -> str:
+        return f"pairs: T={self.n_samples}, U={self.n_pairs} distinct angle pairs"
+
+    # ---- statistics -------------------------------------------------------------------------
+    def _index(self, c: Contacts, table: Tensor) -> Tensor:
+        """Each segment's row (T, M) in ``table``, which must hold every pair of c in contact."""
+        own, idx = distinct_pairs(c)
+        both, inverse = unique_pairs(torch.cat([table, own]))
+        if both.shape[0] != table.shape[0]:
+            raise ValueError("contacts hold angle pairs that are not in the table")
+        lookup = inverse[table.shape[0]:]  # own row -> table row (bit-equal pairs)
+        remap = torch.empty(table.shape[0], dtype=torch.long, device=idx.device)
+        remap[inverse[:table.shape[0]]] = torch.arange(table.shape[0], device=idx.device)
+        return remap[lookup][idx]
+
+    def _statistics(self, c: Contacts, f: Tensor, table: Tensor) -> FeatureStatistics:
+        U = table.shape[0]
+        stats = FeatureStatistics.zeros(U, dtype=f.dtype, device=f.device, meta={"space": "pairs", "U": U})
+        idx = self._index(c, table)
+        same = self._same_gram(c)
+        shape = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
+        chunk = self._chunk_rows(U, c.n_segments)
+        for i in range(0, len(c), chunk):
+            j = idx[i:i + chunk]
+            w = torch.stack([c.weight_x[i:i + chunk], c.weight_z[i:i + chunk]])  # (2, t, M)
+            Phi = w.new_zeros(2, j.shape[0], U).scatter_add(-1, j.expand(2, *j.shape), w)
+            stats.accumulate(Phi, f[i:i + chunk].T, None if shape is None else shape[:, i:i + chunk], same)
+        return stats
+
+    # ---- the weight-space pieces ------------------------------------------------------------
+    def _K(self) -> Tensor:
+        t = self.table
+        return angle_covariance(self.hypers.kernel, t[:, 0], t[:, 1], t[:, 0], t[:, 1])
+
+    def _apply_sigma(self, X: Tensor) -> Tensor:
+        return X @ self._K()
+
+    def _cross(self, c: Contacts) -> Tensor:
+        """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""
+        t = self.table
+        k = self.hypers.kernel
+        ls, os = k.lengthscale.detach(), k.outputscale.detach()
+        w1 = torch.stack([c.weight_x, c.weight_z])
+        one = torch.ones_like(t[:, :1])
+        op = RFTKernelLinearOperator.from_segments(c.beta[None], c.gamma[None], w1, t[None, :, :1], t[None, :, 1:],
+                                                   one.expand(2, -1, -1), ls, os, BATCH)
+        return op.to_dense()
+
+    def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
+        k = self.hypers.kernel
+        ls, os = k.lengthscale.detach(), k.outputscale.detach()
+        w = torch.stack([c.weight_x, c.weight_z])
+        op = RFTKernelLinearOperator.from_segments(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None], w,
+                                                   ls, os, BATCH, same_inputs=True)
+        return op.to_dense() if full else op.diagonal()
+
+    def _prior_cross(self, c1: Contacts, c2: Contacts) -> Tensor:
+        k = self.hypers.kernel
+        ls, os = k.lengthscale.detach(), k.outputscale.detach()
+        w1 = torch.stack([c1.weight_x, c1.weight_z])
+        w2 = torch.stack([c2.weight_x, c2.weight_z])
+        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
+                                                     w2, ls, os, BATCH).to_dense()
+
+    # ---- more data ---------------------------------------------------------------------------
+    def _grown(self, c: Contacts) -> tuple[Tensor, Tensor]:
+        """The table with c's new pairs appended, and where the old rows went (U_old,)."""
+        new, _ = distinct_pairs(c)
+        table, inverse = unique_pairs(torch.cat([self.table, new]))
+        return table, inverse[:self.table.shape[0]]
+
+    def _reindexed(self, table: Tensor, where: Tensor) -> FeatureStatistics:
+        s = self.stats
+        U = table.shape[0]
+        out = FeatureStatistics.zeros(U, dtype=s.P.dtype, device=s.P.device, meta={"space": "pairs", "U": U})
+        out.P[:, where[:, None], where[None, :]] = s.P
+        out.b[:, where] = s.b
+        out.bg[:, where] = s.bg
+        out.yy, out.yg, out.gg, out.n = s.yy.clone(), s.yg.clone(), s.gg.clone(), s.n
+        return out
+
+    def _with_data(self, c: Contacts, f: Tensor) -> PairsBackend:
+        new = PairsBackend.__new__(PairsBackend)
+        WeightSpaceBackend.__init__(new, self.hypers, c, f)
+        new.table, where = self._grown(c)
+        new._set_stats(self._reindexed(new.table, where) + self._statistics(c, f, new.table))
+        return new
+
+    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
+        table, where = self._grown(contacts)
+        stats = self._reindexed(table, where) + self._statistics(contacts, forces, table)
+        self.table = table
+        self._set_stats(stats)
+

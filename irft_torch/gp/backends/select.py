@@ -1,0 +1,60 @@
+"""Which backend: the cheapest exact space for the data (``method="auto"``)."""
+
+from __future__ import annotations
+
+from ...rft.contacts import Contacts
+from ..fourier import FourierBasis
+from .base import RFTBackend, touching
+from .observations import ObservationsBackend
+from .pairs import PairsBackend, distinct_pairs
+from .spectral import SpectralBackend
+
+__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs"]
+
+METHODS = ("observations", "pairs", "spectral")
+ALIASES = {"exact": "observations"}
+N_ITER = 300  # Adam steps the one-time costs are spread over
+SPECTRAL_PENALTY = 1.5  # prefer the arithmetic-exact spaces when costs are close
+
+
+def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7) -> dict[str, float]:
+    """Rough flop counts of a fit (N_ITER likelihood + gradient steps and the one-time work) in each space.
+
+    T: samples in contact, U: distinct angle pairs, S: segments in contact, F: Fourier features for the
+    current lengthscales. Observations: T^3 / 3 per step plus the kernel block (about 40 flops per
+    element for the exp and its gradient, over S x min(U, S) elements); pairs: O(min(T, U)^3 + U^2 (10 +
+    min(T, U))); spectral: O(r^3 + r^2 F + r F (F_beta + F_gamma)), r = min(T, F), plus the one pass
+    T F^2.
+    """
+    rows = touching(contacts)
+    T = int(rows.sum())
+    S = int(((contacts.weight_x != 0) | (contacts.weight_z != 0)).sum())
+    U = distinct_pairs(contacts)[0].shape[0]
+    basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
+    F, (Fb, Fg) = basis.size, basis.sizes
+    obs = T**3 / 3 + 40.0 * S * min(U, S)
+    r = min(T, U)
+    pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
+    r = min(T, F)
+    spectral = (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
+    return {"observations": float(obs), "pairs": float(pairs), "spectral": float(spectral * SPECTRAL_PENALTY)}
+
+
+def choose_method(contacts: Contacts, hypers, tol: float = 1e-7) -> str:
+    costs = estimated_costs(contacts, hypers, tol)
+    return min(METHODS, key=lambda m: costs[m])
+
+
+def make_backend(method: str, hypers, contacts: Contacts, forces, solver: str = "cholesky",
+                 tol: float = 1e-7) -> RFTBackend:
+    """Build the backend named ``method`` ("auto", "observations" (alias "exact"), "pairs", "spectral")."""
+    method = ALIASES.get(method, method)
+    if method == "auto":
+        method = choose_method(contacts, hypers, tol)
+    if method == "observations":
+        return ObservationsBackend(hypers, contacts, forces, solver=solver)
+    if method == "pairs":
+        return PairsBackend(hypers, contacts, forces)
+    if method == "spectral":
+        return SpectralBackend(hypers, contacts, forces, tol=tol)
+    raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', got {method!r}")

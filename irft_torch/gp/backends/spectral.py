@@ -1,0 +1,171 @@
+r"""The "spectral" backend: the maps in a truncated Fourier basis on the angle torus.
+
+alpha_a(theta) = psi(theta)^T u_a with psi = psi_beta(2 beta) kron psi_gamma(gamma) and
+u_a ~ N(0, s_a Sigma_beta,a kron Sigma_gamma,a) (``gp.fourier``): the weight-space algebra
+(``weight_space``) with F = (2 n_beta + 1)(2 n_gamma + 1) features. The sufficient statistics take
+one pass over the data (O(T M F + T F^2)); each Adam step costs O(r^3 + r^2 F) with r <= min(T, F),
+whatever T; streaming adds O(F^2) per sample. The basis is sized from the lengthscales and a
+tolerance on the kernel's truncation error (reported by ``truncation_error``); when a lengthscale
+shrinks during fitting, ``refresh`` grows the basis (recomputing the statistics from the data it
+keeps).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import Tensor
+
+from ...rft.contacts import Contacts
+from ..fourier import MAX_HARMONICS, FourierBasis
+from .weight_space import FeatureStatistics, WeightSpaceBackend
+
+__all__ = ["SpectralBackend"]
+
+
+class SpectralBackend(WeightSpaceBackend):
+    """I-RFT in a Fourier basis on the (beta, gamma) torus; exact up to the reported truncation.
+
+    Args:
+        hypers: shared hyperparameters.
+        contacts, forces: whitened training data (T, M), (T, 2).
+        tol: bound on the kernel's relative truncation error used to size the basis (default 1e-7).
+        basis: a fixed :class:`FourierBasis` instead (then ``tol`` only triggers a warning).
+        keep_data: keep the training data so that the basis can grow (default True).
+    """
+
+    name = "spectral"
+
+    def __init__(self, hypers, contacts: Contacts, forces: Tensor, tol: float = 1e-7,
+                 basis: FourierBasis | None = None, keep_data: bool = True) -> None:
+        super().__init__(hypers, contacts, forces)
+        if not (0 < tol < 1):
+            raise ValueError(f"tol must be in (0, 1), got {tol}")
+        self.tol = float(tol)
+        self.basis = basis or FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
+        self._data = [(contacts, forces)] if keep_data else None
+        self._set_stats(self.statistics(contacts, forces))
+
+    def describe(self) -> str:
+        err = self.truncation_error().max().item()
+        return (f"spectral: T={self.n_samples}, {self.basis.sizes[0]} x {self.basis.sizes[1]} = {self.basis.size} "
+                f"Fourier features, kernel truncation error <= {err:.1e}")
+
+    # ---- statistics ---------------------------------------------------------------------------
+    def features(self, c: Contacts) -> Tensor:
+        """Phi (2, N, F): the weighted sums' features, x and z axes."""
+        pb, pg = self.basis.features(c.beta, c.gamma)  # (N, M, Fb), (N, M, Fg)
+        w = torch.stack([c.weight_x, c.weight_z])  # (2, N, M)
+        Phi = torch.einsum("anm,nmi,nmj->anij", w, pb, pg)
+        return Phi.reshape(2, Phi.shape[1], -1)
+
+    def statistics(self, c: Contacts, f: Tensor) -> FeatureStatistics:
+        """Sufficient statistics of (c, f) in this backend's basis, one chunked pass."""
+        F = self.basis.size
+        stats = FeatureStatistics.zeros(F, dtype=f.dtype, device=f.device, meta=self._meta())
+        shape = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
+        chunk = self._chunk_rows(F, c.n_segments)
+        with torch.no_grad():
+            for i in range(0, len(c), chunk):
+                part = c[i:i + chunk]
+                Phi = self.features(part)
+                stats.accumulate(Phi, f[i:i + chunk].T, None if shape is None else shape[:, i:i + chunk],
+                                 self._same_gram(part))
+        return stats
+
+    def _meta(self) -> dict:
+        return {"space": "spectral", "n_beta": self.basis.n_beta, "n_gamma": self.basis.n_gamma}
+
+    # ---- the weight-space pieces ------------------------------------------------------------
+    def _sigma_factors(self, detach: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        ls, s = self.hypers.lengthscale, self.hypers.outputscale
+        if detach:
+            ls, s = ls.detach(), s.detach()
+        Sb, Sg = self.basis.coefficients(ls)
+        return Sb, Sg, s
+
+    def _kron(self, X: Tensor, Sb: Tensor, Sg: Tensor, s: Tensor) -> Tensor:
+        """X (2, k, F) -> X (s Sb kron Sg) (2, k, F), without forming the Kronecker product."""
+        Fb, Fg = self.basis.sizes
+        Y = X.reshape(*X.shape[:-1], Fb, Fg)
+        Y = Sb.mT[:, None] @ Y @ Sg[:, None]
+        return s[:, None, None] * Y.reshape(X.shape)
+
+    def _apply_sigma(self, X: Tensor) -> Tensor:
+        return self._kron(X, *self._sigma_factors())
+
+    def _cross(self, c: Contacts) -> Tensor:
+        return self._kron(self.features(c), *self._sigma_factors(detach=True))
+
+    def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
+        Phi = self.features(c)
+        PS = self._kron(Phi, *self._sigma_factors(detach=True))
+        return PS @ Phi.mT if full else (PS * Phi).sum(-1)
+
+    def _prior_cross(self, c1: Contacts, c2: Contacts) -> Tensor:
+        return self._kron(self.features(c1), *self._sigma_factors(detach=True)) @ self.features(c2).mT
+
+    def truncation_error(self) -> Tensor:
+        return self.basis.truncation_error(self.hypers.lengthscale)
+
+    def _ensure_basis(self) -> None:
+        """Refresh the basis once per new set of hyperparameter values (outside a fit loop)."""
+        key = self._hyper_key()
+        if getattr(self, "_basis_key", None) is None or not torch.equal(self._basis_key, key):
+            self.refresh()
+            self._basis_key = key
+
+    def negative_log_likelihood(self) -> Tensor:
+        if not getattr(self, "_in_fit", False):
+            self._ensure_basis()
+        return super().negative_log_likelihood()
+
+    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False):
+        self._ensure_basis()
+        return super().posterior(contacts, variance, covariance)
+
+    # ---- more data and a growing basis --------------------------------------------------------
+    def _with_data(self, c: Contacts, f: Tensor) -> SpectralBackend:
+        new = SpectralBackend.__new__(SpectralBackend)
+        WeightSpaceBackend.__init__(new, self.hypers, c, f)
+        new.tol, new.basis = self.tol, self.basis
+        new._data = None if self._data is None else self._data + [(c, f)]
+        new._set_stats(self.stats + new.statistics(c, f))
+        return new
+
+    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
+        self._set_stats(self.stats + self.statistics(contacts, forces))
+        if self._data is not None:
+            self._data.append((contacts, forces))
+
+    def merge(self, stats: FeatureStatistics) -> None:
+        """Add statistics computed elsewhere (another recording, another process) in this basis."""
+        self._set_stats(self.stats + stats)
+        self._data = None  # the raw data behind them is not here: the basis can no longer grow
+
+    def refresh(self) -> bool:
+        """Grow the basis if the current lengthscales need more harmonics than it has for ``tol``
+        (recomputing the statistics from the kept data). Returns whether it grew."""
+        need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
+        if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:
+            return False
+        grown = FourierBasis(max(need.n_beta, self.basis.n_beta), max(need.n_gamma, self.basis.n_gamma))
+        if grown == self.basis or self._data is None:
+            if self._data is None:
+                warnings.warn(f"the lengthscales need a larger Fourier basis ({need}) than the statistics were "
+                              f"computed in ({self.basis}) and the raw data are not kept: the kernel truncation "
+                              f"error is now {self.truncation_error().max().item():.1e} (tol {self.tol:.0e})",
+                              stacklevel=2)
+            return False
+        if max(grown.n_beta, grown.n_gamma) >= MAX_HARMONICS:
+            warnings.warn(f"lengthscales {self.hypers.lengthscale.detach().reshape(-1).tolist()} need more than "
+                          f"{MAX_HARMONICS} harmonics per angle; the truncation error may exceed tol={self.tol:.0e}",
+                          stacklevel=2)
+        self.basis = grown
+        stats = None
+        for c, f in self._data:
+            part = self.statistics(c, f)
+            stats = part if stats is None else stats + part
+        self._set_stats(stats)
+        return True

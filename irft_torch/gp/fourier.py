@@ -1,0 +1,137 @@
+r"""A truncated Fourier basis on the angle torus for the embedding kernel.
+
+The kernel factors over the two angles, k = s k_beta(beta, beta') k_gamma(gamma, gamma'), each factor
+an RBF on (sin x, cos x) / (l_sin, l_cos) with x = 2 beta (period pi in beta) or x = gamma: a smooth
+function on the circle in each argument. With the real Fourier features
+
+    psi_n(x) = (1, cos x, sin x, cos 2x, sin 2x, ..., cos nx, sin nx)          (2n + 1 of them)
+
+each factor is k(x, x') = sum_{j,k} psi_j(x) C_jk psi_k(x') with C = B K B^T, K the factor on a
+G-point periodic grid and B the real DFT: C is PSD (it is a congruence of a kernel matrix) and
+differentiable in the lengthscales. Keeping n harmonics is an orthogonal projection, so the error
+kernel is PSD and bounded by its diagonal, e_n = max_x [k(x, x) - psi_n(x)^T C_n psi_n(x)]; for the
+product kernel the error is at most e_beta + e_gamma (relative to s). Coefficients of the exponent
+of a cosine decay like modified Bessel functions I_n(1 / l^2): about 15 features per angle reach
+1e-6 at l = 1, 51 at l = 0.2 (anchors: Hilbert-space reduced-rank GPs, Solin & Sarkka 2020; PyMC's
+``HSGPPeriodic``; here on the 2-D torus with the ARD embedding kernel).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .embedding import rbf
+
+__all__ = ["FourierBasis", "fourier_features", "factor_coefficients", "factor_truncation_error", "harmonics_for"]
+
+MAX_HARMONICS = 30  # per angle: (2 * 30 + 1)^2 = 3721 features at most
+
+
+def fourier_features(x: Tensor, n: int) -> Tensor:
+    """psi_n(x) = (1, cos x, sin x, ..., cos nx, sin nx): x (...) -> (..., 2n + 1). Powers of
+    e^{ix} by a cumulative product (one complex exponential per angle)."""
+    one = torch.ones_like(x)[..., None]
+    if n == 0:
+        return one
+    z = torch.polar(torch.ones_like(x), x)[..., None].expand(*x.shape, n)
+    zk = torch.cumprod(z, dim=-1)  # e^{ikx}, k = 1..n
+    return torch.cat([one, torch.stack([zk.real, zk.imag], -1).reshape(*x.shape, 2 * n)], -1)
+
+
+def _grid(G: int, dtype, device) -> Tensor:
+    return torch.arange(G, dtype=dtype, device=device) * (2 * math.pi / G)
+
+
+def _factor_matrix(ls: Tensor, x: Tensor) -> Tensor:
+    """The unit-variance factor kernel on points x (G,) for lengthscales ls (..., 2): (..., G, G)."""
+    e = torch.stack([torch.sin(x), torch.cos(x)], -1)  # (G, 2)
+    scaled = e / ls[..., None, :]  # (..., G, 2)
+    return rbf(scaled, scaled, torch.ones((), dtype=x.dtype, device=x.device))
+
+
+def _analysis(n: int, x: Tensor) -> Tensor:
+    """Real DFT B (2n+1, G): coefficients of psi_n from values on the G-point grid x."""
+    G = x.shape[0]
+    psi = fourier_features(x, n)  # (G, 2n+1)
+    scale = torch.full((2 * n + 1,), 2.0 / G, dtype=x.dtype, device=x.device)
+    scale[0] = 1.0 / G
+    return psi.mT * scale[:, None]
+
+
+def _grid_size(n: int) -> int:
+    return max(65, 4 * n + 9) | 1  # odd, and enough points that aliasing is negligible
+
+
+def factor_coefficients(ls: Tensor, n: int) -> Tensor:
+    """C_n (..., 2n+1, 2n+1): Fourier coefficients of the factor kernel with lengthscales ls (..., 2)
+    = (l_sin, l_cos); differentiable in ls."""
+    x = _grid(_grid_size(n), ls.dtype, ls.device)
+    B = _analysis(n, x)
+    C = B @ _factor_matrix(ls, x) @ B.mT
+    return 0.5 * (C + C.mT)
+
+
+def factor_truncation_error(ls: Tensor, n: int) -> Tensor:
+    """e_n (...,): max over a fine grid of k(x, x) - psi_n(x)^T C_n psi_n(x) (>= 0 up to round-off)."""
+    with torch.no_grad():
+        x = _grid(_grid_size(n), ls.dtype, ls.device)
+        C = factor_coefficients(ls, n)
+        xm = x + math.pi / x.shape[0]  # between the grid's points as well
+        psi = fourier_features(torch.cat([x, xm]), n)
+        kk = ((psi @ C) * psi).sum(-1)
+        return (1 - kk).abs().amax(-1)
+
+
+def harmonics_for(ls: Tensor, tol: float, n_max: int = MAX_HARMONICS) -> tuple[int, float]:
+    """Smallest n with factor_truncation_error(ls, n) <= tol for every batch entry (capped at n_max):
+    (n, the error reached)."""
+    lo_err = None
+    for n in range(1, n_max + 1):
+        err = float(factor_truncation_error(ls, n).max())
+        lo_err = err
+        if err <= tol:
+            return n, err
+    return n_max, lo_err
+
+
+@dataclass(frozen=True)
+class FourierBasis:
+    """n_beta harmonics of 2 beta and n_gamma of gamma: F = (2 n_beta + 1)(2 n_gamma + 1) features,
+    beta-major. ``features`` gives (..., F_beta), (..., F_gamma) per angle."""
+
+    n_beta: int
+    n_gamma: int
+
+    @property
+    def sizes(self) -> tuple[int, int]:
+        return 2 * self.n_beta + 1, 2 * self.n_gamma + 1
+
+    @property
+    def size(self) -> int:
+        a, b = self.sizes
+        return a * b
+
+    def features(self, beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor]:
+        return fourier_features(2 * beta, self.n_beta), fourier_features(gamma, self.n_gamma)
+
+    def coefficients(self, lengthscale: Tensor) -> tuple[Tensor, Tensor]:
+        """Sigma_beta (2, Fb, Fb), Sigma_gamma (2, Fg, Fg) for the kernel's lengthscale (2, 1, 4)."""
+        ls = lengthscale[:, 0, :]
+        return factor_coefficients(ls[:, 0:2], self.n_beta), factor_coefficients(ls[:, 2:4], self.n_gamma)
+
+    def truncation_error(self, lengthscale: Tensor) -> Tensor:
+        """(2,) bound on the relative kernel error, e_beta + e_gamma per map."""
+        ls = lengthscale.detach()[:, 0, :]
+        return factor_truncation_error(ls[:, 0:2], self.n_beta) + factor_truncation_error(ls[:, 2:4], self.n_gamma)
+
+    @classmethod
+    def for_lengthscale(cls, lengthscale: Tensor, tol: float = 1e-6, n_max: int = MAX_HARMONICS) -> FourierBasis:
+        """The smallest basis whose truncation error is <= tol (each factor gets tol / 2)."""
+        ls = lengthscale.detach()[:, 0, :]
+        nb, _ = harmonics_for(ls[:, 0:2], tol / 2, n_max)
+        ng, _ = harmonics_for(ls[:, 2:4], tol / 2, n_max)
+        return cls(nb, ng)

@@ -1,0 +1,97 @@
+"""The hyperparameters every backend shares: the angle kernel, the force noise, the prior mean.
+
+They live in stock gpytorch modules (``AngleKernel`` = ``ScaleKernel(RBFKernel)``, a batched
+``GaussianLikelihood``), so priors, constraints and state dicts follow gpytorch. A backend only
+reads them; swapping the backend keeps them.
+"""
+
+from __future__ import annotations
+
+import torch
+from gpytorch.constraints import GreaterThan
+from gpytorch.likelihoods import GaussianLikelihood
+from gpytorch import Module
+from torch import Tensor
+
+from .kernels import BATCH, AngleKernel
+from .means import GenericShapeMean
+
+__all__ = ["RFTHyperparameters", "force_likelihood"]
+
+
+def force_likelihood(tied: bool = False, noise_floor: float = 1e-6) -> GaussianLikelihood:
+    """gpytorch's ``GaussianLikelihood`` for the (x, z) batch of force axes: one noise variance per
+    axis (batch shape (2,), noise (2, 1)) or one shared (``tied``, the I-RFT paper; noise (1,)), N^2,
+    bounded below by ``noise_floor``."""
+    return GaussianLikelihood(batch_shape=torch.Size() if tied else BATCH,
+                              noise_constraint=GreaterThan(noise_floor))
+
+
+class RFTHyperparameters(Module):
+    """Kernel, likelihood and (optional) physics mean of the two maps, with readable views.
+
+    Attributes:
+        kernel: :class:`AngleKernel` (lengthscale (2, 1, 4), outputscale (2,) in (N/cm^3)^2).
+        likelihood: gpytorch ``GaussianLikelihood`` (noise in N^2).
+        mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
+    """
+
+    def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6) -> None:
+        super().__init__()
+        self.kernel = AngleKernel()
+        self.likelihood = force_likelihood(tied_noise, noise_floor)
+        self.mean = GenericShapeMean() if physics_mean else None
+
+    @property
+    def tied(self) -> bool:
+        return self.likelihood.noise.numel() == 1
+
+    @property
+    def lengthscale(self) -> Tensor:
+        """(2, 1, 4), dimensionless (the embedding's units)."""
+        return self.kernel.lengthscale
+
+    @lengthscale.setter
+    def lengthscale(self, value) -> None:
+        self.kernel.lengthscale = value
+
+    @property
+    def outputscale(self) -> Tensor:
+        """(2,) prior variances of alpha_x, alpha_z, (N/cm^3)^2."""
+        return self.kernel.outputscale
+
+    @outputscale.setter
+    def outputscale(self, value) -> None:
+        self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(2)
+
+    @property
+    def noise(self) -> Tensor:
+        """(2,) force noise variances (sigma_x^2, sigma_z^2), N^2 (equal when tied)."""
+        return self.likelihood.noise.reshape(-1).expand(2)
+
+    @noise.setter
+    def noise(self, value) -> None:
+        raw = self.likelihood.noise_covar.raw_noise
+        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1).expand(2)
+        value = value.mean(0, keepdim=True) if self.tied else value
+        lower = self.likelihood.noise_covar.raw_noise_constraint.lower_bound.to(value)
+        value = torch.maximum(value, lower * 1.0001)
+        self.likelihood.noise = value.reshape(raw.shape)
+
+    @property
+    def mean_scales(self) -> Tensor | None:
+        """(2,) scales of the generic shape in the physics mean, or None for the zero mean."""
+        return None if self.mean is None else self.mean.scales
+
+    def mean_of(self, contacts) -> Tensor | None:
+        """Prior mean of the weighted sums of ``contacts`` (N, M): (2, N) in N, or None (zero mean)."""
+        if self.mean is None:
+            return None
+        return self.mean.scales[:, None] * self.mean.shape_forces(contacts)
+
+    def as_dict(self) -> dict[str, list]:
+        out = {"lengthscale_x": self.lengthscale[0, 0].tolist(), "lengthscale_z": self.lengthscale[1, 0].tolist(),
+               "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist()}
+        if self.mean is not None:
+            out["mean_scales"] = self.mean.scales.tolist()
+        return out

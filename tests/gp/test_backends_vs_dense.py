@@ -1,0 +1,303 @@
+"""Every backend against the dense reference (explicit W, explicit K, torch Cholesky): likelihood,
+the gradient of every hyperparameter, map and force posteriors (marginal and joint), conditioning,
+heteroscedastic noise. Observations and pairs: 1e-8 relative; spectral: within 1e-6 at the default
+tolerance (its reported kernel truncation bound is 1e-7)."""
+
+import math
+
+import pytest
+import torch
+
+import irft_torch as irft
+from irft_torch.rft import Contacts, FourierStressMap
+
+from .dense_reference import W_dense, axis_reference, k_dense
+
+P = math.pi
+BACKENDS = ["observations", "pairs", "spectral"]
+TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
+
+
+def random_contacts(T=25, M=4, seed=0, repeated=False):
+    """Random angles, zero-weight segments, mixed left/right motion (sign of weight_x); with
+    ``repeated`` the angles come from a few values (many segments share a pair)."""
+    g = torch.Generator().manual_seed(seed)
+    beta = (torch.rand(T, M, generator=g) - 0.5) * P
+    gamma = (torch.rand(T, M, generator=g) - 0.5) * P
+    if repeated:
+        beta, gamma = (beta * 1.3).round() / 1.3, (gamma * 1.3).round() / 1.3
+    w = torch.rand(T, M, generator=g) * 3
+    w[torch.rand(T, M, generator=g) < 0.3] = 0.0  # above the surface / padding
+    w[0] = 0.0  # one observation with no contact at all
+    sign = torch.where(torch.rand(T, 1, generator=g) < 0.5, -1.0, 1.0)
+    return Contacts(beta=beta, gamma=gamma, weight_x=-sign * w, weight_z=w)
+
+
+def set_hypers(model, seed=1, low=0.4):
+    g = torch.Generator().manual_seed(seed)
+    model.hypers.lengthscale = low + torch.rand(2, 1, 4, generator=g)
+    model.hypers.outputscale = torch.tensor([0.05, 0.2])
+    model.hypers.noise = torch.tensor([0.03, 0.07])
+
+
+def data(T=25, M=4, seed=0, repeated=False):
+    c = random_contacts(T, M, seed, repeated)
+    f = irft.rft.forces(FourierStressMap.generic(0.5, 0.4), c)
+    f = f + 0.05 * torch.randn(len(c), 2, generator=torch.Generator().manual_seed(seed + 3))
+    return c, f
+
+
+def prior_mean(model, c, a, w):
+    if model.prior_mean_kind != "physics":
+        return None
+    shape = FourierStressMap.generic()(c.beta, c.gamma)[..., a]
+    return model.hypers.mean_scales.detach()[a] * (w * shape).sum(-1)
+
+
+def references(model, c, f):
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    return [axis_reference(c, f[:, a], w, ls[a, 0], os[a], noise[a], prior_mean(model, c, a, w))
+            for a, w in enumerate((c.weight_x, c.weight_z))]
+
+
+@pytest.mark.parametrize("repeated", [False, True])
+@pytest.mark.parametrize("prior", ["zero", "physics"])
+@pytest.mark.parametrize("method", BACKENDS)
+def test_likelihood_and_every_gradient_match_dense(method, prior, repeated):
+    c, f = data(repeated=repeated)
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method)
+    assert model.method == method
+    set_hypers(model)
+    params = dict(model.hypers.named_parameters())
+    ours = model.loss()
+    g_ours = torch.autograd.grad(ours, list(params.values()))
+
+    def dense():
+        ls, os, noise = model.hypers.lengthscale, model.hypers.outputscale, model.hypers.noise
+        total = 0.0
+        for a, w in enumerate((c.weight_x, c.weight_z)):
+            mean = None
+            if prior == "physics":
+                mean = model.hypers.mean_scales[a] * (w * FourierStressMap.generic()(c.beta, c.gamma)[..., a]).sum(-1)
+            total = total - axis_reference(c, f[:, a], w, ls[a, 0], os[a], noise[a], mean)[0]
+        return total
+
+    ref = dense()
+    g_ref = torch.autograd.grad(ref, list(params.values()))
+    tol = TOL[method]
+    assert ours.item() == pytest.approx(ref.item(), rel=tol)
+    for name, a, b in zip(params, g_ours, g_ref):
+        torch.testing.assert_close(a, b, rtol=tol * 10, atol=tol * b.abs().max().item() + 1e-12,
+                                   msg=f"gradient of {name}")
+
+
+@pytest.mark.parametrize("prior", ["zero", "physics"])
+@pytest.mark.parametrize("method", BACKENDS)
+def test_map_and_force_posteriors_match_dense(method, prior):
+    c, f = data(T=30, M=5, seed=4, repeated=(method == "pairs"))
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method)
+    set_hypers(model, seed=2)
+    refs = references(model, c, f)
+    tol = TOL[method]
+    th = (torch.rand(40, 2, generator=torch.Generator().manual_seed(9)) - 0.5) * P
+    post = model.stress_map(th[:, 0], th[:, 1])
+    for a in range(2):
+        ms = None
+        if prior == "physics":
+            ms = model.hypers.mean_scales.detach()[a] * FourierStressMap.generic()(th[:, 0], th[:, 1])[:, a]
+        mu, var = refs[a][1](th, ms)
+        torch.testing.assert_close(post.mean[:, a], mu, rtol=tol, atol=tol * mu.abs().max().item())
+        torch.testing.assert_close(post.variance[:, a], var, rtol=tol, atol=tol * var.abs().max().item())
+    cs = random_contacts(T=12, M=3, seed=7)
+    pred = model.predict_forces(cs)
+    for a, w in enumerate((cs.weight_x, cs.weight_z)):
+        mu, var = refs[a][2](cs, w, prior_mean(model, cs, a, w))
+        torch.testing.assert_close(pred.mean[:, a], mu, rtol=tol, atol=tol * mu.abs().max().item())
+        torch.testing.assert_close(pred.variance[:, a], var, rtol=tol, atol=tol * var.abs().max().item())
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_joint_covariance_and_cross_covariance_match_dense(method):
+    c, f = data(T=20, M=3, seed=21)
+    model = irft.InverseRFT(c, f, method=method)
+    set_hypers(model, seed=3)
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    q1, q2 = random_contacts(T=6, M=2, seed=22), random_contacts(T=4, M=4, seed=23)
+    joint = model.backend.posterior(q1, covariance=True).covariance
+    cross = model.backend.cross_covariance(q1, q2)
+    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+    tol = TOL[method]
+    for a, key in enumerate(("weight_x", "weight_z")):
+        W = W_dense(getattr(c, key))
+        K = k_dense(th, th, ls[a, 0], os[a])
+        S = W @ K @ W.T + noise[a] * torch.eye(len(c))
+
+        def prior_cov(qa, qb):
+            ta = torch.stack([qa.beta.reshape(-1), qa.gamma.reshape(-1)], -1)
+            tb = torch.stack([qb.beta.reshape(-1), qb.gamma.reshape(-1)], -1)
+            Wa, Wb = W_dense(getattr(qa, key)), W_dense(getattr(qb, key))
+            return Wa @ k_dense(ta, tb, ls[a, 0], os[a]) @ Wb.T, Wa @ k_dense(ta, th, ls[a, 0], os[a]) @ W.T, \
+                Wb @ k_dense(tb, th, ls[a, 0], os[a]) @ W.T
+
+        kab, ka, kb = prior_cov(q1, q1)
+        want = kab - ka @ torch.linalg.solve(S, kb.T)
+        torch.testing.assert_close(joint[a], want, rtol=tol, atol=tol * want.abs().max().item())
+        kab, ka, kb = prior_cov(q1, q2)
+        want = kab - ka @ torch.linalg.solve(S, kb.T)
+        torch.testing.assert_close(cross[a], want, rtol=tol, atol=tol * want.abs().max().item())
+
+
+@pytest.mark.parametrize("with_forces", [True, False])
+@pytest.mark.parametrize("method", BACKENDS)
+def test_conditioning_equals_a_batch_posterior(method, with_forces):
+    """condition(c2, f2) gives the posterior of a model on (c1 + c2, f1 + f2) at the same
+    hyperparameters; without forces the covariance is the same and the mean does not move."""
+    c, f = data(T=30, M=4, seed=31, repeated=(method == "pairs"))
+    c1, f1, c2, f2 = c[:18], f[:18], c[18:], f[18:]
+    base = irft.InverseRFT(c1, f1, method=method)
+    full = irft.InverseRFT(c, f, method=method)
+    for m in (base, full):
+        set_hypers(m, seed=5)
+    q = random_contacts(T=8, M=3, seed=33)
+    before = base.backend.posterior(q, covariance=True)
+    cond = base.backend.condition(c2, f2 if with_forces else None)
+    got = cond.posterior(q, covariance=True)
+    want = full.backend.posterior(q, covariance=True)
+    tol = TOL[method]
+    torch.testing.assert_close(got.covariance, want.covariance, rtol=tol, atol=tol * want.covariance.abs().max())
+    target = want.mean if with_forces else before.mean
+    torch.testing.assert_close(got.mean, target, rtol=tol, atol=tol * target.abs().max())
+    # the original backend is untouched
+    torch.testing.assert_close(base.backend.posterior(q, covariance=True).covariance, before.covariance)
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_streaming_equals_batch(method):
+    c, f = data(T=40, M=3, seed=41, repeated=(method == "pairs"))
+    batch = irft.InverseRFT(c, f, method=method)
+    stream = irft.InverseRFT(c[:15], f[:15], method=method)
+    for m in (batch, stream):
+        set_hypers(m, seed=7)
+    stream.add_data(c[15:30], f[15:30])
+    stream.add_data(c[30:], f[30:])
+    b = torch.linspace(-1.4, 1.4, 11)
+    pb, ps = batch.stress_map(b, b.flip(0)), stream.stress_map(b, b.flip(0))
+    tol = TOL[method]
+    torch.testing.assert_close(ps.mean, pb.mean, rtol=tol, atol=tol * pb.mean.abs().max())
+    torch.testing.assert_close(ps.variance, pb.variance, rtol=tol, atol=tol * pb.variance.abs().max())
+    assert stream.loss().item() == pytest.approx(batch.loss().item(), rel=tol)
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_relative_noise_scale_is_heteroscedastic_noise_exactly(method, tmp_path):
+    """noise_scale s: noise variance sigma^2 s_t^2 per sample, against a dense model with
+    S = W K W^T + sigma^2 diag(s^2) (no whitening in the reference), and through save/load."""
+    c, f = data(T=24, M=3, seed=13, repeated=(method == "pairs"))
+    s = 0.5 + torch.rand(24, 2, generator=torch.Generator().manual_seed(2))
+    model = irft.InverseRFT(c, f, noise_scale=s, method=method)
+    set_hypers(model, seed=6)
+    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+    A = [W_dense(c.weight_x), W_dense(c.weight_z)]
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    tol = TOL[method]
+    total = 0.0
+    covs = []
+    for a in range(2):
+        S = A[a] @ k_dense(th, th, ls[a, 0], os[a]) @ A[a].T + noise[a] * torch.diag(s[:, a] ** 2)
+        covs.append(S)
+        mll = torch.distributions.MultivariateNormal(torch.zeros(24), S).log_prob(f[:, a])
+        total = total + (mll + torch.log(s[:, a]).sum()) / 24  # the whitened likelihood's Jacobian term
+    assert -model.loss().item() == pytest.approx(total.item(), rel=tol)
+    thq = (torch.rand(15, 2, generator=torch.Generator().manual_seed(3)) - 0.5) * P
+    post = model.stress_map(thq[:, 0], thq[:, 1])
+    for a in range(2):
+        ks = k_dense(thq, th, ls[a, 0], os[a]) @ A[a].T
+        mu = ks @ torch.linalg.solve(covs[a], f[:, a])
+        var = os[a] - (ks * torch.linalg.solve(covs[a], ks.T).T).sum(-1)
+        torch.testing.assert_close(post.mean[:, a], mu, rtol=tol, atol=tol * mu.abs().max())
+        torch.testing.assert_close(post.variance[:, a], var, rtol=tol, atol=tol * var.abs().max())
+    model.save(tmp_path / "m.pt")
+    back = irft.InverseRFT.load(tmp_path / "m.pt")
+    assert back.method == method
+    torch.testing.assert_close(back.noise_scale, s)
+    assert back.loss().item() == pytest.approx(model.loss().item(), rel=1e-10)
+    pred = model.predict_forces(c[:4], include_noise=True, noise_scale=s[:4])
+    plain = model.predict_forces(c[:4])
+    torch.testing.assert_close(pred.variance - plain.variance, noise * s[:4] ** 2)
+
+
+@pytest.mark.parametrize("length", [0.2, 0.5, 1.0, 2.0, 4.0])
+def test_spectral_within_its_truncation_bound_for_lengthscales_02_to_4(length):
+    c, f = data(T=20, M=3, seed=51)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=length)
+    ref = irft.InverseRFT(c, f, method="observations", lengthscale=length)
+    bound = model.truncation_error()
+    assert (bound <= 1e-7).all() and (bound >= 0).all()
+    assert ref.truncation_error().abs().max() == 0
+    assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
+    b = torch.linspace(-1.5, 1.5, 13)
+    pm, pr = model.stress_map(b[:, None], b[None, :]), ref.stress_map(b[:, None], b[None, :])
+    torch.testing.assert_close(pm.mean, pr.mean, rtol=1e-6, atol=1e-6 * pr.mean.abs().max())
+    torch.testing.assert_close(pm.variance, pr.variance, rtol=1e-6, atol=1e-6 * pr.variance.abs().max())
+
+
+def test_spectral_basis_grows_when_a_lengthscale_shrinks():
+    c, f = data(T=20, M=3, seed=52)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=2.0)
+    small = model.backend.basis.size
+    model.hypers.lengthscale = torch.full((2, 1, 4), 0.3)
+    assert model.truncation_error().max() > 1e-5  # the old basis cannot represent it
+    model.loss()  # outside a fit loop every evaluation checks the basis
+    assert model.backend.basis.size > small and model.truncation_error().max() <= 1e-7
+    ref = irft.InverseRFT(c, f, method="observations")
+    ref.hypers.load_state_dict(model.hypers.state_dict())
+    assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
+
+
+def test_independent_segment_variance_is_the_papers_formula():
+    c, f = data(T=20, M=4, seed=5)
+    model = irft.InverseRFT(c, f, method="observations")
+    set_hypers(model)
+    refs = references(model, c, f)
+    cs = random_contacts(T=6, M=3, seed=8)
+    pred = model.predict_forces(cs, variance="independent")
+    th = torch.stack([cs.beta.reshape(-1), cs.gamma.reshape(-1)], -1)
+    for a, w in enumerate((cs.weight_x, cs.weight_z)):
+        _, var = refs[a][1](th)
+        want = (w.pow(2) * var.reshape(w.shape)).sum(-1)
+        torch.testing.assert_close(pred.variance[:, a], want, rtol=1e-8, atol=1e-12)
+    noisy = model.predict_forces(cs, variance="independent", include_noise=True)
+    torch.testing.assert_close(noisy.variance - pred.variance, torch.tensor([0.03, 0.07]).expand(6, 2))
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_zero_weight_padding_changes_nothing(method):
+    c, f = data(T=15, M=3, seed=11, repeated=(method == "pairs"))
+    m1 = irft.InverseRFT(c, f, method=method)
+    m2 = irft.InverseRFT(c.pad_segments(7), f, method=method)
+    for m in (m1, m2):
+        set_hypers(m)
+    assert m1.loss().item() == pytest.approx(m2.loss().item(), rel=1e-10)
+    b = torch.linspace(-1, 1, 9)
+    torch.testing.assert_close(m1.stress_map(b, b).mean, m2.stress_map(b, b).mean, rtol=1e-9, atol=1e-12)
+
+
+def test_mirror_outside_canonical_square():
+    c, f = data(T=15, M=3, seed=12)
+    m = irft.InverseRFT(c, f)
+    b, g = torch.tensor([0.3]), torch.tensor([2.5])  # motion with a -x component
+    inside = m.stress_map(-b, P - g)
+    outside = m.stress_map(b, g)
+    torch.testing.assert_close(outside.mean, inside.mean * torch.tensor([-1.0, 1.0]))
+    torch.testing.assert_close(outside.variance, inside.variance)
+
+
+def test_contacts_points_are_one_segment_functionals():
+    b = torch.tensor([[0.3, -0.2], [1.0, 0.1]])
+    g = torch.tensor([2.5, 0.4])
+    pts = Contacts.points(b, g)
+    assert pts.shape == (4, 1)
+    smap = FourierStressMap.generic()
+    torch.testing.assert_close(irft.rft.forces(smap, pts), smap(*torch.broadcast_tensors(b, g)).reshape(4, 2))
+    with pytest.raises(ValueError, match="beta contains NaN"):
+        Contacts.points(torch.tensor([float("nan")]), torch.tensor([0.0]))
