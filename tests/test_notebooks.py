@@ -1,16 +1,53 @@
-"""Every walkthrough notebook runs top to bottom (nbclient), in a temporary working directory,
-on a kernel that is this very interpreter (so it sees the package under test)."""
+"""Every walkthrough notebook runs top to bottom (nbclient), in a temporary working directory, on a
+kernel that is this very interpreter (so it sees the package under test), with Jupyter's own inline
+backend (the kernel is started without MPLBACKEND, as a user's would be).
+
+Each notebook must show its figures (image/png outputs: importing ``irft_torch.plotting`` must not
+switch the backend away from inline), print no warnings to stderr (no TqdmWarning about IProgress),
+and its key numbers must be in range. The numbers are recomputed by a cell the test appends, from
+the notebook's own objects (the fitted model and the simulated truth), on an evaluation grid of the
+test's own, not read from the notebook's printout.
+"""
 
 import json
 import os
 import pathlib
 import sys
+import time
 
 import nbformat
 import pytest
 from nbclient import NotebookClient
 
-NOTEBOOKS = sorted((pathlib.Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
+ROOT = pathlib.Path(__file__).parent.parent
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
+
+# notebook stem -> (figures it must show, code printing a JSON dict of key numbers, checks of those)
+RMSE_CODE = """
+import json as _json, math as _math, torch as _torch
+_e = _torch.linspace(-_math.pi / 2, _math.pi / 2, 26, dtype=_torch.float64)
+_c = (_e[1:] + _e[:-1]) / 2
+_B, _G = _torch.meshgrid(_c, _c, indexing="ij")
+def _rmse(m, t):
+    return (m.stress_map(_B, _G).mean - t(_B, _G)).pow(2).mean((0, 1)).sqrt().tolist()
+"""
+EXPECT = {
+    "01_quickstart": (4, RMSE_CODE + """
+_p = model.stress_map(_B, _G)
+_inside = ((_p.mean - truth(_B, _G)).abs() <= 1.96 * _p.variance.sqrt()).double().mean((0, 1)).tolist()
+print("KEY" + _json.dumps({"rmse": _rmse(model, truth), "inside": _inside}))
+""", lambda k: (all(v < 0.06 for v in k["rmse"]) and all(0.5 <= v <= 1.0 for v in k["inside"]))),
+    "02_hardware_pipeline": (3, RMSE_CODE + """
+_rng = ds.forces.amax(0) - ds.forces.amin(0)
+_f = ((model.predict_forces(ds.contacts).mean - ds.forces).pow(2).mean(0).sqrt() / _rng * 100).tolist()
+print("KEY" + _json.dumps({"force_rmse_percent": _f, "sand_std": medium(_B, _G).std((0, 1)).tolist(),
+                           "map_rmse_sampled": map_rmse_sampled}))
+""", lambda k: (all(v < 15 for v in k["force_rmse_percent"])
+                 and all(r < 0.5 * s for r, s in zip(k["map_rmse_sampled"], k["sand_std"])))),
+    "03_active_probing": (2, RMSE_CODE + """
+print("KEY" + _json.dumps({"designed": _rmse(model, truth), "paper": _rmse(base, truth)}))
+""", lambda k: all(0 < v < 0.05 for v in k["designed"] + k["paper"])),
+}
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +57,8 @@ def kernel_name(tmp_path_factory, request):
     spec.mkdir(parents=True)
     (spec / "kernel.json").write_text(json.dumps({
         "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-        "display_name": "irft test", "language": "python"}))
+        "display_name": "irft test", "language": "python",
+        "env": {"MPLBACKEND": "module://matplotlib_inline.backend_inline"}}))
     old = os.environ.get("JUPYTER_PATH")
     os.environ["JUPYTER_PATH"] = str(root) + (os.pathsep + old if old else "")
     yield "irft-test"
@@ -30,9 +68,43 @@ def kernel_name(tmp_path_factory, request):
         os.environ["JUPYTER_PATH"] = old
 
 
+def outputs(nb):
+    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+
+
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_runs(path, tmp_path, kernel_name):
+def test_notebook_runs_shows_figures_and_gets_its_numbers(path, tmp_path, kernel_name):
     nb = nbformat.read(path, as_version=4)
+    n_figures, key_code, check = EXPECT[path.stem]
+    n_cells = len(nb.cells)
+    nb.cells.append(nbformat.v4.new_code_cell(key_code))
+    t0 = time.perf_counter()
     NotebookClient(nb, timeout=600, kernel_name=kernel_name, resources={"metadata": {"path": str(tmp_path)}}).execute()
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.output_type == "error"]
-    assert not errors
+    print(f"{path.name}: {time.perf_counter() - t0:.0f} s")
+    out = outputs(nb)
+    errors = [o for o in out if o.output_type == "error"]
+    assert not errors, errors
+    figures = [o for c in nb.cells[:n_cells] if c.cell_type == "code" for o in c.get("outputs", [])
+               if o.output_type == "display_data" and "image/png" in o.get("data", {})]
+    assert len(figures) >= n_figures, f"{path.name} showed {len(figures)} figures, expected {n_figures}"
+    stderr = "".join(o.get("text", "") for o in out if o.output_type == "stream" and o.name == "stderr")
+    assert "TqdmWarning" not in stderr and "IProgress" not in stderr, stderr
+    assert "Matplotlib is currently using agg" not in stderr, stderr
+    text = "".join(o.get("text", "") for o in nb.cells[-1].get("outputs", []) if o.output_type == "stream")
+    key = json.loads(text.split("KEY", 1)[1])
+    print(path.stem, key)
+    assert check(key), key
+
+
+def test_importing_plotting_keeps_the_backend():
+    """In a fresh interpreter with a non-Agg backend requested, importing irft_torch.plotting must not
+    switch it (the bug: plotting called matplotlib.use("Agg"), so notebooks showed no figures)."""
+    import subprocess
+
+    code = ("import matplotlib; matplotlib.use('svg'); import irft_torch.plotting as p; import matplotlib.pyplot as plt; "
+            "f = p.plot_stress_map(lambda b, g: __import__('torch').stack([b, g], -1), n=4); "
+            "print(matplotlib.get_backend())")
+    env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().lower() == "svg"
