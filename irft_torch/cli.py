@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -17,6 +19,113 @@ MAPS = {
     "poppy-loose": lambda sx, sz: rft.FourierStressMap.poppy_seeds_loose().scaled(sx, sz),
     "poppy-close": lambda sx, sz: rft.FourierStressMap.poppy_seeds_close().scaled(sx, sz),
 }
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: 'irft CMD: error: argument --x: ... (see irft CMD --help)'."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class UsageError(ValueError):
+    """A bad command-line value, reported as one line naming the argument."""
+
+    def __init__(self, arg: str, message: str) -> None:
+        super().__init__(f"argument {arg}: {message}")
+
+
+def _opt(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+# dest -> (check, what is expected); applied to every command's parsed arguments that have it
+_POSITIVE = ("duration", "rate", "l1", "l2", "kt", "kv", "gear_ratio", "max_condition", "radius", "length", "width",
+             "speed", "lr", "max_current", "max_torque", "max_depth", "shear", "scale_x", "scale_z",
+             "mit_p_max", "mit_v_max", "mit_t_max", "penetration", "extraction")
+_POSITIVE_INT = ("segments", "n_steps", "filter_window", "n_iter", "bitrate", "trials")
+_NONNEG = ("hip_spacing", "current_noise", "friction", "cogging")
+
+
+def _validate(a) -> None:
+    """Check every numeric option before any work starts (UsageError names the argument)."""
+    ns = vars(a)
+    for dest in _POSITIVE:
+        v = ns.get(dest)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise UsageError(_opt(dest), f"must be a positive number, got {v:g}")
+    for dest in _POSITIVE_INT:
+        v = ns.get(dest)
+        if v is not None and v < 1:
+            raise UsageError(_opt(dest), f"must be a positive integer, got {v}")
+    for dest in _NONNEG:
+        v = ns.get(dest)
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise UsageError(_opt(dest), f"must be >= 0, got {v:g}")
+    if ns.get("max_samples") is not None and a.max_samples < 0:
+        raise UsageError("--max-samples", f"must be >= 0 (0: use every sample), got {a.max_samples}")
+    if ns.get("frame_drop") is not None and not 0 <= a.frame_drop < 1:
+        raise UsageError("--frame-drop", f"must be a probability in [0, 1), got {a.frame_drop:g}")
+    hh = ns.get("hip_height")
+    if hh is not None and not (math.isfinite(hh) and hh > 0):
+        raise UsageError("--hip-height", f"is the height of the motor axes above the sand surface and must be positive "
+                                         f"(m), got {hh:g}" + (" (a sign slip?)" if hh < 0 else ""))
+    for dest in ("tilt", "frame_tol"):
+        v = ns.get(dest)
+        if v is not None and not math.isfinite(v):
+            raise UsageError(_opt(dest), f"must be finite, got {v}")
+    if ns.get("zero_offsets") is not None and not all(math.isfinite(v) for v in a.zero_offsets):
+        raise UsageError("--zero-offsets", f"must be finite angles (rad), got {a.zero_offsets}")
+    if ns.get("directions") is not None and any(d not in (1, -1) for d in a.directions):
+        raise UsageError("--directions", f"each must be +1 or -1, got {a.directions}")
+    nodes = ns.get("nodes")
+    if nodes is not None:
+        top = 255 if ns.get("protocol") == "mit" else 63
+        bad = [n for n in nodes if not 0 <= n <= top]
+        if bad:
+            raise UsageError("--nodes", f"node ids must be in 0..{top}, got {bad}")
+        if len(set(nodes)) != len(nodes):
+            raise UsageError("--nodes", f"each motor needs its own node id, got {nodes}")
+    if ns.get("kt") is not None and ns.get("kv") is not None:
+        raise UsageError("--kt", "give --kt or --kv (with --kt-convention), not both")
+
+
+def _out_file(path, arg: str, suffix: str | None = None) -> Path:
+    """Check an output file before the work: not a directory, its folder exists or can be made and is
+    writable. ``suffix`` (e.g. ".npz") is appended when missing, as numpy does; returns the real path."""
+    out = Path(path)
+    if suffix and out.suffix != suffix:
+        out = out.with_name(out.name + suffix)
+    if out.is_dir():
+        raise UsageError(arg, f"{out} is a directory; give a file name")
+    parent = out.parent
+    probe = parent
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UsageError(arg, f"cannot create {out}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK):
+        raise UsageError(arg, f"cannot write to {probe} (permission denied)")
+    if out.exists() and not os.access(out, os.W_OK):
+        raise UsageError(arg, f"cannot overwrite {out} (permission denied)")
+    parent.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _out_dir(path, arg: str) -> Path:
+    """Check (and make) an output folder before the work."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise UsageError(arg, f"{out} exists and is a file; give a folder (or remove the file)")
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UsageError(arg, f"cannot create {out}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK):
+        raise UsageError(arg, f"cannot write to {probe} (permission denied)")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 def _points(text: str) -> list[tuple[float, float]]:
@@ -70,18 +179,19 @@ def make_path(a) -> rft.Path:
 
 
 def cmd_simulate(a) -> int:
+    out = _out_file(a.out, "--out", ".npz")
+    csv_out = _out_file(a.csv, "--csv") if a.csv else None
+    plot_dir = _out_dir(a.plot, "--plot") if a.plot else None
     toe, path = make_toe(a), make_path(a)
     smap = MAPS[a.map](a.scale_x, a.scale_z)
     c = rft.contacts(toe, path)
     f = rft.forces(smap, c)
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     arrays = {k: v.numpy() for k, v in c.as_dict().items()}
     np.savez(out, time=path.time.numpy(), position=path.position.numpy(), heading=path.heading.numpy(),
              forces=f.numpy(), **arrays, map=np.array(a.map), scale=np.array([a.scale_x, a.scale_z]))
     print(f"wrote {out} ({len(path)} samples x {toe.n_segments} segments)")
-    if a.csv:
-        with open(a.csv, "w", newline="") as fh:
+    if csv_out:
+        with open(csv_out, "w", newline="") as fh:
             w = csv.writer(fh)
             M = toe.n_segments
             w.writerow(["time_s", "x_m", "z_m", "heading_rad", "F_x_N", "F_z_N"]
@@ -91,12 +201,11 @@ def cmd_simulate(a) -> int:
                             f"{path.heading[t]:.6g}", f"{f[t, 0]:.6g}", f"{f[t, 1]:.6g}"]
                            + [f"{arrays[k][t, m]:.6g}" for k in ("beta", "gamma", "weight_x", "weight_z")
                               for m in range(M)])
-        print(f"wrote {a.csv}")
-    if a.plot:
+        print(f"wrote {csv_out}")
+    if plot_dir:
         from . import plotting
 
-        d = Path(a.plot)
-        d.mkdir(parents=True, exist_ok=True)
+        d = plot_dir
         plotting.save(plotting.plot_stress_map(smap, title=smap.name), d / "stress_map.png")
         plotting.save(plotting.plot_toe_path(toe, path), d / "toe_path.png")
         plotting.save(plotting.plot_coverage(c), d / "coverage.png")
@@ -106,7 +215,7 @@ def cmd_simulate(a) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="irft", description="Inverse Resistive Force Theory tools.")
+    parser = _Parser(prog="irft", description="Inverse Resistive Force Theory tools.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="forward RFT: a toe along a path -> contacts and forces",
@@ -148,70 +257,222 @@ def _register_reproduce(sub) -> None:
     p.set_defaults(func=cmd_reproduce)
 
 
-def cmd_record(a) -> int:
+def _open_bus(a):
+    """python-can bus from --interface/--channel/--bitrate, with the usual failures explained."""
+    import errno
+
     import can
 
+    kw = {"bitrate": a.bitrate} if a.bitrate else {}
+    try:
+        return can.Bus(channel=a.channel, interface=a.interface, **kw)
+    except can.exceptions.CanInterfaceNotImplementedError as e:
+        raise UsageError("--interface", f"python-can cannot use {a.interface!r} here: {e}") from None
+    except OSError as e:
+        if e.errno in (errno.EAFNOSUPPORT, errno.ENODEV, errno.ENXIO):
+            hint = ("socketcan is not available on this machine (Linux CAN sockets: [Errno 97])"
+                    if e.errno == errno.EAFNOSUPPORT else f"no CAN device {a.channel!r}")
+            raise UsageError("--interface" if e.errno == errno.EAFNOSUPPORT else "--channel",
+                             f"{hint}. Bring up a device (sudo ip link set can0 up type can bitrate 1000000), try a "
+                             "virtual one (sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; --channel vcan0), "
+                             "or record a simulated leg with --simulate") from None
+        raise
+    except (can.CanError, ValueError) as e:
+        raise UsageError("--interface", f"cannot open {a.interface} channel {a.channel!r}: {e}") from None
+
+
+def _numbered(out: Path, k: int, n: int) -> Path:
+    return out if n == 1 else out.with_name(f"{out.stem}_{k + 1}{out.suffix}")
+
+
+def _record_simulated(a, out: Path) -> int:
+    from .hardware import MotorModel, SimulatedLeg
+
+    if a.protocol != "odrive":
+        raise UsageError("--simulate", "the simulated leg speaks ODrive CANSimple only (use --protocol odrive)")
+    air = _out_file(a.air_out, "--air-out") if a.air_out else out.with_name(f"{out.stem}_air{out.suffix}")
+    if air.suffix.lower() != out.suffix.lower():
+        raise UsageError("--air-out", f"use the same log format as --out ({out.suffix})")
+    toe, path = make_toe(a), make_path(a)
+    sim = SimulatedLeg(toe, MAPS[a.map](a.scale_x, a.scale_z), motors=(MotorModel.u8_ii(), MotorModel.u8_ii()),
+                       friction=a.friction, cogging=a.cogging, current_noise=a.current_noise,
+                       frame_drop=a.frame_drop, rate=a.rate, nodes=tuple(a.nodes), firmware=a.firmware, seed=a.seed)
+    outs = [_numbered(out, k, a.trials) for k in range(a.trials)]
+    for k, o in enumerate(outs):
+        sim.seed = a.seed + 101 * k
+        truth = sim.run(path, o)
+        print(f"wrote {o} (simulated trial in sand, {truth.time[-1]:.1f} s at {a.rate:g} Hz)")
+    sim.seed = a.seed
+    sim.run(path, air, in_air=True)
+    print(f"wrote {air} (the same path in air)")
+    print(f"next: irft ingest {' '.join(map(str, outs))} --air {air} --out dataset.npz --toe {a.toe}"
+          + (f" --radius {a.radius}" if a.toe == "C" else f" --length {a.length}"))
+    return 0
+
+
+def cmd_record(a) -> int:
     from .hardware import record
 
-    bus = can.Bus(channel=a.channel, interface=a.interface, **({"bitrate": a.bitrate} if a.bitrate else {}))
+    out = _out_file(a.out, "--out")
+    from .hardware import SUPPORTED_SUFFIXES
+
+    if out.suffix.lower() not in SUPPORTED_SUFFIXES:
+        raise UsageError("--out", f"the suffix picks the log format; use one of {', '.join(SUPPORTED_SUFFIXES)}, "
+                                  f"got {out.name!r}")
+    if a.simulate:
+        return _record_simulated(a, out)
+    if a.protocol == "mit":
+        poll = ()
+        print("MIT mode: listening only (a poll would be a command); the motors' replies to your controller "
+              "are logged")
+    else:
+        from .hardware.odrive_can import COMMANDS
+
+        unknown = [c for c in a.poll if c not in COMMANDS[a.firmware] or not c.startswith("get_")]
+        if unknown:
+            raise UsageError("--poll", f"unknown Get_* command(s) {unknown} for firmware {a.firmware}; known: "
+                                       f"{sorted(c for c in COMMANDS[a.firmware] if c.startswith('get_'))}")
+        poll = tuple((cmd, n) for n in a.nodes for cmd in a.poll)
+    bus = _open_bus(a)
+    stats: dict = {}
     try:
-        poll = [(cmd, n) for n in a.nodes for cmd in a.poll]
-        n = record(bus, a.out, duration=a.duration, poll=tuple(poll), rate=a.rate, firmware=a.firmware)
+        n = record(bus, out, duration=a.duration, poll=poll, rate=a.rate, firmware=a.firmware, stats=stats)
     finally:
         bus.shutdown()
-    print(f"wrote {n} frames to {a.out}")
+    print(f"wrote {n} frames to {out}")
+    ids = stats.get("frames_by_id", {})
+    if n == 0:
+        print(f"irft record: warning: no controller answered on {a.interface} channel {a.channel!r} in "
+              f"{a.duration:g} s: check power, wiring, termination, the bit rate (--bitrate) and the node ids (--nodes)", file=sys.stderr)
+        return 1
+    if a.protocol == "odrive":
+        seen = {i >> 5 for i in ids}
+        silent = [nd for nd in a.nodes if nd not in seen]
+        if silent:
+            print(f"irft record: warning: node(s) {silent} sent no frames (nodes heard: {sorted(seen)}): check "
+                  "--nodes and the controllers' CAN node ids", file=sys.stderr)
+            return 1
     return 0
 
 
 def _leg_and_motors(a):
-    from .hardware import FiveBarLeg, MotorModel
+    """The leg and both motors from the leg options. k_t: --kt, else from --kv and --kt-convention,
+    else the paper's U8-II 0.0973 N m/A."""
+    from .hardware import FiveBarLeg, MotorModel, kt_from_kv
 
-    leg = FiveBarLeg(a.l1, a.l2, hip_spacing=a.hip_spacing, max_condition=a.max_condition)
-    kt = a.kt if a.kt is not None else MotorModel.from_kv(a.kv, a.kt_convention).torque_constant
-    motors = tuple(MotorModel(kt, direction=d, gear_ratio=a.gear_ratio, zero_offset=z)
-                   for d, z in zip(a.directions, a.zero_offsets))
+    try:
+        leg = FiveBarLeg(a.l1, a.l2, hip_spacing=a.hip_spacing, max_condition=a.max_condition)
+    except ValueError as e:
+        raise UsageError("--l1/--l2", str(e)) from None
+    if a.kt is not None:
+        kt = a.kt
+    elif a.kv is not None:
+        kt = kt_from_kv(a.kv, a.kt_convention)
+    else:
+        kt = 0.0973
+    try:
+        motors = tuple(MotorModel(kt, direction=d, gear_ratio=a.gear_ratio, zero_offset=z)
+                       for d, z in zip(a.directions, a.zero_offsets))
+    except ValueError as e:
+        raise UsageError("--kt/--kv" if "torque_constant" in str(e) else "--gear-ratio", str(e)) from None
     return leg, motors
+
+
+def _heading(text: str):
+    if text in ("link1", "link2"):
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a toe heading in rad or 'link1'/'link2', got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return v
 
 
 def cmd_ingest(a) -> int:
     import warnings
 
     from .hardware import (
+        MitModel,
         average_trials,
         build_dataset,
+        dataset_summary,
         forces_from_log,
+        mit_model,
         read_log,
         save_dataset,
         subtract_air,
         zero_phase_filter,
     )
 
+    out = _out_file(a.out, "--out", ".npz")
+    for p in [*a.logs, *a.air]:
+        if not Path(p).is_file():
+            raise UsageError("logs" if p in a.logs else "--air", f"no log file at {p}")
     leg, motors = _leg_and_motors(a)
+    toe = make_toe(a)
+    if a.protocol == "mit":
+        try:
+            model = mit_model(a.mit_model)
+        except ValueError as e:
+            raise UsageError("--mit-model", str(e)) from None
+        if a.mit_p_max or a.mit_v_max or a.mit_t_max or a.mit_quantity:
+            model = MitModel(model.name + " (custom)", a.mit_p_max or model.p_max, a.mit_v_max or model.v_max,
+                             a.mit_t_max or model.t_max, a.mit_quantity or model.quantity)
+    else:
+        model = None
+    read_kw = ({"protocol": "mit", "mit_model": model, "master_id": a.mit_master_id} if model
+               else {"firmware": a.firmware})
 
     def trace(path):
-        data = read_log(path, firmware=a.firmware, nodes=set(a.nodes), on_error=a.on_error)
+        data = read_log(path, nodes=set(a.nodes), on_error=a.on_error, **read_kw)
         for issue in data.issues:
             print(f"{path}: {issue}")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            t = forces_from_log(data.resample(tuple(a.nodes), rate=a.rate), leg, motors)
+            log = data.resample(tuple(a.nodes), rate=a.rate, max_current=a.max_current, max_torque=a.max_torque)
+            t = forces_from_log(log, leg, motors)
         for w in caught:
-            print(f"{path}: {w.message}")
+            if "singular" not in str(w.message):
+                print(f"{path}: {w.message}")
+        if t.why_masked:
+            print(f"{path}: masked " + "; ".join(f"{v} {k}" for k, v in t.why_masked.items()))
         return t
 
-    air = average_trials([trace(p) for p in a.air]) if a.air else None
+    air_traces = [trace(p) for p in a.air]
+    air = average_trials(air_traces, path_tol=a.path_tol) if air_traces else None
     trials = []
     for p in a.logs:
         t = trace(p)
         if air is not None:
-            t = subtract_air(t, air)
+            try:
+                t = subtract_air(t, air, path_tol=a.path_tol)
+            except ValueError as e:
+                raise ValueError(f"{p}: {e}") from None
         trials.append(zero_phase_filter(t, a.filter_window))
-    avg = average_trials(trials)
-    ds = build_dataset(avg, leg, make_toe(a), a.hip_height)
-    save_dataset(a.out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in (a.air or [])])
-    dropped = len(avg.time) - len(ds)
-    print(f"wrote {a.out}: {len(ds)} samples x {ds.contacts.n_segments} segments"
-          + (f" ({dropped} masked samples dropped)" if dropped else ""))
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            avg = average_trials(trials, coverage="crop" if a.crop_trials else "error", path_tol=a.path_tol)
+        for w in caught:
+            print(f"irft ingest: {w.message}")
+    except ValueError as e:
+        names = {f"trial {k}": f"trial {k} ({p})" for k, p in enumerate(a.logs)}
+        msg = str(e)
+        for k_, v_ in sorted(names.items(), key=lambda kv: -len(kv[0])):
+            msg = msg.replace(k_, v_, 1) if k_ in msg else msg
+        raise ValueError(msg) from None
+    ds = build_dataset(avg, leg, toe, a.hip_height, heading=a.heading, max_depth=a.max_depth)
+    written = save_dataset(out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in a.air])
+    masked = {}
+    for t in trials:
+        for k_, v_ in t.why_masked.items():
+            masked[k_] = masked.get(k_, 0) + v_
+    masked.update({k_: v_ for k_, v_ in avg.why_masked.items()})
+    print(f"wrote {written}: {len(ds)} samples x {ds.contacts.n_segments} segments")
+    for line in dataset_summary(ds, masked or None, n_before=len(avg.time)):
+        print(f"  {line}")
     return 0
 
 
@@ -220,6 +481,7 @@ def cmd_fit(a) -> int:
     from .gp import InverseRFT
     from .hardware import load_dataset
 
+    _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
     ds = load_dataset(a.dataset)
     if a.max_samples and len(ds) > a.max_samples:
         keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
@@ -247,43 +509,95 @@ def add_leg_args(p) -> None:
     g.add_argument("--l1", type=float, default=0.15, help="proximal link, m (default 0.15)")
     g.add_argument("--l2", type=float, default=0.30, help="distal link, m (default 0.30)")
     g.add_argument("--hip-spacing", type=float, default=0.0, help="distance between motor axes, m")
-    g.add_argument("--hip-height", type=float, default=0.25, help="motor axes above the sand surface, m")
+    g.add_argument("--hip-height", type=float, default=0.25, help="motor axes above the sand surface, m (positive)")
     g.add_argument("--max-condition", type=float, default=50.0, help="mask samples with cond(J) above this")
-    g.add_argument("--kt", type=float, default=0.0973, help="torque constant, N m/A (default U8-II 0.0973)")
+    g.add_argument("--kt", type=float, default=None,
+                   help="torque constant, N m/A (default: from --kv if given, else the U8-II's 0.0973)")
     g.add_argument("--kv", type=float, help="motor KV (rpm/V), instead of --kt")
-    g.add_argument("--kt-convention", choices=["odrive", "si"], default="odrive", help="k_t from KV: 8.27/KV or SI")
+    g.add_argument("--kt-convention", choices=["odrive", "si"], default="odrive",
+                   help="k_t from --kv: ODrive's 8.27/KV (default) or SI 60/(2 pi KV)")
     g.add_argument("--directions", type=int, nargs=2, default=[1, 1], help="motor direction signs (+1/-1)")
     g.add_argument("--zero-offsets", type=float, nargs=2, default=[0.0, 0.0], help="joint angle at encoder 0, rad")
-    g.add_argument("--gear-ratio", type=float, default=1.0, help="motor turns per joint turn (1: direct drive)")
+    g.add_argument("--gear-ratio", type=float, default=1.0,
+                   help="motor turns per joint turn (1: direct drive; 1 for MIT mode, which reports the output)")
+
+
+def add_protocol_args(p) -> None:
+    g = p.add_argument_group("CAN protocol")
+    g.add_argument("--protocol", choices=["odrive", "mit"], default="odrive",
+                   help="ODrive CANSimple (default) or CubeMars/T-Motor AK MIT mode")
+    g.add_argument("--firmware", choices=["0.5", "0.6"], default="0.5", help="ODrive firmware layout (default 0.5)")
+
+
+def add_sim_args(p) -> None:
+    g = p.add_argument_group("simulated leg (with --simulate; leg l1 0.15 m, l2 0.30 m, hips 0.25 m up, U8-II)")
+    g.add_argument("--simulate", action="store_true",
+                   help="no hardware: a simulated leg (two fake ODrives on a virtual bus) writes --out (in sand) and "
+                        "--air-out (the same path in air)")
+    g.add_argument("--air-out", help="in-air log (default: OUT_air with the same suffix)")
+    g.add_argument("--trials", type=int, default=1, help="trials in sand: OUT_1, OUT_2, ... when more than 1")
+    g.add_argument("--map", choices=sorted(MAPS), default="generic", help="the sand's stress map (default generic)")
+    g.add_argument("--scale-x", type=float, default=1.0, help="multiply alpha_x (default 1)")
+    g.add_argument("--scale-z", type=float, default=1.0, help="multiply alpha_z (default 1)")
+    g.add_argument("--current-noise", type=float, default=0.0, help="current noise std, A (default 0)")
+    g.add_argument("--friction", type=float, default=0.0, help="Coulomb friction per motor, N m (default 0)")
+    g.add_argument("--cogging", type=float, default=0.0, help="cogging ripple, N m (default 0)")
+    g.add_argument("--frame-drop", type=float, default=0.0, help="probability that a frame is lost (default 0)")
+    g.add_argument("--seed", type=int, default=0)
 
 
 def _register_hardware(sub) -> None:
-    p = sub.add_parser("record", help="log a live CAN bus (ODrive CANSimple) to a python-can log file",
-                       description="Poll the motor controllers by RTR and write every frame to a log "
-                                   "(.log, .asc, .blf by suffix).")
+    p = sub.add_parser("record", help="log a live CAN bus (ODrive CANSimple or AK MIT mode) to a log file",
+                       description="Poll the motor controllers by RTR (ODrive) or listen (MIT mode) and write every "
+                                   "frame to a log (.log, .asc, .blf, .csv by suffix). --simulate: no hardware.")
     p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan, pcan, virtual, ...)")
     p.add_argument("--channel", default="can0")
     p.add_argument("--bitrate", type=int, help="bit rate, if the interface needs it")
-    p.add_argument("--out", required=True, help="log file; the suffix picks the format")
+    p.add_argument("--out", required=True, help="log file; the suffix picks the format (.log .asc .blf .csv)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds (default 20)")
     p.add_argument("--rate", type=float, default=200.0, help="polling rate, Hz (default 200)")
     p.add_argument("--nodes", type=int, nargs="+", default=[0, 1], help="controller node ids (default 0 1)")
     p.add_argument("--poll", nargs="+", default=["get_iq"], help="Get_* commands to poll (default get_iq)")
-    p.add_argument("--firmware", choices=["0.5", "0.6"], default="0.5")
+    add_protocol_args(p)
+    add_sim_args(p)
+    add_toe_args(p)
+    add_path_args(p)
     p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("ingest", help="logs -> forces -> air subtraction, filter, trial average -> dataset",
                        description="Turn motor logs of repeated trials (and in-air runs along the same path) "
-                                   "into an I-RFT dataset (contacts + forces, npz).")
+                                   "into an I-RFT dataset (contacts + forces, npz). Checks the physics first and "
+                                   "prints a summary.")
     p.add_argument("logs", nargs="+", help="log files of the trials in sand")
     p.add_argument("--air", nargs="*", default=[], help="log files of the same path in air")
-    p.add_argument("--out", required=True, help="dataset .npz")
-    p.add_argument("--nodes", type=int, nargs=2, default=[0, 1], help="node ids of motor 1 and motor 2")
-    p.add_argument("--firmware", choices=["0.5", "0.6"], default="0.5")
+    p.add_argument("--out", required=True, help="dataset .npz ('.npz' is appended when missing)")
+    p.add_argument("--nodes", type=int, nargs=2, default=[0, 1],
+                   help="node ids of motor 1 and motor 2 (MIT: the driver ids in byte 0)")
+    add_protocol_args(p)
+    g = p.add_argument_group("MIT mode (--protocol mit)")
+    g.add_argument("--mit-model", default="AK80-9", help="AK model, sets the field ranges (default AK80-9)")
+    g.add_argument("--mit-master-id", type=int, default=0, help="CAN id the replies are sent to (default 0)")
+    g.add_argument("--mit-p-max", type=float, help="override: position range +-, rad")
+    g.add_argument("--mit-v-max", type=float, help="override: velocity range +-, rad/s")
+    g.add_argument("--mit-t-max", type=float, help="override: torque (N m) or current (A) range +-")
+    g.add_argument("--mit-quantity", choices=["torque", "current"], help="override: what the 12-bit field carries")
     p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
     p.add_argument("--filter-window", type=int, default=5, help="zero-phase moving average, samples (default 5)")
     p.add_argument("--on-error", choices=["raise", "warn"], default="raise",
-                   help="a truncated log: stop with an error (default) or use what was read")
+                   help="a truncated or damaged log: stop with an error (default) or use what was read")
+    g = p.add_argument_group("physical checks")
+    g.add_argument("--max-current", type=float, default=80.0,
+                   help="|current| above this, A, is an outlier: masked and counted (default 80)")
+    g.add_argument("--max-torque", type=float, default=None, help="the same for torque logs, N m (default none)")
+    g.add_argument("--max-depth", type=float, default=0.15,
+                   help="the toe deeper than this, m, is an error (a wrong --hip-height or --l1/--l2); default 0.15")
+    g.add_argument("--path-tol", type=float, default=None,
+                   help="trials and air runs must follow the same path within this RMS distance, m "
+                        "(default max(1 cm, 5 %% of the path))")
+    g.add_argument("--crop-trials", action="store_true",
+                   help="a trial shorter than the others: crop all to the shortest (default: an error)")
+    g.add_argument("--heading", type=_heading, default=0.0,
+                   help="toe heading: fixed angle, rad (default 0), or link1/link2 (toe fixed to that link)")
     add_leg_args(p)
     add_toe_args(p)
     p.set_defaults(func=cmd_ingest)
@@ -304,14 +618,30 @@ _EXTRA_COMMANDS: list = [_register_reproduce, _register_hardware]
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``irft`` command. A user error (bad value, missing or damaged file, no device) prints one
+    line naming the argument or file and returns non-zero, never a traceback (IRFT_DEBUG=1 shows one)."""
     torch.set_default_dtype(torch.float64)
     parser = build_parser()
     a = parser.parse_args(argv)
+    debug = os.environ.get("IRFT_DEBUG") == "1"
     try:
+        _validate(a)
         return a.func(a)
-    except (ValueError, FileNotFoundError, OSError) as e:
-        print(f"irft {a.command}: error: {e}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print(f"irft {a.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # noqa: BLE001 - reported as one line; IRFT_DEBUG=1 re-raises
+        if debug:
+            raise
+        import can
+
+        user = isinstance(e, (ValueError, OSError, can.CanError, EOFError, KeyError))
+        text = " ".join(str(e).split()) or type(e).__name__
+        if not user:
+            text = (f"{type(e).__name__}: {text} (unexpected: if your input looks right, rerun with IRFT_DEBUG=1 and "
+                    "report the traceback)")
+        print(f"irft {a.command}: error: {text}", file=sys.stderr)
+        return 2 if user else 3
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
-"""Sensing only: motor model, five-bar leg statics, ODrive CAN frames, logs, the paper's signal
+"""Sensing only: motor model, five-bar leg statics, ODrive CANSimple and CubeMars/T-Motor AK
+MIT-mode CAN frames, logs, the paper's signal
 pipeline and a simulated leg on a virtual bus. Imports neither ``gp`` nor plotting."""
 
-from .can_log import LogData, LogReadError, MotorSeries, ResampledLog, read_log, record
+from .can_log import SUPPORTED_SUFFIXES, LogData, LogReadError, MotorSeries, ResampledLog, read_log, record
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .mit_can import MIT_ERRORS, MIT_MODELS, MitModel, decode_mit, encode_mit_reply, mit_model
 from .motor import MotorModel, kt_from_kv
 from .odrive_can import COMMANDS, Frame, FrameError, arbitration_id, decode, encode, request, split_id
 from .pipeline import (
@@ -10,6 +12,7 @@ from .pipeline import (
                        ForceTrace,
                        average_trials,
                        build_dataset,
+                       dataset_summary,
                        forces_from_log,
                        load_dataset,
                        save_dataset,
@@ -21,8 +24,9 @@ from .simulated_leg import FakeODrive, SimulatedLeg, SimulationTruth
 __all__ = [
     "MotorModel", "kt_from_kv", "FiveBarLeg", "SingularConfigurationWarning",
     "COMMANDS", "Frame", "FrameError", "arbitration_id", "split_id", "encode", "decode", "request",
-    "MotorSeries", "LogData", "ResampledLog", "LogReadError", "read_log", "record",
+    "MitModel", "MIT_MODELS", "MIT_ERRORS", "decode_mit", "encode_mit_reply", "mit_model",
+    "SUPPORTED_SUFFIXES", "MotorSeries", "LogData", "ResampledLog", "LogReadError", "read_log", "record",
     "ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
-    "Dataset", "build_dataset", "save_dataset", "load_dataset",
+    "Dataset", "build_dataset", "dataset_summary", "save_dataset", "load_dataset",
     "FakeODrive", "SimulatedLeg", "SimulationTruth",
 ]

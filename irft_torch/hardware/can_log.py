@@ -10,9 +10,12 @@ frame, with everything read before it in ``.partial`` (or, with ``on_error="warn
 
 from __future__ import annotations
 
+import io
 import math
+import re
 import time
 import warnings
+import zlib
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +23,8 @@ from pathlib import Path
 import can
 import numpy as np
 
+from .mit_can import decode_mit
+from .mit_can import mit_model as _mit_model
 from .odrive_can import FrameError, decode, request
 
 __all__ = ["MotorSeries", "LogData", "ResampledLog", "LogReadError", "read_log", "record"]
@@ -62,36 +67,69 @@ class LogData:
     n_frames: int = 0
     issues: list = field(default_factory=list)
     skipped: dict = field(default_factory=lambda: defaultdict(int))
+    duplicates: int = 0
 
-    def resample(self, nodes=(0, 1), rate: float | None = None, max_gap: float | None = None) -> ResampledLog:
-        """Both motors' encoder position/velocity and q-axis current on one time base.
+    def resample(self, nodes=(0, 1), rate: float | None = None, max_gap: float | None = None,
+                 max_current: float | None = None, max_torque: float | None = None) -> ResampledLog:
+        """Both motors' encoder position/velocity and q-axis current (or torque) on one time base.
 
         Args:
-            nodes: the two controllers' node ids, in joint order (motor 1, motor 2).
+            nodes: the two controllers' node ids, in joint order (motor 1, motor 2); distinct.
             rate: samples per second of the common time base (default: the median rate of the
                 sparsest current series).
             max_gap: a sample further than this [s] from a measured one on either side is masked
                 (default 3 sampling intervals of the source).
+            max_current: measured currents with |I| above this [A] are outliers (beyond what the
+                motor can carry): dropped before interpolation and counted in ``masked``.
+            max_torque: the same for torque series [N m] (MIT-mode replies, ODrive Get_Torques).
         Returns:
-            ResampledLog over the span all series share, with a ``valid`` mask.
+            ResampledLog over the span all series share, with a ``valid`` mask. It carries ``iq``
+            (T, 2) when both motors sent currents, else ``torque`` (T, 2) N m when they sent torques.
         """
-        series = []
+        nodes = tuple(nodes)
+        if len(nodes) != 2 or nodes[0] == nodes[1]:
+            raise ValueError(f"nodes must be two different node ids (motor 1, motor 2), got {list(nodes)}")
+        if rate is not None and not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate must be a positive number of samples per second, got {rate}")
+        if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):
+            raise ValueError(f"max_gap must be positive seconds, got {max_gap}")
         for node in nodes:
             if node not in self.motors:
                 raise ValueError(f"node {node} sent no frames (nodes seen: {sorted(self.motors)})")
+        have = [set(g for g in self.motors[n].times if len(self.motors[n].times[g])) for n in nodes]
+        load = "iq" if all("iq" in h for h in have) else "torque" if all("torque" in h for h in have) else None
+        if load is None:
+            raise ValueError(f"nodes {list(nodes)} did not both send currents (Get_Iq) or torques "
+                             f"(groups seen: {[sorted(h) for h in have]})")
+        limit = max_current if load == "iq" else max_torque
+        unit = "A" if load == "iq" else "N m"
+        masked: dict = {}
+        series = []
+        for node in nodes:
             m = self.motors[node]
-            for group in ("encoder", "iq"):
+            for group in ("encoder", load):
                 t, v = m.arrays(group)
+                if group == load and limit is not None:
+                    ok = np.abs(v[:, 1]) <= limit
+                    if not ok.all():
+                        masked[f"node {node}: |{'current' if load == 'iq' else 'torque'}| above {limit:g} {unit} "
+                               f"(max {np.abs(v[:, 1]).max():.4g})"] = int((~ok).sum())
+                        t, v = t[ok], v[ok]
                 if len(t) < 2:
-                    raise ValueError(f"node {node} has {len(t)} {group} samples; need at least 2")
+                    raise ValueError(f"node {node} has {len(t)} usable {group} samples; need at least 2")
+                dt = np.diff(t)
+                if not float(np.median(dt)) > 0:
+                    raise ValueError(f"node {node} {group}: timestamps do not advance (median step 0 s)")
                 series.append((node, group, t, v))
         start = max(s[2][0] for s in series)
         stop = min(s[2][-1] for s in series)
         if stop <= start:
             raise ValueError("the motors' series do not overlap in time")
         if rate is None:
-            rate = min(1.0 / np.median(np.diff(s[2])) for s in series if s[1] == "iq")
+            rate = min(1.0 / np.median(np.diff(s[2])) for s in series if s[1] == load)
         n = int(math.floor((stop - start) * rate)) + 1
+        if n > 50_000_000:
+            raise ValueError(f"rate {rate:g} Hz over {stop - start:.1f} s would give {n} samples; lower the rate")
         tb = start + np.arange(n) / rate
         valid = np.ones(n, dtype=bool)
         out = {}
@@ -102,25 +140,32 @@ class LogData:
             span = t[j] - t[j - 1]
             valid &= (span <= gap) | (near <= 1e-3 * gap)  # at a measured sample (to clock resolution)
             out[(node, group)] = np.stack([np.interp(tb, t, v[:, k]) for k in range(2)], -1)
+        third = np.stack([out[(n_, load)][:, 1] for n_ in nodes], -1)
         return ResampledLog(
             time=tb,
             position=np.stack([out[(n_, "encoder")][:, 0] for n_ in nodes], -1),
             velocity=np.stack([out[(n_, "encoder")][:, 1] for n_ in nodes], -1),
-            iq=np.stack([out[(n_, "iq")][:, 1] for n_ in nodes], -1),
+            iq=third if load == "iq" else None,
             valid=valid,
+            torque=third if load == "torque" else None,
+            masked=masked,
         )
 
 
 @dataclass
 class ResampledLog:
     """Two motors on one time base: time (T,) s; position (T, 2) motor turns; velocity (T, 2)
-    turns/s; iq (T, 2) measured q-axis current, A; valid (T,) False inside gaps."""
+    turns/s; iq (T, 2) measured q-axis current, A (None when the motors reported torque); valid
+    (T,) False inside gaps; torque (T, 2) N m at the output shaft when the motors reported torque
+    instead of current (MIT mode); masked: raw samples dropped as outliers, reason -> count."""
 
     time: np.ndarray
     position: np.ndarray
     velocity: np.ndarray
-    iq: np.ndarray
+    iq: np.ndarray | None
     valid: np.ndarray
+    torque: np.ndarray | None = None
+    masked: dict = field(default_factory=dict)
 
 
 def _summarize(data: LogData, disorder: int) -> None:
@@ -141,28 +186,200 @@ def _summarize(data: LogData, disorder: int) -> None:
                         f"({med * 1e3:.2f} ms), longest {dt.max() * 1e3:.1f} ms at t = {t[big[0]]:.4f} s")
 
 
-def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise") -> LogData:
+SUPPORTED_SUFFIXES = (".log", ".asc", ".blf", ".csv")
+_TEXT_READERS = {".log": can.CanutilsLogReader, ".asc": can.ASCReader, ".csv": can.CSVReader}
+_ASC_KNOWN = re.compile(r"^(date |base |(no )?internal events logged|begin triggerblock|end triggerblock|//|"
+                        r"\d+\.\d+\s+start of measurement)", re.IGNORECASE)
+_ASC_FRAME = re.compile(r"^\d+\.\d+\s+\S+\s+")
+
+
+class _Fault(Exception):
+    """A structural fault found while checking a file (internal)."""
+
+
+def _blf_intact(raw: bytes, name: str) -> tuple[bytes, str | None]:
+    """Check a BLF file's structure without trusting it: the header's file size and object count,
+    every container's size, compression stream and declared length, every inner object's header.
+
+    Returns:
+        (blf bytes holding every complete object before the first fault, as one uncompressed
+        container after the original header; the fault, or None).
+    """
+    from can.io import blf
+
+    hdr = blf.FILE_HEADER_STRUCT
+    if len(raw) == 0:
+        raise _Fault(f"{name} is empty (0 bytes): not a BLF log")
+    if len(raw) < hdr.size or raw[:4] != b"LOGG":
+        raise _Fault(f"{name} is not a BLF log (no 'LOGG' signature in its first {hdr.size} bytes)")
+    header = hdr.unpack_from(raw)
+    header_size, file_size, object_count = header[1], header[10], header[12]
+    if not hdr.size <= header_size <= len(raw):
+        raise _Fault(f"{name}: BLF header size {header_size} is impossible for a {len(raw)}-byte file")
+    base, cont = blf.OBJ_HEADER_BASE_STRUCT, blf.LOG_CONTAINER_STRUCT
+    inner = bytearray()
+    fault = None
+    pos = header_size
+    k = 0
+    while pos < len(raw):
+        if len(raw) - pos < base.size + cont.size:
+            fault = f"truncated inside container {k} (byte {pos})"
+            break
+        sig, _, _, obj_size, obj_type = base.unpack_from(raw, pos)
+        if sig != b"LOBJ" or obj_size < base.size + cont.size:
+            fault = f"corrupted object header at byte {pos} (container {k})"
+            break
+        if obj_type != blf.LOG_CONTAINER:
+            fault = f"object of type {obj_type} at byte {pos} where a log container was expected"
+            break
+        method, size = cont.unpack_from(raw, pos + base.size)
+        payload = raw[pos + base.size + cont.size: pos + obj_size]
+        short = pos + obj_size > len(raw)
+        if method == blf.ZLIB_DEFLATE:
+            z = zlib.decompressobj()
+            try:
+                data = z.decompress(payload)
+            except zlib.error as e:
+                fault = f"container {k} at byte {pos}: compressed data is damaged ({e})"
+                break
+            complete = z.eof and len(data) == size
+        elif method == blf.NO_COMPRESSION:
+            data = payload
+            complete = len(data) == size
+        else:
+            fault = f"container {k} at byte {pos}: unknown compression method {method}"
+            break
+        inner += data
+        if short or not complete:
+            fault = (f"truncated inside container {k} (byte {pos}; {len(raw) - pos} of {obj_size} bytes present)"
+                     if short else f"container {k} at byte {pos}: its data is damaged or incomplete")
+            break
+        pos += obj_size + obj_size % 4
+        k += 1
+    # keep the complete inner objects only, checking each header
+    p, n_obj = 0, 0
+    while p + base.size <= len(inner):
+        sig, _, _, obj_size, _ = base.unpack_from(inner, p)
+        if sig != b"LOBJ" or obj_size < base.size:
+            fault = fault or f"corrupted frame object {n_obj} in the log's data"
+            break
+        if p + obj_size > len(inner):
+            break
+        p += obj_size + obj_size % 4
+        n_obj += 1
+    if p < len(inner) and fault is None:
+        fault = f"{len(inner) - p} trailing bytes after the last complete object"
+    if fault is None and file_size and file_size != len(raw):
+        fault = f"the header says {file_size} bytes, the file has {len(raw)}"
+    if fault is None and object_count and object_count != n_obj:
+        fault = f"the header lists {object_count} objects, the file holds {n_obj}"
+    if fault is None and not file_size:
+        fault = "the header was never finalized (the recording did not stop cleanly)"
+    body = bytes(inner[: min(p, len(inner))])
+    obj_size = base.size + cont.size + len(body)
+    rebuilt = (raw[:header_size] + base.pack(b"LOBJ", base.size, 1, obj_size, blf.LOG_CONTAINER)
+               + cont.pack(blf.NO_COMPRESSION, len(body)) + body + b"\x00" * (obj_size % 4))
+    return rebuilt, fault
+
+
+def _text_checks(text: str, suffix: str, name: str) -> list[str]:
+    """Structural faults of a text log that python-can's readers pass over silently."""
+    faults = []
+    if text and not text.endswith("\n"):
+        tail = text.rsplit("\n", 1)[-1][:30]
+        faults.append(f"the last line has no line end (the file was cut mid-line: {tail!r})")
+    if "\ufffd" in text:
+        faults.append(f"{text.count(chr(0xFFFD))} byte(s) are not text (binary damage)")
+    if suffix == ".asc" and text.strip():
+        lines = text.splitlines()
+        odd = [i for i, ln in enumerate(lines) if ln.strip() and not _ASC_KNOWN.match(ln.strip())
+               and not _ASC_FRAME.match(ln.strip())]
+        if odd:
+            faults.append(f"{len(odd)} line(s) are neither frames nor ASC header lines (first: line {odd[0] + 1}: "
+                          f"{lines[odd[0]].strip()[:40]!r})")
+        if not any(ln.strip().lower().startswith("end triggerblock") for ln in lines[-3:]):
+            faults.append("no 'End TriggerBlock' line at the end: the file is truncated")
+    return faults
+
+
+def _frame_key(msg: can.Message) -> tuple:
+    return (round(msg.timestamp, 7), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+            bytes(msg.data) if not msg.is_remote_frame else msg.dlc)
+
+
+def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", protocol: str = "odrive",
+             mit_model="AK80-9", master_id: int = 0) -> LogData:
     """Read a python-can log file into per-motor series.
 
     Args:
-        path: a .log / .asc / .blf / .csv / ... file (python-can chooses the reader by suffix).
-        firmware: "0.5" or "0.6" CANSimple layouts.
+        path: a .log (candump -L), .asc, .blf or .csv file (the suffix picks the reader).
+        firmware: "0.5" or "0.6" CANSimple layouts (``protocol="odrive"``).
         nodes: keep only these node ids (frames from others are counted as skipped).
         on_error: "raise" (LogReadError with ``.partial``) or "warn" (return the partial data) when
-            the file is truncated or corrupted.
+            the file is truncated or damaged.
+        protocol: "odrive" (CANSimple) or "mit" (CubeMars / T-Motor AK MIT-mode replies).
+        mit_model, master_id: the AK model (a name in ``MIT_MODELS`` or a ``MitModel``) and the host's
+            id that replies are sent to (``protocol="mit"``).
+    Returns:
+        LogData. Series groups: "encoder" (position [motor turns], velocity [turns/s]), "iq" (setpoint,
+        measured [A]), "torque" (target, estimate [N m]). For MIT replies the encoder values are at
+        the output shaft (rad / 2 pi) and the third field goes to "torque" (both columns the reply)
+        or "iq" per the model's ``quantity``.
+
+    Every fault is reported, never passed over: malformed frames are skipped and counted in
+    ``issues``; exact duplicates (same time, id and data) are dropped and counted; a file that is
+    empty, not a log, cut short or damaged raises LogReadError (``.partial`` keeps every frame read
+    before the fault). What cannot be detected: a .log/.csv cut exactly at a line end reads as a
+    shorter recording (ingest's trial coverage check catches it), and a changed hex digit inside a
+    text frame is a valid frame (text logs carry no checksum; BLF's compressed containers do).
     """
     if on_error not in ("raise", "warn"):
         raise ValueError(f"on_error must be 'raise' or 'warn', got {on_error!r}")
+    if protocol not in ("odrive", "mit"):
+        raise ValueError(f"protocol must be 'odrive' or 'mit', got {protocol!r}")
+    if protocol == "odrive":
+        from .odrive_can import _firmware
+
+        _firmware(firmware)
+    else:
+        mit_model = _mit_model(mit_model)
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no log file at {path}")
+    if path.is_dir():
+        raise ValueError(f"{path} is a directory, not a log file")
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise ValueError(f"{path.name}: unsupported log format {suffix!r}; use one of {', '.join(SUPPORTED_SUFFIXES)}")
     data = LogData()
+    raw_bytes = path.read_bytes()
+    structural: list[str] = []
+    try:
+        if suffix == ".blf":
+            blob, blf_fault = _blf_intact(raw_bytes, path.name)
+            if blf_fault:
+                structural.append(blf_fault)
+            reader = can.BLFReader(io.BytesIO(blob))
+        else:
+            text = raw_bytes.decode("utf-8", errors="replace")
+            structural += _text_checks(text, suffix, path.name)
+            if not text.strip():
+                raise _Fault(f"{path.name} is empty: no frames")
+            reader = _TEXT_READERS[suffix](io.StringIO(text))
+    except _Fault as e:
+        data.issues.append(str(e))
+        raise LogReadError(str(e), data) from None
+    except Exception as e:  # noqa: BLE001 - a header python-can cannot parse
+        msg = f"{path.name} is not a readable {suffix} log: {type(e).__name__}: {e}"
+        data.issues.append(msg)
+        raise LogReadError(msg, data) from None
     raw: list[tuple[float, int, str, tuple]] = []
+    seen: set = set()
+    duplicates = 0
     last_t = -math.inf
     disorder = 0
     fault = None
     first_of_kind: dict[str, str] = {}
-    reader = can.LogReader(str(path))
     it = iter(reader)
     index = 0
     while True:
@@ -176,35 +393,68 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise") -
             break
         index += 1
         data.n_frames += 1
+        if not math.isfinite(msg.timestamp):
+            data.skipped["non-finite timestamp"] += 1
+            continue
+        key = _frame_key(msg)
+        if key in seen:
+            duplicates += 1
+            continue
+        seen.add(key)
         if msg.is_error_frame:
             data.skipped["error frame"] += 1
             continue
-        if msg.is_remote_frame:
+        if protocol == "odrive" and msg.is_remote_frame:
             continue  # our own polling requests: not data
         try:
-            frame = decode(msg, firmware)
+            if protocol == "odrive":
+                frame = decode(msg, firmware)
+            else:
+                frame = decode_mit(msg, mit_model, master_id)
         except FrameError as e:
-            key = first_of_kind.setdefault(e.reason, f"{e.reason} (first at frame {index}: {e})")
-            data.skipped[key] += 1
+            if e.reason == "command frame":
+                continue  # the host's commands to the motors: not measurements
+            key_ = first_of_kind.setdefault(e.reason, f"{e.reason} (first at frame {index}: {e})")
+            data.skipped[key_] += 1
             continue
         if nodes is not None and frame.node not in nodes:
             data.skipped["node not requested"] += 1
             continue
-        if frame.command not in _FIELDS:
-            continue  # heartbeats etc.: decoded and valid, not part of the force series
+        if protocol == "mit":
+            if frame.values["saturated"]:
+                data.skipped["saturated (a field at the end of its range)"] += 1
+                continue
+            v = frame.values
+            group_values = [("encoder", (v["position"] / (2 * math.pi), v["velocity"] / (2 * math.pi)))]
+            third = "torque" if mit_model.quantity == "torque" else "iq"
+            group_values.append((third, (v[mit_model.quantity],) * 2))
+        else:
+            if frame.command not in _FIELDS:
+                continue  # heartbeats etc.: decoded and valid, not part of the force series
+            group, names = _FIELDS[frame.command]
+            group_values = [(group, tuple(frame.values[n] for n in names))]
         if msg.timestamp < last_t:
             disorder += 1
         last_t = max(last_t, msg.timestamp)
-        group, names = _FIELDS[frame.command]
-        raw.append((msg.timestamp, frame.node, group, tuple(frame.values[n] for n in names)))
+        for group, vals in group_values:
+            raw.append((msg.timestamp, frame.node, group, vals))
     if hasattr(reader, "stop"):
         reader.stop()
+    data.duplicates = duplicates
     raw.sort(key=lambda r: r[0])
     for t, node, group, vals in raw:
         m = data.motors.setdefault(node, MotorSeries(node))
         m.times[group].append(t)
         m.values[group].append(vals)
+    if duplicates:
+        data.issues.append(f"dropped {duplicates} duplicate frame(s) (same time, id and data as an earlier one)")
     _summarize(data, disorder)
+    if structural:
+        kept = f"kept {len(raw)} sample(s) from {data.n_frames - duplicates} frame(s) read before the fault"
+        text_fault = f"{path.name}: damaged or truncated: {'; '.join(structural)}; {kept}"
+        fault = f"{fault}; {text_fault}" if fault else text_fault
+    if fault is None and data.n_frames == 0:
+        fault = f"{path.name} holds no CAN frames"
     if fault:
         data.issues.append(fault)
         if on_error == "raise":
@@ -214,19 +464,27 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise") -
 
 
 def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0), ("get_iq", 1)),
-           rate: float = 200.0, firmware: str = "0.5", progress: bool = False) -> int:
+           rate: float = 200.0, firmware: str = "0.5", progress: bool = False,
+           stats: dict | None = None) -> int:
     """Log every frame on ``bus`` to ``path`` for ``duration`` s while polling with RTR frames.
 
     Args:
         poll: (command, node) pairs requested at ``rate`` Hz (encoder estimates arrive cyclically
             from ODrives by default; add ("get_encoder_estimates", node) if yours do not send them).
+            Empty: listen only (MIT-mode motors answer their controller's commands; a poll would be
+            a command).
+        stats: if given, filled with ``frames_by_id`` (arbitration id -> frames received).
     Returns:
-        the number of frames written. The file is flushed and closed even on Ctrl-C.
+        the number of frames received and written (our own polls are not counted). The file is
+        flushed and closed even on Ctrl-C.
     """
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be positive seconds, got {duration}")
     if not (math.isfinite(rate) and rate > 0):
         raise ValueError(f"rate must be positive (Hz), got {rate}")
+    if Path(path).suffix.lower() not in SUPPORTED_SUFFIXES:
+        raise ValueError(f"log file {path}: the suffix picks the format; use one of {', '.join(SUPPORTED_SUFFIXES)}")
+    requests = [request(command, node, firmware) for command, node in poll]
     counter = _Counter()
     logger = can.Logger(str(path))
     notifier = can.Notifier(bus, [logger, counter])
@@ -235,8 +493,8 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         period = 1.0 / rate
         next_t = time.monotonic()
         while time.monotonic() < t_end:
-            for command, node in poll:
-                bus.send(request(command, node, firmware))
+            for r in requests:
+                bus.send(r)
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
     except KeyboardInterrupt:
@@ -245,12 +503,16 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         time.sleep(0.05)  # let the last replies arrive
         notifier.stop()
         logger.stop()
+    if stats is not None:
+        stats["frames_by_id"] = dict(counter.by_id)
     return counter.n
 
 
 class _Counter(can.Listener):
     def __init__(self) -> None:
         self.n = 0
+        self.by_id: dict = defaultdict(int)
 
     def on_message_received(self, msg: can.Message) -> None:
         self.n += 1
+        self.by_id[msg.arbitration_id] += 1
