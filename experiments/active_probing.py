@@ -32,8 +32,7 @@ import torch
 
 import irft_torch as irft
 from irft_torch import reproduce
-from irft_torch.gp.active_probing import ProbeScorer
-from irft_torch.probe_design import optimize_probe
+from irft_torch.design import ProbeScorer, force_relative, optimize_probe
 from irft_torch.rft import FourierStressMap, Probe, ProbeBounds, forces, random_probes
 
 
@@ -45,7 +44,6 @@ class Settings:
     refine_iter: int = 25
     fit_iter: int = 100  # Adam steps after the first probe
     refit_iter: int = 50  # after each further probe (warm start)
-    grid_size: tuple[int, int] = (24, 24)  # the grid path: fits stay fast as data accumulate
     noise: float = 0.05  # variance of the multiplicative force noise (the paper's Table II)
     noise_floor: float = 0.1  # N: the relative noise scale is sqrt(F^2 + floor^2)
     eval_grid: int = 50
@@ -92,7 +90,7 @@ def run_sequence(truth, next_probe, s: Settings, seed: int) -> list[dict]:
         scale = (f.pow(2) + s.noise_floor**2).sqrt()
         torch.manual_seed(seed)
         if model is None:
-            model = irft.InverseRFT(c, f, method="grid", grid_size=s.grid_size, noise_scale=scale)
+            model = irft.InverseRFT(c, f, noise_scale=scale)  # method="auto": fits stay fast as data accumulate
             model.fit(n_iter=s.fit_iter, progress=False)
         else:
             model.add_data(c, f, noise_scale=scale)
@@ -109,9 +107,9 @@ def run_sequence(truth, next_probe, s: Settings, seed: int) -> list[dict]:
 def designer(s: Settings, toes: dict, length: float):
     def next_probe(k: int, model) -> Probe:
         if model is None:
-            scorer = ProbeScorer.prior(1.0, s.prior_outputscale, s.prior_noise, method="grid", grid_size=s.grid_size)
-        else:
-            scorer = ProbeScorer.from_model(model)
+            scorer = ProbeScorer.prior(1.0, s.prior_outputscale, s.prior_noise, method="spectral")
+        else:  # candidates' noise is relative to their (predicted) force, as the fits assume
+            scorer = ProbeScorer.from_model(model, noise_scale=force_relative(model, s.noise_floor))
         library = random_probes(toes, s.n_library, length, bounds=s.bounds, n_steps=100, seed=1000 + k)
         best = None
         for i, _ in scorer.rank(library, "variance")[: s.n_refine]:
@@ -124,13 +122,20 @@ def designer(s: Settings, toes: dict, length: float):
     return next_probe
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="experiments/results")
-    ap.add_argument("--quick", action="store_true", help="a small version (seconds, for tests)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="noise seeds (default 0 1)")
-    ap.add_argument("--media", nargs="+", default=list(MEDIA), choices=list(MEDIA))
+    ap = argparse.ArgumentParser(prog="active_probing.py", description=__doc__, formatter_class=_HelpFormatter)
+    ap.add_argument("--out", default="experiments/results", help="where the report, CSV and figures go")
+    ap.add_argument("--quick", action="store_true", help="a small version (for tests)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="noise seeds")
+    ap.add_argument("--media", nargs="+", default=list(MEDIA), choices=list(MEDIA), help="media to run")
     a = ap.parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")  # this script only writes files; set here, never at import
     torch.set_default_dtype(torch.float64)
     s = Settings.quick() if a.quick else Settings()
     study = reproduce.StudySettings()
@@ -151,6 +156,16 @@ def main(argv=None) -> None:
                               for r in (results[(medium, name, sd)] for sd in a.seeds))
                   + f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
     write_outputs(Path(a.out), results, a, s, length, paper, strategies, time.perf_counter() - t0)
+
+
+def wins_sentence(wins) -> str:
+    """Say after which probes (1-based) the designed sequence beat the best paper configuration in both axes."""
+    after = [str(k + 1) for k, w in enumerate(wins) if w]
+    if not after:
+        return (f"The designed probes were not below the best of the paper's four configurations in both axes "
+                f"after any of the {len(wins)} probes.")
+    return (f"Designed below the best of the paper's four configurations in both axes after probe"
+            f"{'s' if len(after) > 1 else ''} {', '.join(after)} (of {len(wins)}).")
 
 
 def _mean(rows_by_seed, k, key):
@@ -178,7 +193,7 @@ def write_outputs(out: Path, results, a, s: Settings, length, paper, strategies,
              f"{2 * s.n_library} random probes per step, best {s.n_refine} refined by {s.refine_iter} gradient steps, "
              f"inside depth {100 * s.bounds.max_depth:.0f} cm, height {100 * s.bounds.max_height:.0f} cm, "
              f"x in [{100 * s.bounds.x_range[0]:.0f}, {100 * s.bounds.x_range[1]:.0f}] cm. I-RFT on the "
-             f"{s.grid_size[0]} x {s.grid_size[1]} grid path, refitted after every probe. Map RMSE in N/cm^3 over a "
+             f"method='auto' backend, refitted after every probe. Map RMSE in N/cm^3 over a "
              f"{s.eval_grid} x {s.eval_grid} grid of the square (mean over seeds; +- their std).", ""]
     verdicts = []
     names = list(strategies)
@@ -202,8 +217,7 @@ def write_outputs(out: Path, results, a, s: Settings, length, paper, strategies,
         verdicts.append((medium, wins))
         designed_names = [r["name"] for r in results[(medium, "designed", a.seeds[0])]]
         lines += ["", f"Designed probes (seed {a.seeds[0]}): " + "; ".join(designed_names) + ".",
-                  "Designed below the best of the paper's four configurations in both axes after probe "
-                  + ", ".join(str(k + 1) for k, w in enumerate(wins) if w) + (" (none)" if not any(wins) else "") + ".",
+                  wins_sentence(wins),
                   f"![{medium}](active_probing_{medium.replace(' ', '_').replace(',', '')}.png)", ""]
         fig, axes = plotting.plt.subplots(1, 2, figsize=(11, 3.8), constrained_layout=True)
         for name in names:

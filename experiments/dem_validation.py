@@ -35,6 +35,11 @@ import irft_torch as irft
 from irft_torch import dem_data, metrics
 from irft_torch.rft import Contacts, FourierStressMap
 
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 README_BARS = {"generic x LS scales (README)": (0.0166, 0.0173), "plain GP on run stresses (README)": (0.0153, 0.0125)}
 IRFT = ("I-RFT", "I-RFT + physics mean")
 BASELINES = ("generic x LS scales, fit to run stresses", "generic x LS scales, fit to forces",
@@ -79,17 +84,25 @@ def generic_scales(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     return (pred * target).sum(0) / (pred * pred).sum(0)
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="directory of the DEM csv files")
-    ap.add_argument("--out", default="experiments/results")
-    ap.add_argument("--stride", type=int, default=200, help="use every n-th 1 ms sample (default 200)")
-    ap.add_argument("--min-depth", type=float, default=1.0, help="cm, for the per-run slopes (README: 1)")
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="dem_validation.py", description=__doc__, formatter_class=_HelpFormatter)
+    ap.add_argument("--data", required=True, default=argparse.SUPPRESS,
+                    help="directory of the DEM csv files (read, never copied)")
+    ap.add_argument("--out", default="experiments/results", help="where the report and figures go")
+    ap.add_argument("--stride", type=int, default=200, help="use every n-th 1 ms sample")
+    ap.add_argument("--min-depth", type=float, default=1.0, help="cm, for the per-run slopes (the data README's 1)")
     ap.add_argument("--offset", default="auto",
                     help="effective surface below z_top, cm, or 'auto' (calibrated per fold on its training runs)")
-    ap.add_argument("--n-iter", type=int, default=150)
+    ap.add_argument("--n-iter", type=int, default=150, help="Adam steps per I-RFT fit")
     ap.add_argument("--all-gammas", action="store_true", help="also train on runs with gamma < 45 degrees")
-    a = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> None:
+    a = build_parser().parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")  # this script only writes files; set here, never at import
     torch.set_default_dtype(torch.float64)
     t0 = time.perf_counter()
     runs, report = dem_data.read_runs(a.data)

@@ -101,7 +101,7 @@ def test_importing_plotting_keeps_the_backend():
     switch it (the bug: plotting called matplotlib.use("Agg"), so notebooks showed no figures)."""
     import subprocess
 
-    code = ("import matplotlib; matplotlib.use('svg'); import irft_torch.plotting as p; import matplotlib.pyplot as plt; "
+    code = ("import matplotlib; matplotlib.use('svg'); import irft_torch.plotting as p; "
             "f = p.plot_stress_map(lambda b, g: __import__('torch').stack([b, g], -1), n=4); "
             "print(matplotlib.get_backend())")
     env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}

@@ -3,6 +3,7 @@ tables on a rerun."""
 
 import csv
 import re
+import sys
 
 from irft_torch.cli import main
 
@@ -86,3 +87,72 @@ def test_report_tables_are_well_formed_and_define_their_metrics(tmp_path):
 
 def dh_is(header):
     return header == ["metric", "definition", "unit"]
+
+
+# ---- the experiment scripts' own outputs ------------------------------------------------------
+def _script(name):
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_experiment_help_prints_the_whole_description_and_defaults(capsys):
+    import pytest
+
+    for name, last in (("dem_validation", "The data are read from --data and never copied."),
+                       ("active_probing", "active_probing_paths.png."),
+                       ("experimental_validation", "z = -5, 0, -3, -1 cm")):
+        mod = _script(name)
+        with pytest.raises(SystemExit):
+            mod.main(["--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert last in text, name  # the old --help stopped after the docstring's first line
+        assert "(default: experiments/results)" in text, name
+    mod = _script("dem_validation")
+    with pytest.raises(SystemExit):
+        mod.main(["--help"])
+    assert "(default: 200)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_active_probing_summary_names_the_probes_or_says_none():
+    wins_sentence = _script("active_probing").wins_sentence
+    none = wins_sentence([False, False, False])
+    assert "(none)" not in none and "after any of the 3 probes" in none and "not below" in none
+    assert wins_sentence([False, True, True]).endswith("after probes 2, 3 (of 3).")
+    assert wins_sentence([True, False]).endswith("after probe 1 (of 2).")
+
+
+def test_experimental_validation_says_its_errors_are_in_sample():
+    import inspect
+
+    src = inspect.getsource(_script("experimental_validation").main)
+    # the report's table: in-sample errors on a simulated leg next to the paper's real-leg errors, said so
+    assert "in-sample" in src and "physical leg in real sand" in src
+    assert "I-RFT in-sample force RMSE %" in src and "paper's I-RFT % (real leg)" in src
+
+
+def test_importing_the_experiments_keeps_the_matplotlib_backend():
+    """The scripts select a headless backend in main(), never at import (nor through irft_torch.plotting)."""
+    import subprocess
+    import sys
+
+    code = ("import matplotlib, importlib.util, pathlib, sys; matplotlib.use('svg')\n"
+            "for n in ('dem_validation', 'active_probing', 'experimental_validation'):\n"
+            "    s = importlib.util.spec_from_file_location(n, pathlib.Path('experiments') / (n + '.py'))\n"
+            "    m = importlib.util.module_from_spec(s); sys.modules[n] = m; s.loader.exec_module(m)\n"
+            "import irft_torch.reproduce, irft_torch.plotting\n"
+            "print(matplotlib.get_backend())")
+    import os
+    import pathlib
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().lower() == "svg"
