@@ -181,25 +181,39 @@ def plot_coverage(contacts, ax=None, title="sampled (beta, gamma)"):
 
 
 def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
-    """F_x (top) and F_z (bottom) in N against the time since the first sample, in s.
+    """F_x and F_z in N against the time since the first sample, in s.
+
+    With a prediction and its std (and no ``axes`` given), each force panel gets a residual panel
+    below it: data - prediction with the +-2 std band around zero, which stays visible however
+    small the band is next to the force's range, and the share of samples inside it.
 
     Args:
         time: (T,) sample times in s; any origin (epoch seconds included): the axis starts at 0.
         forces: (T, 2) the forces to show.
         predicted: optional (T, 2) prediction, drawn over them, with
         std: its (T, 2) standard deviation, drawn as a shaded, outlined +-2 std band.
+        axes: optional two axes (F_x, F_z) to draw into (then no residual panels).
         labels: (forces label, prediction label). Defaults: ("force", ...) alone, ("data",
             "I-RFT prediction") with a prediction; say "measured" only for measured forces.
+    Returns:
+        the figure; its first two axes are the F_x and F_z panels.
     """
     if labels is None:
         labels = ("data", "I-RFT prediction") if predicted is not None else ("force", "")
-    if axes is None:
+    residuals = axes is None and predicted is not None and std is not None
+    if axes is None and residuals:
+        fig = plt.figure(figsize=(8, 7.5), constrained_layout=True)
+        gs = fig.add_gridspec(4, 1, height_ratios=(3, 1.3, 3, 1.3))
+        axes = [fig.add_subplot(gs[0]), fig.add_subplot(gs[2])]
+        res_axes = [fig.add_subplot(gs[1], sharex=axes[0]), fig.add_subplot(gs[3], sharex=axes[0])]
+    elif axes is None:
         fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True, constrained_layout=True)
     t = torch.as_tensor(time).detach().cpu().double()
     t = t - t[0]
-    for i, name in enumerate((r"$F_x$ (N)", r"$F_z$ (N)")):
+    for i, name in enumerate(("x", "z")):
         ax = axes[i]
-        ax.plot(t, _np(forces[:, i]), "k-", lw=1, label=labels[0])
+        y = torch.as_tensor(forces[:, i]).detach().cpu().double()
+        ax.plot(t, y, "k-", lw=1, label=labels[0])
         if predicted is not None:
             p = torch.as_tensor(predicted[:, i]).detach().cpu().double()
             ax.plot(t, p, "C1-", lw=1.2, label=labels[1])
@@ -209,10 +223,21 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
                                 label=r"$\pm 2\sigma$ (95 %) band")
                 ax.plot(t, p - 2 * s, color="C1", lw=0.6, ls=":")
                 ax.plot(t, p + 2 * s, color="C1", lw=0.6, ls=":")
-        ax.set_ylabel(name)
+                if residuals:
+                    r, rax = y - p, res_axes[i]
+                    ok = torch.isfinite(r) & torch.isfinite(s)
+                    inside = float(((r.abs() <= 2 * s) & ok).sum()) / max(int(ok.sum()), 1)
+                    rax.fill_between(t, -2 * s, 2 * s, color="C1", alpha=0.35, lw=0,
+                                     label=rf"$\pm 2\sigma$ band ({100 * inside:.0f} % of samples inside)")
+                    rax.plot(t, r, "k-", lw=0.7, label=f"{labels[0]} $-$ prediction")
+                    rax.axhline(0.0, color="C1", lw=0.8)
+                    rax.set_ylabel(rf"$F_{name}$ residual (N)")
+                    rax.grid(alpha=0.3)
+                    rax.legend(fontsize=7, loc="upper right")
+        ax.set_ylabel(rf"$F_{name}$ (N)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
-    axes[-1].set_xlabel("time since the first sample (s)")
+    (res_axes if residuals else axes)[-1].set_xlabel("time since the first sample (s)")
     return axes[0].figure
 
 
