@@ -190,7 +190,54 @@ SUPPORTED_SUFFIXES = (".log", ".asc", ".blf", ".csv")
 _TEXT_READERS = {".log": can.CanutilsLogReader, ".asc": can.ASCReader, ".csv": can.CSVReader}
 _ASC_KNOWN = re.compile(r"^(date |base |(no )?internal events logged|begin triggerblock|end triggerblock|//|"
                         r"\d+\.\d+\s+start of measurement)", re.IGNORECASE)
-_ASC_FRAME = re.compile(r"^\d+\.\d+\s+\S+\s+")
+_HEX = "[0-9A-Fa-f]"
+# what python-can's writers emit, line by line (anything else in a frame line is damage)
+_LOG_LINE = re.compile(rf"^\(\d+(\.\d+)?\)\s+\S+\s+{_HEX}{{3}}({_HEX}{{5}})?#"
+                       rf"(R\d*|#{_HEX}({_HEX}{{2}})*|({_HEX}{{2}})*)(\s+[RTrt])?$")
+_ASC_DATA = re.compile(rf"^\d+\.\d+\s+\d+\s+{_HEX}+x?\s+(Rx|Tx)\s+d\s+({_HEX})((\s+{_HEX}{{2}})*)(\s.*)?$")
+_ASC_OTHER_FRAME = re.compile(rf"^\d+\.\d+\s+(\d+\s+{_HEX}+x?\s+(Rx|Tx)\s+r(\s+{_HEX})?|\d+\s+ErrorFrame.*)$")
+_CSV_LINE = re.compile(r"^[-+\d.eE]+,0x[0-9A-Fa-f]+,[01],[01],[01],(\d+),([A-Za-z0-9+/]*={0,2})$")
+
+
+def _bad_lines(lines: list[str], suffix: str) -> tuple[list[int], list[int]]:
+    """(indices of damaged frame lines, indices of timestamped non-frame lines) of a text log."""
+    import base64
+    import binascii
+
+    bad, other = [], []
+    for i, raw in enumerate(lines):
+        ln = raw.strip()
+        if not ln:
+            continue
+        if suffix == ".log":
+            if not _LOG_LINE.match(ln):
+                bad.append(i)
+        elif suffix == ".csv":
+            if i == 0 and ln.startswith("timestamp,"):
+                continue
+            m = _CSV_LINE.match(ln)
+            if not m:
+                bad.append(i)
+                continue
+            try:
+                n = len(base64.b64decode(m.group(2), validate=True))
+            except (binascii.Error, ValueError):
+                bad.append(i)
+                continue
+            if n != int(m.group(1)) and m.group(2):
+                bad.append(i)
+        elif suffix == ".asc":
+            if _ASC_KNOWN.match(ln) or _ASC_OTHER_FRAME.match(ln):
+                continue
+            m = _ASC_DATA.match(ln)
+            if m:
+                if len(m.group(3).split()) != int(m.group(2), 16):
+                    bad.append(i)
+            elif re.match(r"^\d+\.\d+\s", ln) and " Rx " not in f" {ln} " and " Tx " not in f" {ln} ":
+                other.append(i)  # an event line (status, statistics, J1939): not a CAN frame
+            else:
+                bad.append(i)
+    return bad, other
 
 
 class _Fault(Exception):
@@ -249,7 +296,8 @@ def _blf_intact(raw: bytes, name: str) -> tuple[bytes, str | None]:
         else:
             fault = f"container {k} at byte {pos}: unknown compression method {method}"
             break
-        inner += data
+        if short or complete:
+            inner += data  # a container cut by the end of the file: its decompressed prefix is intact
         if short or not complete:
             fault = (f"truncated inside container {k} (byte {pos}; {len(raw) - pos} of {obj_size} bytes present)"
                      if short else f"container {k} at byte {pos}: its data is damaged or incomplete")
@@ -282,24 +330,32 @@ def _blf_intact(raw: bytes, name: str) -> tuple[bytes, str | None]:
     return rebuilt, fault
 
 
-def _text_checks(text: str, suffix: str, name: str) -> list[str]:
-    """Structural faults of a text log that python-can's readers pass over silently."""
+def _text_checks(text: str, suffix: str, notes: list[str]) -> tuple[list[str], str]:
+    """Structural faults of a text log that python-can's readers pass over silently (a cut last
+    line, binary bytes, a damaged frame line, a missing ASC end marker), and the text before the
+    first fault (what is read). Event lines that are not CAN frames are added to ``notes``
+    (reported, not a fault)."""
     faults = []
+    lines = text.splitlines()
+    keep = len(lines)
     if text and not text.endswith("\n"):
         tail = text.rsplit("\n", 1)[-1][:30]
         faults.append(f"the last line has no line end (the file was cut mid-line: {tail!r})")
+        keep -= 1
     if "\ufffd" in text:
         faults.append(f"{text.count(chr(0xFFFD))} byte(s) are not text (binary damage)")
+    bad, other = _bad_lines(lines, suffix)
+    if bad:
+        keep = min(keep, bad[0])
+    if bad:
+        faults.append(f"{len(bad)} damaged line(s) (first: line {bad[0] + 1}: {lines[bad[0]].strip()[:30]!r})")
+    if other:
+        notes.append(f"{len(other)} timestamped line(s) are events, not CAN frames; not read "
+                     f"(first: line {other[0] + 1}: {lines[other[0]].strip()[:30]!r})")
     if suffix == ".asc" and text.strip():
-        lines = text.splitlines()
-        odd = [i for i, ln in enumerate(lines) if ln.strip() and not _ASC_KNOWN.match(ln.strip())
-               and not _ASC_FRAME.match(ln.strip())]
-        if odd:
-            faults.append(f"{len(odd)} line(s) are neither frames nor ASC header lines (first: line {odd[0] + 1}: "
-                          f"{lines[odd[0]].strip()[:40]!r})")
         if not any(ln.strip().lower().startswith("end triggerblock") for ln in lines[-3:]):
             faults.append("no 'End TriggerBlock' line at the end: the file is truncated")
-    return faults
+    return faults, ("\n".join(lines[:keep]) + "\n" if keep else "")
 
 
 def _frame_key(msg: can.Message) -> tuple:
@@ -362,10 +418,11 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
             reader = can.BLFReader(io.BytesIO(blob))
         else:
             text = raw_bytes.decode("utf-8", errors="replace")
-            structural += _text_checks(text, suffix, path.name)
             if not text.strip():
                 raise _Fault(f"{path.name} is empty: no frames")
-            reader = _TEXT_READERS[suffix](io.StringIO(text))
+            faults, readable = _text_checks(text, suffix, data.issues)
+            structural += faults
+            reader = _TEXT_READERS[suffix](io.StringIO(readable))
     except _Fault as e:
         data.issues.append(str(e))
         raise LogReadError(str(e), data) from None

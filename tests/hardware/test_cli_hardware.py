@@ -41,7 +41,7 @@ def test_ingest_truncated_log_is_a_clear_error(tmp_path, capsys):
     text = (tmp_path / "t.log").read_text()
     (tmp_path / "t.log").write_text(text[: len(text) // 2].rsplit("\n", 1)[0] + "\n(17000")
     rc = main(["ingest", str(tmp_path / "t.log"), "--out", str(tmp_path / "ds.npz")])
-    assert rc == 2 and "truncated or corrupted after frame" in capsys.readouterr().err
+    assert rc == 2 and "t.log: damaged or truncated: the last line has no line end" in capsys.readouterr().err
     rc = main(["ingest", str(tmp_path / "t.log"), "--out", str(tmp_path / "ds.npz"), "--on-error", "warn"])
     assert rc == 0 and load_dataset(tmp_path / "ds.npz").forces.shape[1] == 2
 

@@ -125,8 +125,9 @@ def test_corrupted_and_truncated_logs(tmp_path):
     bad.insert(80, f"(1700000000.400000) vcan0 034#{nan}")
     bad.append(lines[-1][:18])  # a truncated last line
     (tmp_path / "bad.log").write_text("\n".join(bad) + "\n")
-    with pytest.raises(LogReadError, match=f"truncated or corrupted after frame {n + 4}") as e:
+    with pytest.raises(LogReadError, match=r"bad.log: damaged or truncated: 1 damaged line\(s\) \(first: line \d+: .\(17000") as e:
         read_log(tmp_path / "bad.log")
+    assert f"from {n + 4} frame(s) read before the fault" in str(e.value)
     part = e.value.partial
     issues = "\n".join(part.issues)
     assert "wrong length" in issues and "unknown id" in issues and "non-finite" in issues
