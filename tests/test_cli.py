@@ -1,11 +1,10 @@
+import math
 import subprocess
 import sys
 
 import numpy as np
 import pytest
-import torch
 
-import irft_torch as irft
 from irft_torch.cli import build_parser, main
 
 
@@ -44,7 +43,110 @@ def test_simulate_bad_input_is_a_clear_error(tmp_path, capsys):
     assert "strictly increasing x" in capsys.readouterr().err
 
 
-def test_console_script_runs():
+def test_console_script_runs(tmp_path):
     r = subprocess.run([sys.executable, "-m", "irft_torch.cli", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "simulate" in r.stdout
-    assert isinstance(irft.rft.FourierStressMap.generic(), torch.nn.Module)
+    assert r.returncode == 0
+    for name in ("simulate", "reproduce", "record", "ingest", "fit"):
+        assert name in r.stdout
+    # a user error through the real entry point: one line on stderr, no traceback
+    r = subprocess.run([sys.executable, "-m", "irft_torch.cli", "fit", str(tmp_path / "missing.npz")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.count("\n") == 1
+    assert r.stderr.startswith("irft fit: error: no dataset at")
+
+
+def _shear(d):
+    """Samples of the rectangle gait's shear stroke (toe 5 cm deep, away from the corners)."""
+    z, x = d["position"][:, 1], d["position"][:, 0]
+    return (z < -0.0499) & (np.abs(x) < 0.15)
+
+
+def test_simulate_map_and_scale(tmp_path):
+    """Poppy seeds, loosely packed (Li et al. 2013): a horizontal plate moving horizontally feels
+    alpha_z = A00 + A10 = 0.051 + 0.047 = 0.098 and alpha_x = C11 + C01 + C-11 = -0.026 + 0.057 + 0
+    = 0.031 N/cm^3 (drag opposes the motion); --scale-x 2 --scale-z 0.5 scale them; 2 cm x 0.8 cm
+    at 5 cm deep: depth x area = 8 cm^3."""
+    out = tmp_path / "p.npz"
+    rc = main(["simulate", "--toe", "I", "--length", "0.02", "--path", "rectangle", "--n-steps", "100",
+               "--map", "poppy-loose", "--scale-x", "2", "--scale-z", "0.5", "--out", str(out)])
+    assert rc == 0
+    d = np.load(out)
+    s = _shear(d)
+    assert s.sum() > 10 and str(d["map"]) == "poppy-loose" and d["scale"].tolist() == [2.0, 0.5]
+    np.testing.assert_allclose(d["forces"][s], np.tile([-0.031 * 2 * 8, 0.098 * 0.5 * 8], (s.sum(), 1)), atol=1e-9)
+
+
+@pytest.mark.parametrize("opening", ["up", "down"])
+def test_simulate_c_toe_opening(tmp_path, opening):
+    """C-toe of radius 2 cm, width 0.8 cm, M = 10 chords, its arc's mid-point on the path 5 cm deep:
+    sum over chords of depth x chord x width, from the geometry of the docstring (the arc below the
+    mid-point's level for "down", above it for "up")."""
+    out = tmp_path / "c.npz"
+    rc = main(["simulate", "--toe", "C", "--radius", "0.02", "--opening", opening, "--path", "rectangle",
+               "--n-steps", "100", "--out", str(out)])
+    assert rc == 0
+    d = np.load(out)
+    r, M = 2.0, 10  # cm
+    mid = -math.pi / 2 if opening == "up" else math.pi / 2  # centre -> arc mid-point
+    want = 0.0
+    for k in range(M):
+        phi = mid + ((k + 0.5) / M - 0.5) * math.pi
+        z = r * math.cos(math.pi / (2 * M)) * math.sin(phi) - r * math.sin(mid)  # chord mid-point above the origin
+        want += (5.0 - z) * 2 * r * math.sin(math.pi / (2 * M)) * 0.8
+    assert want == pytest.approx(21.3389 if opening == "up" else 28.7201, abs=1e-4)
+    np.testing.assert_allclose(d["weight_z"][_shear(d)].sum(1), want, rtol=1e-9)
+
+
+@pytest.mark.parametrize("argv, arg", [
+    (["fit", "DS", "--max-samples", "-5"], "argument --max-samples"),
+    (["fit", "DS", "--n-iter", "0"], "argument --n-iter"),
+    (["fit", "DS", "--lr", "-1"], "argument --lr"),
+    (["fit", "DS", "--out", "AFILE"], "argument --out: AFILE exists and is a file"),
+    (["fit", "TRUNC"], "is damaged or not an irft dataset"),
+    (["fit", "MISSING"], "no dataset at"),
+    (["ingest", "LOG", "--out", "OUT", "--nodes", "0", "0"], "argument --nodes: each motor needs its own node id"),
+    (["ingest", "LOG", "--out", "OUT", "--nodes", "0", "64"], "argument --nodes: node ids must be in 0..63"),
+    (["ingest", "LOG", "--out", "OUT", "--rate", "0"], "argument --rate: must be a positive number"),
+    (["ingest", "LOG", "--out", "OUT", "--hip-height", "-0.25"], "argument --hip-height"),
+    (["ingest", "LOG", "--out", "OUT", "--kt", "0.1", "--kv", "85"], "argument --kt: give --kt or --kv"),
+    (["ingest", "LOG", "--out", "OUT", "--l1", "150"], "argument --l1/--l2: l1=150.0 m"),
+    (["ingest", "LOG", "--out", "OUT", "--directions", "1", "2"], "argument --directions"),
+    (["ingest", "LOG", "--out", "OUT", "--filter-window", "0"], "argument --filter-window"),
+    (["ingest", "LOG", "--out", "AFILE/x.npz"], "argument --out: cannot create"),
+    (["ingest", "LOG", "--out", "ADIR"], "argument --out: ADIR.npz is a directory"),
+    (["ingest", "MISSING.log", "--out", "OUT"], "argument logs: no log file at"),
+    (["ingest", "LOG", "--out", "OUT", "--heading", "north"], "argument --heading"),
+    (["ingest", "LOG", "--out", "OUT", "--protocol", "mit", "--mit-model", "AK99"], "argument --mit-model"),
+    (["record", "--out", "r.trc"], "argument --out: the suffix picks the log format"),
+    (["record", "--out", "r.log", "--rate", "0"], "argument --rate"),
+    (["record", "--out", "r.log", "--duration", "-1"], "argument --duration"),
+    (["record", "--out", "r.log", "--interface", "virtual", "--poll", "get_nothing"], "argument --poll"),
+    (["simulate", "--segments", "0"], "argument --segments"),
+    (["simulate", "--radius", "0"], "argument --radius"),
+    (["simulate", "--out", "ADIR"], "argument --out: ADIR.npz is a directory"),
+    (["simulate", "--plot", "AFILE"], "argument --plot: AFILE exists and is a file"),
+    (["simulate", "--n-steps", "x"], "argument --n-steps: invalid int value"),
+])
+def test_user_errors_are_one_line_naming_the_argument(tmp_path, capsys, argv, arg):
+    (tmp_path / "AFILE").write_text("x")
+    (tmp_path / "ADIR.npz").mkdir()
+    (tmp_path / "LOG.log").write_text("(1.0) can0 014#0000000000000000\n")
+    (tmp_path / "TRUNC.npz").write_bytes(b"PK\x03\x04" + bytes(50))
+    sub = {"DS": "TRUNC.npz", "AFILE": "AFILE", "ADIR": "ADIR", "TRUNC": "TRUNC.npz", "MISSING": "none.npz",
+           "LOG": "LOG.log", "OUT": "out.npz", "MISSING.log": "none.log"}
+
+    def fix(a):
+        for k, v in sub.items():
+            if a == k or a.startswith(k + "/"):
+                return str(tmp_path / (v + a[len(k):]))
+        return str(tmp_path / a) if a.endswith((".log", ".trc")) else a
+
+    try:
+        rc = main([fix(a) for a in argv])
+    except SystemExit as e:  # argparse's own type errors
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert arg.replace("AFILE", str(tmp_path / "AFILE")).replace("ADIR", str(tmp_path / "ADIR")) in err, err
+    assert not (tmp_path / "out.npz").exists()
