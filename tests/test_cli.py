@@ -120,6 +120,7 @@ def test_simulate_c_toe_opening(tmp_path, opening):
     (["record", "--out", "r.trc"], "argument --out: the suffix picks the log format"),
     (["record", "--out", "r.log", "--rate", "0"], "argument --rate"),
     (["record", "--out", "r.log", "--duration", "-1"], "argument --duration"),
+    (["record", "--out", "r.log", "--interface", "nosuch"], "argument --interface: python-can cannot use 'nosuch'"),
     (["record", "--out", "r.log", "--interface", "virtual", "--poll", "get_nothing"], "argument --poll"),
     (["simulate", "--segments", "0"], "argument --segments"),
     (["simulate", "--radius", "0"], "argument --radius"),

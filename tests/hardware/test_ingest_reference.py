@@ -187,24 +187,32 @@ def test_duplicated_frames_are_dropped_and_counted(tmp_path, capsys):
     assert f"dropped {len(lines)} duplicate frame(s)" in capsys.readouterr().out
 
 
-def test_sign_slip_and_wrong_links_are_early_errors(tmp_path, capsys):
+def test_hip_height_sign_slip_is_an_early_error(tmp_path, capsys):
     write_log(tmp_path / "t.log")
     rc, out = ingest(tmp_path, [tmp_path / "t.log"], "--hip-height", "-0.25")
     assert rc == 2 and not out.exists()
     assert "argument --hip-height" in capsys.readouterr().err
+
+
+def test_wrong_link_lengths_are_early_errors(tmp_path, capsys):
+    write_log(tmp_path / "t.log")
     for links, hint in ((("0.10", "0.20"), "never touches the sand"), (("0.2", "0.45"), "deeper than max_depth")):
         rc, out = ingest(tmp_path, [tmp_path / "t.log"], "--l1", links[0], "--l2", links[1])
         err = capsys.readouterr().err
         assert rc == 2 and not out.exists() and hint in err and "--l1/--l2" in err
 
 
-def test_reversed_and_short_trials(tmp_path, capsys):
+def test_reversed_trial_is_an_error(tmp_path, capsys):
     write_log(tmp_path / "a.log")
     write_log(tmp_path / "rev.log", reverse=True)
-    write_log(tmp_path / "short.log", t_end=1.2)
     rc, out = ingest(tmp_path, [tmp_path / "a.log", tmp_path / "rev.log"])
     err = capsys.readouterr().err
     assert rc == 2 and not out.exists() and "other direction" in err and "rev.log" in err
+
+
+def test_short_trial_is_an_error_or_cropped(tmp_path, capsys):
+    write_log(tmp_path / "a.log")
+    write_log(tmp_path / "short.log", t_end=1.2)
     rc, out = ingest(tmp_path, [tmp_path / "a.log", tmp_path / "short.log"])
     err = capsys.readouterr().err
     assert rc == 2 and "covers 0.120 m of the 0.200 m path (60 %" in err and "short.log" in err
