@@ -1,6 +1,7 @@
 """Logs, the signal pipeline and the simulated leg, end to end."""
 
 import math
+import struct
 import threading
 
 import can
@@ -11,6 +12,7 @@ import torch
 import irft_torch as irft
 from irft_torch.hardware import (
     FakeODrive,
+    FiveBarLeg,
     LogReadError,
     SimulatedLeg,
     average_trials,
@@ -208,4 +210,55 @@ def test_bad_inputs(tmp_path):
         read_log(tmp_path / "missing.log", on_error="ignore")
     with pytest.raises(ValueError, match="window"):
         zero_phase_filter(None, window=0)
-    _ = math.pi
+
+
+def test_read_log_nodes_filter_counts_the_rest(tmp_path):
+    path = tmp_path / "three.log"
+    with can.Logger(str(path)) as log:
+        for k in range(10):
+            for node in (0, 1, 2):
+                log.on_message_received(encode("get_iq", node, timestamp=1e9 + k / 100, iq_setpoint=0,
+                                               iq_measured=10 * node + k))
+    data = read_log(path, nodes={0, 2})
+    assert sorted(data.motors) == [0, 2] and data.skipped["node not requested"] == 10
+    assert data.motors[2].arrays("iq")[1][:, 1].tolist() == [20.0 + k for k in range(10)]
+    assert "skipped 10 frame(s): node not requested" in data.issues
+
+
+def test_firmware_06_torques_and_heartbeats(tmp_path):
+    """0.6.x: Get_Torques (0x1C, f32 target, f32 estimate in N m) is read into the "torque" group;
+    read as 0.5.x, 0x1C is not a known command and the frames are skipped as unknown ids."""
+    path = tmp_path / "fw06.log"
+    lines = []
+    for k in range(5):
+        t = 1e9 + k / 100
+        data = struct.pack("<ff", 0.5 * k, -0.25 * k)
+        lines.append(f"({t:.6f}) can0 {1 << 5 | 0x1C:03X}#{data.hex().upper()}")
+        hb = bytes([0, 0, 0, 0, 8, 0, 1, 0])  # u32 error, state 8, procedure result 0, trajectory done
+        lines.append(f"({t:.6f}) can0 {1 << 5 | 0x01:03X}#{hb.hex().upper()}")
+    path.write_text("\n".join(lines) + "\n")
+    data = read_log(path, firmware="0.6")
+    t, v = data.motors[1].arrays("torque")
+    assert data.issues == [] and v.tolist() == [[0.5 * k, -0.25 * k] for k in range(5)]
+    old = read_log(path, firmware="0.5")
+    assert old.motors == {} and sum(old.skipped.values()) == 5
+    assert any("unknown id" in i and "skipped 5" in i for i in old.issues)
+    with pytest.raises(ValueError, match="firmware"):
+        read_log(path, firmware="0.4")
+
+
+def test_toe_path_heading():
+    """Straight down at q = (g, -g), l1 = 0.1, l2 = 0.2, g = pi/3: distal link 1 runs from the knee
+    at (l1 sin g, -l1 cos g) to the toe (0, -L), tilted clockwise from straight down by
+    asin(l1 sin g / l2) = asin(0.4330127) = 0.4478324 rad; link 2 is its mirror image."""
+    leg = FiveBarLeg(0.1, 0.2)
+    g = math.pi / 3
+    q = torch.tensor([[g, -g], [g, -g]], dtype=torch.float64)
+    t = torch.tensor([0.0, 0.1], dtype=torch.float64)
+    assert leg.toe_path(t, q, heading="link1").heading.tolist() == pytest.approx([-0.4478324] * 2, abs=1e-7)
+    assert leg.toe_path(t, q, heading="link2").heading.tolist() == pytest.approx([0.4478324] * 2, abs=1e-7)
+    p = leg.toe_path(t, q, heading=0.3, hip_height=0.25)
+    assert p.heading.tolist() == [0.3, 0.3]
+    np.testing.assert_allclose(p.position.numpy(), [[0.0, 0.25 - 0.2302776]] * 2, atol=1e-7)
+    with pytest.raises(ValueError, match="heading must be a number or 'link1'/'link2'"):
+        leg.toe_path(t, q, heading="link3")
