@@ -86,6 +86,8 @@ def _validate(a) -> None:
             raise UsageError("--nodes", f"node ids must be in 0..{top}, got {bad}")
         if len(set(nodes)) != len(nodes):
             raise UsageError("--nodes", f"each motor needs its own node id, got {nodes}")
+    if ns.get("mit_master_id") is not None and not 0 <= a.mit_master_id <= 0x7FF:
+        raise UsageError("--mit-master-id", f"must be an 11-bit CAN id (0..2047), got {a.mit_master_id}")
     if ns.get("kt") is not None and ns.get("kv") is not None:
         raise UsageError("--kt", "give --kt or --kv (with --kt-convention), not both")
 
@@ -240,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cmd_reproduce(a) -> int:
     from .reproduce import StudySettings, run_study
 
+    _out_dir(a.out, "--out")  # before the study: a bad --out fails now
     settings = StudySettings.quick_settings() if a.quick else StudySettings()
     r = run_study(a.out, settings, progress=not a.no_progress)
     print(f"wrote tables, figures and report.md to {r['out_dir']}/ in {r['elapsed_s']:.0f} s")
@@ -343,7 +346,8 @@ def cmd_record(a) -> int:
     ids = stats.get("frames_by_id", {})
     if n == 0:
         print(f"irft record: warning: no controller answered on {a.interface} channel {a.channel!r} in "
-              f"{a.duration:g} s: check power, wiring, termination, the bit rate (--bitrate) and the node ids (--nodes)", file=sys.stderr)
+              f"{a.duration:g} s: check power, wiring, termination, the bit rate (--bitrate) and the node ids "
+              "(--nodes)", file=sys.stderr)
         return 1
     if a.protocol == "odrive":
         seen = {i >> 5 for i in ids}
@@ -441,7 +445,13 @@ def cmd_ingest(a) -> int:
         return t
 
     air_traces = [trace(p) for p in a.air]
-    air = average_trials(air_traces, path_tol=a.path_tol) if air_traces else None
+    try:
+        air = average_trials(air_traces, path_tol=a.path_tol) if air_traces else None
+    except ValueError as e:
+        msg = str(e)
+        for k, p in enumerate(a.air):
+            msg = msg.replace(f"trial {k} ", f"air run {k} ({p}) ")
+        raise ValueError(msg) from None
     trials = []
     for p in a.logs:
         t = trace(p)

@@ -122,6 +122,8 @@ def test_simulate_c_toe_opening(tmp_path, opening):
     (["record", "--out", "r.log", "--duration", "-1"], "argument --duration"),
     (["record", "--out", "r.log", "--interface", "nosuch"], "argument --interface: python-can cannot use 'nosuch'"),
     (["record", "--out", "r.log", "--interface", "virtual", "--poll", "get_nothing"], "argument --poll"),
+    (["reproduce", "--out", "AFILE"], "argument --out: AFILE exists and is a file"),
+    (["ingest", "LOG", "--out", "OUT", "--protocol", "mit", "--mit-master-id", "4096"], "argument --mit-master-id"),
     (["simulate", "--segments", "0"], "argument --segments"),
     (["simulate", "--radius", "0"], "argument --radius"),
     (["simulate", "--out", "ADIR"], "argument --out: ADIR.npz is a directory"),
