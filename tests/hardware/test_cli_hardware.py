@@ -142,3 +142,60 @@ def test_record_help_exits_zero():
     with pytest.raises(SystemExit) as e:
         main(["record", "--help"])
     assert e.value.code == 0
+
+
+def test_record_mit_mode_listens_and_ingest_reads_it(tmp_path, capsys):
+    """MIT mode: record sends nothing (a poll would be a command) and logs the motors' replies; the
+    values come back through read_log as sent (AK80-9 codes, within one code)."""
+    from irft_torch.hardware import encode_mit_reply
+
+    stop = threading.Event()
+    sent = []
+    motor_bus = can.Bus(channel="irft-mit-rec", interface="virtual")
+    heard = []
+
+    def motors():
+        k = 0
+        while not stop.is_set():
+            for node, pos in ((1, 0.5), (2, -0.5)):
+                motor_bus.send(encode_mit_reply(node, pos + 0.001 * k, 0.0, 1.0 * node))
+                sent.append(node)
+            while (m := motor_bus.recv(timeout=0)) is not None:
+                heard.append(m)
+            k += 1
+            stop.wait(0.005)
+
+    th = threading.Thread(target=motors, daemon=True)
+    th.start()
+    try:
+        rc = main(["record", "--interface", "virtual", "--channel", "irft-mit-rec", "--protocol", "mit",
+                   "--out", str(tmp_path / "m.log"), "--duration", "0.2"])
+    finally:
+        stop.set()
+        th.join(1.0)
+        motor_bus.shutdown()
+    out = capsys.readouterr().out
+    assert rc == 0 and "listening only" in out and heard == []  # nothing was sent to the motors
+    data = read_log(tmp_path / "m.log", protocol="mit", mit_model="AK80-9")
+    for node, torque in ((1, 1.0), (2, 2.0)):
+        _, enc = data.motors[node].arrays("encoder")
+        _, tq = data.motors[node].arrays("torque")
+        assert len(tq) >= 5 and np.allclose(tq[:, 1], torque, atol=36 / 4095)
+        assert np.all(np.abs(np.diff(enc[:, 0] * 2 * np.pi) - 0.001) < 0.0015)
+
+
+def test_record_simulate_several_trials_then_ingest(tmp_path, capsys):
+    rc = main(["record", "--simulate", "--trials", "2", "--out", str(tmp_path / "t.blf"), "--toe", "I", "--length",
+               "0.04", "--path", "rectangle", "--shear", "0.04", "--penetration", "0.02", "--extraction", "0.02",
+               "--rate", "40", "--current-noise", "0.05", "--seed", "3"])
+    assert rc == 0
+    names = [tmp_path / "t_1.blf", tmp_path / "t_2.blf", tmp_path / "t_air.blf"]
+    assert all(p.stat().st_size > 200 for p in names)
+    capsys.readouterr()
+    rc = main(["ingest", str(names[0]), str(names[1]), "--air", str(names[2]), "--out", str(tmp_path / "ds.npz"),
+               "--toe", "I", "--length", "0.04"])
+    assert rc == 0, capsys.readouterr().err
+    ds = load_dataset(tmp_path / "ds.npz")
+    # the plate at 2 cm: F_z = 0.375 x 2 x 3.2 = 2.4 N while dragged (two noisy trials averaged)
+    deep = ((ds.toe_position[:, 1] + 0.02).abs() < 1e-4).numpy()
+    assert deep.sum() > 10 and abs(float(ds.forces[deep, 1].mean()) - 2.4) < 0.1
