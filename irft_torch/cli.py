@@ -41,10 +41,10 @@ def _opt(dest: str) -> str:
 
 # dest -> (check, what is expected); applied to every command's parsed arguments that have it
 _POSITIVE = ("duration", "rate", "l1", "l2", "kt", "kv", "gear_ratio", "max_condition", "radius", "length", "width",
-             "speed", "lr", "max_current", "max_torque", "max_depth", "shear", "scale_x", "scale_z",
-             "mit_p_max", "mit_v_max", "mit_t_max", "penetration", "extraction")
+             "speed", "lr", "max_current", "max_torque", "max_depth", "scale_x", "scale_z",
+             "mit_p_max", "mit_v_max", "mit_t_max", "path_tol")
 _POSITIVE_INT = ("segments", "n_steps", "filter_window", "n_iter", "bitrate", "trials")
-_NONNEG = ("hip_spacing", "current_noise", "friction", "cogging")
+_NONNEG = ("hip_spacing", "current_noise", "friction", "cogging", "penetration", "shear", "extraction")
 
 
 def _validate(a) -> None:
