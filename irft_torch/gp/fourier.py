@@ -62,40 +62,44 @@ def _analysis(n: int, x: Tensor) -> Tensor:
     return psi.mT * scale[:, None]
 
 
-def _grid_size(n: int) -> int:
-    return max(65, 4 * n + 9) | 1  # odd, and enough points that aliasing is negligible
+GRID = 4 * MAX_HARMONICS + 9  # odd; every basis reads its coefficients off this one grid (nested bases)
 
 
 def factor_coefficients(ls: Tensor, n: int) -> Tensor:
     """C_n (..., 2n+1, 2n+1): Fourier coefficients of the factor kernel with lengthscales ls (..., 2)
-    = (l_sin, l_cos); differentiable in ls."""
-    x = _grid(_grid_size(n), ls.dtype, ls.device)
+    = (l_sin, l_cos), from the GRID-point periodic grid; differentiable in ls. The C_n of smaller n
+    are leading blocks of larger ones."""
+    x = _grid(GRID, ls.dtype, ls.device)
     B = _analysis(n, x)
     C = B @ _factor_matrix(ls, x) @ B.mT
     return 0.5 * (C + C.mT)
 
 
-def factor_truncation_error(ls: Tensor, n: int) -> Tensor:
-    """e_n (...,): max over a fine grid of k(x, x) - psi_n(x)^T C_n psi_n(x) (>= 0 up to round-off)."""
+def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
+    """e_n for n = 0..n_max at once (..., n_max + 1): max over the grid and the points between its
+    nodes of k(x, x) - psi_n(x)^T C_n psi_n(x) (>= 0 up to round-off; an orthogonal projection)."""
     with torch.no_grad():
-        x = _grid(_grid_size(n), ls.dtype, ls.device)
-        C = factor_coefficients(ls, n)
-        xm = x + math.pi / x.shape[0]  # between the grid's points as well
-        psi = fourier_features(torch.cat([x, xm]), n)
-        kk = ((psi @ C) * psi).sum(-1)
-        return (1 - kk).abs().amax(-1)
+        C = factor_coefficients(ls, n_max)  # (..., F, F)
+        x = _grid(GRID, ls.dtype, ls.device)
+        psi = fourier_features(torch.cat([x, x + math.pi / GRID]), n_max)  # (P, F)
+        terms = psi[:, :, None] * C[..., None, :, :] * psi[:, None, :]  # (..., P, F, F)
+        sizes = torch.arange(n_max + 1, device=ls.device) * 2 + 1
+        cum = terms.cumsum(-1).cumsum(-2)  # 2-D prefix sums: the leading blocks' quadratic forms
+        kk = cum[..., sizes - 1, sizes - 1]  # (..., P, n_max + 1)
+        return (1 - kk).abs().amax(-2)
+
+
+def factor_truncation_error(ls: Tensor, n: int) -> Tensor:
+    """e_n (...,) for one n (see ``truncation_errors``)."""
+    return truncation_errors(ls, max(n, 1))[..., n]
 
 
 def harmonics_for(ls: Tensor, tol: float, n_max: int = MAX_HARMONICS) -> tuple[int, float]:
-    """Smallest n with factor_truncation_error(ls, n) <= tol for every batch entry (capped at n_max):
-    (n, the error reached)."""
-    lo_err = None
-    for n in range(1, n_max + 1):
-        err = float(factor_truncation_error(ls, n).max())
-        lo_err = err
-        if err <= tol:
-            return n, err
-    return n_max, lo_err
+    """Smallest n with e_n <= tol for every batch entry (capped at n_max): (n, the error reached)."""
+    e = truncation_errors(ls, n_max).reshape(-1, n_max + 1).amax(0)
+    ok = (e <= tol).nonzero()
+    n = int(ok[0]) if ok.numel() else n_max
+    return max(n, 1), float(e[max(n, 1)])
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,8 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
+from .backends.pairs import distinct_pairs
+from .backends.select import estimated_costs
 from .hyperparameters import RFTHyperparameters
 
 __all__ = ["Posterior", "InverseRFT", "ModelFileError", "FILE_FORMAT", "FILE_VERSION"]
@@ -201,6 +203,7 @@ class InverseRFT(nn.Module):
             self.hypers.outputscale = (resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300)).clamp_min(1e-6)
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+        self.auto = method == "auto"
         self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol)
         self.register_buffer("data_digest", self._data_digest_tensor(), persistent=True)
         self.loss_history: list[float] = []
@@ -271,8 +274,7 @@ class InverseRFT(nn.Module):
         history: list[float] = []
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
-        fitting = self.backend.fitting()
-        fitting.__enter__()
+        self.backend.in_fit = True
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
@@ -280,8 +282,8 @@ class InverseRFT(nn.Module):
                 loss.backward()
                 opt.step()
                 history.append(loss.item())
-                if step % 10 == 9:
-                    self.backend.refresh()
+                if step % 10 == 9 and self.backend.refresh() and self.auto:
+                    self._rechoose()
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
             self.backend.refresh()
@@ -293,11 +295,24 @@ class InverseRFT(nn.Module):
                 f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64."
             ) from e
         finally:
-            fitting.__exit__(None, None, None)
+            self.backend.in_fit = False
             bar.close()
             self.eval()
         self.loss_history.extend(history)
         return history
+
+    def _rechoose(self) -> None:
+        """With ``method="auto"``: after the hyperparameters moved (e.g. the spectral basis grew), move
+        to another backend if it is now less than half as costly. The hyperparameters are shared, so
+        nothing is lost."""
+        if getattr(self, "_n_pairs", None) is None:
+            self._n_pairs = distinct_pairs(self.train_contacts)[0].shape[0]
+        costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._n_pairs)
+        best = min(costs, key=costs.get)
+        if best != self.method and costs[best] < 0.5 * costs[self.method]:
+            self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
+                                        solver=self.solver, tol=self.tol)
+            self.backend.in_fit = True
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
@@ -311,6 +326,7 @@ class InverseRFT(nn.Module):
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
         self.backend.add_data(c, f)
+        self._n_pairs = None
         self.noise_scale = torch.cat([self.noise_scale, scale])
         self.train_contacts = Contacts.cat([self.train_contacts, c])
         self.train_forces = torch.cat([self.train_forces, f])

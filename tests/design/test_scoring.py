@@ -1,6 +1,6 @@
-"""Active probing: information gain and integrated variance against a dense reference (explicit W,
-explicit K, torch Cholesky), for a fitted model and for the prior, on both forms of the belief;
-conditioning, greedy design (the chain rule of information), and gradients."""
+"""Probe scoring: information gain and integrated variance against a dense reference (explicit W,
+explicit K, torch Cholesky), for a fitted model on every backend and for the prior; heteroscedastic
+candidates; conditioning, greedy design (the chain rule of information), and gradients."""
 
 import math
 
@@ -8,12 +8,13 @@ import pytest
 import torch
 
 import irft_torch as irft
-from irft_torch.gp.active_probing import ProbeScorer, Region, greedy_design
-from irft_torch.gp.grid import AngleGrid
+from irft_torch.design import ProbeScorer, Region, greedy_design
 from irft_torch.rft import Contacts, FourierStressMap
 
-from .dense_reference import W_dense, k_dense
-from .test_model_vs_dense import random_contacts, set_hypers
+from gp.dense_reference import W_dense, k_dense
+from gp.test_backends_vs_dense import random_contacts, set_hypers
+
+TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
 
 
 def angles(c):
@@ -63,28 +64,36 @@ def iv_dense(covs, noise, os, region, n_cand):
 
 
 def hypers(model):
-    return (model.kernel.lengthscale.detach(), model.kernel.outputscale.detach(), model.likelihood.noise.detach())
+    return (model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach())
 
 
-@pytest.fixture
-def model():
-    c = random_contacts(T=20, M=3, seed=21)
-    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method="exact")
+def fitted(method="observations"):
+    c = random_contacts(T=20, M=3, seed=21, repeated=(method == "pairs"))
+    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method=method)
     set_hypers(m, seed=3)
     return m
 
 
-def test_exact_information_gain_and_integrated_variance_match_dense(model):
+@pytest.fixture
+def model():
+    return fitted()
+
+
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+def test_information_gain_and_integrated_variance_match_dense(method):
+    model = fitted(method)
+    tol = TOL[method]
     ls, os, noise = hypers(model)
-    scorer = ProbeScorer.from_model(model, method="exact")
+    scorer = ProbeScorer.from_model(model)
+    assert scorer.method == method
     cand = random_contacts(T=8, M=4, seed=22)  # more segments than the training rows: no padding needed
     want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand]), noise)
-    assert scorer.information_gain(cand).item() == pytest.approx(want.item(), rel=1e-8)
+    assert scorer.information_gain(cand).item() == pytest.approx(want.item(), rel=tol)
     for region in (Region.square(5), Region.sign_change(6)):
         covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
         now, after = iv_dense(covs, noise, os, region, len(cand))
-        assert scorer.integrated_variance(region=region).item() == pytest.approx(now.item(), rel=1e-8)
-        assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
+        assert scorer.integrated_variance(region=region).item() == pytest.approx(now.item(), rel=tol)
+        assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=tol)
         assert after < now
         # per map: the x map is seen only through F_x, so its share uses only the x block
         n = region.beta.numel()
@@ -94,13 +103,42 @@ def test_exact_information_gain_and_integrated_variance_match_dense(model):
             kx @ torch.linalg.solve(Sx[n:, n:] + noise[0] * torch.eye(len(cand)), kx.T))
         after_x = (region.weight * post_x).sum() / os[0]
         per = scorer.integrated_variance(cand, region, per_axis=True)
-        assert per.shape == (2,) and per[0].item() == pytest.approx(after_x.item(), rel=1e-8)
-        assert per.sum().item() == pytest.approx(after.item(), rel=1e-12)
+        assert per.shape == (2,) and per[0].item() == pytest.approx(after_x.item(), rel=tol)
+        assert per.sum().item() == pytest.approx(after.item(), rel=tol)
     cov_x = dense_cov(ls, os, noise, model.train_contacts, [cand])[0]
     eig_x = 0.5 * torch.logdet(torch.eye(len(cand)) + cov_x / noise[0])
-    assert scorer.information_gain(cand, per_axis=True)[0].item() == pytest.approx(eig_x.item(), rel=1e-8)
-    torch.testing.assert_close(scorer.covariance(cand), torch.stack(dense_cov(ls, os, noise, model.train_contacts,
-                                                                              [cand])), rtol=1e-8, atol=1e-12)
+    assert scorer.information_gain(cand, per_axis=True)[0].item() == pytest.approx(eig_x.item(), rel=tol)
+    want = torch.stack(dense_cov(ls, os, noise, model.train_contacts, [cand]))
+    torch.testing.assert_close(scorer.covariance(cand), want, rtol=tol, atol=tol * want.abs().max().item())
+
+
+def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
+    """A candidate sample t with noise scale s_t has noise variance sigma^2 s_t^2: the scores equal a
+    dense computation with S + sigma^2 diag(s^2) (the bug: candidates were scored with unit noise)."""
+    model = fitted()
+    ls, os, noise = hypers(model)
+    cand = random_contacts(T=6, M=3, seed=24)
+    s = 0.3 + 2 * torch.rand(6, 2, generator=torch.Generator().manual_seed(1))
+    scorer = ProbeScorer.from_model(model, noise_scale=lambda c: s)
+    region = Region.square(5)
+    covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
+    n = region.beta.numel()
+    eig = after = 0.0
+    for a, S in enumerate(covs):
+        N = noise[a] * torch.diag(s[:, a] ** 2)
+        Sc = S[n:, n:]
+        eig = eig + 0.5 * torch.logdet(torch.eye(6) + torch.linalg.solve(N, Sc))
+        k = S[:n, n:]
+        post = torch.diagonal(S[:n, :n]) - torch.diagonal(k @ torch.linalg.solve(Sc + N, k.T))
+        after = after + (region.weight * post).sum() / os[a]
+    assert scorer.information_gain(cand).item() == pytest.approx(eig.item(), rel=1e-8)
+    assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
+    plain = ProbeScorer.from_model(model).information_gain(cand).item()
+    assert abs(plain - eig.item()) > 1e-3  # the scale matters
+    with pytest.warns(UserWarning, match="noise_scale"):
+        heavy = irft.InverseRFT(model.train_contacts, irft.rft.forces(FourierStressMap.generic(), model.train_contacts),
+                                noise_scale=torch.full((20,), 2.0))
+        ProbeScorer.from_model(heavy)
 
 
 def test_prior_scorer_matches_dense():
@@ -124,7 +162,7 @@ def test_conditioning_equals_refitting_with_the_probe_and_leaves_the_model_alone
     both = Contacts.cat([model.train_contacts, c1])
     want = eig_dense(dense_cov(ls, os, noise, both, [c2]), noise)
     assert after.information_gain(c2).item() == pytest.approx(want.item(), rel=1e-8)
-    assert len(model.train_contacts) == 20 and len(scorer._belief.train) == 20
+    assert len(model.train_contacts) == 20 and scorer.backend.n_samples == 20
     # from the prior too: conditioning the prior on data is the posterior given that data
     prior = ProbeScorer.prior(ls, os, noise).condition(model.train_contacts)
     assert prior.information_gain(c2).item() == pytest.approx(scorer.information_gain(c2).item(), rel=1e-8)
@@ -146,62 +184,20 @@ def test_greedy_information_adds_up_to_the_joint_information(model):
     assert ivs[0] > ivs[1] > ivs[2]
 
 
-def test_grid_form_matches_dense_posterior_at_the_nodes(model):
-    """On an exact model, the grid form is the exact posterior at the nodes read by interpolation."""
-    ls, os, noise = hypers(model)
-    grid = AngleGrid(8, 7)
-    scorer = ProbeScorer.from_model(model, method="grid", grid_size=(8, 7))
-    b, g = grid.nodes()
-    B, G = torch.meshgrid(b, g, indexing="ij")
-
-    def phi(c):  # dense interpolation rows from the (separately tested) bilinear weights
-        idx, w = grid.interpolation(c.beta, c.gamma)
-        T = idx.shape[0]
-        out = torch.zeros(2, T, grid.size)
-        for a, wt in enumerate((c.weight_x, c.weight_z)):
-            out[a] = out[a].scatter_add(1, idx.reshape(T, -1), (wt[..., None] * w).reshape(T, -1))
-        return out
-
-    interp = {"nodes": torch.stack([B.reshape(-1), G.reshape(-1)], -1), "phi": phi}
-    cand = random_contacts(T=6, M=3, seed=60)
-    region = Region.square(4)
-    covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand], interp)
-    now, after = iv_dense(covs, noise, os, region, len(cand))
-    assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
-    want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand], interp), noise)
-    assert scorer.information_gain(cand).item() == pytest.approx(want.item(), rel=1e-8)
-
-
-def test_grid_model_scorer_is_the_grid_posterior():
-    """On the grid path the scorer's map variance is the model's own posterior variance."""
-    c = random_contacts(T=60, M=4, seed=70)
-    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method="grid", grid_size=(12, 10))
-    set_hypers(m, seed=4)
-    m.grid_model._cache = None
-    scorer = ProbeScorer.from_model(m)
-    assert scorer.method == "grid"
-    bq = torch.linspace(-1.5, 1.5, 7)
-    gq = torch.linspace(-1.4, 1.4, 7)
-    torch.testing.assert_close(scorer.map_variance(bq, gq), m.stress_map(bq, gq).variance, rtol=1e-9, atol=1e-12)
-    with pytest.raises(ValueError, match="no exact form"):
-        ProbeScorer.from_model(m, method="exact")
-
-
-def test_grid_and_exact_rank_probes_alike():
+def test_spectral_and_exact_scores_agree_on_probes():
     toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
     probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=60, seed=3)
     train = Contacts.cat([p.contacts() for p in probes[:2]])
-    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="exact")
-    ex = ProbeScorer.from_model(m, method="exact").score(probes[2:])
-    gr = ProbeScorer.from_model(m, method="grid").score(probes[2:])
-    torch.testing.assert_close(gr, ex, rtol=0.02, atol=0)
-    assert int(torch.argmin(gr)) == int(torch.argmin(ex))
-    ranks = lambda v: torch.argsort(torch.argsort(v)).double()  # noqa: E731
-    rho = torch.corrcoef(torch.stack([ranks(ex), ranks(gr)]))[0, 1]
-    assert rho > 0.9
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="observations")
+    ex = ProbeScorer.from_model(m, method="observations").score(probes[2:])
+    sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:])
+    torch.testing.assert_close(sp, ex, rtol=1e-6, atol=0)
+    eig_ex = ProbeScorer.from_model(m, method="observations").score(probes[2:5], "eig")
+    eig_sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:5], "eig")
+    torch.testing.assert_close(eig_sp, eig_ex, rtol=1e-6, atol=0)
 
 
-@pytest.mark.parametrize("method", ["exact", "grid"])
+@pytest.mark.parametrize("method", ["exact", "spectral"])
 def test_scores_are_differentiable_in_the_path(method):
     """d IV / d course knot against central finite differences, through path -> contacts -> score."""
     scorer = ProbeScorer.prior(0.8, (0.05, 0.1), (0.02, 0.05), method=method)

@@ -17,7 +17,6 @@ in whatever space is smallest, and answers four questions:
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass
 
@@ -65,6 +64,7 @@ class RFTBackend(nn.Module):
         super().__init__()
         self.hypers = hypers
         self.n_samples = len(contacts)
+        self.in_fit = False  # set by a fit loop that calls ``refresh`` itself every few steps
 
     # ---- to implement ------------------------------------------------------------------------
     def negative_log_likelihood(self) -> Tensor:
@@ -97,16 +97,6 @@ class RFTBackend(nn.Module):
         for _, module, prior, closure, _ in self.hypers.named_priors():
             total = total + prior.log_prob(closure(module)).sum()
         return total
-
-    @contextlib.contextmanager
-    def fitting(self):
-        """Inside a fit loop: the caller calls ``refresh`` itself (every few steps), so per-step
-        checks are skipped."""
-        old, self._in_fit = getattr(self, "_in_fit", False), True
-        try:
-            yield self
-        finally:
-            self._in_fit = old
 
     def refresh(self) -> bool:
         """Called during fitting: adapt to the current hyperparameters if needed (the spectral basis

@@ -17,7 +17,7 @@ N_ITER = 300  # Adam steps the one-time costs are spread over
 SPECTRAL_PENALTY = 1.5  # prefer the arithmetic-exact spaces when costs are close
 
 
-def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7) -> dict[str, float]:
+def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int | None = None) -> dict[str, float]:
     """Rough flop counts of a fit (N_ITER likelihood + gradient steps and the one-time work) in each space.
 
     T: samples in contact, U: distinct angle pairs, S: segments in contact, F: Fourier features for the
@@ -29,7 +29,7 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7) -> dict[str, 
     rows = touching(contacts)
     T = int(rows.sum())
     S = int(((contacts.weight_x != 0) | (contacts.weight_z != 0)).sum())
-    U = distinct_pairs(contacts)[0].shape[0]
+    U = distinct_pairs(contacts)[0].shape[0] if n_pairs is None else int(n_pairs)
     basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
     F, (Fb, Fg) = basis.size, basis.sizes
     obs = T**3 / 3 + 40.0 * S * min(U, S)

@@ -74,16 +74,32 @@ class SpectralBackend(WeightSpaceBackend):
                                  self._same_gram(part))
         return stats
 
+    def _rows(self):
+        if not self._data:
+            return None
+        c = Contacts.cat([d[0] for d in self._data])
+        y = torch.cat([d[1] for d in self._data]).T
+        with torch.no_grad():
+            g = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
+            return self.features(c), y, g
+
     def _meta(self) -> dict:
         return {"space": "spectral", "n_beta": self.basis.n_beta, "n_gamma": self.basis.n_gamma}
 
     # ---- the weight-space pieces ------------------------------------------------------------
     def _sigma_factors(self, detach: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        """Sigma_beta (2, Fb, Fb), Sigma_gamma (2, Fg, Fg), s (2,); the detached ones are cached
+        while the hyperparameters and the basis stay the same (queries)."""
         ls, s = self.hypers.lengthscale, self.hypers.outputscale
-        if detach:
-            ls, s = ls.detach(), s.detach()
-        Sb, Sg = self.basis.coefficients(ls)
-        return Sb, Sg, s
+        if not detach:
+            return (*self.basis.coefficients(ls), s)
+        key = self._hyper_key()
+        hit = self.__dict__.get("_sigma_cache")
+        if hit is None or hit[1] != self.basis or not torch.equal(hit[0], key):
+            with torch.no_grad():
+                hit = (key, self.basis, (*self.basis.coefficients(ls.detach()), s.detach()))
+            self._sigma_cache = hit
+        return hit[2]
 
     def _kron(self, X: Tensor, Sb: Tensor, Sg: Tensor, s: Tensor) -> Tensor:
         """X (2, k, F) -> X (s Sb kron Sg) (2, k, F), without forming the Kronecker product."""
@@ -117,7 +133,7 @@ class SpectralBackend(WeightSpaceBackend):
             self._basis_key = key
 
     def negative_log_likelihood(self) -> Tensor:
-        if not getattr(self, "_in_fit", False):
+        if not self.in_fit:
             self._ensure_basis()
         return super().negative_log_likelihood()
 
@@ -147,6 +163,8 @@ class SpectralBackend(WeightSpaceBackend):
     def refresh(self) -> bool:
         """Grow the basis if the current lengthscales need more harmonics than it has for ``tol``
         (recomputing the statistics from the kept data). Returns whether it grew."""
+        if bool((self.truncation_error() <= self.tol).all()):  # the cheap check: the current basis only
+            return False
         need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
         if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:
             return False

@@ -140,6 +140,25 @@ def data_factor(stats: FeatureStatistics, dtype) -> _DataFactor:
     return _DataFactor(R.to(dtype), c_y.to(dtype), c_g.to(dtype), rho.to(dtype), keep.sum(-1))
 
 
+def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype) -> _DataFactor:
+    """The same factor from the rows themselves, Phi (2, T, F) = U S V^T (thin SVD, float64): R = S V^T,
+    c = U^T y. Cheaper than the eigendecomposition of P when T < F, and better conditioned."""
+    Phi, y = Phi.double(), y.double()
+    U, S, Vh = torch.linalg.svd(Phi, full_matrices=False)
+    tol = Phi.shape[-1] * torch.finfo(torch.float64).eps * 10 * S[..., :1].pow(2).clamp_min(1e-300)
+    keep = S.pow(2) > tol
+    S = torch.where(keep, S, torch.zeros_like(S))
+    R = S[..., :, None] * Vh
+    c_y = torch.where(keep, (U.mT @ y[..., None])[..., 0], torch.zeros_like(S))
+    g = torch.zeros_like(y) if g is None else g.double()
+    c_g = torch.where(keep, (U.mT @ g[..., None])[..., 0], torch.zeros_like(S))
+    rho = torch.stack([y.pow(2).sum(-1) - c_y.pow(2).sum(-1), (y * g).sum(-1) - (c_y * c_g).sum(-1),
+                       g.pow(2).sum(-1) - c_g.pow(2).sum(-1)], -1)
+    rho[..., 0] = rho[..., 0].clamp_min(0)
+    rho[..., 2] = rho[..., 2].clamp_min(0)
+    return _DataFactor(R.to(dtype), c_y.to(dtype), c_g.to(dtype), rho.to(dtype), keep.sum(-1))
+
+
 class WeightSpaceBackend(RFTBackend):
     """Shared algebra of the weight-space backends. Subclasses provide the features and Sigma:
 
@@ -166,8 +185,14 @@ class WeightSpaceBackend(RFTBackend):
     def _factor(self) -> _DataFactor:
         if self._data_factor is None:
             dtype = self.hypers.kernel.raw_outputscale.dtype
-            self._data_factor = data_factor(self.stats, dtype)
+            rows = self._rows() if 0 < self.stats.n <= self.stats.n_features else None
+            self._data_factor = data_factor(self.stats, dtype) if rows is None else data_factor_from_rows(*rows, dtype)
         return self._data_factor
+
+    def _rows(self) -> tuple[Tensor, Tensor, Tensor | None] | None:
+        """The feature rows Phi (2, T, F), forces y (2, T) and mean shape g (2, T) or None, when the
+        backend keeps its data (used when T <= F); None otherwise."""
+        return None
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         raise NotImplementedError
