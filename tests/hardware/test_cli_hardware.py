@@ -8,6 +8,7 @@ import can
 import matplotlib.image
 import numpy as np
 import pytest
+import torch
 
 import irft_torch as irft
 from irft_torch.cli import main
@@ -64,8 +65,10 @@ def test_record_simulate_ingest_fit(tmp_path, capsys):
         img = matplotlib.image.imread(tmp_path / "fit" / f)
         assert img.shape[0] > 200 and img.shape[1] > 200 and img.std() > 0.01  # a drawn figure, not blank
     model = irft.InverseRFT.load(tmp_path / "fit" / "model.pt")
-    pred = model.predict_forces(ds.contacts[:5]).mean
-    assert pred.shape == (5, 2) and bool((pred - ds.forces[:5]).abs().max() < 5.0)
+    idx = torch.as_tensor(np.nonzero(deep)[0][::10])
+    pred = model.predict_forces(ds.contacts[idx]).mean
+    # the fitted model reproduces the drag and lift it was trained on (a zero map is 2.7 / 9 N off)
+    assert pred.shape == (len(idx), 2) and bool(((pred - torch.tensor(F)).abs() < 1.0).all()), pred
 
 
 def test_ingest_truncated_log_is_a_clear_error(tmp_path, capsys):
