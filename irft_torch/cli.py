@@ -590,7 +590,9 @@ def _register_hardware(sub) -> None:
     g.add_argument("--mit-p-max", type=float, help="override: position range +-, rad")
     g.add_argument("--mit-v-max", type=float, help="override: velocity range +-, rad/s")
     g.add_argument("--mit-t-max", type=float, help="override: torque (N m) or current (A) range +-")
-    g.add_argument("--mit-quantity", choices=["torque", "current"], help="override: what the 12-bit field carries")
+    g.add_argument("--mit-quantity", choices=["torque", "current"],
+                   help="override: what the 12-bit field carries (current: give --kt as output-side N m per A, "
+                        "i.e. gear ratio x k_t, and keep --gear-ratio 1: MIT positions are output-side)")
     p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
     p.add_argument("--filter-window", type=int, default=5, help="zero-phase moving average, samples (default 5)")
     p.add_argument("--on-error", choices=["raise", "warn"], default="raise",

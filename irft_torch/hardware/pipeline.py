@@ -55,15 +55,18 @@ class ForceTrace:
 
 
 def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel, MotorModel]) -> ForceTrace:
-    """tau = k_t I per motor (or the reported output torque, signed by each motor's ``direction``,
-    when the log carries torques), q from the encoders, F = -J^-T tau (singular samples masked).
+    """tau = k_t I per motor (or, when the log carries torques, direction x gear_ratio x the reported
+    torque: ODrive Get_Torques is motor-side; MIT-mode replies are output-side, so use gear_ratio 1
+    there, as for their output-side positions), q from the encoders, F = -J^-T tau (singular
+    samples masked).
     Samples whose joint angles the leg cannot reach (wrong link lengths, offsets) are masked and
     counted; if none is reachable this raises ValueError naming the leg options."""
     q = torch.stack([motors[i].joint_angle(torch.as_tensor(log.position[:, i])) for i in range(2)], -1)
     if log.iq is not None:
         tau = torch.stack([motors[i].torque(torch.as_tensor(log.iq[:, i])) for i in range(2)], -1)
     elif log.torque is not None:
-        tau = torch.stack([motors[i].direction * torch.as_tensor(log.torque[:, i]) for i in range(2)], -1)
+        tau = torch.stack([motors[i].direction * motors[i].gear_ratio * torch.as_tensor(log.torque[:, i])
+                           for i in range(2)], -1)
     else:
         raise ValueError("the log carries neither currents nor torques")
     toe = leg.forward_kinematics(q)

@@ -42,7 +42,7 @@ def candump(t, arb, data):
 
 def write_log(path, *, l1=0.15, l2=0.30, hip_height=0.25, kt=0.0973, directions=(1, 1), offsets=(0.0, 0.0),
               gear=1.0, spacing=0.0, nodes=(0, 1), reverse=False, t_end=T_END, protocol="odrive", t0=1.7e9,
-              spike=None):
+              spike=None, torques=False):
     """Encoder and Get_Iq frames (or MIT replies) for the prescribed path and force, by hand."""
     lines = []
     n = int(round(t_end * RATE)) + 1
@@ -68,6 +68,10 @@ def write_log(path, *, l1=0.15, l2=0.30, hip_height=0.25, kt=0.0973, directions=
             if spike is not None and spike == (k, i):
                 current = 1e6
             lines.append(candump(t0 + t, node << 5 | 0x09, struct.pack("<ff", turns, 0.0)))
+            if torques:  # firmware 0.6 Get_Torques: motor-side torque, N m
+                motor_tau = tau[i] / (d * gear)
+                lines.append(candump(t0 + t, node << 5 | 0x1C, struct.pack("<ff", motor_tau, motor_tau)))
+                continue
             lines.append(candump(t0 + t, node << 5 | 0x14, struct.pack("<ff", current, current)))
     path.write_text("\n".join(lines) + "\n")
     return n
@@ -121,7 +125,8 @@ def test_ingest_recovers_prescribed_forces_and_path(tmp_path, capsys):
     assert "in contact 2.00 s (100 % of samples)" in text and "masked: none" in text
 
 
-@pytest.mark.parametrize("case", ["kv-odrive-gear-dir-offsets", "kv-si-links-hip", "hip-spacing", "nodes-0.6"])
+@pytest.mark.parametrize("case", ["kv-odrive-gear-dir-offsets", "kv-si-links-hip", "hip-spacing", "nodes-0.6",
+                                  "0.6-torques-gear"])
 def test_ingest_leg_and_motor_options(tmp_path, case, capsys):
     if case == "kv-odrive-gear-dir-offsets":
         write_log(tmp_path / "t.log", kt=8.27 / 100, directions=(-1, 1), offsets=(0.1, -0.2), gear=6.0)
@@ -134,6 +139,10 @@ def test_ingest_leg_and_motor_options(tmp_path, case, capsys):
     elif case == "hip-spacing":
         write_log(tmp_path / "t.log", spacing=0.06)
         args = ["--hip-spacing", "0.06"]
+        hh = 0.25
+    elif case == "0.6-torques-gear":  # Get_Torques instead of Get_Iq: no k_t involved
+        write_log(tmp_path / "t.log", torques=True, gear=6.0, directions=(1, -1))
+        args = ["--firmware", "0.6", "--gear-ratio", "6", "--directions", "1", "-1", "--kt", "5.0"]
         hh = 0.25
     else:  # other node ids, firmware 0.6 layouts (Get_Iq and encoder estimates are unchanged in 0.6)
         write_log(tmp_path / "t.log", nodes=(3, 5))
