@@ -317,12 +317,12 @@ def _blf_intact(raw: bytes, name: str) -> tuple[bytes, str | None]:
         n_obj += 1
     if p < len(inner) and fault is None:
         fault = f"{len(inner) - p} trailing bytes after the last complete object"
+    if fault is None and file_size in (0, header_size) and len(raw) > header_size:
+        fault = "the header was never finalized: the recording did not stop cleanly (all frames read)"
     if fault is None and file_size and file_size != len(raw):
         fault = f"the header says {file_size} bytes, the file has {len(raw)}"
     if fault is None and object_count and object_count != n_obj:
         fault = f"the header lists {object_count} objects, the file holds {n_obj}"
-    if fault is None and not file_size:
-        fault = "the header was never finalized (the recording did not stop cleanly)"
     body = bytes(inner[: min(p, len(inner))])
     obj_size = base.size + cont.size + len(body)
     rebuilt = (raw[:header_size] + base.pack(b"LOBJ", base.size, 1, obj_size, blf.LOG_CONTAINER)

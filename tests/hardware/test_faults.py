@@ -76,6 +76,16 @@ def test_blf_header_that_disagrees_with_the_file(tmp_path):
     (tmp_path / "c.blf").write_bytes(bytes(raw))
     with pytest.raises(LogReadError, match="the header lists 49 objects, the file holds 50"):
         read_log(tmp_path / "c.blf")
+    # a recording that never stopped (the writer's header still says 144 bytes): all frames kept, and said
+    w = can.BLFWriter(str(tmp_path / "u.blf"))
+    for k in range(30):
+        w.on_message_received(encode("get_iq", 0, timestamp=1.7e9 + k / 100, iq_setpoint=0, iq_measured=k))
+    w._flush()
+    w.file.flush()
+    with pytest.raises(LogReadError, match="never finalized: the recording did not stop cleanly") as e:
+        read_log(tmp_path / "u.blf")
+    assert e.value.partial.motors[0].arrays("iq")[1][:, 1].tolist() == list(range(30))
+    w.file.close()
     (tmp_path / "l.blf").write_bytes(p.read_bytes() + bytes(8))
     with pytest.raises(LogReadError, match="truncated inside container 1.*kept 50 sample"):  # 8 stray bytes
         read_log(tmp_path / "l.blf")
