@@ -44,7 +44,12 @@ _REQUIRED = ("time", "toeforce_x", "toeforce_y", "toe_position_x", "toe_position
 
 
 class TravelerLogError(ValueError):
-    """A Traveler log that cannot be read; the message names the file, the line and what was expected."""
+    """A Traveler log that cannot be read; the message names the file, the line and what was expected.
+    ``partial`` is the TravelerLog of the rows read before the fault (None if there were none)."""
+
+    def __init__(self, message: str, partial: TravelerLog | None = None) -> None:
+        super().__init__(message)
+        self.partial = partial
 
 
 def _number(text: str):
@@ -125,13 +130,15 @@ class TravelerLog:
 def read_traveler_log(path) -> TravelerLog:
     """Read a Traveler controller log (two protocol lines, a header, numeric rows).
 
-    Blank lines are ignored. Any other row that does not hold one number per column raises
-    ``TravelerLogError`` with its line number (nothing is dropped silently).
+    Blank lines are ignored. Any other row that does not hold one number per column, a non-finite
+    value, or a last line without a line end (a file cut mid-row) raises ``TravelerLogError`` with
+    its line number and ``partial`` = the rows before it (nothing is dropped silently).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no Traveler log at {path}")
-    lines = path.read_text().splitlines()
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    lines = text.splitlines()
     content = [(i + 1, ln) for i, ln in enumerate(lines) if ln.strip()]
     if len(content) < 3:
         raise TravelerLogError(f"{path}: expected two protocol lines and a header line, found {len(content)} "
@@ -151,16 +158,32 @@ def read_traveler_log(path) -> TravelerLog:
     if any(isinstance(_number(c), float) for c in columns):
         raise TravelerLogError(f"{path}: line {ln3} should be the column names, got numbers: {header[:80]!r}")
     rows = []
+
+    def fail(message: str):
+        partial = None
+        if rows:
+            try:
+                partial = TravelerLog(protocol, columns, np.asarray(rows, dtype=np.float64), path)
+            except TravelerLogError:
+                partial = None
+        kept = f"; kept the {len(rows)} row(s) before it (.partial)" if partial is not None else ""
+        return TravelerLogError(f"{path}: {message}{kept}", partial)
+
     for lineno, ln in content[3:]:
         parts = [p.strip() for p in ln.split(",")]
         if parts and parts[-1] == "" and len(parts) == len(columns) + 1:
             parts = parts[:-1]  # a trailing comma
         if len(parts) != len(columns):
-            raise TravelerLogError(f"{path}: line {lineno}: {len(parts)} values, expected {len(columns)}")
+            raise fail(f"line {lineno}: {len(parts)} values, expected {len(columns)}")
         try:
-            rows.append([float(p) for p in parts])
+            row = [float(p) for p in parts]
         except ValueError:
-            raise TravelerLogError(f"{path}: line {lineno}: not all numbers: {ln[:80]!r}") from None
+            raise fail(f"line {lineno}: not all numbers: {ln[:80]!r}") from None
+        if not all(math.isfinite(v) for v in row):
+            raise fail(f"line {lineno}: non-finite value(s): {ln[:80]!r}")
+        if lineno == len(lines) and not text.endswith(("\n", "\r")):
+            raise fail(f"line {lineno}: the last line has no line end (the file was cut mid-row)")
+        rows.append(row)
     if not rows:
         raise TravelerLogError(f"{path}: no data rows after the header")
     data = np.asarray(rows, dtype=np.float64)
