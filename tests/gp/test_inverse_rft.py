@@ -54,6 +54,10 @@ def test_gait1_ctoe_recovers_map_where_data_determine_it(gait1, dtype):
     # penetrates and extracts and only the shear constrains alpha_x
     rmse = err.pow(2).mean((0, 1)).sqrt()
     assert (rmse < torch.tensor([0.07, 0.05])).all(), rmse
+    # z beats the best constant map over the whole square by far; x does not (measured 0.064 vs 0.061:
+    # this gait leaves most of alpha_x unidentified, issue #13's identifiability report)
+    constant = (truth - truth.mean((0, 1))).pow(2).mean((0, 1)).sqrt()
+    assert rmse[1] < 0.5 * constant[1], (rmse, constant)
 
 
 def test_bad_input_is_a_clear_error(gait1):
@@ -80,14 +84,19 @@ def test_bad_input_is_a_clear_error(gait1):
         model.stress_map(torch.tensor([float("nan")]), torch.tensor([0.0]))
 
 
-def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch):
+@pytest.mark.parametrize("method", ["observations", "spectral"])
+def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch, method):
     c, f = gait1
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, method=method)
 
     def broken(*a, **k):
         raise NotPSDError("matrix not positive definite after jitter")
 
+    def broken_torch(*a, **k):
+        raise torch.linalg.LinAlgError("not positive-definite")
+
     monkeypatch.setattr("linear_operator.operators._linear_operator.psd_safe_cholesky", broken)
+    monkeypatch.setattr(torch.linalg, "cholesky", broken_torch)
     with pytest.raises(NotPSDError, match="hyperparameters then: .*lengthscale_x"):
         model.fit(n_iter=2, progress=False)
 
@@ -138,7 +147,7 @@ def test_save_load_and_state_dict_roundtrip(gait1, tmp_path):
     c, f = gait1
     model = irft.InverseRFT(c, f, tied_noise=True)
     model.fit(n_iter=10, progress=False)
-    assert model.likelihood.noise[0] == model.likelihood.noise[1]
+    assert model.likelihood.noise.numel() == 1 and model.hypers.noise[0] == model.hypers.noise[1]
     path = tmp_path / "model.pt"
     model.save(path)
     again = irft.InverseRFT.load(path)
@@ -151,7 +160,7 @@ def test_save_load_and_state_dict_roundtrip(gait1, tmp_path):
 
 def test_gpytorch_mll_and_paper_tied_noise(gait1):
     c, f = gait1
-    model = irft.InverseRFT(c, f, tied_noise=True)
+    model = irft.InverseRFT(c, f, tied_noise=True, method="observations")
     assert isinstance(model.gp, gpytorch.models.ExactGP)
     model.train()
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model.gp)
@@ -167,3 +176,63 @@ def test_progress_bar_off_prints_nothing(gait1, capsys):
         warnings.simplefilter("error", UserWarning)
         irft.InverseRFT(c, f).fit(n_iter=3, progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_model_files_refuse_damage_other_versions_and_other_data(gait1, tmp_path):
+    from irft_torch.gp import ModelFileError
+
+    c, f = gait1
+    model = irft.InverseRFT(c, f)
+    model.fit(n_iter=3, progress=False)
+    path = tmp_path / "m.pt"
+    model.save(path)
+    raw = bytearray(path.read_bytes())
+    # damaged bytes: a checksum mismatch or an unreadable file, never a silent load
+    for start in (len(raw) // 3, len(raw) // 2, 2 * len(raw) // 3):
+        bad = bytearray(raw)
+        for i in range(start, start + 200):
+            bad[i] ^= 0x5A
+        (tmp_path / "bad.pt").write_bytes(bytes(bad))
+        with pytest.raises(ModelFileError):
+            irft.InverseRFT.load(tmp_path / "bad.pt")
+    (tmp_path / "short.pt").write_bytes(bytes(raw[: len(raw) // 2]))
+    with pytest.raises(ModelFileError, match="truncated or damaged"):
+        irft.InverseRFT.load(tmp_path / "short.pt")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(ModelFileError):
+        irft.InverseRFT.load(tmp_path / "empty.pt")
+    torch.save({"weights": torch.ones(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(ModelFileError, match="not an irft_torch model file"):
+        irft.InverseRFT.load(tmp_path / "foreign.pt")
+    d = torch.load(path, weights_only=True)
+    d["version"] = 99
+    torch.save(d, tmp_path / "future.pt")
+    with pytest.raises(ModelFileError, match="version 99"):
+        irft.InverseRFT.load(tmp_path / "future.pt")
+    # a state fitted on other data is refused (strict), or loads its hyperparameters only
+    other = irft.InverseRFT(c[:60], f[:60])
+    with pytest.raises(ModelFileError, match="other training data"):
+        other.load_state_dict(model.state_dict())
+    other.load_state_dict(model.state_dict(), strict=False)
+    torch.testing.assert_close(other.hypers.lengthscale, model.hypers.lengthscale)
+
+
+def test_models_saved_by_0_1_load_with_their_hyperparameters(gait1, tmp_path):
+    """A 0.1.0 file (options + the old modules' raw parameters, softplus-constrained) written here by
+    hand: the loaded model has the hyperparameters those raw values meant."""
+    c, f = gait1
+    sp = torch.nn.functional.softplus
+    raw_ls, raw_os, raw_noise = torch.randn(2, 1, 4), torch.randn(2), torch.randn(2) - 3
+    torch.save({"contacts": c.as_dict(), "forces": f, "noise_scale": torch.ones(len(c), 2),
+                "options": {"prior_mean": "zero", "tied_noise": False, "lengthscale": 1.0, "method": "grid",
+                            "grid_size": (32, 32), "solver": "cholesky", "dtype": "float64"},
+                "state_dict": {"grid_model.kernel.raw_lengthscale": raw_ls,
+                               "grid_model.kernel.raw_outputscale": raw_os,
+                               "grid_model.likelihood.noise_covar.raw_noise": raw_noise},
+                "loss_history": [1.0, 0.5]}, tmp_path / "old.pt")
+    with pytest.warns(UserWarning, match="0.1 model file"):
+        m = irft.InverseRFT.load(tmp_path / "old.pt")
+    torch.testing.assert_close(m.hypers.lengthscale, sp(raw_ls) + 0.05)
+    torch.testing.assert_close(m.hypers.outputscale, sp(raw_os))
+    torch.testing.assert_close(m.hypers.noise, sp(raw_noise).clamp_min(m.hypers.noise.min().item()))
+    assert m.method == "spectral" and m.loss_history == [1.0, 0.5]
