@@ -394,6 +394,13 @@ def _heading(text: str):
     return v
 
 
+def _name_trials(message: str, paths, word: str) -> str:
+    """'trial 1 covers ...' -> '<word> 1 (path) covers ...'."""
+    import re
+
+    return re.sub(r"\btrial (\d+)\b", lambda m: f"{word} {m[1]} ({paths[int(m[1])]})", message)
+
+
 def cmd_ingest(a) -> int:
     import warnings
 
@@ -448,10 +455,7 @@ def cmd_ingest(a) -> int:
     try:
         air = average_trials(air_traces, path_tol=a.path_tol) if air_traces else None
     except ValueError as e:
-        msg = str(e)
-        for k, p in enumerate(a.air):
-            msg = msg.replace(f"trial {k} ", f"air run {k} ({p}) ")
-        raise ValueError(msg) from None
+        raise ValueError(_name_trials(str(e), a.air, "air run")) from None
     trials = []
     for p in a.logs:
         t = trace(p)
@@ -468,11 +472,7 @@ def cmd_ingest(a) -> int:
         for w in caught:
             print(f"irft ingest: {w.message}")
     except ValueError as e:
-        names = {f"trial {k}": f"trial {k} ({p})" for k, p in enumerate(a.logs)}
-        msg = str(e)
-        for k_, v_ in sorted(names.items(), key=lambda kv: -len(kv[0])):
-            msg = msg.replace(k_, v_, 1) if k_ in msg else msg
-        raise ValueError(msg) from None
+        raise ValueError(_name_trials(str(e), a.logs, "trial")) from None
     ds = build_dataset(avg, leg, toe, a.hip_height, heading=a.heading, max_depth=a.max_depth)
     written = save_dataset(out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in a.air])
     masked = {}
