@@ -314,11 +314,9 @@ def _record_simulated(a, out: Path) -> int:
 
 
 def cmd_record(a) -> int:
-    from .hardware import record
+    from .hardware import SUPPORTED_SUFFIXES, record
 
     out = _out_file(a.out, "--out")
-    from .hardware import SUPPORTED_SUFFIXES
-
     if out.suffix.lower() not in SUPPORTED_SUFFIXES:
         raise UsageError("--out", f"the suffix picks the log format; use one of {', '.join(SUPPORTED_SUFFIXES)}, "
                                   f"got {out.name!r}")
