@@ -120,7 +120,8 @@ def read_profile(data_dir, wheel: str, angle_bins: int = 360, normal_bins: int =
 
     Smooth: the file's 2-D elements (points, normals, arc lengths). Grousered: the 3-D mesh cut to a
     planar profile for slip angle 0: elements whose normal lies in the wheel plane (|n_across| < 0.5;
-    the side walls drop out) and farther than radius / 2 from the axle (not the hub), projected on the plane, each of length area / width; they are merged
+    the side walls drop out) and farther than radius / 2 from the axle (not the hub), projected on the
+    plane, each of length area / width; they are merged
     per (position-angle bin, normal-direction bin) into one segment (area-weighted centre and normal,
     summed length), which keeps the rim, the grouser faces and the tips apart.
     """

@@ -12,7 +12,8 @@ from irft_torch.rft import FourierStressMap, forces
 from irft_torch.rft.wheel import wheel_contacts
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "rover_wheel"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"rover-wheel data not found at {DATA} (not shipped: no licence)")
+needs_data = pytest.mark.skipif(not DATA.is_dir(),
+                                reason=f"rover-wheel data not found at {DATA} (not shipped: no licence)")
 
 
 def test_reader_errors_without_data(tmp_path):
@@ -31,7 +32,8 @@ def test_runs_at_slip_angle_zero_and_axis_mapping(wheel):
     assert all(r.slip_angle_deg == 0 for r in runs)
     levels = sorted({r.commanded_rim_speed for r in runs})
     assert len(levels) == 9 and levels[0] == 0.0
-    assert min(r.slip for r in runs) == pytest.approx(-1.0) and max(r.slip for r in runs) == pytest.approx(0.9, abs=0.01)
+    assert min(r.slip for r in runs) == pytest.approx(-1.0)
+    assert max(r.slip for r in runs) == pytest.approx(0.9, abs=0.01)
     locked = [r for r in runs if r.slip < -0.99]
     fast = [r for r in runs if r.slip > 0.85]
     # the README's mapping: a locked wheel resists the motion (F_x < 0), the lift carries the load

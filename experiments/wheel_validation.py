@@ -1,0 +1,311 @@
+"""Can I-RFT learn sand from a rover wheel's own runs? Leave-one-slip-out on measured single-wheel data.
+
+    python experiments/wheel_validation.py --data ../shared/data/rover_wheel [--out experiments/results]
+
+At slip angle 0 (a planar problem), for the smooth and the grousered wheel, each run (27 per wheel:
+9 commanded slips x ~3 trials) becomes one force observation: its mean longitudinal and vertical
+force over the steady run, with the contacts of the wheel at the run's measured sinkage, carriage
+speed and rim speed (``rft.wheel``; leading contact, the front half of the rim; the grousered wheel
+averaged over 6 poses across one grouser pitch). For each slip level, everything is fitted on the
+other 8 levels (all trials) and the held-out runs are predicted by:
+
+  I-RFT          irft.InverseRFT on the training runs' contacts and mean forces (zero prior mean,
+                 the paper's; ``--physics-mean`` adds the generic-shape mean as a second row)
+  generic x LS   the generic Li et al. map with one least-squares scale per axis (fit on training)
+  others' RFT    the data authors' RFT prediction for that run (from the files; nothing fitted)
+  trivial        the training runs' mean force
+
+RMSE [N] over all held-out runs, per axis (longitudinal F_x, vertical F_z). Then the rover engineer's
+question: with the map learned without that slip, the sinkage at which the wheel carries the
+measured load (F_z(s) = measured F_z), and the drawbar F_x there, against the measured ones.
+
+Writes wheel_validation.md and wheel_forces_{smooth,grouser}.png, wheel_sinkage.png to --out. The
+data are read from --data and never copied.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import irft_torch as irft
+from irft_torch import wheel_data as wd
+from irft_torch.rft import Contacts, FourierStressMap
+from irft_torch.rft.wheel import average_rows, wheel_contacts, wheel_kinematics
+
+PREDICTORS = ("I-RFT", "generic x LS scale", "others' RFT (files)", "trivial (training mean)")
+N_PHASES = {"smooth": 1, "grouser": 6}
+
+
+def run_contacts(profile, run, wheel: str, sinkage: float | None = None) -> Contacts:
+    """One observation (1, M): the mean over the poses of the run's wheel at a sinkage."""
+    K = N_PHASES[wheel]
+    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
+    s = run.sinkage if sinkage is None else sinkage
+    return average_rows(wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, s, phases=phases))
+
+
+def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args):
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol)
+    model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
+    return model
+
+
+def pose_contacts(profile, run, wheel: str, sinkage: float) -> Contacts:
+    """The run's wheel at a sinkage, one row per pose (K, M), no segment dropped: the angles do not
+    depend on the sinkage (velocities and tangents do not), only the weights do."""
+    K = N_PHASES[wheel]
+    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
+    return wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, sinkage, phases=phases)
+
+
+def force_vs_sinkage(smap, profile, run, wheel: str, sinkages) -> np.ndarray:
+    """(S, 2) mean force of the run's wheel at each sinkage under a stress map. RFT is linear in the
+    weights and the angles do not change with sinkage, so the map is evaluated once per segment (with
+    the wheel sunk to 2 r, every segment submerged) and each segment's weight scales with its depth,
+    which shifts rigidly with the axle: depth(s) = depth(2 r) - (2 r - s), clamped at 0."""
+    s0 = 2 * wd.WHEEL_RADIUS
+    K = N_PHASES[wheel]
+    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
+    c0 = pose_contacts(profile, run, wheel, s0)
+    depth = wheel_kinematics(profile, run.v, run.omega, wd.WHEEL_RADIUS, s0, phases).depth  # (K, M) m
+    with torch.no_grad():
+        a = smap(c0.beta, c0.gamma)  # (K, M, 2)
+    s = torch.as_tensor(np.asarray(sinkages, dtype=np.float64))[:, None, None]
+    ratio = (depth - (s0 - s)).clamp_min(0) / depth.clamp_min(1e-12)  # (S, K, M)
+    fx = (ratio * c0.weight_x * a[..., 0]).sum(-1).mean(-1)
+    fz = (ratio * c0.weight_z * a[..., 1]).sum(-1).mean(-1)
+    return torch.stack([fx, fz], -1).numpy()
+
+
+def solve_sinkage(sinkages: np.ndarray, fz: np.ndarray, load: float) -> float:
+    """The smallest sinkage where the predicted lift reaches the load (linear interpolation); NaN if never."""
+    above = np.nonzero(fz >= load)[0]
+    if len(above) == 0:
+        return math.nan
+    i = above[0]
+    if i == 0:
+        return float(sinkages[0])
+    s0, s1, f0, f1 = sinkages[i - 1], sinkages[i], fz[i - 1], fz[i]
+    return float(s0 + (load - f0) * (s1 - s0) / (f1 - f0))
+
+
+def load_sinkage(smap, profile, run, wheel: str, s_grid: np.ndarray) -> tuple[float, float]:
+    """The sinkage at which the map's lift equals the run's measured load, and the drawbar there."""
+    curve = force_vs_sinkage(smap, profile, run, wheel, s_grid)
+    s_star = solve_sinkage(s_grid, curve[:, 1], run.force[1])
+    if not math.isfinite(s_star):
+        return math.nan, math.nan
+    return s_star, float(force_vs_sinkage(smap, profile, run, wheel, [s_star])[0, 0])
+
+
+def evaluate_wheel(data: Path, wheel: str, args) -> dict:
+    runs = wd.read_wheel_runs(data, wheel)
+    profile = wd.read_profile(data, wheel)
+    c_all = [run_contacts(profile, r, wheel) for r in runs]
+    F = torch.tensor([r.force for r in runs], dtype=torch.float64)
+    levels = sorted({r.commanded_rim_speed for r in runs})
+    group = np.array([levels.index(r.commanded_rim_speed) for r in runs])
+    generic = FourierStressMap.generic()
+    G = torch.cat([irft.rft.forces(generic, c) for c in c_all])  # (n, 2) generic forces, unit scale
+    kinds = ["zero"] + (["physics"] if args.physics_mean else [])
+    pred = {p: torch.full_like(F, math.nan) for p in PREDICTORS}
+    for k in kinds[1:]:
+        pred["I-RFT + physics mean"] = torch.full_like(F, math.nan)
+    std = {k: torch.full_like(F, math.nan) for k in pred}
+    s_grid = np.linspace(0.001, 0.0625, 124)  # sinkages searched, m (0.5 mm steps, to the axle)
+    sink = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
+    drawbar = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
+    fit_time = []
+    for g in range(len(levels)):
+        test = np.nonzero(group == g)[0]
+        train = np.nonzero(group != g)[0]
+        c_train = Contacts.cat([c_all[i] for i in train])
+        c_test = Contacts.cat([c_all[i] for i in test])
+        for kind in kinds:
+            name = "I-RFT" if kind == "zero" else "I-RFT + physics mean"
+            t0 = time.perf_counter()
+            model = fit_irft(c_train, F[train], kind, args)
+            fit_time.append(time.perf_counter() - t0)
+            with torch.no_grad():
+                post = model.predict_forces(c_test, include_noise=True)
+            pred[name][test] = post.mean
+            std[name][test] = post.variance.clamp_min(0).sqrt()
+            if kind == "zero":  # the sinkage question, with the I-RFT posterior mean map
+                for i in test:
+                    sink["I-RFT"][i], drawbar["I-RFT"][i] = load_sinkage(model, profile, runs[i], wheel, s_grid)
+        # generic x one least-squares scale per axis
+        scale = (G[train] * F[train]).sum(0) / G[train].pow(2).sum(0)
+        pred["generic x LS scale"][test] = G[test] * scale
+        scaled = lambda b, g, sc=scale: generic(b, g) * sc  # noqa: E731
+        for i in test:
+            sink["generic x LS scale"][i], drawbar["generic x LS scale"][i] = load_sinkage(scaled, profile, runs[i],
+                                                                                           wheel, s_grid)
+        pred["trivial (training mean)"][test] = F[train].mean(0)
+        print(f"  {wheel}: held-out slip level {g + 1}/{len(levels)} done", flush=True)
+    pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
+    rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
+    inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
+    return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, sink=sink, drawbar=drawbar,
+                fit_time=float(np.mean(fit_time)), n_segments=[c.n_segments for c in c_all])
+
+
+def plot_forces(res: dict, wheel: str, out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    runs, F = res["runs"], res["F"].numpy()
+    slip = np.array([r.slip for r in runs])
+    order = np.argsort(slip, kind="stable")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    styles = {"generic x LS scale": ("tab:green", "s", "--"), "others' RFT (files)": ("tab:red", "^", ":"),
+              "trivial (training mean)": ("tab:gray", "x", "-.")}
+    for a, (ax, label) in enumerate(zip(axes, ("longitudinal (drawbar) F_x [N]", "vertical F_z [N]"))):
+        m = res["pred"]["I-RFT"].numpy()[:, a]
+        s = res["std"]["I-RFT"].numpy()[:, a]
+        # the band: per slip level, the mean prediction +- 2 sd (trials of a level differ only slightly)
+        lev = np.array([r.commanded_rim_speed for r in runs])
+        xs, lo, hi, mid = [], [], [], []
+        for v in sorted(set(lev)):
+            k = lev == v
+            xs.append(slip[k].mean())
+            mid.append(m[k].mean())
+            lo.append((m[k] - 2 * s[k]).mean())
+            hi.append((m[k] + 2 * s[k]).mean())
+        ax.fill_between(xs, lo, hi, color="tab:blue", alpha=0.25, label="I-RFT held out, +- 2 sd (incl. noise)")
+        ax.plot(xs, mid, color="tab:blue", lw=2, label="I-RFT held out (mean)")
+        for name, (col, mk, ls) in styles.items():
+            p = res["pred"][name].numpy()[:, a]
+            ax.plot(slip[order], p[order], color=col, marker=mk, ls=ls, ms=4, lw=1, label=name)
+        ax.plot(slip, F[:, a], "ko", ms=4, label="measured (each trial)")
+        ax.set_xlabel("slip")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"{wheel} wheel, slip angle 0: leave-one-slip-out predictions at the measured sinkage")
+    fig.tight_layout()
+    fig.savefig(out / f"wheel_forces_{wheel}.png", dpi=120)
+    plt.close(fig)
+
+
+def plot_sinkage(results: dict, out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    for col, (wheel, res) in enumerate(results.items()):
+        runs = res["runs"]
+        slip = np.array([r.slip for r in runs])
+        order = np.argsort(slip, kind="stable")
+        ax = axes[0, col]
+        ax.plot(slip, [1000 * r.sinkage for r in runs], "ko", ms=4, label="measured")
+        for name, c in (("I-RFT", "tab:blue"), ("generic x LS scale", "tab:green")):
+            ax.plot(slip[order], 1000 * res["sink"][name][order], "o", color=c, ms=4, alpha=0.8,
+                    label=f"{name}: sinkage carrying the measured load")
+        ax.set_ylabel("sinkage [mm]")
+        ax.set_title(f"{wheel} wheel (held-out slips)")
+        ax.grid(alpha=0.3)
+        ax = axes[1, col]
+        ax.plot(slip, res["F"][:, 0].numpy(), "ko", ms=4, label="measured")
+        for name, c in (("I-RFT", "tab:blue"), ("generic x LS scale", "tab:green")):
+            ax.plot(slip[order], res["drawbar"][name][order], "o", color=c, ms=4, alpha=0.8,
+                    label=f"{name} at that sinkage")
+        ax.set_ylabel("drawbar F_x [N]")
+        ax.set_xlabel("slip")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    axes[1, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "wheel_sinkage.png", dpi=120)
+    plt.close(fig)
+
+
+def report(results: dict, args, elapsed: float) -> str:
+    lines = ["# Rover wheel in sand: leave-one-slip-out (slip angle 0)", "",
+             f"Command: `python experiments/wheel_validation.py --data DIR"
+             f"{' --physics-mean' if args.physics_mean else ''} --n-iter {args.n_iter} --lr {args.lr:g} "
+             f"--method {args.method} --tol {args.tol:g}` ({elapsed:.0f} s). Data by others "
+             "(qishuny/3D-RFT-wheel), read from DIR, not copied.",
+             "", "Each run is one observation: its mean force over the steady run, with the wheel's contacts at the",
+             "run's measured sinkage, carriage and rim speeds (leading contact: the front half of the rim; the",
+             "grousered wheel averaged over 6 poses across one 15-degree grouser pitch). Held out: all trials of one",
+             "commanded slip; fitted on the other 8 levels. RMSE in N over all 27 held-out runs per wheel.", "",
+             "| wheel | predictor | RMSE F_x (longitudinal) [N] | RMSE F_z (vertical) [N] |", "|---|---|---|---|"]
+    for wheel, res in results.items():
+        for name, (rx, rz) in res["rmse"].items():
+            lines.append(f"| {wheel} | {name} | {rx:.2f} | {rz:.2f} |")
+    lines += ["", "I-RFT held-out runs inside the 95 % predictive interval (with the learned noise): "
+              + ", ".join(f"{w} {100 * r['coverage'][0]:.0f} % (x) / {100 * r['coverage'][1]:.0f} % (z)"
+                          for w, r in results.items()) + ".",
+              "Spread of the measured vertical force (std over runs): "
+              + ", ".join(f"{w} {r['F'][:, 1].std().item():.2f} N" for w, r in results.items())
+              + "; mean I-RFT fit time "
+              + ", ".join(f"{w} {r['fit_time']:.1f} s (segments per run up to {max(r['n_segments'])})"
+                          for w, r in results.items())
+              + ".", "", "## The sinkage that carries the measured load, and the drawbar there (held-out slips)", "",
+              "| wheel | model | RMSE sinkage [mm] | mean predicted - measured sinkage [mm] | corr. with measured "
+              "sinkage | RMSE drawbar at that sinkage [N] | runs solved |",
+              "|---|---|---|---|---|---|---|"]
+    for wheel, res in results.items():
+        meas_s = np.array([r.sinkage for r in res["runs"]])
+        meas_fx = res["F"][:, 0].numpy()
+        for name in ("I-RFT", "generic x LS scale"):
+            s = res["sink"][name]
+            ok = np.isfinite(s)
+            d = 1000 * (s[ok] - meas_s[ok])
+            db = res["drawbar"][name][ok] - meas_fx[ok]
+            corr = np.corrcoef(s[ok], meas_s[ok])[0, 1] if ok.sum() > 2 else math.nan
+            lines.append(f"| {wheel} | {name} | {np.sqrt(np.mean(d**2)):.1f} | {d.mean():+.1f} | {corr:.2f} | "
+                         f"{np.sqrt(np.mean(db**2)):.2f} | {ok.sum()}/{len(s)} |")
+    lines += ["", "Per slip level (I-RFT; mean over trials): slip, measured sinkage, predicted sinkage [mm], "
+              "measured and "
+              "predicted drawbar [N]:", ""]
+    for wheel, res in results.items():
+        runs = res["runs"]
+        levels = sorted({r.commanded_rim_speed for r in runs})
+        row = []
+        for v in levels:
+            k = np.array([r.commanded_rim_speed == v for r in runs])
+            sl = np.mean([r.slip for r, kk in zip(runs, k) if kk])
+            row.append(f"{sl:+.2f}: {1000 * np.mean([r.sinkage for r, kk in zip(runs, k) if kk]):.0f} / "
+                       f"{1000 * np.nanmean(res['sink']['I-RFT'][k]):.0f} mm, "
+                       f"{res['F'][k, 0].mean().item():+.1f} / {np.nanmean(res['drawbar']['I-RFT'][k]):+.1f} N")
+        lines.append(f"- {wheel}: " + "; ".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, required=True, help="directory with the rover-wheel .mat files")
+    ap.add_argument("--out", type=Path, default=Path("experiments/results"))
+    ap.add_argument("--n-iter", type=int, default=60, help="Adam steps per I-RFT fit")
+    ap.add_argument("--lr", type=float, default=0.08)
+    ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
+    ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
+    ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
+    ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
+    args = ap.parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")  # this script only writes files; set here, never at import
+    torch.set_default_dtype(torch.float64)
+    if not args.data.is_dir():
+        raise SystemExit(f"--data {args.data}: no such directory (the rover-wheel data are not shipped)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    results = {}
+    for wheel in args.wheels:
+        print(f"{wheel} wheel ...", flush=True)
+        results[wheel] = evaluate_wheel(args.data, wheel, args)
+        plot_forces(results[wheel], wheel, args.out)
+    plot_sinkage(results, args.out)
+    text = report(results, args, time.perf_counter() - t0)
+    (args.out / "wheel_validation.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
