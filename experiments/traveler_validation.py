@@ -62,17 +62,22 @@ def ls_through_origin(w: np.ndarray, f: np.ndarray) -> tuple[float, float, float
     return a, se, tau
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=FilePath, required=True, help="directory with traveler_trial_2024-02-02.csv")
-    ap.add_argument("--file", default="traveler_trial_2024-02-02.csv")
-    ap.add_argument("--out", type=FilePath, default=FilePath("experiments/results"))
+    ap = argparse.ArgumentParser(prog="traveler_validation.py", description=__doc__, formatter_class=_HelpFormatter)
+    ap.add_argument("--data", type=FilePath, required=True, default=argparse.SUPPRESS,
+                    help="directory with the Traveler log (read, never copied)")
+    ap.add_argument("--file", default="traveler_trial_2024-02-02.csv", help="the log's file name in --data")
+    ap.add_argument("--out", type=FilePath, default="experiments/results", help="where the report and figure go")
     ap.add_argument("--toe-length", type=float, default=0.08, help="flat toe length, m (assumed; not in the log)")
     ap.add_argument("--toe-width", type=float, default=0.008, help="flat toe width, m (assumed; not in the log)")
     ap.add_argument("--min-speed", type=float, default=0.02, help="m/s: slower samples are not 'moving'")
     ap.add_argument("--smooth", type=float, default=0.02, help="s: moving-average window for positions and forces")
     ap.add_argument("--velocity-window", type=float, default=0.05, help="s: window of the centred velocity difference")
-    ap.add_argument("--n-iter", type=int, default=200)
+    ap.add_argument("--n-iter", type=int, default=200, help="Adam steps of the I-RFT fit")
     args = ap.parse_args(argv)
     import matplotlib
 

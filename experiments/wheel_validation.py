@@ -277,10 +277,15 @@ def report(results: dict, args, elapsed: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, required=True, help="directory with the rover-wheel .mat files")
-    ap.add_argument("--out", type=Path, default=Path("experiments/results"))
+    ap = argparse.ArgumentParser(prog="wheel_validation.py", description=__doc__, formatter_class=_HelpFormatter)
+    ap.add_argument("--data", type=Path, required=True, default=argparse.SUPPRESS,
+                    help="directory with the rover-wheel .mat files (read, never copied)")
+    ap.add_argument("--out", type=Path, default="experiments/results", help="where the report and figures go")
     ap.add_argument("--n-iter", type=int, default=60, help="Adam steps per I-RFT fit")
     ap.add_argument("--lr", type=float, default=0.08)
     ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")

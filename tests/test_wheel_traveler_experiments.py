@@ -1,0 +1,74 @@
+"""The rover-wheel and Traveler experiment scripts: --help, small pieces, and (skipped without the
+shared data) a short run of the Traveler one."""
+
+import importlib.util
+import math
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TRAVELER = ROOT.parent / "shared" / "data" / "traveler_leg"
+needs_traveler = pytest.mark.skipif(not (TRAVELER / "traveler_trial_2024-02-02.csv").is_file(),
+                                    reason=f"Traveler trial not found in {TRAVELER} (not shipped: no licence)")
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("name, last", [("wheel_validation", "The data are read from --data and never copied."),
+                                        ("traveler_validation", "The data are read, never copied.")])
+def test_help_prints_the_description_and_defaults(name, last, capsys):
+    with pytest.raises(SystemExit):
+        _script(name).main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert last in text and "(default: experiments/results)" in text
+
+
+def test_solve_sinkage_interpolates_and_says_never():
+    solve = _script("wheel_validation").solve_sinkage
+    s = np.array([0.01, 0.02, 0.03])
+    assert solve(s, np.array([5.0, 15.0, 25.0]), 10.0) == pytest.approx(0.015)
+    assert solve(s, np.array([5.0, 15.0, 25.0]), 2.0) == pytest.approx(0.01)
+    assert math.isnan(solve(s, np.array([5.0, 6.0, 7.0]), 10.0))
+
+
+def test_force_vs_sinkage_equals_contacts_at_each_sinkage():
+    """The shortcut (map evaluated once, weights scaled with depth) against building the contacts."""
+    from irft_torch.rft import FourierStressMap, forces
+    from irft_torch.rft.wheel import circle_profile
+
+    W = _script("wheel_validation")
+
+    class Run:  # the fields the helpers read
+        v, omega, sinkage = 0.01, 0.4, 0.02
+
+    prof = circle_profile(0.0625, 0.06, 200)
+    smap = FourierStressMap.generic()
+    s = [0.005, 0.02, 0.04]
+    got = W.force_vs_sinkage(smap, prof, Run, "smooth", s)
+    want = np.stack([forces(smap, W.run_contacts(prof, Run, "smooth", x))[0].numpy() for x in s])
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
+
+
+def test_window_velocity_on_irregular_samples():
+    tv = _script("traveler_validation")
+    t = np.cumsum(np.random.default_rng(0).uniform(0.0005, 0.0015, 400))
+    np.testing.assert_allclose(tv.window_velocity(-0.05 * t, t, 0.02), -0.05, rtol=1e-9)
+
+
+@needs_traveler
+def test_traveler_validation_runs(tmp_path):
+    torch.set_default_dtype(torch.float64)
+    _script("traveler_validation").main(["--data", str(TRAVELER), "--out", str(tmp_path), "--n-iter", "20"])
+    text = (tmp_path / "traveler_validation.md").read_text()
+    assert "| (F_x, -F_z) |" in text and "| down (gamma +pi/2) |" in text and "| up (gamma -pi/2) |" in text
+    assert (tmp_path / "traveler_forces.png").exists()
