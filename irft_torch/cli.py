@@ -493,8 +493,7 @@ def cmd_fit(a) -> int:
     ds = load_dataset(a.dataset)
     if a.max_samples and len(ds) > a.max_samples:
         keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
-        print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (the exact GP is cubic in samples; "
-              "raise --max-samples to use more)")
+        print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (--max-samples)")
         ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean)
     model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
@@ -619,7 +618,9 @@ def _register_hardware(sub) -> None:
     p.add_argument("--n-iter", type=int, default=300)
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--prior-mean", choices=["zero", "physics"], default="zero")
-    p.add_argument("--max-samples", type=int, default=300, help="thin to this many samples (default 300; 0: all)")
+    p.add_argument("--max-samples", type=int, default=0,
+                   help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
+                        "by method='auto' keeps long recordings fast)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_fit)
 
