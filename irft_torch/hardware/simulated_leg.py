@@ -195,7 +195,8 @@ class SimulatedLeg:
         simulated wall-clock start (s since the epoch). Returns the simulation's truth."""
         truth = self.truth(path, in_air)
         rng = np.random.default_rng(self.seed + (7919 if in_air else 0))
-        channel = f"irft-sim-{uuid.uuid4().hex}"
+        # no trailing digits: BLF and ASC writers read a channel number from them (a 16-bit field)
+        channel = f"irft-sim-{uuid.uuid4().hex}-bus"
         host = can.Bus(channel=channel, interface="virtual", preserve_timestamps=True)
         ctrl_buses = [can.Bus(channel=channel, interface="virtual", preserve_timestamps=True) for _ in self.nodes]
         drives = [FakeODrive(b, n, self.firmware, self.frame_drop, seed=self.seed + 31 * i + (1 if in_air else 0),

@@ -191,7 +191,7 @@ def test_record_simulate_several_trials_then_ingest(tmp_path, capsys):
     rc = main(["record", "--simulate", "--trials", "2", "--out", str(tmp_path / "t.blf"), "--toe", "I", "--length",
                "0.04", "--path", "rectangle", "--shear", "0.04", "--penetration", "0.02", "--extraction", "0.02",
                "--rate", "40", "--current-noise", "0.05", "--seed", "3"])
-    assert rc == 0
+    assert rc == 0, capsys.readouterr().err
     names = [tmp_path / "t_1.blf", tmp_path / "t_2.blf", tmp_path / "t_air.blf"]
     assert all(p.stat().st_size > 200 for p in names)
     capsys.readouterr()

@@ -262,3 +262,18 @@ def test_toe_path_heading():
     np.testing.assert_allclose(p.position.numpy(), [[0.0, 0.25 - 0.2302776]] * 2, atol=1e-7)
     with pytest.raises(ValueError, match="heading must be a number or 'link1'/'link2'"):
         leg.toe_path(t, q, heading="link3")
+
+
+def test_simulated_leg_writes_blf_whatever_its_channel_name(tmp_path, monkeypatch):
+    """The virtual channel's name used to end in uuid hex digits, which the BLF writer read as a
+    16-bit channel number (struct.error about 1 run in 6); a name ending in digits is now harmless."""
+    import irft_torch.hardware.simulated_leg as sl
+
+    class FakeUUID:
+        hex = "0123456789"
+
+    monkeypatch.setattr(sl.uuid, "uuid4", lambda: FakeUUID())
+    sim = SimulatedLeg(irft.rft.IToe(0.04, 0.008), MEDIUM, rate=40)
+    sim.run(irft.rft.rectangle_path(0.02, 0.04, 0.02, start=(-0.02, 0.0)), tmp_path / "s.blf")
+    data = read_log(tmp_path / "s.blf")
+    assert data.issues == [] and len(data.motors[0].times["iq"]) > 20
