@@ -649,7 +649,9 @@ def main(argv: list[str] | None = None) -> int:
         user = isinstance(e, (ValueError, OSError, can.CanError, EOFError, KeyError))
         text = " ".join(str(e).split()) or type(e).__name__
         if not user:
-            text = (f"{type(e).__name__}: {text} (unexpected: if your input looks right, rerun with IRFT_DEBUG=1 and "
+            kind = type(e).__qualname__ if type(e).__module__ == "builtins" else \
+                f"{type(e).__module__}.{type(e).__qualname__}"
+            text = (f"{kind}: {text} (unexpected: if your input looks right, rerun with IRFT_DEBUG=1 and "
                     "report the traceback)")
         print(f"irft {a.command}: error: {text}", file=sys.stderr)
         return 2 if user else 3
