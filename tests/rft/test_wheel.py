@@ -6,8 +6,15 @@ import pytest
 import torch
 
 from irft_torch.rft import FourierStressMap, forces
-from irft_torch.rft.wheel import (average_rows, circle_profile, profile_from_elements, slip_ratio, wheel_contacts,
-                                  wheel_kinematics, wheel_speeds)
+from irft_torch.rft.wheel import (
+    average_rows,
+    circle_profile,
+    profile_from_elements,
+    slip_ratio,
+    wheel_contacts,
+    wheel_kinematics,
+    wheel_speeds,
+)
 
 R, W = 0.0625, 0.06
 
