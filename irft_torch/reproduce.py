@@ -129,8 +129,9 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
     model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls)
     model.fit(n_iter=s.n_iter, lr=s.lr, progress=False)
     B, G = _grid(s)
-    post = model.stress_map(B, G)
-    true = truth_map(B, G)
+    with torch.no_grad():
+        post = model.stress_map(B, G)
+        true = truth_map(B, G)
     res = FitResult(config, prior_mean, noise, seed, truth_name, ls)
     for a, axis in enumerate("XZ"):
         m = metrics.map_metrics(post.mean[..., a], true[..., a])
