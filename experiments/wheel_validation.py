@@ -95,13 +95,17 @@ def solve_sinkage(sinkages: np.ndarray, fz: np.ndarray, load: float) -> float:
     return float(s0 + (load - f0) * (s1 - s0) / (f1 - f0))
 
 
-def load_sinkage(smap, profile, run, wheel: str, s_grid: np.ndarray) -> tuple[float, float]:
-    """The sinkage at which the map's lift equals the run's measured load, and the drawbar there."""
+def load_sinkage(smap, profile, run, wheel: str, s_grid: np.ndarray) -> tuple[float, float, float, float]:
+    """The sinkage at which the map's lift equals the run's measured load, the drawbar there, and
+    where the map's lift-vs-sinkage curve peaks (sinkage, lift): a quasi-static map's lift should
+    grow with sinkage; a peak inside the range says the map bends to fit loads that do not."""
     curve = force_vs_sinkage(smap, profile, run, wheel, s_grid)
+    k = int(np.argmax(curve[:, 1]))
+    peak = (float(s_grid[k]), float(curve[k, 1]))
     s_star = solve_sinkage(s_grid, curve[:, 1], run.force[1])
     if not math.isfinite(s_star):
-        return math.nan, math.nan
-    return s_star, float(force_vs_sinkage(smap, profile, run, wheel, [s_star])[0, 0])
+        return math.nan, math.nan, *peak
+    return s_star, float(force_vs_sinkage(smap, profile, run, wheel, [s_star])[0, 0]), *peak
 
 
 def evaluate_wheel(data: Path, wheel: str, args) -> dict:
@@ -121,6 +125,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     s_grid = np.linspace(0.001, 0.0625, 124)  # sinkages searched, m (0.5 mm steps, to the axle)
     sink = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
     drawbar = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
+    peak = {k: np.full((len(runs), 2), math.nan) for k in ("I-RFT", "generic x LS scale")}
     fit_time = []
     for g in range(len(levels)):
         test = np.nonzero(group == g)[0]
@@ -138,20 +143,22 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
             std[name][test] = post.variance.clamp_min(0).sqrt()
             if kind == "zero":  # the sinkage question, with the I-RFT posterior mean map
                 for i in test:
-                    sink["I-RFT"][i], drawbar["I-RFT"][i] = load_sinkage(model, profile, runs[i], wheel, s_grid)
+                    sink["I-RFT"][i], drawbar["I-RFT"][i], *peak["I-RFT"][i] = load_sinkage(
+                        model, profile, runs[i], wheel, s_grid)
         # generic x one least-squares scale per axis
         scale = (G[train] * F[train]).sum(0) / G[train].pow(2).sum(0)
         pred["generic x LS scale"][test] = G[test] * scale
         scaled = lambda b, g, sc=scale: generic(b, g) * sc  # noqa: E731
         for i in test:
-            sink["generic x LS scale"][i], drawbar["generic x LS scale"][i] = load_sinkage(scaled, profile, runs[i],
-                                                                                           wheel, s_grid)
+            sink["generic x LS scale"][i], drawbar["generic x LS scale"][i], *peak["generic x LS scale"][i] = \
+                load_sinkage(scaled, profile, runs[i], wheel, s_grid)
         pred["trivial (training mean)"][test] = F[train].mean(0)
         print(f"  {wheel}: held-out slip level {g + 1}/{len(levels)} done", flush=True)
     pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
     rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
     inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
     return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, sink=sink, drawbar=drawbar,
+                peak=peak, s_max=float(s_grid[-1]),
                 fit_time=float(np.mean(fit_time)), n_segments=[c.n_segments for c in c_all])
 
 
@@ -260,6 +267,15 @@ def report(results: dict, args, elapsed: float) -> str:
             corr = np.corrcoef(s[ok], meas_s[ok])[0, 1] if ok.sum() > 2 else math.nan
             lines.append(f"| {wheel} | {name} | {np.sqrt(np.mean(d**2)):.1f} | {d.mean():+.1f} | {corr:.2f} | "
                          f"{np.sqrt(np.mean(db**2)):.2f} | {ok.sum()}/{len(s)} |")
+    peaks = []
+    for w, r in results.items():
+        for name in ("I-RFT", "generic x LS scale"):
+            pk = r["peak"][name]
+            inside = int((pk[:, 0] < r["s_max"] - 1e-9).sum())
+            peaks.append(f"{w} {name}: peaks below {1000 * r['s_max']:.1f} mm for {inside}/{len(r['runs'])} runs, "
+                         f"at a median {1000 * np.median(pk[:, 0]):.0f} mm and {np.median(pk[:, 1]):.1f} N")
+    lines += ["", "Lift vs sinkage under each held-out map (a quasi-static map's lift should grow with sinkage): "
+              + "; ".join(peaks) + "."]
     lines += ["", "Per slip level (I-RFT; mean over trials): slip, measured sinkage, predicted sinkage [mm], "
               "measured and "
               "predicted drawbar [N]:", ""]
