@@ -180,7 +180,7 @@ def plot_coverage(contacts, ax=None, title="sampled (beta, gamma)"):
     return ax.figure
 
 
-def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
+def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None, band_label=None):
     """F_x and F_z in N against the time since the first sample, in s.
 
     With a prediction and its std (and no ``axes`` given), each force panel gets a residual panel
@@ -195,11 +195,16 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
         axes: optional two axes (F_x, F_z) to draw into (then no residual panels).
         labels: (forces label, prediction label). Defaults: ("force", ...) alone, ("data",
             "I-RFT prediction") with a prediction; say "measured" only for measured forces.
+        band_label: what the band is. To compare with data, pass the std of a new measurement
+            (``model.predict_forces(c, include_noise=True)``): about 95 % of the samples should then
+            lie inside; the std of the mean force alone is narrower.
     Returns:
         the figure; its first two axes are the F_x and F_z panels.
     """
     if labels is None:
         labels = ("data", "I-RFT prediction") if predicted is not None else ("force", "")
+    if band_label is None:
+        band_label = r"$\pm 2\sigma$ band"
     residuals = axes is None and predicted is not None and std is not None
     if axes is None and residuals:
         fig = plt.figure(figsize=(8, 7.5), constrained_layout=True)
@@ -220,7 +225,7 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
             if std is not None:
                 s = torch.as_tensor(std[:, i]).detach().cpu().double()
                 ax.fill_between(t, p - 2 * s, p + 2 * s, color="C1", alpha=0.35, lw=0,
-                                label=r"$\pm 2\sigma$ (95 %) band")
+                                label=band_label)
                 ax.plot(t, p - 2 * s, color="C1", lw=0.6, ls=":")
                 ax.plot(t, p + 2 * s, color="C1", lw=0.6, ls=":")
                 if residuals:
@@ -228,7 +233,7 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None):
                     ok = torch.isfinite(r) & torch.isfinite(s)
                     inside = float(((r.abs() <= 2 * s) & ok).sum()) / max(int(ok.sum()), 1)
                     rax.fill_between(t, -2 * s, 2 * s, color="C1", alpha=0.35, lw=0,
-                                     label=rf"$\pm 2\sigma$ band ({100 * inside:.0f} % of samples inside)")
+                                     label=f"{band_label} ({100 * inside:.0f} % of samples inside)")
                     rax.plot(t, r, "k-", lw=0.7, label=f"{labels[0]} $-$ prediction")
                     rax.axhline(0.0, color="C1", lw=0.8)
                     rax.set_ylabel(rf"$F_{name}$ residual (N)")
