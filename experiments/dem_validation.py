@@ -129,7 +129,7 @@ def main(argv=None) -> None:
         models = {}
         for n, pm in zip(IRFT, ("zero", "physics")):
             torch.manual_seed(0)
-            m = irft.InverseRFT(ctr, ftr, prior_mean=pm, method="exact")
+            m = irft.InverseRFT(ctr, ftr, prior_mean=pm)
             m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
             models[n] = m
         th = torch.tensor([d.angles for d in train])
@@ -139,7 +139,7 @@ def main(argv=None) -> None:
         g = irft.rft.forces(generic, ctr)
         models[BASELINES[1]] = generic.scaled(*((g * ftr).sum(0) / g.pow(2).sum(0)).tolist())
         one = torch.ones(len(train), 1)
-        plain = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), torch.tensor(slopes), method="exact")
+        plain = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), torch.tensor(slopes))
         plain.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[BASELINES[2]] = plain
         for d in test:

@@ -176,14 +176,16 @@ class InverseRFT(nn.Module):
         device = contacts.beta.device
         c = contacts.to(dtype=dtype, device=device)
         f = _as_forces(forces, T, dtype, device)
-        self.noise_scale = _as_noise_scale(noise_scale, T, dtype, device)
-        c, f = _whiten(c, f, self.noise_scale)
+        scale = _as_noise_scale(noise_scale, T, dtype, device)
+        c, f = _whiten(c, f, scale)
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
         self.init_lengthscale = float(lengthscale)
-        self.train_contacts, self.train_forces = c, f
+        self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
+        self._device = device
+        self._joined = None
 
         # Data-scaled initial values and bounds (forces in N, maps in N/cm^3).
         y = f.T
@@ -205,7 +207,8 @@ class InverseRFT(nn.Module):
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         self.auto = method == "auto"
         self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol)
-        self.register_buffer("data_digest", self._data_digest_tensor(), persistent=True)
+        self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
+        self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
         self.eval()
 
@@ -240,6 +243,29 @@ class InverseRFT(nn.Module):
     @property
     def n_segments(self) -> int:
         return self.train_contacts.n_segments
+
+    def _join(self) -> tuple[Contacts, Tensor, Tensor]:
+        if self._joined is None:
+            if len(self._parts) > 1:
+                cs, fs, ss = zip(*self._parts)
+                self._parts = [(Contacts.cat(list(cs)), torch.cat(fs), torch.cat(ss))]
+            self._joined = self._parts[0]
+        return self._joined
+
+    @property
+    def train_contacts(self) -> Contacts:
+        """The training contacts (T, M), whitened by ``noise_scale``."""
+        return self._join()[0]
+
+    @property
+    def train_forces(self) -> Tensor:
+        """The training forces (T, 2), whitened by ``noise_scale``."""
+        return self._join()[1]
+
+    @property
+    def noise_scale(self) -> Tensor:
+        """(T, 2) relative noise standard deviations of the training samples (ones by default)."""
+        return self._join()[2]
 
     def hyperparameters(self) -> dict[str, list]:
         """Current hyperparameters, readable (lengthscales per embedding dim, variances). ``noise`` is
@@ -320,17 +346,16 @@ class InverseRFT(nn.Module):
         the constructor, for the new samples."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
-        device = self.train_forces.device
+        device = self._parts[0][1].device
         c = contacts.to(dtype=self.dtype, device=device)
         f = _as_forces(forces, len(c), self.dtype, device)
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
         self.backend.add_data(c, f)
         self._n_pairs = None
-        self.noise_scale = torch.cat([self.noise_scale, scale])
-        self.train_contacts = Contacts.cat([self.train_contacts, c])
-        self.train_forces = torch.cat([self.train_forces, f])
-        self.data_digest = self._data_digest_tensor()
+        self._parts.append((c, f, scale))
+        self._joined = None
+        self._digest_stale = True
         return self
 
     # ---- prediction ----------------------------------------------------------------------------
@@ -340,8 +365,8 @@ class InverseRFT(nn.Module):
         Angles outside the canonical square are mapped in by the mirror identity. Returns mean and
         variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2).
         """
-        beta = torch.as_tensor(beta, dtype=self.dtype, device=self.train_forces.device)
-        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.train_forces.device)
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         self.eval()
         post = self.backend.posterior(Contacts.points(beta, gamma))
@@ -349,8 +374,8 @@ class InverseRFT(nn.Module):
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
-        beta = torch.as_tensor(beta, dtype=self.dtype, device=self.train_forces.device)
-        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.train_forces.device)
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         post = self.backend.posterior(Contacts.points(beta, gamma), variance=False)
         return post.mean.T.reshape(*S, 2)
@@ -375,7 +400,7 @@ class InverseRFT(nn.Module):
         if variance not in ("exact", "independent"):
             raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
         self.eval()
-        c = contacts.to(dtype=self.dtype, device=self.train_forces.device)
+        c = contacts.to(dtype=self.dtype, device=self._device)
         lead, M = c.shape[:-1], c.n_segments
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
@@ -418,12 +443,22 @@ class InverseRFT(nn.Module):
     def _data_digest_tensor(self) -> Tensor:
         c, f = self._measured()
         d = _digest(*c.as_dict().values(), f, self.noise_scale)
-        return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self.train_forces.device)
+        return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
+
+    def _fresh_digest(self) -> None:
+        if self._digest_stale:
+            self.data_digest.copy_(self._data_digest_tensor())
+            self._digest_stale = False
+
+    def state_dict(self, *args, **kwargs):
+        self._fresh_digest()
+        return super().state_dict(*args, **kwargs)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
         other data is refused (its ``data_digest`` differs). ``strict=False`` loads the
         hyperparameters alone (a warm start on new data)."""
+        self._fresh_digest()
         theirs = state_dict.get("data_digest")
         if theirs is not None and not torch.equal(theirs.to(self.data_digest.device), self.data_digest):
             if strict:

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import torch
+
 from ...rft.contacts import Contacts
 from ..fourier import FourierBasis
 from .base import RFTBackend, touching
 from .observations import ObservationsBackend
+from ..operators import unique_pairs
 from .pairs import PairsBackend, distinct_pairs
 from .spectral import SpectralBackend
 
-__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs"]
+__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs", "estimate_pairs"]
 
 METHODS = ("observations", "pairs", "spectral")
 ALIASES = {"exact": "observations"}
@@ -29,7 +32,7 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     rows = touching(contacts)
     T = int(rows.sum())
     S = int(((contacts.weight_x != 0) | (contacts.weight_z != 0)).sum())
-    U = distinct_pairs(contacts)[0].shape[0] if n_pairs is None else int(n_pairs)
+    U = estimate_pairs(contacts) if n_pairs is None else int(n_pairs)
     basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
     F, (Fb, Fg) = basis.size, basis.sizes
     obs = T**3 / 3 + 40.0 * S * min(U, S)
@@ -38,6 +41,21 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     r = min(T, F)
     spectral = (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
     return {"observations": float(obs), "pairs": float(pairs), "spectral": float(spectral * SPECTRAL_PENALTY)}
+
+
+def estimate_pairs(c: Contacts, sample: int = 50_000) -> int:
+    """The number of distinct angle pairs, or (above ``sample`` segments in contact, when an evenly
+    spaced sample of that many is mostly distinct) an estimate scaled from the sample: exact where
+    it decides anything (few pairs), cheap where it cannot (a rotating toe on a long recording)."""
+    active = (c.weight_x != 0) | (c.weight_z != 0)
+    n = int(active.sum())
+    if n > sample:
+        pairs = torch.stack([c.beta[active], c.gamma[active]], -1)
+        idx = torch.linspace(0, n - 1, sample, device=pairs.device).long()
+        u = unique_pairs(pairs[idx])[0].shape[0]
+        if u > sample // 2:
+            return int(u * n / sample)
+    return distinct_pairs(c)[0].shape[0]
 
 
 def choose_method(contacts: Contacts, hypers, tol: float = 1e-7) -> str:
