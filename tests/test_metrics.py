@@ -77,3 +77,16 @@ def test_integrated_autocorrelation_time_of_ar1():
         M.integrated_autocorrelation_time([1.0, 2.0])
     with pytest.raises(ValueError, match="NaN"):
         M.integrated_autocorrelation_time([1.0, float("nan"), 2.0, 3.0, 4.0])
+
+
+def test_definitions_written_beside_the_tables():
+    """The report and docs/metrics.md define ACR% as |e| <= 5 % of the truth's range (inclusive),
+    calibration with mean +- 1.96 std, coverage over 50 x 50 cells; check those exact edges by hand."""
+    t = torch.tensor([0.0, 10.0])  # range 10: the ACR tolerance is 0.5
+    assert M.acr_percent(t + torch.tensor([0.5, 0.0]), t) == 100.0  # exactly on the edge counts
+    assert M.acr_percent(t + torch.tensor([0.5001, 0.0]), t) == 50.0
+    assert M.calibration(torch.tensor([1.95, 1.97]), torch.ones(2), torch.zeros(2)) == 0.5  # 1.96 std
+    b = torch.tensor([[-math.pi / 2 + 1e-9, math.pi / 2 - 1e-9]])  # opposite corners of the square
+    c = Contacts(b, b.clone(), torch.ones(1, 2), torch.ones(1, 2))
+    assert M.coverage_area(c) == pytest.approx(2 / 2500)  # default grid: 50 x 50 cells
+    assert M.redundancy(c) == 0.0
