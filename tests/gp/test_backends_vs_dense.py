@@ -301,3 +301,33 @@ def test_contacts_points_are_one_segment_functionals():
     torch.testing.assert_close(irft.rft.forces(smap, pts), smap(*torch.broadcast_tensors(b, g)).reshape(4, 2))
     with pytest.raises(ValueError, match="beta contains NaN"):
         Contacts.points(torch.tensor([float("nan")]), torch.tensor([0.0]))
+
+
+def test_statistics_of_two_recordings_add_up_to_one_pass_over_both():
+    from irft_torch.gp.backends.spectral import spectral_statistics
+    from irft_torch.gp.fourier import FourierBasis
+
+    c, f = data(T=50, M=4, seed=61)
+    basis = FourierBasis(8, 9)  # more than lengthscales >= 1.5 need at the default tolerance
+    a = spectral_statistics(c[:20], f[:20], basis, chunk=7)
+    b = spectral_statistics(c[20:], f[20:], basis, chunk=13)
+    both = spectral_statistics(c, f, basis)
+    merged = a + b
+    assert merged.n == both.n == 50
+    for k in ("P", "b", "yy", "bg", "yg", "gg"):
+        torch.testing.assert_close(getattr(merged, k), getattr(both, k), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="different feature spaces"):
+        a + spectral_statistics(c[:5], f[:5], FourierBasis(8, 8))
+    # a backend that merges statistics computed elsewhere has the posterior of one fit on everything
+    full = irft.InverseRFT(c, f, method="spectral")
+    part = irft.InverseRFT(c[:20], f[:20], method="spectral")
+    for m in (full, part):
+        set_hypers(m, seed=9, low=1.5)
+    part.backend.basis = full.backend.basis = basis
+    full.backend._set_stats(spectral_statistics(c, f, basis))
+    part.backend._set_stats(spectral_statistics(c[:20], f[:20], basis))
+    part.backend.merge(spectral_statistics(c[20:], f[20:], basis))
+    q = random_contacts(T=5, M=3, seed=62)
+    torch.testing.assert_close(part.backend.posterior(q).mean, full.backend.posterior(q).mean, rtol=1e-9, atol=1e-12)
+    assert part.backend.negative_log_likelihood().sum().item() == pytest.approx(
+        full.backend.negative_log_likelihood().sum().item(), rel=1e-10)

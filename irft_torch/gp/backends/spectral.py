@@ -21,7 +21,40 @@ from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
 from .weight_space import FeatureStatistics, WeightSpaceBackend
 
-__all__ = ["SpectralBackend"]
+__all__ = ["SpectralBackend", "spectral_statistics", "features"]
+
+
+def features(c: Contacts, basis: FourierBasis) -> Tensor:
+    """Phi (2, N, F): the features of the weighted sums of contacts (N, M), x and z axes."""
+    pb, pg = basis.features(c.beta, c.gamma)  # (N, M, Fb), (N, M, Fg)
+    w = torch.stack([c.weight_x, c.weight_z])  # (2, N, M)
+    Phi = torch.einsum("anm,nmi,nmj->anij", w, pb, pg)
+    return Phi.reshape(2, Phi.shape[1], -1)
+
+
+def _meta(basis: FourierBasis) -> dict:
+    return {"space": "spectral", "n_beta": basis.n_beta, "n_gamma": basis.n_gamma}
+
+
+def spectral_statistics(c: Contacts, f: Tensor, basis: FourierBasis, mean=None, chunk: int | None = None
+                        ) -> FeatureStatistics:
+    """Sufficient statistics of one recording (contacts (T, M) and forces (T, 2), whitened if a
+    noise scale applies) in ``basis``, one chunked pass, no model needed: what a worker computes in
+    a map-reduce over a fleet's recordings. Statistics add up (``a + b``) to those of the union.
+
+    Args:
+        mean: the physics prior mean (``GenericShapeMean``) if the model will use one, else None.
+    """
+    F = basis.size
+    stats = FeatureStatistics.zeros(F, dtype=f.dtype, device=f.device, meta=_meta(basis))
+    shape = mean.shape_forces(c) if mean is not None else None
+    chunk = chunk or max(256, min(16384, int(2**25 // max(1, F * (c.n_segments + 4)))))
+    with torch.no_grad():
+        for i in range(0, len(c), chunk):
+            part = c[i:i + chunk]
+            stats.accumulate(features(part, basis), f[i:i + chunk].T,
+                             None if shape is None else shape[:, i:i + chunk], WeightSpaceBackend._same_gram(part))
+    return stats
 
 
 class SpectralBackend(WeightSpaceBackend):
@@ -55,24 +88,11 @@ class SpectralBackend(WeightSpaceBackend):
     # ---- statistics ---------------------------------------------------------------------------
     def features(self, c: Contacts) -> Tensor:
         """Phi (2, N, F): the weighted sums' features, x and z axes."""
-        pb, pg = self.basis.features(c.beta, c.gamma)  # (N, M, Fb), (N, M, Fg)
-        w = torch.stack([c.weight_x, c.weight_z])  # (2, N, M)
-        Phi = torch.einsum("anm,nmi,nmj->anij", w, pb, pg)
-        return Phi.reshape(2, Phi.shape[1], -1)
+        return features(c, self.basis)
 
     def statistics(self, c: Contacts, f: Tensor) -> FeatureStatistics:
         """Sufficient statistics of (c, f) in this backend's basis, one chunked pass."""
-        F = self.basis.size
-        stats = FeatureStatistics.zeros(F, dtype=f.dtype, device=f.device, meta=self._meta())
-        shape = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
-        chunk = self._chunk_rows(F, c.n_segments)
-        with torch.no_grad():
-            for i in range(0, len(c), chunk):
-                part = c[i:i + chunk]
-                Phi = self.features(part)
-                stats.accumulate(Phi, f[i:i + chunk].T, None if shape is None else shape[:, i:i + chunk],
-                                 self._same_gram(part))
-        return stats
+        return spectral_statistics(c, f, self.basis, self.hypers.mean)
 
     def _rows(self):
         if not self._data:
@@ -84,7 +104,7 @@ class SpectralBackend(WeightSpaceBackend):
             return self.features(c), y, g
 
     def _meta(self) -> dict:
-        return {"space": "spectral", "n_beta": self.basis.n_beta, "n_gamma": self.basis.n_gamma}
+        return _meta(self.basis)
 
     # ---- the weight-space pieces ------------------------------------------------------------
     def _sigma_factors(self, detach: bool = False) -> tuple[Tensor, Tensor, Tensor]:
