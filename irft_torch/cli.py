@@ -490,12 +490,26 @@ def cmd_fit(a) -> int:
     from .hardware import load_dataset
 
     _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
-    ds = load_dataset(a.dataset)
+    parts = [load_dataset(p) for p in a.dataset]
+    ds = parts[0]
+    if len(parts) > 1:  # one recording after another: times shifted so the time axis keeps increasing
+        from .rft import Contacts
+
+        times, t_end = [], 0.0
+        for d in parts:
+            t = d.time - d.time[0]
+            step = float(t[1] - t[0]) if len(t) > 1 else 0.0
+            times.append(t + t_end)
+            t_end = float(times[-1][-1]) + step
+        ds = type(ds)(Contacts.cat([d.contacts for d in parts]), torch.cat([d.forces for d in parts]),
+                      torch.cat(times), torch.cat([d.toe_position for d in parts]))
+        print(f"{len(parts)} datasets, {len(ds)} samples in all")
     if a.max_samples and len(ds) > a.max_samples:
         keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
         print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (--max-samples)")
         ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
-    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean)
+    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method)
+    print(f"backend {model.backend.describe()}")
     model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -613,7 +627,9 @@ def _register_hardware(sub) -> None:
 
     p = sub.add_parser("fit", help="fit I-RFT to a dataset; write the map, its uncertainty and figures",
                        description="Fit InverseRFT to an ingested dataset and write model.pt and figures.")
-    p.add_argument("dataset", help="dataset .npz from irft ingest")
+    p.add_argument("dataset", nargs="+", help="dataset .npz from irft ingest (several: fitted together)")
+    p.add_argument("--method", choices=["auto", "observations", "pairs", "spectral"], default="auto",
+                   help="inference backend (default auto: the cheapest exact space for the data)")
     p.add_argument("--out", default="irft_fit", help="output directory (default irft_fit)")
     p.add_argument("--n-iter", type=int, default=300)
     p.add_argument("--lr", type=float, default=0.05)

@@ -70,6 +70,13 @@ def test_record_simulate_ingest_fit(tmp_path, capsys):
     # the fitted model reproduces the drag and lift it was trained on (a zero map is 2.7 / 9 N off)
     assert pred.shape == (len(idx), 2) and bool(((pred - torch.tensor(F)).abs() < 1.0).all()), pred
 
+    # two datasets fit together: the model holds both recordings' samples, on the backend asked for
+    rc = main(["fit", str(tmp_path / "ds.npz"), str(tmp_path / "ds.npz"), "--out", str(tmp_path / "fit2"),
+               "--n-iter", "3", "--method", "pairs", "--no-progress"])
+    assert rc == 0 and "2 datasets, " in capsys.readouterr().out
+    both = irft.InverseRFT.load(tmp_path / "fit2" / "model.pt")
+    assert len(both.train_contacts) == 2 * len(ds) and both.method == "pairs"
+
 
 def test_ingest_truncated_log_is_a_clear_error(tmp_path, capsys):
     sim = SimulatedLeg(irft.rft.IToe(0.08, 0.008), irft.rft.FourierStressMap.generic(), rate=50)
