@@ -50,6 +50,16 @@ print("KEY" + _json.dumps({"designed": _rmse(model, truth), "paper": _rmse(base,
 }
 
 
+def stated_seconds(stem: str) -> int:
+    """The run time the README states for a notebook ("`01_quickstart.ipynb` (... about 15 s)")."""
+    import re
+
+    text = " ".join((ROOT / "README.md").read_text().split())
+    m = re.search(re.escape(stem) + r"\.ipynb` \([^)]*?about (\d+) s\)", text)
+    assert m, f"the README states no run time for {stem}"
+    return int(m.group(1))
+
+
 @pytest.fixture(scope="module")
 def kernel_name(tmp_path_factory, request):
     root = tmp_path_factory.mktemp("jupyter")
@@ -80,7 +90,8 @@ def test_notebook_runs_shows_figures_and_gets_its_numbers(path, tmp_path, kernel
     nb.cells.append(nbformat.v4.new_code_cell(key_code))
     t0 = time.perf_counter()
     NotebookClient(nb, timeout=600, kernel_name=kernel_name, resources={"metadata": {"path": str(tmp_path)}}).execute()
-    print(f"{path.name}: {time.perf_counter() - t0:.0f} s")
+    elapsed = time.perf_counter() - t0
+    print(f"{path.name}: {elapsed:.0f} s")
     out = outputs(nb)
     errors = [o for o in out if o.output_type == "error"]
     assert not errors, errors
@@ -94,6 +105,8 @@ def test_notebook_runs_shows_figures_and_gets_its_numbers(path, tmp_path, kernel
     key = json.loads(text.split("KEY", 1)[1])
     print(path.stem, key)
     assert check(key), key
+    stated = stated_seconds(path.stem)  # kernel start-up (a few s) on top of the README's figure
+    assert elapsed <= 2 * stated + 10, f"{path.name} took {elapsed:.0f} s; the README says about {stated} s"
 
 
 def test_importing_plotting_keeps_the_backend():
