@@ -21,7 +21,6 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.pairs import distinct_pairs
 from .backends.select import estimated_costs
 from .hyperparameters import RFTHyperparameters
 
@@ -308,11 +307,12 @@ class InverseRFT(nn.Module):
                 loss.backward()
                 opt.step()
                 history.append(loss.item())
-                if step % 10 == 9 and self.backend.refresh() and self.auto:
-                    self._rechoose()
+                if step % 10 == 9 and self.backend.stale():
+                    self._adapt()
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
-            self.backend.refresh()
+            if self.backend.stale():
+                self._adapt()
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
@@ -327,18 +327,23 @@ class InverseRFT(nn.Module):
         self.loss_history.extend(history)
         return history
 
-    def _rechoose(self) -> None:
-        """With ``method="auto"``: after the hyperparameters moved (e.g. the spectral basis grew), move
-        to another backend if it is now less than half as costly. The hyperparameters are shared, so
-        nothing is lost."""
-        if getattr(self, "_n_pairs", None) is None:
-            self._n_pairs = distinct_pairs(self.train_contacts)[0].shape[0]
-        costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._n_pairs)
-        best = min(costs, key=costs.get)
-        if best != self.method and costs[best] < 0.5 * costs[self.method]:
-            self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
-                                        solver=self.solver, tol=self.tol)
-            self.backend.in_fit = True
+    def _adapt(self) -> None:
+        """The hyperparameters moved so that the backend must adapt (the spectral basis must grow).
+        With ``method="auto"``, first ask whether another backend is now cheaper (by more than 2x) and
+        move there instead (the hyperparameters are shared, nothing is lost); else refresh."""
+        if self.auto:
+            if getattr(self, "_n_pairs", None) is None:
+                from .backends.select import estimate_pairs
+
+                self._n_pairs = estimate_pairs(self.train_contacts)
+            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._n_pairs)
+            best = min(costs, key=costs.get)
+            if best != self.method and costs[best] < 0.5 * costs[self.method]:
+                self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
+                                            solver=self.solver, tol=self.tol)
+                self.backend.in_fit = True
+                return
+        self.backend.refresh()
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is

@@ -331,3 +331,17 @@ def test_statistics_of_two_recordings_add_up_to_one_pass_over_both():
     torch.testing.assert_close(part.backend.posterior(q).mean, full.backend.posterior(q).mean, rtol=1e-9, atol=1e-12)
     assert part.backend.negative_log_likelihood().sum().item() == pytest.approx(
         full.backend.negative_log_likelihood().sum().item(), rel=1e-10)
+
+
+@pytest.mark.parametrize("method", ["pairs", "spectral"])
+def test_segments_moving_both_ways_in_one_sample_match_dense(method):
+    """A turning toe: within one sample some segments move toward +x and some toward -x (weight_x
+    signs differ along the row), so the x and z feature rows differ: the general accumulation."""
+    c = random_contacts(T=25, M=4, seed=71, repeated=(method == "pairs"))
+    sign = torch.where(torch.rand(25, 4, generator=torch.Generator().manual_seed(72)) < 0.5, -1.0, 1.0)
+    c = Contacts(c.beta, c.gamma, sign * c.weight_z, c.weight_z)
+    f = irft.rft.forces(FourierStressMap.generic(0.5, 0.4), c) + 0.05 * torch.randn(25, 2)
+    model = irft.InverseRFT(c, f, method=method)
+    set_hypers(model, seed=4)
+    ref = sum(-r[0] for r in references(model, c, f))
+    assert model.loss().item() == pytest.approx(ref.item(), rel=TOL[method])

@@ -98,6 +98,10 @@ class RFTBackend(nn.Module):
             total = total + prior.log_prob(closure(module)).sum()
         return total
 
+    def stale(self) -> bool:
+        """Whether the current hyperparameters need ``refresh`` (the spectral basis too small)."""
+        return False
+
     def refresh(self) -> bool:
         """Called during fitting: adapt to the current hyperparameters if needed (the spectral basis
         grows when a lengthscale shrinks). Returns whether anything changed."""

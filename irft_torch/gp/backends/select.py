@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ...rft.contacts import Contacts
-from ..fourier import FourierBasis
+from ..fourier import MAX_HARMONICS, FourierBasis
 from .base import RFTBackend, touching
 from .observations import ObservationsBackend
 from ..operators import unique_pairs
@@ -35,12 +35,14 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     U = estimate_pairs(contacts) if n_pairs is None else int(n_pairs)
     basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
     F, (Fb, Fg) = basis.size, basis.sizes
+    capped = max(basis.n_beta, basis.n_gamma) >= MAX_HARMONICS  # the tolerance is out of reach: not exact
     obs = T**3 / 3 + 40.0 * S * min(U, S)
     r = min(T, U)
     pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
     r = min(T, F)
     spectral = (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
-    return {"observations": float(obs), "pairs": float(pairs), "spectral": float(spectral * SPECTRAL_PENALTY)}
+    spectral = float("inf") if capped else float(spectral * SPECTRAL_PENALTY)
+    return {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
 
 
 def estimate_pairs(c: Contacts, sample: int = 50_000) -> int:

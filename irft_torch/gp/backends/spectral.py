@@ -24,12 +24,16 @@ from .weight_space import FeatureStatistics, WeightSpaceBackend
 __all__ = ["SpectralBackend", "spectral_statistics", "features"]
 
 
-def features(c: Contacts, basis: FourierBasis) -> Tensor:
-    """Phi (2, N, F): the features of the weighted sums of contacts (N, M), x and z axes."""
+def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
+    """sum_m w_nm psi_beta(beta_nm) kron psi_gamma(gamma_nm): w (N, M) -> (N, Fb Fg), one batched matmul."""
+    return torch.bmm((w[..., None] * pb).mT, pg).reshape(w.shape[0], -1)
+
+
+def features(c: Contacts, basis: FourierBasis, axes: tuple[int, ...] = (0, 1)) -> Tensor:
+    """Phi (len(axes), N, F): the features of the weighted sums of contacts (N, M), x and z axes."""
     pb, pg = basis.features(c.beta, c.gamma)  # (N, M, Fb), (N, M, Fg)
-    w = torch.stack([c.weight_x, c.weight_z])  # (2, N, M)
-    Phi = torch.einsum("anm,nmi,nmj->anij", w, pb, pg)
-    return Phi.reshape(2, Phi.shape[1], -1)
+    w = (c.weight_x, c.weight_z)
+    return torch.stack([_axis_features(w[a], pb, pg) for a in axes])
 
 
 def _meta(basis: FourierBasis) -> dict:
@@ -52,8 +56,12 @@ def spectral_statistics(c: Contacts, f: Tensor, basis: FourierBasis, mean=None, 
     with torch.no_grad():
         for i in range(0, len(c), chunk):
             part = c[i:i + chunk]
-            stats.accumulate(features(part, basis), f[i:i + chunk].T,
-                             None if shape is None else shape[:, i:i + chunk], WeightSpaceBackend._same_gram(part))
+            y, g = f[i:i + chunk].T, None if shape is None else shape[:, i:i + chunk]
+            sign = WeightSpaceBackend._row_sign(part)
+            if sign is None:
+                stats.accumulate(features(part, basis), y, g)
+            else:
+                stats.accumulate_shared(features(part, basis, axes=(1,))[0], sign, y, g)
     return stats
 
 
@@ -180,6 +188,9 @@ class SpectralBackend(WeightSpaceBackend):
         self._set_stats(self.stats + stats)
         self._data = None  # the raw data behind them is not here: the basis can no longer grow
 
+    def stale(self) -> bool:
+        return not bool((self.truncation_error() <= self.tol).all())
+
     def refresh(self) -> bool:
         """Grow the basis if the current lengthscales need more harmonics than it has for ``tol``
         (recomputing the statistics from the kept data). Returns whether it grew."""
@@ -188,7 +199,8 @@ class SpectralBackend(WeightSpaceBackend):
         need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
         if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:
             return False
-        grown = FourierBasis(max(need.n_beta, self.basis.n_beta), max(need.n_gamma, self.basis.n_gamma))
+        ahead = FourierBasis.for_lengthscale(self.hypers.lengthscale.detach() * 0.85, self.tol)  # room to shrink
+        grown = FourierBasis(max(ahead.n_beta, self.basis.n_beta), max(ahead.n_gamma, self.basis.n_gamma))
         if grown == self.basis or self._data is None:
             if self._data is None:
                 warnings.warn(f"the lengthscales need a larger Fourier basis ({need}) than the statistics were "

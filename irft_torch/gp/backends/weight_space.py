@@ -87,6 +87,22 @@ class FeatureStatistics:
             self.gg += g.pow(2).sum(-1)
         self.n += y.shape[-1]
 
+    def accumulate_shared(self, Phi: Tensor, sign: Tensor, y: Tensor, g: Tensor | None = None) -> None:
+        """Add rows whose x features are the z features times a sign per row (a toe that does not
+        turn: weight_x = sign_t weight_z): Phi (t, F) of the z axis, sign (t,), y and g (2, t). One
+        product serves both axes."""
+        G = Phi.mT @ Phi
+        self.P += G.expand(2, *G.shape)
+        ys = torch.stack([sign * y[0], y[1]])  # (2, t): Phi_x^T y_x = Phi_z^T (sign y_x)
+        self.b += (ys @ Phi)
+        self.yy += y.pow(2).sum(-1)
+        if g is not None:
+            gs = torch.stack([sign * g[0], g[1]])
+            self.bg += gs @ Phi
+            self.yg += (y * g).sum(-1)
+            self.gg += g.pow(2).sum(-1)
+        self.n += y.shape[-1]
+
     def __add__(self, other: FeatureStatistics) -> FeatureStatistics:
         if not isinstance(other, FeatureStatistics):
             return NotImplemented
@@ -297,14 +313,19 @@ class WeightSpaceBackend(RFTBackend):
         return self._with_data(contacts, forces)
 
     @staticmethod
-    def _same_gram(c: Contacts) -> bool:
-        """Whether weight_x = +-weight_z with one sign per row (a toe that does not turn)."""
+    def _row_sign(c: Contacts) -> Tensor | None:
+        """(T,) sign_t with weight_x = sign_t weight_z for every row (a toe that does not turn), or None."""
         if not torch.equal(c.weight_x.abs(), c.weight_z):
-            return False
+            return None
         s = torch.sign(c.weight_x)
         nz = s != 0
         first = torch.where(nz.any(-1), s.masked_fill(~nz, 0).sum(-1).sign(), torch.ones_like(s[..., 0]))
-        return bool(((s == first[..., None]) | ~nz).all())
+        return first if bool(((s == first[..., None]) | ~nz).all()) else None
+
+    @classmethod
+    def _same_gram(cls, c: Contacts) -> bool:
+        """Whether weight_x = +-weight_z with one sign per row (a toe that does not turn)."""
+        return cls._row_sign(c) is not None
 
     def _chunk_rows(self, F: int, M: int) -> int:
         return max(256, min(16384, int(2**25 // max(1, F * (M + 4)))))
