@@ -102,9 +102,12 @@ class RFTCompositeKernel(Kernel):
         # The index structure (compressed segments, distinct angle pairs) depends only on the
         # inputs, not on the hyperparameters: reuse it while the same input tensors come back
         # (every training step).
-        key = (id(x1), x1._version, id(x2), x2._version, tuple(x1.shape), tuple(x2.shape), batch,
-               x1.requires_grad or x2.requires_grad)
-        if self._structure_key != key or x1.requires_grad or x2.requires_grad:
+        # The key holds the input tensors themselves (not their ids, which a freed tensor's successor
+        # may reuse) and their versions.
+        key = (x1, x1._version, x2, x2._version, batch)
+        old = self._structure_key
+        hit = old is not None and old[0] is x1 and old[2] is x2 and old[1:2] == key[1:2] and old[3:] == key[3:]
+        if not hit or x1.requires_grad or x2.requires_grad:
             structure = RFTKernelLinearOperator.segment_structure(
                 b1, g1, w1, b2, g2, w2, batch, same_inputs=x1 is x2 or (x1.shape == x2.shape and torch.equal(x1, x2)))
             if not (x1.requires_grad or x2.requires_grad):

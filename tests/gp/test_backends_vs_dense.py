@@ -345,3 +345,19 @@ def test_segments_moving_both_ways_in_one_sample_match_dense(method):
     set_hypers(model, seed=4)
     ref = sum(-r[0] for r in references(model, c, f))
     assert model.loss().item() == pytest.approx(ref.item(), rel=TOL[method])
+
+
+def test_many_queries_in_a_row_never_reuse_another_querys_structure():
+    """Regression: the composite kernel cached its segment structure by the inputs' ids; a freed
+    query's id reused by the next one gave that one the old structure (a wrong, non-PSD covariance).
+    Twenty fresh queries under no_grad, each against the pairs backend (exact, no such cache)."""
+    c, f = data(T=20, M=3, seed=81, repeated=True)
+    obs, pairs = irft.InverseRFT(c, f, method="observations"), irft.InverseRFT(c, f, method="pairs")
+    for m in (obs, pairs):
+        set_hypers(m, seed=8)
+    with torch.no_grad():
+        for k in range(20):
+            q = random_contacts(T=5 + k % 3, M=2 + k % 3, seed=100 + k)
+            a = obs.backend.posterior(q, covariance=True).covariance
+            b = pairs.backend.posterior(q, covariance=True).covariance
+            torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10 * b.abs().max().item())
