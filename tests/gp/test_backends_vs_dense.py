@@ -357,7 +357,22 @@ def test_many_queries_in_a_row_never_reuse_another_querys_structure():
         set_hypers(m, seed=8)
     with torch.no_grad():
         for k in range(20):
-            q = random_contacts(T=5 + k % 3, M=2 + k % 3, seed=100 + k)
+            q = random_contacts(T=6, M=3, seed=100 + k)  # one shape: the freed tensors' ids come back
             a = obs.backend.posterior(q, covariance=True).covariance
             b = pairs.backend.posterior(q, covariance=True).covariance
             torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10 * b.abs().max().item())
+
+
+def test_composite_kernel_cache_never_serves_another_tensor():
+    from irft_torch.gp.encoding import encode_contacts
+    from irft_torch.gp.kernels import AngleKernel, RFTCompositeKernel
+
+    kern = RFTCompositeKernel(AngleKernel())
+    ids = set()
+    for k in range(30):
+        rows = encode_contacts(random_contacts(T=6, M=3, seed=200 + k))  # freed each round: ids come back
+        ids.add(id(rows))
+        got = kern(rows).to_dense()
+        want = RFTCompositeKernel(AngleKernel())(rows).to_dense()  # a fresh kernel, no cache
+        torch.testing.assert_close(got, want)
+    assert len(ids) < 30  # the situation the cache must survive did occur
