@@ -1,7 +1,7 @@
 """Probes: a toe moved along a path, the unit a robot runs to learn about the ground.
 
-A ``Probe`` is what active probing scores and designs (``irft_torch.gp.active_probing``,
-``irft_torch.probe_design``); ``ProbeBounds`` is the leg's workspace; ``random_probes`` draws an
+A ``Probe`` is what active probing scores and designs (``irft_torch.design``: ``ProbeScorer``,
+``optimize_probe``); ``ProbeBounds`` is the leg's workspace; ``random_probes`` draws an
 equal-length library of candidate probes inside it.
 """
 
