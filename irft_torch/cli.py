@@ -211,7 +211,7 @@ def cmd_simulate(a) -> int:
         plotting.save(plotting.plot_stress_map(smap, title=smap.name), d / "stress_map.png")
         plotting.save(plotting.plot_toe_path(toe, path), d / "toe_path.png")
         plotting.save(plotting.plot_coverage(c), d / "coverage.png")
-        plotting.save(plotting.plot_forces(path.time, f), d / "forces.png")
+        plotting.save(plotting.plot_forces(path.time, f, labels=("simulated force", "")), d / "forces.png")
         print(f"wrote figures to {d}/")
     return 0
 
@@ -517,7 +517,9 @@ def cmd_fit(a) -> int:
     fig = plotting.plot_posterior_map(model)
     plotting.save(fig, out / "stress_map.png")
     pred = model.predict_forces(ds.contacts)
-    plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, pred.stddev), out / "forces.png")
+    meas = model.predict_forces(ds.contacts, include_noise=True)  # a new measurement: mean +- noise too
+    plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, meas.stddev, labels=("dataset", "I-RFT fit"),
+                                       band_label=r"$\pm 2\sigma$ of a measurement"), out / "forces.png")
     rng = (ds.forces.amax(0) - ds.forces.amin(0)).clamp_min(1e-12)
     nrmse = ((pred.mean - ds.forces).pow(2).mean(0).sqrt() / rng * 100).tolist()
     print(f"wrote {out}/model.pt, stress_map.png, forces.png; force RMSE {nrmse[0]:.2f} % (x), "
