@@ -191,10 +191,12 @@ def test_spectral_and_exact_scores_agree_on_probes():
     m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="observations")
     ex = ProbeScorer.from_model(m, method="observations").score(probes[2:])
     sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:])
-    torch.testing.assert_close(sp, ex, rtol=1e-6, atol=0)
+    # IV is a difference (prior minus what the data explain): 1e-6 of its scale, 2 (the prior's IV)
+    torch.testing.assert_close(sp, ex, rtol=1e-6, atol=2e-6)
     eig_ex = ProbeScorer.from_model(m, method="observations").score(probes[2:5], "eig")
     eig_sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:5], "eig")
-    torch.testing.assert_close(eig_sp, eig_ex, rtol=1e-6, atol=0)
+    # EIG sums log(1 + lambda / sigma^2) over many eigenvalues: kernel errors of 1e-7 reach ~3e-6 here
+    torch.testing.assert_close(eig_sp, eig_ex, rtol=1e-5, atol=0)
 
 
 @pytest.mark.parametrize("method", ["exact", "spectral"])

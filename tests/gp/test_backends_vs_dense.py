@@ -376,3 +376,19 @@ def test_composite_kernel_cache_never_serves_another_tensor():
         want = RFTCompositeKernel(AngleKernel())(rows).to_dense()  # a fresh kernel, no cache
         torch.testing.assert_close(got, want)
     assert len(ids) < 30  # the situation the cache must survive did occur
+
+
+def test_the_one_rbf_is_gpytorchs_scalekernel_rbf():
+    """Every backend evaluates the kernel through gp.embedding.rbf with the stock
+    ScaleKernel(RBFKernel)'s hyperparameters: it equals that module's own forward."""
+    from irft_torch.gp.embedding import embed_angles
+    from irft_torch.gp.kernels import AngleKernel, angle_covariance
+
+    k = AngleKernel()
+    k.lengthscale = 0.3 + torch.rand(2, 1, 4, generator=torch.Generator().manual_seed(1))
+    k.outputscale = torch.tensor([0.3, 2.0])
+    g = torch.Generator().manual_seed(2)
+    b1, g1, b2, g2 = ((torch.rand(n, generator=g) - 0.5) * P for n in (7, 7, 5, 5))
+    ours = angle_covariance(k, b1, g1, b2, g2)
+    stock = k(embed_angles(b1, g1), embed_angles(b2, g2)).to_dense()
+    torch.testing.assert_close(ours, stock, rtol=1e-12, atol=1e-14)
