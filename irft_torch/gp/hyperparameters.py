@@ -8,23 +8,25 @@ reads them; swapping the backend keeps them.
 from __future__ import annotations
 
 import torch
-from gpytorch.constraints import GreaterThan
 from gpytorch.likelihoods import GaussianLikelihood
 from gpytorch import Module
 from torch import Tensor
 
+from .constraints import ScaledGreaterThan
 from .kernels import BATCH, AngleKernel
 from .means import GenericShapeMean
 
 __all__ = ["RFTHyperparameters", "force_likelihood"]
 
 
-def force_likelihood(tied: bool = False, noise_floor: float = 1e-6) -> GaussianLikelihood:
+def force_likelihood(tied: bool = False, noise_floor: float = 1e-6, scale=1.0) -> GaussianLikelihood:
     """gpytorch's ``GaussianLikelihood`` for the (x, z) batch of force axes: one noise variance per
     axis (batch shape (2,), noise (2, 1)) or one shared (``tied``, the I-RFT paper; noise (1,)), N^2,
-    bounded below by ``noise_floor``."""
+    bounded below by ``noise_floor``; ``scale``: the force variance that makes its raw value unit-free."""
+    scale = torch.as_tensor(scale, dtype=torch.get_default_dtype())
+    scale = scale.mean().reshape(1) if tied else scale.expand(2).reshape(2, 1)
     return GaussianLikelihood(batch_shape=torch.Size() if tied else BATCH,
-                              noise_constraint=GreaterThan(noise_floor))
+                              noise_constraint=ScaledGreaterThan(noise_floor, scale))
 
 
 class RFTHyperparameters(Module):
@@ -36,11 +38,17 @@ class RFTHyperparameters(Module):
         mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
     """
 
-    def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6) -> None:
+    def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6,
+                 force_scale=1.0, map_scale=1.0) -> None:
+        """``force_scale`` (2,) N and ``map_scale`` (2,) N/cm^3: the data's typical force and stress per
+        depth per axis; the raw parameters are measured in them (``ScaledGreaterThan``), so a fit does
+        not depend on the units the data come in."""
         super().__init__()
-        self.kernel = AngleKernel()
-        self.likelihood = force_likelihood(tied_noise, noise_floor)
-        self.mean = GenericShapeMean() if physics_mean else None
+        fs = torch.as_tensor(force_scale, dtype=torch.get_default_dtype()).expand(2)
+        ms = torch.as_tensor(map_scale, dtype=torch.get_default_dtype()).expand(2)
+        self.kernel = AngleKernel(outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
+        self.likelihood = force_likelihood(tied_noise, noise_floor, fs.pow(2))
+        self.mean = GenericShapeMean(scale=ms) if physics_mean else None
 
     @property
     def tied(self) -> bool:

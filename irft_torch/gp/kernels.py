@@ -41,11 +41,12 @@ class AngleKernel(ScaleKernel):
     """
 
     def __init__(self, batch_shape: torch.Size = BATCH, lengthscale_constraint: Interval | None = None,
-                 lengthscale_prior=None, outputscale_prior=None) -> None:
+                 lengthscale_prior=None, outputscale_prior=None, outputscale_constraint: Interval | None = None) -> None:
         base = RBFKernel(ard_num_dims=4, batch_shape=batch_shape,
                          lengthscale_constraint=lengthscale_constraint or GreaterThan(0.05),
                          lengthscale_prior=lengthscale_prior)
-        super().__init__(base, batch_shape=batch_shape, outputscale_prior=outputscale_prior)
+        super().__init__(base, batch_shape=batch_shape, outputscale_prior=outputscale_prior,
+                         outputscale_constraint=outputscale_constraint)
 
     @property
     def lengthscale(self) -> Tensor:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import torch
-from gpytorch.constraints import Positive
 from gpytorch.means import Mean
 from torch import Tensor
 
 from ..rft.stress_maps import FourierStressMap
+from .constraints import ScaledGreaterThan
 from .encoding import decode_rows
 
 __all__ = ["GenericShapeMean"]
@@ -22,11 +22,13 @@ class GenericShapeMean(Mean):
         init_scales: initial (s_x, s_z) in N/cm^3.
     """
 
-    def __init__(self, init_scales: tuple[float, float] = (1.0, 1.0)) -> None:
+    def __init__(self, init_scales: tuple[float, float] = (1.0, 1.0), scale=1.0) -> None:
+        """``scale`` (2,): the data's typical stress per depth, N/cm^3, in which the raw scales are
+        measured (a unit-free fit; see ``hyperparameters.ScaledGreaterThan``)."""
         super().__init__()
         self.shape_map = FourierStressMap.generic()
         self.register_parameter("raw_scales", torch.nn.Parameter(torch.zeros(2)))
-        self.register_constraint("raw_scales", Positive())
+        self.register_constraint("raw_scales", ScaledGreaterThan(0.0, torch.as_tensor(scale).expand(2).clone()))
         self.scales = init_scales
 
     @property
@@ -35,7 +37,8 @@ class GenericShapeMean(Mean):
 
     @scales.setter
     def scales(self, value) -> None:
-        value = torch.as_tensor(value, dtype=self.raw_scales.dtype).clamp_min(1e-8)
+        value = torch.as_tensor(value, dtype=self.raw_scales.dtype, device=self.raw_scales.device)
+        value = torch.maximum(value, 1e-8 * self.raw_scales_constraint.scale)
         self.initialize(raw_scales=self.raw_scales_constraint.inverse_transform(value))
 
     def shape_forces(self, contacts) -> Tensor:

@@ -86,6 +86,21 @@ def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
     return Contacts(c.beta, c.gamma, c.weight_x / s[:, :1], c.weight_z / s[:, 1:]), f / s
 
 
+def _check_units(c: Contacts, f: Tensor) -> None:
+    """Warn where the data look off by 1000 or in degrees (the fit itself is unit-free)."""
+    fmax = float(f.abs().max())
+    if fmax > 1e4:
+        warnings.warn(f"forces reach {fmax:.3g}: above 1e4 N on a toe; are they in mN? (forces are in N)", stacklevel=3)
+    wmax = float(torch.maximum(c.weight_x.abs().sum(-1).max(), c.weight_z.sum(-1).max()))
+    if wmax > 1e5:
+        warnings.warn(f"segment weights reach {wmax:.3g} per sample: above 1e5 cm^3; are they in mm^3? (weights are "
+                      f"depth [cm] x area [cm^2])", stacklevel=3)
+    amax = float(torch.maximum(c.beta.abs().max(), c.gamma.abs().max()))
+    if amax > math.pi + 1e-6:
+        warnings.warn(f"angles reach {amax:.3g}: outside [-pi, pi]; are they in degrees? (angles are in rad)",
+                      stacklevel=3)
+
+
 def _check_dtype(dtype) -> None:
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
@@ -180,6 +195,7 @@ class InverseRFT(nn.Module):
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+        _check_units(c, f)
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
@@ -192,16 +208,22 @@ class InverseRFT(nn.Module):
         power = y.pow(2).mean(-1)
         rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
-        self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor).to(device=device,
-                                                                                            dtype=dtype)
+        # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
+        # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
+        force_scale = power.sqrt().clamp_min(1e-300)
+        map_scale = force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+        self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
+                                         map_scale.cpu()).to(device=device, dtype=dtype)
         with torch.no_grad():
             resid = y
             if prior_mean == "physics":
                 shape_f = self.hypers.mean.shape_forces(c)
-                scales = ((y * shape_f).sum(-1) / shape_f.pow(2).sum(-1).clamp_min(1e-300)).clamp_min(1e-3)
+                scales = (y * shape_f).sum(-1) / shape_f.pow(2).sum(-1).clamp_min(1e-300)
+                scales = torch.maximum(scales, 1e-3 * map_scale.to(scales))
                 self.hypers.mean.scales = scales
                 resid = y - scales[:, None] * shape_f
-            self.hypers.outputscale = (resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300)).clamp_min(1e-6)
+            self.hypers.outputscale = torch.maximum(resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300),
+                                                    1e-6 * map_scale.to(resid).pow(2))
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         self.auto = method == "auto"

@@ -280,3 +280,41 @@ def test_half_precision_is_refused_with_a_clear_error(gait1):
     c, f = gait1
     with pytest.raises(ValueError, match="dtype must be torch.float64"):
         irft.InverseRFT(c, f, dtype=torch.float16)
+
+
+@pytest.mark.parametrize("method", ["observations", "spectral"])
+def test_a_fit_does_not_depend_on_the_units(gait1, method):
+    """The same data in mN, or with weights in mm^3, fit to the same maps in those units: the raw
+    hyperparameters are measured in the data's own scales (ScaledGreaterThan)."""
+    c, f = gait1
+    f = f + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
+    b, g = torch.linspace(-1.2, 1.2, 7), torch.linspace(-1.4, 1.4, 7)
+
+    def fitted(contacts, forces):
+        m = irft.InverseRFT(contacts, forces, method=method, prior_mean="physics")
+        m.fit(n_iter=40, progress=False)
+        return m.stress_map(b, g), m.predict_forces(c[10:20]).mean
+
+    (ref, pred) = fitted(c, f)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the unit sanity warnings (tested below)
+        (milli, pred_mn) = fitted(c, 1000 * f)
+    torch.testing.assert_close(milli.mean, 1000 * ref.mean, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(milli.variance, 1e6 * ref.variance, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(pred_mn, 1000 * pred, rtol=1e-6, atol=1e-9)
+    mm3 = Contacts(c.beta, c.gamma, 1000 * c.weight_x, 1000 * c.weight_z)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        (small, _) = fitted(mm3, f)
+    torch.testing.assert_close(small.mean, ref.mean / 1000, rtol=1e-6, atol=1e-12)
+
+
+def test_units_off_by_1000_or_degrees_are_named(gait1):
+    c, f = gait1
+    deg = Contacts(c.beta * 180 / P, c.gamma * 180 / P, c.weight_x, c.weight_z)
+    with pytest.warns(UserWarning, match="degrees"):
+        irft.InverseRFT(deg, f)
+    with pytest.warns(UserWarning, match="are they in mN"):
+        irft.InverseRFT(c, f * 1e4)
+    with pytest.warns(UserWarning, match="are they in mm"):
+        irft.InverseRFT(Contacts(c.beta, c.gamma, c.weight_x * 1e6, c.weight_z * 1e6), f)
