@@ -139,16 +139,31 @@ class SpectralBackend(WeightSpaceBackend):
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return self._kron(X, *self._sigma_factors())
 
+    def _features_of(self, c: Contacts) -> Tensor:
+        """features(c), remembered for the last few query objects that need no gradient."""
+        if any(t.requires_grad for t in c.as_dict().values()):
+            return self.features(c)
+        cache = self.__dict__.setdefault("_feature_cache", {})
+        hit = cache.get(id(c))
+        if hit is not None and hit[0] is c and hit[1] == self.basis:
+            return hit[2]
+        Phi = self.features(c)
+        if len(cache) >= 4:
+            cache.pop(next(iter(cache)))
+        cache[id(c)] = (c, self.basis, Phi)
+        return Phi
+
     def _cross(self, c: Contacts) -> Tensor:
-        return self._kron(self.features(c), *self._sigma_factors(detach=True))
+        return self._kron(self._features_of(c), *self._sigma_factors(detach=True))
 
     def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
-        Phi = self.features(c)
-        PS = self._kron(Phi, *self._sigma_factors(detach=True))
-        return PS @ Phi.mT if full else (PS * Phi).sum(-1)
+        C, _ = self._query(c)  # Phi Sigma, remembered
+        Phi = self._features_of(c)
+        return C @ Phi.mT if full else (C * Phi).sum(-1)
 
     def _prior_cross(self, c1: Contacts, c2: Contacts) -> Tensor:
-        return self._kron(self.features(c1), *self._sigma_factors(detach=True)) @ self.features(c2).mT
+        C1, _ = self._query(c1)
+        return C1 @ self._features_of(c2).mT
 
     def truncation_error(self) -> Tensor:
         return self.basis.truncation_error(self.hypers.lengthscale)
