@@ -511,6 +511,7 @@ def cmd_fit(a) -> int:
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method)
     print(f"backend {model.backend.describe()}")
     model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
+    print(model.diagnostics(warn=False))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     model.save(out / "model.pt")

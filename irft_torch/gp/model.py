@@ -297,6 +297,19 @@ class InverseRFT(nn.Module):
         """(2,) bound on the relative error of the kernel the backend uses (0 for exact arithmetic)."""
         return self.backend.truncation_error()
 
+    def diagnostics(self, warn: bool = True):
+        """What the fit can and cannot say, per map (``gp.diagnostics``): the share of the square the
+        forces constrain, lengthscales the data cannot inform, a collapsed signal; with ``warn``, a
+        ``UserWarning`` in plain words for each unidentified map. ``print(model.diagnostics())``."""
+        from .diagnostics import diagnose
+
+        report = diagnose(self)
+        if warn:
+            for m in report.maps:
+                if m.unidentified:
+                    warnings.warn(f"{m.name} is not constrained by these forces: its posterior is the prior", stacklevel=2)
+        return report
+
     # ---- training ----------------------------------------------------------------------------
     def mll(self):
         """gpytorch's ExactMarginalLogLikelihood (observations backend only; ``loss()`` works for all)."""
