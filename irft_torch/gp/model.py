@@ -491,8 +491,14 @@ class InverseRFT(nn.Module):
             self._digest_stale = False
 
     def state_dict(self, *args, **kwargs):
+        """The hyperparameters and the training data's digest. The backend's own entries (the same
+        hyperparameters again, and gpytorch's) are left out: which backend ``auto`` ends on is not part
+        of a model's state."""
         self._fresh_digest()
-        return super().state_dict(*args, **kwargs)
+        out = super().state_dict(*args, **kwargs)
+        for k in [k for k in out if k.split(".", 1)[0] == "backend" or ".backend." in k]:
+            del out[k]
+        return out
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
@@ -505,7 +511,15 @@ class InverseRFT(nn.Module):
                 raise ModelFileError("this state was fitted on other training data (data_digest differs); pass "
                                      "strict=False to load only its hyperparameters")
             state_dict = {k: v for k, v in state_dict.items() if k != "data_digest"}
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+        state_dict = {k: v for k, v in state_dict.items() if not k.startswith("backend.")}
+        result = self.hypers.load_state_dict({k[len("hypers."):]: v for k, v in state_dict.items()
+                                              if k.startswith("hypers.")}, strict=strict)
+        if "data_digest" in state_dict:
+            self.data_digest.copy_(state_dict["data_digest"].to(self.data_digest))
+        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest")]
+        if strict and unexpected:
+            raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
+        return result
 
     def save(self, path) -> None:
         """Write training data, options, the hyperparameters and a checksum to one file (torch.save).

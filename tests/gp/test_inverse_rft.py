@@ -318,3 +318,16 @@ def test_units_off_by_1000_or_degrees_are_named(gait1):
         irft.InverseRFT(c, f * 1e4)
     with pytest.warns(UserWarning, match="are they in mm"):
         irft.InverseRFT(Contacts(c.beta, c.gamma, c.weight_x * 1e6, c.weight_z * 1e6), f)
+
+
+def test_state_dict_holds_the_hyperparameters_whatever_the_backend(gait1):
+    c, f = gait1
+    a = irft.InverseRFT(c, f, method="spectral")
+    a.hypers.lengthscale = torch.full((2, 1, 4), 0.8)
+    b = irft.InverseRFT(c, f, method="observations")  # same data, another backend
+    state = a.state_dict()
+    assert not any(k.startswith("backend.") for k in state)
+    b.load_state_dict(state)
+    torch.testing.assert_close(b.hypers.lengthscale, a.hypers.lengthscale)
+    bb = torch.linspace(-1, 1, 5)
+    torch.testing.assert_close(b.stress_map(bb, bb).mean, a.stress_map(bb, bb).mean, rtol=1e-6, atol=1e-9)
