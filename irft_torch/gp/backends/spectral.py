@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
+from .base import FunctionalPosterior
 from .weight_space import FeatureStatistics, WeightSpaceBackend
 
 __all__ = ["SpectralBackend", "spectral_statistics", "features"]
@@ -180,9 +181,63 @@ class SpectralBackend(WeightSpaceBackend):
             self._ensure_basis()
         return super().negative_log_likelihood()
 
+    def _u_posterior(self) -> tuple[Tensor, Tensor]:
+        """The posterior of the Fourier coefficients: mean m_u (2, F) and covariance
+        A = Sigma - (H Sigma)^T (H Sigma) (2, F, F), cached while the hyperparameters and data stay."""
+        H, v = self._posterior_terms()
+        hit = self.__dict__.get("_u_cache")
+        if hit is not None and hit[0] is H:
+            return hit[1], hit[2]
+        with torch.no_grad():
+            F = self.basis.size
+            eye = torch.eye(F, dtype=H.dtype, device=H.device).expand(2, F, F)
+            Sigma = self._kron(eye, *self._sigma_factors(detach=True))
+            HS = H @ Sigma
+            A = Sigma - HS.mT @ HS
+            A = 0.5 * (A + A.mT)
+            m = (Sigma @ v[..., None])[..., 0]
+        self._u_cache = (H, m, A)
+        return m, A
+
+    def _times_posterior(self, c: Contacts) -> Tensor:
+        """Phi A (2, N, F), remembered for the last few query objects that need no gradient."""
+        _, A = self._u_posterior()
+        if any(t.requires_grad for t in c.as_dict().values()):
+            return self._features_of(c) @ A
+        cache = self.__dict__.setdefault("_phiA_cache", {})
+        hit = cache.get(id(c))
+        if hit is not None and hit[0] is c and hit[1] is A:
+            return hit[2]
+        X = self._features_of(c) @ A
+        if len(cache) >= 4:
+            cache.pop(next(iter(cache)))
+        cache[id(c)] = (c, A, X)
+        return X
+
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False):
+        """In coefficient space: mean Phi m_u, covariance Phi A Phi^T (the same numbers as the
+        weight-space formulas, fewer products per query)."""
         self._ensure_basis()
-        return super().posterior(contacts, variance, covariance)
+        m, _ = self._u_posterior()
+        Phi = self._features_of(contacts)
+        mean = (Phi @ m[..., None])[..., 0]
+        prior = self.hypers.mean_of(contacts)
+        if prior is not None:
+            mean = mean + prior
+        out = FunctionalPosterior(mean)
+        if covariance or variance:
+            X = self._times_posterior(contacts)
+            if covariance:
+                cov = X @ Phi.mT
+                out.covariance = 0.5 * (cov + cov.mT)
+                out.variance = torch.diagonal(out.covariance, dim1=-2, dim2=-1)
+            else:
+                out.variance = (X * Phi).sum(-1)
+        return out
+
+    def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
+        self._ensure_basis()
+        return self._times_posterior(c1) @ self._features_of(c2).mT
 
     # ---- more data and a growing basis --------------------------------------------------------
     def _with_data(self, c: Contacts, f: Tensor) -> SpectralBackend:
