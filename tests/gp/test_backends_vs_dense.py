@@ -393,3 +393,23 @@ def test_the_one_rbf_is_gpytorchs_scalekernel_rbf():
     ours = angle_covariance(k, b1, g1, b2, g2)
     stock = k(embed_angles(b1, g1), embed_angles(b2, g2)).to_dense()
     torch.testing.assert_close(ours, stock, rtol=1e-12, atol=1e-14)
+
+
+def test_observations_posterior_is_gpytorchs_own_prediction():
+    """The observations backend factors the training covariance once; its posterior equals what
+    gpytorch's ExactGP predicts from the same lazy W K W^T."""
+    import gpytorch
+
+    from irft_torch.gp.encoding import encode_contacts
+
+    c, f = data(T=20, M=3, seed=91)
+    model = irft.InverseRFT(c, f, method="observations", prior_mean="physics")
+    set_hypers(model, seed=10)
+    q = random_contacts(T=6, M=3, seed=92)
+    ours = model.backend.posterior(q, covariance=True)
+    model.gp.eval()
+    with torch.no_grad(), gpytorch.settings.max_cholesky_size(2**31), gpytorch.settings.fast_pred_var(False):
+        out = model.gp(encode_contacts(q, model.backend.n_segments))
+        want_mean, want_cov = out.mean, out.covariance_matrix
+    torch.testing.assert_close(ours.mean, want_mean, rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(ours.covariance, want_cov, rtol=1e-7, atol=1e-9 * want_cov.abs().max().item())

@@ -5,12 +5,12 @@ choice for few samples with many distinct angle pairs (a rotating toe, short rec
 from __future__ import annotations
 
 import contextlib
-import warnings
 
 import gpytorch
 import torch
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.mlls import ExactMarginalLogLikelihood
+from linear_operator.utils.cholesky import psd_safe_cholesky
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
@@ -83,39 +83,94 @@ class ObservationsBackend(RFTBackend):
             self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M), strict=False)
             self.n_segments = M
 
-    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False,
-                  chunk: int = 4096) -> FunctionalPosterior:
-        self._ensure_width(contacts.n_segments)
-        rows = encode_contacts(contacts, self.n_segments)
-        self.gp.eval()
-        grad = rows.requires_grad
-        ctx = contextlib.nullcontext() if grad else torch.no_grad()
-        means, variances = [], []
-        covar = None
-        with ctx, self._settings(), gpytorch.settings.skip_posterior_variances(not (variance or covariance)), \
-                warnings.catch_warnings():
-            warnings.simplefilter("ignore", gpytorch.utils.warnings.GPInputWarning)
+    # ---- prediction: the training covariance factored once per set of hyperparameters --------
+    @staticmethod
+    def _side(c: Contacts) -> dict:
+        """One side of a W1 K W2^T: the contacts' non-zero segments and their distinct angle pairs."""
+        w = torch.stack([c.weight_x, c.weight_z])
+        return RFTKernelLinearOperator.segment_structure(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None],
+                                                         w, BATCH, same_inputs=True)
+
+    def _block(self, side1: dict, side2: dict) -> Tensor:
+        """Prior covariance (2, N1, N2) of two sets of weighted sums (the lazy operator, made dense)."""
+        structure = {"pairs1": side1["pairs1"], "i1": side1["i1"], "w1": side1["w1"], "pairs2": side2["pairs1"],
+                     "i2": side2["i1"], "w2": side2["w1"], "same": side1 is side2}
+        k = self.hypers.kernel
+        return RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
+                                                      BATCH).to_dense()
+
+    def _factor(self):
+        """(train side, L (2, T, T) with L L^T = W K W^T + noise, alpha = (.)^-1 (y - m)), cached by value."""
+        key = torch.cat([p.detach().reshape(-1) for p in self.hypers.parameters()])
+        hit = self.__dict__.get("_factor_cache")
+        if hit is not None and hit[0] is self.train_contacts and torch.equal(hit[1], key):
+            return hit[2]
+        with torch.no_grad():
+            side = self._side(self.train_contacts)
+            K = self._block(side, side)
+            noise = self.hypers.noise.detach()
+            eye = torch.eye(K.shape[-1], dtype=K.dtype, device=K.device)
             try:
-                if covariance:
-                    out = self.gp(rows)
-                    means, covar = [out.mean], out.covariance_matrix
-                    covar = 0.5 * (covar + covar.mT)
-                    variances = [torch.diagonal(covar, dim1=-2, dim2=-1)]
-                else:
-                    for i in range(0, rows.shape[-2], chunk):
-                        out = self.gp(rows[..., i:i + chunk, :])
-                        means.append(out.mean)
-                        if variance:
-                            variances.append(out.variance)
+                L = psd_safe_cholesky(0.5 * (K + K.mT) + noise[:, None, None] * eye)
             except NotPSDError as e:
                 raise NotPSDError(f"training covariance not positive definite; hyperparameters: "
                                   f"{self.hypers.as_dict()}") from e
-        return FunctionalPosterior(torch.cat(means, -1), torch.cat(variances, -1) if variances else None, covar)
+            r = self.train_forces.T
+            m = self.hypers.mean_of(self.train_contacts)
+            if m is not None:
+                r = r - m
+            alpha = torch.cholesky_solve(r[..., None], L)[..., 0]
+        value = (side, L, alpha)
+        self._factor_cache = (self.train_contacts, key, value)
+        return value
+
+    def _query(self, c: Contacts):
+        """(side, K_tq (2, T, N), A = L^-1 K_tq), remembered for the last few query objects that need
+        no gradient (a design scores one region against many candidates)."""
+        side_t, L, _ = self._factor()
+        grad = any(t.requires_grad for t in c.as_dict().values())
+        cache = self.__dict__.setdefault("_query_cache", {})
+        hit = cache.get(id(c))
+        if not grad and hit is not None and hit[0] is c and hit[1] is L:
+            return hit[2]
+        side = self._side(c)
+        Ktq = self._block(side_t, side)
+        A = torch.linalg.solve_triangular(L, Ktq, upper=False)
+        value = (side, Ktq, A)
+        if not grad:
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[id(c)] = (c, L, value)
+        return value
+
+    def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
+        """Exact posterior of the weighted sums of ``contacts`` (N, M) (the same numbers as gpytorch's
+        prediction from ``self.gp``, which the tests check; the training factor is computed once)."""
+        _, _, alpha = self._factor()
+        side, Ktq, A = self._query(contacts)
+        mean = (Ktq.mT @ alpha[..., None])[..., 0]
+        prior = self.hypers.mean_of(contacts)
+        if prior is not None:
+            mean = mean + prior
+        out = FunctionalPosterior(mean)
+        if covariance:
+            cov = self._block(side, side) - A.mT @ A
+            out.covariance = 0.5 * (cov + cov.mT)
+            out.variance = torch.diagonal(out.covariance, dim1=-2, dim2=-1)
+        elif variance:
+            k = self.hypers.kernel
+            w = torch.stack([contacts.weight_x, contacts.weight_z])
+            op = RFTKernelLinearOperator.from_segments(contacts.beta[None], contacts.gamma[None], w,
+                                                       contacts.beta[None], contacts.gamma[None], w,
+                                                       k.lengthscale.detach(), k.outputscale.detach(), BATCH,
+                                                       same_inputs=True)
+            out.variance = op.diagonal() - A.pow(2).sum(-2)
+        return out
 
     def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
-        both = Contacts.cat([c1, c2])
-        cov = self.posterior(both, covariance=True).covariance
-        return cov[..., :len(c1), len(c1):]
+        s1, _, A1 = self._query(c1)
+        s2, _, A2 = self._query(c2)
+        return self._block(s1, s2) - A1.mT @ A2
 
     def _with_data(self, c: Contacts, f: Tensor) -> ObservationsBackend:
         return ObservationsBackend(self.hypers, Contacts.cat([self.train_contacts, c]),
