@@ -96,10 +96,13 @@ def factor_truncation_error(ls: Tensor, n: int) -> Tensor:
 
 def harmonics_for(ls: Tensor, tol: float, n_max: int = MAX_HARMONICS) -> tuple[int, float]:
     """Smallest n with e_n <= tol for every batch entry (capped at n_max): (n, the error reached)."""
-    e = truncation_errors(ls, n_max).reshape(-1, n_max + 1).amax(0)
-    ok = (e <= tol).nonzero()
-    n = int(ok[0]) if ok.numel() else n_max
-    return max(n, 1), float(e[max(n, 1)])
+    for top in sorted({min(12, n_max), n_max}):  # most lengthscales need few harmonics: try those first
+        e = truncation_errors(ls, top).reshape(-1, top + 1).amax(0)
+        ok = (e <= tol).nonzero()
+        if ok.numel():
+            n = max(int(ok[0]), 1)
+            return n, float(e[n])
+    return n_max, float(e[n_max])
 
 
 @dataclass(frozen=True)
