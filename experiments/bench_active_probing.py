@@ -103,7 +103,8 @@ def main(argv=None) -> None:
           f"{float(((e_eig[:n_cmp] - ref[:n_cmp]) / ref[:n_cmp]).abs().max()):.1e}")
     k = len(e_iv)
     print(f"{model.method} vs observations (first {k}): IV max relative difference "
-          f"{float(((a_iv[:k] - e_iv) / e_iv).abs().max()):.1e}, EIG {float(((a_eig[:k] - e_eig) / e_eig).abs().max()):.1e}")
+          f"{float(((a_iv[:k] - e_iv) / e_iv).abs().max()):.1e}, "
+          f"EIG {float(((a_eig[:k] - e_eig) / e_eig).abs().max()):.1e}")
     print(f"ratios (reference EIG time / ours): {model.method} {t_ref / a_t_eig:.1f}x (EIG), observations "
           f"{t_ref / e_t_eig:.1f}x; {model.method} set-up + {len(cands)} IV scores {a_t_iv:.2f} s (target <= 0.2 s)")
 

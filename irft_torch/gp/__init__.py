@@ -1,8 +1,15 @@
 """Inference only: the angle kernel, the RFT-weighted LinearOperator, the backends (observations,
 distinct pairs, spectral) behind one interface, and the InverseRFT front door."""
 
-from .backends import (FeatureStatistics, FunctionalPosterior, ObservationsBackend, PairsBackend, RFTBackend,
-                       SpectralBackend, make_backend)
+from .backends import (
+                       FeatureStatistics,
+                       FunctionalPosterior,
+                       ObservationsBackend,
+                       PairsBackend,
+                       RFTBackend,
+                       SpectralBackend,
+                       make_backend,
+)
 from .embedding import embed_angles, rbf
 from .encoding import decode_rows, encode_contacts, encode_points, encode_rows
 from .fourier import FourierBasis

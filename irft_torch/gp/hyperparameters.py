@@ -8,8 +8,8 @@ reads them; swapping the backend keeps them.
 from __future__ import annotations
 
 import torch
-from gpytorch.likelihoods import GaussianLikelihood
 from gpytorch import Module
+from gpytorch.likelihoods import GaussianLikelihood
 from torch import Tensor
 
 from .constraints import ScaledGreaterThan

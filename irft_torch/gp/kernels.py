@@ -41,7 +41,8 @@ class AngleKernel(ScaleKernel):
     """
 
     def __init__(self, batch_shape: torch.Size = BATCH, lengthscale_constraint: Interval | None = None,
-                 lengthscale_prior=None, outputscale_prior=None, outputscale_constraint: Interval | None = None) -> None:
+                 lengthscale_prior=None, outputscale_prior=None,
+                 outputscale_constraint: Interval | None = None) -> None:
         base = RBFKernel(ard_num_dims=4, batch_shape=batch_shape,
                          lengthscale_constraint=lengthscale_constraint or GreaterThan(0.05),
                          lengthscale_prior=lengthscale_prior)

@@ -307,7 +307,8 @@ class InverseRFT(nn.Module):
         if warn:
             for m in report.maps:
                 if m.unidentified:
-                    warnings.warn(f"{m.name} is not constrained by these forces: its posterior is the prior", stacklevel=2)
+                    warnings.warn(f"{m.name} is not constrained by these forces: its posterior is the prior",
+                                  stacklevel=2)
         return report
 
     # ---- training ----------------------------------------------------------------------------

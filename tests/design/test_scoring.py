@@ -6,13 +6,12 @@ import math
 
 import pytest
 import torch
+from gp.dense_reference import W_dense, k_dense
+from gp.test_backends_vs_dense import random_contacts, set_hypers
 
 import irft_torch as irft
 from irft_torch.design import ProbeScorer, Region, greedy_design
 from irft_torch.rft import Contacts, FourierStressMap
-
-from gp.dense_reference import W_dense, k_dense
-from gp.test_backends_vs_dense import random_contacts, set_hypers
 
 TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
 

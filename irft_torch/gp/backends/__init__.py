@@ -8,6 +8,6 @@ from .select import METHODS, choose_method, estimated_costs, make_backend
 from .spectral import SpectralBackend
 from .weight_space import FeatureStatistics, WeightSpaceBackend
 
-__all__ = ["RFTBackend", "FunctionalPosterior", "ObservationsBackend", "PriorBackend", "CompositeExactGP", "PairsBackend",
-           "SpectralBackend", "WeightSpaceBackend", "FeatureStatistics", "METHODS", "choose_method",
+__all__ = ["RFTBackend", "FunctionalPosterior", "ObservationsBackend", "PriorBackend", "CompositeExactGP",
+           "PairsBackend", "SpectralBackend", "WeightSpaceBackend", "FeatureStatistics", "METHODS", "choose_method",
            "estimated_costs", "make_backend"]

@@ -6,9 +6,9 @@ import torch
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
+from ..operators import unique_pairs
 from .base import RFTBackend, touching
 from .observations import ObservationsBackend
-from ..operators import unique_pairs
 from .pairs import PairsBackend, distinct_pairs
 from .spectral import SpectralBackend
 
