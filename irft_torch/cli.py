@@ -92,6 +92,17 @@ def _validate(a) -> None:
         raise UsageError("--kt", "give --kt or --kv (with --kt-convention), not both")
 
 
+def _check_writable(out: Path, arg: str) -> None:
+    """The nearest existing folder on the way to ``out`` is a folder we may write in."""
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UsageError(arg, f"cannot create {out}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK):
+        raise UsageError(arg, f"cannot write to {probe} (permission denied)")
+
+
 def _out_file(path, arg: str, suffix: str | None = None) -> Path:
     """Check an output file before the work: not a directory, its folder exists or can be made and is
     writable. ``suffix`` (e.g. ".npz") is appended when missing, as numpy does; returns the real path."""
@@ -100,17 +111,10 @@ def _out_file(path, arg: str, suffix: str | None = None) -> Path:
         out = out.with_name(out.name + suffix)
     if out.is_dir():
         raise UsageError(arg, f"{out} is a directory; give a file name")
-    parent = out.parent
-    probe = parent
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise UsageError(arg, f"cannot create {out}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK):
-        raise UsageError(arg, f"cannot write to {probe} (permission denied)")
+    _check_writable(out.parent, arg)
     if out.exists() and not os.access(out, os.W_OK):
         raise UsageError(arg, f"cannot overwrite {out} (permission denied)")
-    parent.mkdir(parents=True, exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     return out
 
 
@@ -119,13 +123,7 @@ def _out_dir(path, arg: str) -> Path:
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise UsageError(arg, f"{out} exists and is a file; give a folder (or remove the file)")
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise UsageError(arg, f"cannot create {out}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK):
-        raise UsageError(arg, f"cannot write to {probe} (permission denied)")
+    _check_writable(out, arg)
     out.mkdir(parents=True, exist_ok=True)
     return out
 
