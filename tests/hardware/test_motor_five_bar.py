@@ -23,7 +23,8 @@ def test_torque_constant_conventions():
         MotorModel(97.3)  # N m per mA would be a unit slip
 
 
-LEGS = [FiveBarLeg(0.1, 0.2), FiveBarLeg(0.12, 0.25, hip_spacing=0.08)]
+LEGS = [FiveBarLeg(0.1, 0.2), FiveBarLeg(0.12, 0.25, hip_spacing=0.08),
+        FiveBarLeg(0.1, 0.2, extension=0.05), FiveBarLeg(0.12, 0.25, hip_spacing=0.08, extension=0.03)]
 
 
 @pytest.mark.parametrize("leg", LEGS)
