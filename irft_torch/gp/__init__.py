@@ -16,7 +16,8 @@ from .fourier import FourierBasis
 from .hyperparameters import RFTHyperparameters
 from .kernels import AngleKernel, RFTCompositeKernel, angle_covariance
 from .means import GenericShapeMean
-from .model import InverseRFT, ModelFileError, Posterior
+from .model import InverseRFT, Posterior
+from .model_file import ModelFileError
 from .operators import RFTKernelLinearOperator, memory_budget, unique_pairs
 
 __all__ = [

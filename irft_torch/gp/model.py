@@ -7,12 +7,10 @@ backend (``gp.backends``) and delegates every computation to it.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import warnings
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
@@ -23,16 +21,9 @@ from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.select import estimated_costs
 from .hyperparameters import RFTHyperparameters
+from .model_file import ModelFileError, digest, load_model, save_model
 
-__all__ = ["Posterior", "InverseRFT", "ModelFileError", "FILE_FORMAT", "FILE_VERSION"]
-
-FILE_FORMAT = "irft_torch.InverseRFT"
-FILE_VERSION = 2
-
-
-class ModelFileError(ValueError):
-    """A model file that cannot be loaded as it is (damaged, foreign, or for other data)."""
-
+__all__ = ["Posterior", "InverseRFT"]
 
 @dataclass
 class Posterior:
@@ -104,16 +95,6 @@ def _check_units(c: Contacts, f: Tensor) -> None:
 def _check_dtype(dtype) -> None:
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
-
-
-def _digest(*tensors: Tensor) -> str:
-    """sha256 of the tensors' float64 bytes (shapes included): a fingerprint of training data."""
-    h = hashlib.sha256()
-    for t in tensors:
-        a = np.ascontiguousarray(t.detach().to("cpu", torch.float64).numpy())
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
 
 
 class InverseRFT(nn.Module):
@@ -483,7 +464,7 @@ class InverseRFT(nn.Module):
 
     def _data_digest_tensor(self) -> Tensor:
         c, f = self._measured()
-        d = _digest(*c.as_dict().values(), f, self.noise_scale)
+        d = digest({"contacts": c.as_dict(), "forces": f, "noise_scale": self.noise_scale})
         return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
 
     def _fresh_digest(self) -> None:
@@ -523,108 +504,17 @@ class InverseRFT(nn.Module):
         return result
 
     def save(self, path) -> None:
-        """Write training data, options, the hyperparameters and a checksum to one file (torch.save).
-        Format version 2: ``load`` refuses files that are damaged, foreign or of another version."""
-        contacts, forces = self._measured()
-        payload = {
-            "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
-            "forces": forces.detach().cpu(),
-            "noise_scale": self.noise_scale.cpu(),
-            "options": {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
-                        "lengthscale": self.init_lengthscale, "method": self.method, "tol": self.tol,
-                        "solver": self.solver, "dtype": str(self.dtype).replace("torch.", "")},
-            "hypers": {k: v.detach().cpu() for k, v in self.hypers.state_dict().items()},
-            "loss_history": list(self.loss_history),
-        }
-        torch.save({"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": _payload_digest(payload),
-                    "payload": payload}, path)
+        """Write training data, options, the hyperparameters and a checksum to one file (format 2,
+        ``gp.model_file``): ``load`` refuses files that are damaged, foreign or of another version."""
+        save_model(self, path)
 
     @classmethod
     def load(cls, path, map_location=None) -> InverseRFT:
         """Rebuild a model written by ``save`` (format 2, or 0.1.0's format, whose hyperparameters are
         translated). Raises ``ModelFileError`` naming what is wrong for anything else."""
-        try:
-            d = torch.load(path, map_location=map_location, weights_only=True)
-        except FileNotFoundError:
-            raise
-        except Exception as e:  # noqa: BLE001 - torch raises many kinds for damaged files
-            raise ModelFileError(f"{path}: not a readable irft_torch model file ({type(e).__name__}: {e}). "
-                                 f"It may be truncated or damaged: save the model again (InverseRFT.save) or "
-                                 f"refit it from its dataset (irft fit DATASET)") from None
-        if not isinstance(d, dict):
-            raise ModelFileError(f"{path}: not an irft_torch model file (holds a {type(d).__name__})")
-        if "state_dict" in d and "options" in d and "format" not in d:
-            return cls._load_v1(d, path)
-        if d.get("format") != FILE_FORMAT:
-            raise ModelFileError(f"{path}: not an irft_torch model file (format {d.get('format')!r})")
-        if d.get("version") != FILE_VERSION:
-            raise ModelFileError(f"{path}: model file version {d.get('version')!r}; this irft_torch reads version "
-                                 f"{FILE_VERSION}: refit the model from its dataset with this version")
-        payload = d.get("payload")
-        if not isinstance(payload, dict) or _payload_digest(payload) != d.get("checksum"):
-            raise ModelFileError(f"{path}: checksum mismatch: the file is damaged; save the model again or refit it")
-        opts = dict(payload["options"])
-        opts["dtype"] = getattr(torch, opts["dtype"])
-        model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
-        model.hypers.load_state_dict(payload["hypers"])
-        model.loss_history = list(payload.get("loss_history", []))
-        return model
-
-    @classmethod
-    def _load_v1(cls, d: dict, path) -> InverseRFT:
-        """0.1.0's files: options + a state dict of the old modules; the hyperparameters are read
-        through the old constraints (softplus, lengthscale >= 0.05) and set on a new model."""
-        try:
-            opts = dict(d["options"])
-            for k in ("grid_size",):
-                opts.pop(k, None)
-            if opts.get("method") in ("grid",):
-                opts["method"] = "spectral"
-            opts["dtype"] = getattr(torch, opts["dtype"])
-            model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
-            sd = d["state_dict"]
-            sp = torch.nn.functional.softplus
-
-            def pick(suffix):
-                hits = [v for k, v in sd.items() if k.endswith(suffix)]
-                if not hits:
-                    raise KeyError(suffix)
-                return hits[0].to(model.dtype)
-
-            with torch.no_grad():
-                model.hypers.lengthscale = (sp(pick("raw_lengthscale")) + 0.05).reshape(2, 1, 4)
-                model.hypers.outputscale = sp(pick("raw_outputscale")).reshape(2)
-                model.hypers.noise = sp(pick("raw_noise")).reshape(-1).expand(2)
-                if model.hypers.mean is not None:
-                    model.hypers.mean.scales = sp(pick("raw_scales")).reshape(2)
-        except Exception as e:  # noqa: BLE001
-            raise ModelFileError(f"{path}: an irft_torch 0.1 model file that could not be translated ({e}); refit it "
-                                 f"from its dataset with `irft fit`") from None
-        warnings.warn(f"{path}: read an irft_torch 0.1 model file; save it again to write format {FILE_VERSION}",
-                      stacklevel=2)
-        model.loss_history = list(d.get("loss_history", []))
-        return model
+        return load_model(cls, path, map_location)
 
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, " \
                f"backend={self.backend.describe()!r}"
 
-
-def _payload_digest(payload: dict) -> str:
-    """sha256 over every tensor and option in a saved payload, in a fixed order."""
-    h = hashlib.sha256()
-
-    def feed(key, v):
-        h.update(str(key).encode())
-        if isinstance(v, Tensor):
-            a = np.ascontiguousarray(v.detach().cpu().numpy())
-            h.update(str(a.dtype).encode() + str(a.shape).encode())
-            h.update(a.tobytes())
-        elif isinstance(v, dict):
-            for k in sorted(v):
-                feed(f"{key}.{k}", v[k])
-        else:
-            h.update(repr(v).encode())
-
-    feed("payload", payload)
-    return h.hexdigest()

@@ -1,0 +1,128 @@
+"""The InverseRFT model file (format 2): training data as measured, options, the hyperparameters'
+state and a sha256 checksum over all of it. ``load_model`` refuses what does not match with a
+``ModelFileError`` that says what to do, and translates 0.1.0's files."""
+
+from __future__ import annotations
+
+import hashlib
+import warnings
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..rft.contacts import Contacts
+
+__all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest"]
+
+FILE_FORMAT = "irft_torch.InverseRFT"
+FILE_VERSION = 2
+
+
+class ModelFileError(ValueError):
+    """A model file that cannot be loaded as it is (damaged, foreign, or for other data)."""
+
+
+
+def digest(obj) -> str:
+    """sha256 over every tensor and value in a (nested) dict, in a fixed order: a saved payload's
+    checksum, or a fingerprint of training data."""
+    h = hashlib.sha256()
+
+    def feed(key, v):
+        h.update(str(key).encode())
+        if isinstance(v, Tensor):
+            a = np.ascontiguousarray(v.detach().cpu().numpy())
+            h.update(str(a.dtype).encode() + str(a.shape).encode())
+            h.update(a.tobytes())
+        elif isinstance(v, dict):
+            for k in sorted(v):
+                feed(f"{key}.{k}", v[k])
+        else:
+            h.update(repr(v).encode())
+
+    feed("payload", obj)
+    return h.hexdigest()
+
+
+def save_model(model, path) -> None:
+    """Write an ``InverseRFT``'s training data (as measured: the whitening undone), options,
+    hyperparameters and a checksum to one file (torch.save)."""
+    contacts, forces = model._measured()
+    payload = {
+        "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
+        "forces": forces.detach().cpu(),
+        "noise_scale": model.noise_scale.cpu(),
+        "options": {"prior_mean": model.prior_mean_kind, "tied_noise": model.hypers.tied,
+                    "lengthscale": model.init_lengthscale, "method": model.method, "tol": model.tol,
+                    "solver": model.solver, "dtype": str(model.dtype).replace("torch.", "")},
+        "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
+        "loss_history": list(model.loss_history),
+    }
+    torch.save({"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload),
+                "payload": payload}, path)
+
+
+def load_model(cls, path, map_location=None):
+    """Rebuild an ``InverseRFT`` (``cls``) written by ``save_model`` (format 2, or 0.1.0's format,
+    whose hyperparameters are translated). Raises ``ModelFileError`` naming what is wrong otherwise."""
+    try:
+        d = torch.load(path, map_location=map_location, weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # noqa: BLE001 - torch raises many kinds for damaged files
+        raise ModelFileError(f"{path}: not a readable irft_torch model file ({type(e).__name__}: {e}). "
+                             f"It may be truncated or damaged: save the model again (InverseRFT.save) or "
+                             f"refit it from its dataset (irft fit DATASET)") from None
+    if not isinstance(d, dict):
+        raise ModelFileError(f"{path}: not an irft_torch model file (holds a {type(d).__name__})")
+    if "state_dict" in d and "options" in d and "format" not in d:
+        return _load_v1(cls, d, path)
+    if d.get("format") != FILE_FORMAT:
+        raise ModelFileError(f"{path}: not an irft_torch model file (format {d.get('format')!r})")
+    if d.get("version") != FILE_VERSION:
+        raise ModelFileError(f"{path}: model file version {d.get('version')!r}; this irft_torch reads version "
+                             f"{FILE_VERSION}: refit the model from its dataset with this version")
+    payload = d.get("payload")
+    if not isinstance(payload, dict) or digest(payload) != d.get("checksum"):
+        raise ModelFileError(f"{path}: checksum mismatch: the file is damaged; save the model again or refit it")
+    opts = dict(payload["options"])
+    opts["dtype"] = getattr(torch, opts["dtype"])
+    model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
+    model.hypers.load_state_dict(payload["hypers"])
+    model.loss_history = list(payload.get("loss_history", []))
+    return model
+
+def _load_v1(cls, d: dict, path):
+    """0.1.0's files: options + a state dict of the old modules; the hyperparameters are read
+    through the old constraints (softplus, lengthscale >= 0.05) and set on a new model."""
+    try:
+        opts = dict(d["options"])
+        for k in ("grid_size",):
+            opts.pop(k, None)
+        if opts.get("method") in ("grid",):
+            opts["method"] = "spectral"
+        opts["dtype"] = getattr(torch, opts["dtype"])
+        model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
+        sd = d["state_dict"]
+        sp = torch.nn.functional.softplus
+
+        def pick(suffix):
+            hits = [v for k, v in sd.items() if k.endswith(suffix)]
+            if not hits:
+                raise KeyError(suffix)
+            return hits[0].to(model.dtype)
+
+        with torch.no_grad():
+            model.hypers.lengthscale = (sp(pick("raw_lengthscale")) + 0.05).reshape(2, 1, 4)
+            model.hypers.outputscale = sp(pick("raw_outputscale")).reshape(2)
+            model.hypers.noise = sp(pick("raw_noise")).reshape(-1).expand(2)
+            if model.hypers.mean is not None:
+                model.hypers.mean.scales = sp(pick("raw_scales")).reshape(2)
+    except Exception as e:  # noqa: BLE001
+        raise ModelFileError(f"{path}: an irft_torch 0.1 model file that could not be translated ({e}); refit it "
+                             f"from its dataset with `irft fit`") from None
+    warnings.warn(f"{path}: read an irft_torch 0.1 model file; save it again to write format {FILE_VERSION}",
+                  stacklevel=3)
+    model.loss_history = list(d.get("loss_history", []))
+    return model
