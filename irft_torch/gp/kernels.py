@@ -12,7 +12,7 @@ from .embedding import embed_angles, rbf
 from .encoding import decode_rows
 from .operators import RFTKernelLinearOperator
 
-__all__ = ["embed_angles", "AngleKernel", "RFTCompositeKernel", "angle_covariance"]
+__all__ = ["embed_angles", "AngleKernel", "RFTCompositeKernel", "angle_covariance", "composite_covariance"]
 
 BATCH = torch.Size([2])  # the (x, z) maps: a batch of two independent GPs
 
@@ -68,6 +68,20 @@ def angle_covariance(kernel: AngleKernel, beta1: Tensor, gamma1: Tensor, beta2: 
     """Prior covariance of the two maps between angle pairs (n1,) and (n2,): (2, n1, n2)."""
     return rbf(kernel.scaled_embedding(beta1, gamma1), kernel.scaled_embedding(beta2, gamma2),
                kernel.outputscale[..., None, None])
+
+
+def composite_covariance(kernel: AngleKernel, c1, c2=None) -> RFTKernelLinearOperator:
+    """Lazy prior covariance (2, N1, N2) of the weighted sums of two sets of contacts (N, M) (c2 None:
+    of c1 with itself), x and z axes, at the kernel's current hyperparameters (no gradient in them;
+    differentiable in the contacts)."""
+    ls, os = kernel.lengthscale.detach(), kernel.outputscale.detach()
+    w1 = torch.stack([c1.weight_x, c1.weight_z])
+    if c2 is None:
+        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c1.beta[None], c1.gamma[None],
+                                                     w1, ls, os, BATCH, same_inputs=True)
+    w2 = torch.stack([c2.weight_x, c2.weight_z])
+    return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
+                                                 w2, ls, os, BATCH)
 
 
 class RFTCompositeKernel(Kernel):

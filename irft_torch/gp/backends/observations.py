@@ -16,7 +16,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..encoding import encode_contacts
-from ..kernels import BATCH, RFTCompositeKernel
+from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
 from ..operators import RFTKernelLinearOperator
 from .base import FunctionalPosterior, RFTBackend
 
@@ -158,13 +158,7 @@ class ObservationsBackend(RFTBackend):
             out.covariance = 0.5 * (cov + cov.mT)
             out.variance = torch.diagonal(out.covariance, dim1=-2, dim2=-1)
         elif variance:
-            k = self.hypers.kernel
-            w = torch.stack([contacts.weight_x, contacts.weight_z])
-            op = RFTKernelLinearOperator.from_segments(contacts.beta[None], contacts.gamma[None], w,
-                                                       contacts.beta[None], contacts.gamma[None], w,
-                                                       k.lengthscale.detach(), k.outputscale.detach(), BATCH,
-                                                       same_inputs=True)
-            out.variance = op.diagonal() - A.pow(2).sum(-2)
+            out.variance = composite_covariance(self.hypers.kernel, contacts).diagonal() - A.pow(2).sum(-2)
         return out
 
     def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
@@ -204,15 +198,7 @@ class PriorBackend(RFTBackend):
         nn_init(self, hypers, empty, empty.beta.new_zeros(0, 2))
 
     def _op(self, c1: Contacts, c2: Contacts | None):
-        k = self.hypers.kernel
-        ls, os = k.lengthscale.detach(), k.outputscale.detach()
-        w1 = torch.stack([c1.weight_x, c1.weight_z])
-        if c2 is None:
-            return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c1.beta[None],
-                                                         c1.gamma[None], w1, ls, os, BATCH, same_inputs=True)
-        w2 = torch.stack([c2.weight_x, c2.weight_z])
-        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
-                                                     w2, ls, os, BATCH)
+        return composite_covariance(self.hypers.kernel, c1, c2)
 
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
         mean = self.hypers.mean_of(contacts)

@@ -12,9 +12,9 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..kernels import BATCH, angle_covariance
-from ..operators import RFTKernelLinearOperator, unique_pairs
-from .weight_space import FeatureStatistics, WeightSpaceBackend
+from ..kernels import angle_covariance, composite_covariance
+from ..operators import unique_pairs
+from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
 __all__ = ["PairsBackend", "distinct_pairs"]
 
@@ -70,7 +70,7 @@ class PairsBackend(WeightSpaceBackend):
         idx = self._index(c, table)
         same = self._same_gram(c)
         shape = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
-        chunk = self._chunk_rows(U, c.n_segments)
+        chunk = chunk_rows(U, c.n_segments)
         for i in range(0, len(c), chunk):
             j = idx[i:i + chunk]
             w = torch.stack([c.weight_x[i:i + chunk], c.weight_z[i:i + chunk]])  # (2, t, M)
@@ -88,30 +88,15 @@ class PairsBackend(WeightSpaceBackend):
 
     def _cross(self, c: Contacts) -> Tensor:
         """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""
-        t = self.table
-        k = self.hypers.kernel
-        ls, os = k.lengthscale.detach(), k.outputscale.detach()
-        w1 = torch.stack([c.weight_x, c.weight_z])
-        one = torch.ones_like(t[:, :1])
-        op = RFTKernelLinearOperator.from_segments(c.beta[None], c.gamma[None], w1, t[None, :, :1], t[None, :, 1:],
-                                                   one.expand(2, -1, -1), ls, os, BATCH)
-        return op.to_dense()
+        pairs = Contacts.points(self.table[:, 0], self.table[:, 1])  # the map at each pair: weight 1
+        return composite_covariance(self.hypers.kernel, c, pairs).to_dense()
 
     def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
-        k = self.hypers.kernel
-        ls, os = k.lengthscale.detach(), k.outputscale.detach()
-        w = torch.stack([c.weight_x, c.weight_z])
-        op = RFTKernelLinearOperator.from_segments(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None], w,
-                                                   ls, os, BATCH, same_inputs=True)
+        op = composite_covariance(self.hypers.kernel, c)
         return op.to_dense() if full else op.diagonal()
 
     def _prior_cross(self, c1: Contacts, c2: Contacts) -> Tensor:
-        k = self.hypers.kernel
-        ls, os = k.lengthscale.detach(), k.outputscale.detach()
-        w1 = torch.stack([c1.weight_x, c1.weight_z])
-        w2 = torch.stack([c2.weight_x, c2.weight_z])
-        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
-                                                     w2, ls, os, BATCH).to_dense()
+        return composite_covariance(self.hypers.kernel, c1, c2).to_dense()
 
     # ---- more data ---------------------------------------------------------------------------
     def _grown(self, c: Contacts) -> tuple[Tensor, Tensor]:

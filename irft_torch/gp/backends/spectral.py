@@ -20,7 +20,7 @@ from torch import Tensor
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
 from .base import FunctionalPosterior
-from .weight_space import FeatureStatistics, WeightSpaceBackend
+from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
 __all__ = ["SpectralBackend", "spectral_statistics", "features"]
 
@@ -53,7 +53,7 @@ def spectral_statistics(c: Contacts, f: Tensor, basis: FourierBasis, mean=None, 
     F = basis.size
     stats = FeatureStatistics.zeros(F, dtype=f.dtype, device=f.device, meta=_meta(basis))
     shape = mean.shape_forces(c) if mean is not None else None
-    chunk = chunk or max(256, min(16384, int(2**25 // max(1, F * (c.n_segments + 4)))))
+    chunk = chunk or chunk_rows(F, c.n_segments)
     with torch.no_grad():
         for i in range(0, len(c), chunk):
             part = c[i:i + chunk]

@@ -175,6 +175,11 @@ def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype) -> _D
     return _DataFactor(R.to(dtype), c_y.to(dtype), c_g.to(dtype), rho.to(dtype), keep.sum(-1))
 
 
+def chunk_rows(F: int, M: int) -> int:
+    """Rows per pass of a statistics accumulation with F features and M segments (about 256 MB)."""
+    return max(256, min(16384, int(2**25 // max(1, F * (M + 4)))))
+
+
 class WeightSpaceBackend(RFTBackend):
     """Shared algebra of the weight-space backends. Subclasses provide the features and Sigma:
 
@@ -327,8 +332,6 @@ class WeightSpaceBackend(RFTBackend):
         """Whether weight_x = +-weight_z with one sign per row (a toe that does not turn)."""
         return cls._row_sign(c) is not None
 
-    def _chunk_rows(self, F: int, M: int) -> int:
-        return max(256, min(16384, int(2**25 // max(1, F * (M + 4)))))
 
 
 def log2pi() -> float:
