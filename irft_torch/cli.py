@@ -470,16 +470,91 @@ def cmd_ingest(a) -> int:
     except ValueError as e:
         raise ValueError(_name_trials(str(e), a.logs, "trial")) from None
     ds = build_dataset(avg, leg, toe, a.hip_height, heading=a.heading, max_depth=a.max_depth)
+    if a.statistics:
+        from .gp.statistics import recording_statistics, statistics_arrays
+
+        ds.statistics = statistics_arrays(recording_statistics(ds.contacts, ds.forces), ds.contacts, ds.forces)
     written = save_dataset(out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in a.air])
     masked = {}
     for t in trials:
         for k_, v_ in t.why_masked.items():
             masked[k_] = masked.get(k_, 0) + v_
     masked.update({k_: v_ for k_, v_ in avg.why_masked.items()})
-    print(f"wrote {written}: {len(ds)} samples x {ds.contacts.n_segments} segments")
+    print(f"wrote {written}: {len(ds)} samples x {ds.contacts.n_segments} segments"
+          + (" and their spectral statistics" if a.statistics else ""))
     for line in dataset_summary(ds, masked or None, n_before=len(avg.time)):
         print(f"  {line}")
     return 0
+
+
+def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> dict:
+    """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma): cut from those saved in
+    the file when they are its own and cover the basis, else one pass (a worker of ``irft fit``).
+    Returns the statistics' state and whether they came from the file."""
+    from .gp.backends.spectral import restrict_statistics
+    from .gp.fourier import FourierBasis
+    from .gp.statistics import recording_statistics, statistics_from_arrays
+    from .hardware import load_dataset
+
+    if threads:
+        torch.set_num_threads(threads)
+    torch.set_default_dtype(torch.float64)
+    ds = load_dataset(path)
+    basis = FourierBasis(n_beta, n_gamma)
+    c, f = ds.contacts.to(dtype=torch.float64), ds.forces.to(torch.float64)
+    stats = None
+    if ds.statistics:
+        stats = statistics_from_arrays(ds.statistics, c, f, source=f"the statistics saved in {path}")
+        if stats is not None and (stats.meta["n_beta"] < n_beta or stats.meta["n_gamma"] < n_gamma):
+            stats = None
+    from_file = stats is not None
+    stats = restrict_statistics(stats, basis) if from_file else recording_statistics(c, f, basis)
+    return {"state": stats.state(), "from_file": from_file}
+
+
+def _spectral_start(contacts, method: str):
+    """The Fourier basis the model will start in if ``method`` gives the spectral backend on these
+    contacts (a default ``InverseRFT``: lengthscale 1, tol 1e-7), else None."""
+    from types import SimpleNamespace
+
+    from .gp.backends.select import choose_method
+    from .gp.statistics import initial_basis
+
+    hypers = SimpleNamespace(lengthscale=torch.ones(2, 1, 4, dtype=torch.float64))
+    if method == "spectral" or (method == "auto" and choose_method(contacts, hypers) == "spectral"):
+        return initial_basis()
+    return None
+
+
+def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 0):
+    """The summed spectral statistics of the datasets at ``paths`` in ``basis``, reduced in ``jobs``
+    worker processes (0: one per dataset up to the CPU count when the pass is long enough, about
+    ``n_samples`` x F^2 flops, to pay for starting them; 1: here). Statistics saved in a file are
+    used when they are that file's own and cover the basis."""
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from .gp.backends.weight_space import FeatureStatistics
+
+    t0 = time.perf_counter()
+    if jobs == 0:
+        jobs = min(len(paths), os.cpu_count() or 1) if n_samples * basis.size**2 > 5e9 and len(paths) > 1 else 1
+    args = [(str(p), basis.n_beta, basis.n_gamma) for p in paths]
+    if jobs > 1:
+        threads = max(1, (os.cpu_count() or 1) // jobs)
+        with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+            parts = list(pool.map(_statistics_of, *zip(*args), [threads] * len(args)))
+    else:
+        parts = [_statistics_of(*x) for x in args]
+    total = None
+    for part in parts:
+        st = FeatureStatistics.from_state(part["state"])
+        total = st if total is None else total + st
+    n_file = sum(p["from_file"] for p in parts)
+    print(f"spectral statistics ({basis.size} features) of {len(paths)} dataset(s): {n_file} read from the files, "
+          f"{len(paths) - n_file} computed in {jobs} process(es); {time.perf_counter() - t0:.1f} s")
+    return total
 
 
 def cmd_fit(a) -> int:
@@ -502,11 +577,14 @@ def cmd_fit(a) -> int:
         ds = type(ds)(Contacts.cat([d.contacts for d in parts]), torch.cat([d.forces for d in parts]),
                       torch.cat(times), torch.cat([d.toe_position for d in parts]))
         print(f"{len(parts)} datasets, {len(ds)} samples in all")
+    stats = None
     if a.max_samples and len(ds) > a.max_samples:
         keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
         print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (--max-samples)")
         ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
-    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method)
+    elif (basis := _spectral_start(ds.contacts.to(dtype=torch.float64), a.method)) is not None:
+        stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds))
+    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats)
     print(f"backend {model.backend.describe()}")
     model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
     print(model.diagnostics(warn=False))
@@ -607,6 +685,9 @@ def _register_hardware(sub) -> None:
                         "i.e. gear ratio x k_t, and keep --gear-ratio 1: MIT positions are output-side)")
     p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
     p.add_argument("--filter-window", type=int, default=5, help="zero-phase moving average, samples (default 5)")
+    p.add_argument("--no-statistics", dest="statistics", action="store_false",
+                   help="do not save the dataset's spectral sufficient statistics (saved by default: irft fit then "
+                        "skips its pass over the data; 2 x F^2 x 8 bytes, F = 289 features: 1.3 MB)")
     p.add_argument("--on-error", choices=["raise", "warn"], default="raise",
                    help="a truncated or damaged log: stop with an error (default) or use what was read")
     g = p.add_argument_group("physical checks")
@@ -638,6 +719,9 @@ def _register_hardware(sub) -> None:
     p.add_argument("--max-samples", type=int, default=0,
                    help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
                         "by method='auto' keeps long recordings fast)")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="worker processes reducing the datasets to their spectral statistics (default 0: one per "
+                        "dataset up to the CPU count when the pass is long; 1: in this process)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_fit)
 

@@ -92,6 +92,26 @@ def _check_units(c: Contacts, f: Tensor) -> None:
                       stacklevel=3)
 
 
+def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):
+    """Precomputed statistics, checked to be of these forces (count and power per axis)."""
+    if stats is None:
+        return None
+    from .backends.weight_space import FeatureStatistics
+
+    if not isinstance(stats, FeatureStatistics):
+        raise TypeError(f"statistics must be a FeatureStatistics (gp.statistics), got {type(stats).__name__}")
+    if noise_scale is not None:
+        raise ValueError("statistics are computed with unit noise scale: drop noise_scale or statistics")
+    if prior_mean == "physics" and stats.meta.get("mean") != "generic shape":
+        raise ValueError("statistics lack the generic shape's forces a physics mean needs: compute them with "
+                         "gp.statistics.recording_statistics")
+    power = f.pow(2).sum(0).to(stats.yy)
+    if stats.n != len(f) or not torch.allclose(stats.yy, power, rtol=1e-9, atol=1e-300):
+        raise ValueError(f"statistics are not of these forces: {stats.n} samples with power {stats.yy.tolist()} "
+                         f"vs {len(f)} samples with power {power.tolist()}")
+    return stats
+
+
 def _check_dtype(dtype) -> None:
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
@@ -131,6 +151,11 @@ class InverseRFT(nn.Module):
             axis): the noise of sample t has variance ``noise * noise_scale[t]**2``. Applied exactly
             by whitening each observation (its force and weights divided by its scale), in every
             backend; ``train_contacts`` and ``train_forces`` hold the whitened data.
+        statistics: spectral sufficient statistics of exactly these contacts and forces
+            (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over
+            several): the spectral backend then skips its pass over the data. Checked against the
+            data's sample count and force power (ValueError if they differ); ignored by the other
+            backends; not allowed with a ``noise_scale``.
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -142,7 +167,7 @@ class InverseRFT(nn.Module):
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
-                 exact_max_segments=None) -> None:
+                 exact_max_segments=None, statistics=None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -208,7 +233,9 @@ class InverseRFT(nn.Module):
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         self.auto = method == "auto"
-        self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol)
+        self._statistics = _check_statistics(statistics, f, noise_scale, prior_mean)
+        self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol,
+                                                statistics=self._statistics)
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
@@ -357,7 +384,7 @@ class InverseRFT(nn.Module):
             best = min(costs, key=costs.get)
             if best != self.method and costs[best] < 0.5 * costs[self.method]:
                 self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
-                                            solver=self.solver, tol=self.tol)
+                                            solver=self.solver, tol=self.tol, statistics=self._statistics)
                 self.backend.in_fit = True
                 return
         self.backend.refresh()
@@ -374,6 +401,7 @@ class InverseRFT(nn.Module):
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
         self.backend.add_data(c, f)
+        self._statistics = None  # no longer of all the data
         self._n_pairs = None
         self._parts.append((c, f, scale))
         self._joined = None

@@ -225,12 +225,14 @@ def average_trials(trials: list[ForceTrace], n_points: int | None = None, covera
 @dataclass
 class Dataset:
     """What the inference model takes: contacts (T, M), forces (T, 2) N, time (T,) s, and the toe
-    path (T, 2) m (world frame) for plots."""
+    path (T, 2) m (world frame) for plots. ``statistics``: optional named arrays saved with the data
+    (the inference side's sufficient statistics, ``gp.statistics``; opaque here)."""
 
     contacts: Contacts
     forces: torch.Tensor
     time: torch.Tensor
     toe_position: torch.Tensor
+    statistics: dict | None = None
 
     def __len__(self) -> int:
         return len(self.contacts)
@@ -289,16 +291,21 @@ def dataset_summary(ds: Dataset, masked: dict | None = None, n_before: int | Non
     return lines
 
 
+STATISTICS_PREFIX = "statistics."
+
+
 def save_dataset(path, ds: Dataset, **meta) -> Path:
-    """npz with beta, gamma, weight_x, weight_z (T, M), forces (T, 2), time, toe_position, meta.
-    ".npz" is appended when ``path`` lacks it; the file is written whole or not at all (a
-    temporary file renamed into place). Returns the path written."""
+    """npz with beta, gamma, weight_x, weight_z (T, M), forces (T, 2), time, toe_position, meta, and
+    ``ds.statistics`` (if any) as arrays named "statistics.<name>". ".npz" is appended when ``path``
+    lacks it; the file is written whole or not at all (a temporary file renamed into place).
+    Returns the path written."""
     import os
 
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
     arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
+    arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as fh:
@@ -326,6 +333,7 @@ def load_dataset(path) -> Dataset:
             if missing:
                 raise ValueError(f"{path} is not an irft dataset: missing {sorted(missing)}")
             arrays = {k: np.asarray(d[k]) for k in need}
+            stats = {k[len(STATISTICS_PREFIX):]: np.asarray(d[k]) for k in d.files if k.startswith(STATISTICS_PREFIX)}
     except ValueError as e:
         if "not an irft dataset" in str(e):
             raise
@@ -345,4 +353,4 @@ def load_dataset(path) -> Dataset:
         raise ValueError(f"{path}: non-finite or non-numeric values in {bad}; the file is damaged")
     c = Contacts(*(torch.as_tensor(arrays[k]) for k in need[:4]))
     return Dataset(c, torch.as_tensor(arrays["forces"]), torch.as_tensor(arrays["time"]),
-                   torch.as_tensor(arrays["toe_position"]))
+                   torch.as_tensor(arrays["toe_position"]), stats or None)

@@ -66,8 +66,10 @@ def choose_method(contacts: Contacts, hypers, tol: float = 1e-7) -> str:
 
 
 def make_backend(method: str, hypers, contacts: Contacts, forces, solver: str = "cholesky",
-                 tol: float = 1e-7) -> RFTBackend:
-    """Build the backend named ``method`` ("auto", "observations" (alias "exact"), "pairs", "spectral")."""
+                 tol: float = 1e-7, statistics=None) -> RFTBackend:
+    """Build the backend named ``method`` ("auto", "observations" (alias "exact"), "pairs", "spectral").
+    ``statistics``: precomputed spectral statistics of exactly this data (``gp.statistics``), used by
+    the spectral backend instead of a pass over the data and ignored by the others."""
     method = ALIASES.get(method, method)
     if method == "auto":
         method = choose_method(contacts, hypers, tol)
@@ -76,5 +78,5 @@ def make_backend(method: str, hypers, contacts: Contacts, forces, solver: str = 
     if method == "pairs":
         return PairsBackend(hypers, contacts, forces)
     if method == "spectral":
-        return SpectralBackend(hypers, contacts, forces, tol=tol)
+        return SpectralBackend(hypers, contacts, forces, tol=tol, statistics=statistics)
     raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', got {method!r}")

@@ -22,7 +22,7 @@ from ..fourier import MAX_HARMONICS, FourierBasis
 from .base import FunctionalPosterior
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
-__all__ = ["SpectralBackend", "spectral_statistics", "features"]
+__all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features"]
 
 
 def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
@@ -66,6 +66,26 @@ def spectral_statistics(c: Contacts, f: Tensor, basis: FourierBasis, mean=None, 
     return stats
 
 
+def restrict_statistics(stats: FeatureStatistics, basis: FourierBasis) -> FeatureStatistics:
+    """The statistics in a smaller (nested) basis: the leading harmonics' blocks, exactly the
+    statistics a pass over the data in ``basis`` gives. ValueError if ``basis`` is not inside the
+    statistics' own."""
+    meta = stats.meta
+    if meta.get("space") != "spectral":
+        raise ValueError(f"statistics of space {meta.get('space')!r} cannot serve a spectral basis")
+    nb, ng = int(meta["n_beta"]), int(meta["n_gamma"])
+    if basis.n_beta > nb or basis.n_gamma > ng:
+        raise ValueError(f"statistics in FourierBasis({nb}, {ng}) cannot give the larger {basis}")
+    if (basis.n_beta, basis.n_gamma) == (nb, ng):
+        return stats
+    Fb, Fg = basis.sizes
+    full = (2 * nb + 1, 2 * ng + 1)
+    idx = (torch.arange(Fb)[:, None] * full[1] + torch.arange(Fg)[None, :]).reshape(-1).to(stats.P.device)
+    out_meta = {**meta, **_meta(basis)}
+    return FeatureStatistics(stats.P[:, idx][:, :, idx], stats.b[:, idx], stats.yy, stats.bg[:, idx], stats.yg,
+                             stats.gg, stats.n, out_meta)
+
+
 class SpectralBackend(WeightSpaceBackend):
     """I-RFT in a Fourier basis on the (beta, gamma) torus; exact up to the reported truncation.
 
@@ -75,19 +95,43 @@ class SpectralBackend(WeightSpaceBackend):
         tol: bound on the kernel's relative truncation error used to size the basis (default 1e-7).
         basis: a fixed :class:`FourierBasis` instead (then ``tol`` only triggers a warning).
         keep_data: keep the training data so that the basis can grow (default True).
+        statistics: precomputed statistics of exactly ``contacts`` and ``forces`` (``gp.statistics``) in a
+            basis at least as large as the one needed: used instead of a pass over the data, here and
+            whenever the basis grows within them.
     """
 
     name = "spectral"
 
     def __init__(self, hypers, contacts: Contacts, forces: Tensor, tol: float = 1e-7,
-                 basis: FourierBasis | None = None, keep_data: bool = True) -> None:
+                 basis: FourierBasis | None = None, keep_data: bool = True,
+                 statistics: FeatureStatistics | None = None) -> None:
         super().__init__(hypers, contacts, forces)
         if not (0 < tol < 1):
             raise ValueError(f"tol must be in (0, 1), got {tol}")
         self.tol = float(tol)
         self.basis = basis or FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
         self._data = [(contacts, forces)] if keep_data else None
-        self._set_stats(self.statistics(contacts, forces))
+        self._stored = statistics if statistics is not None and self._covers(statistics, self.basis) else None
+        self._set_stats(self._stored_or_pass(self.basis, [(contacts, forces)]))
+
+    @staticmethod
+    def _covers(stats: FeatureStatistics, basis: FourierBasis) -> bool:
+        m = stats.meta
+        return m.get("space") == "spectral" and basis.n_beta <= m["n_beta"] and basis.n_gamma <= m["n_gamma"]
+
+    def _stored_or_pass(self, basis: FourierBasis, data=None) -> FeatureStatistics | None:
+        """The training data's statistics in ``basis``: cut from the stored ones when they cover it,
+        else one pass over ``data`` (default the kept data; None if there is none)."""
+        if self._stored is not None and self._covers(self._stored, basis):
+            return restrict_statistics(self._stored, basis)
+        data = self._data if data is None else data
+        if data is None:
+            return None
+        stats = None
+        for c, f in data:
+            part = self.statistics(c, f)
+            stats = part if stats is None else stats + part
+        return stats
 
     def describe(self) -> str:
         err = self.truncation_error().max().item()
@@ -245,11 +289,13 @@ class SpectralBackend(WeightSpaceBackend):
         WeightSpaceBackend.__init__(new, self.hypers, c, f)
         new.tol, new.basis = self.tol, self.basis
         new._data = None if self._data is None else self._data + [(c, f)]
+        new._stored = None
         new._set_stats(self.stats + new.statistics(c, f))
         return new
 
     def add_data(self, contacts: Contacts, forces: Tensor) -> None:
         self._set_stats(self.stats + self.statistics(contacts, forces))
+        self._stored = None  # they no longer describe all the data
         if self._data is not None:
             self._data.append((contacts, forces))
 
@@ -257,6 +303,7 @@ class SpectralBackend(WeightSpaceBackend):
         """Add statistics computed elsewhere (another recording, another process) in this basis."""
         self._set_stats(self.stats + stats)
         self._data = None  # the raw data behind them is not here: the basis can no longer grow
+        self._stored = None
 
     def stale(self) -> bool:
         return not bool((self.truncation_error() <= self.tol).all())
@@ -271,8 +318,9 @@ class SpectralBackend(WeightSpaceBackend):
             return False
         ahead = FourierBasis.for_lengthscale(self.hypers.lengthscale.detach() * 0.85, self.tol)  # room to shrink
         grown = FourierBasis(max(ahead.n_beta, self.basis.n_beta), max(ahead.n_gamma, self.basis.n_gamma))
-        if grown == self.basis or self._data is None:
-            if self._data is None:
+        fixed = self._data is None and not (self._stored is not None and self._covers(self._stored, grown))
+        if grown == self.basis or fixed:
+            if fixed:
                 warnings.warn(f"the lengthscales need a larger Fourier basis ({need}) than the statistics were "
                               f"computed in ({self.basis}) and the raw data are not kept: the kernel truncation "
                               f"error is now {self.truncation_error().max().item():.1e} (tol {self.tol:.0e})",
@@ -283,9 +331,5 @@ class SpectralBackend(WeightSpaceBackend):
                           f"{MAX_HARMONICS} harmonics per angle; the truncation error may exceed tol={self.tol:.0e}",
                           stacklevel=2)
         self.basis = grown
-        stats = None
-        for c, f in self._data:
-            part = self.statistics(c, f)
-            stats = part if stats is None else stats + part
-        self._set_stats(stats)
+        self._set_stats(self._stored_or_pass(grown))
         return True
