@@ -11,7 +11,10 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
      map, vs one observations-backend step at T = 1,000 (the reference cannot run at 10^4);
   4. 10^6 samples x M = 10 (a fresh process, so its peak memory is its own): one pass + 100 steps +
      map; peak resident memory, and what the data alone take;
-  5. streaming: add_data in batches of 100 samples to a T = 10^4 model, ms per sample.
+  5. streaming: add_data in batches of 100 samples to a T = 10^4 model, ms per sample;
+  6. a fleet: 4 datasets of 250,000 samples x M = 10 reduced to their spectral statistics (what
+     ``irft fit a.npz b.npz ...`` does first) in 2 worker processes, and from statistics saved with
+     the datasets (``irft ingest`` saves them), vs one process making every pass.
 Writes benchmarks.md under --out.
 """
 
@@ -218,6 +221,32 @@ def main(argv=None) -> None:
     t_step = best_time(lambda: step(model), 1)
     row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
         f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
+    # 6. a fleet of datasets
+    import tempfile
+
+    from irft_torch.cli import _reduce_statistics
+    from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
+    from irft_torch.hardware.pipeline import Dataset, save_dataset
+
+    T6 = 20_000 if q else 250_000
+    basis = initial_basis()
+    with tempfile.TemporaryDirectory() as tmp:
+        plain, saved = [], []
+        for i in range(4):
+            c, f = recording(T6, seed=10 + i)
+            ds = Dataset(c, f, torch.arange(T6, dtype=torch.float64), torch.zeros(T6, 2))
+            plain.append(save_dataset(Path(tmp) / f"plain{i}.npz", ds))
+            ds.statistics = statistics_arrays(recording_statistics(c, f, basis), c, f)
+            saved.append(save_dataset(Path(tmp) / f"saved{i}.npz", ds))
+        times = {}
+        for name, paths, jobs in (("one process", plain, 1), ("2 workers", plain, 2), ("saved", saved, 1)):
+            t0 = time.perf_counter()
+            _reduce_statistics(paths, basis, jobs=jobs)
+            times[name] = time.perf_counter() - t0
+    row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
+        f"2 worker processes {times['2 workers']:.1f} s; saved with the datasets {times['saved']:.1f} s",
+        f"one process, every pass {times['one process']:.1f} s",
+        f"{times['one process'] / times['2 workers']:.1f}x; {times['one process'] / times['saved']:.1f}x", "-")
     out_dir = Path(a.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "benchmarks.md").write_text("\n".join(lines) + "\n")

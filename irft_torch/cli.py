@@ -528,8 +528,9 @@ def _spectral_start(contacts, method: str):
 
 def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 0):
     """The summed spectral statistics of the datasets at ``paths`` in ``basis``, reduced in ``jobs``
-    worker processes (0: one per dataset up to the CPU count when the pass is long enough, about
-    ``n_samples`` x F^2 flops, to pay for starting them; 1: here). Statistics saved in a file are
+    worker processes (0: up to half the CPU count, from 4 CPUs, when the pass, about ``n_samples`` x
+    F^2 flops, is long enough to pay for starting them, a few seconds each; 1: here, where torch
+    already spreads the pass's matrix products over the cores). Statistics saved in a file are
     used when they are that file's own and cover the basis."""
     import time
     from concurrent.futures import ProcessPoolExecutor
@@ -539,7 +540,8 @@ def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 
 
     t0 = time.perf_counter()
     if jobs == 0:
-        jobs = min(len(paths), os.cpu_count() or 1) if n_samples * basis.size**2 > 5e9 and len(paths) > 1 else 1
+        cpus = os.cpu_count() or 1  # one process already uses every core for the pass's matrix products
+        jobs = min(len(paths), cpus // 2) if n_samples * basis.size**2 > 4e11 and cpus >= 4 else 1
     args = [(str(p), basis.n_beta, basis.n_gamma) for p in paths]
     if jobs > 1:
         threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -720,8 +722,8 @@ def _register_hardware(sub) -> None:
                    help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
                         "by method='auto' keeps long recordings fast)")
     p.add_argument("--jobs", type=int, default=0,
-                   help="worker processes reducing the datasets to their spectral statistics (default 0: one per "
-                        "dataset up to the CPU count when the pass is long; 1: in this process)")
+                   help="worker processes reducing the datasets to their spectral statistics (default 0: up to half "
+                        "the CPUs, from 4, when the pass is long, over about 5 million samples; 1: in this process)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_fit)
 
