@@ -38,7 +38,8 @@ from .metrics import integrated_autocorrelation_time
 from .rft.contacts import Contacts
 
 __all__ = ["DEMRun", "DEMReadReport", "read_runs", "canonical_angles", "run_contacts", "run_stress", "run_stress_se",
-           "run_stress_rft", "calibrate_surface_offset", "PLATE_LENGTH_CM", "PLATE_WIDTH_CM", "TILT_SIGN"]
+           "run_stress_rft", "stress_functional", "run_stress_origin", "recipe_functional", "calibrate_surface_offset",
+           "PLATE_LENGTH_CM", "PLATE_WIDTH_CM", "TILT_SIGN"]
 
 PLATE_LENGTH_CM = 3.81
 PLATE_WIDTH_CM = 2.54
@@ -239,6 +240,53 @@ def run_stress_se(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
         tau = integrated_autocorrelation_time(resid[:, k])
         out.append(math.sqrt(var * cov00 * tau) / area)
     return out[0], out[1]
+
+
+def stress_functional(run: DEMRun, min_depth: float = 1.0, intercept: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The data README's per-run stress recipe as a linear functional of the force series.
+
+    Over the samples whose centre depth below ``z_top`` exceeds ``min_depth`` cm (indices ``keep``),
+    the least-squares slope of F against that depth d, divided by the plate area, is ``coef @ F[keep]``:
+    through the origin (the README's target, ``intercept=False``) coef = d / (sum d^2 x area); with an
+    intercept coef = (d - mean d) / (sum (d - mean d)^2 x area). The canonical x sign is not applied.
+
+    Returns:
+        (keep (n,) sample indices, coef (n,) in 1/cm^3).
+    """
+    keep = np.nonzero(run.depth > min_depth)[0]
+    if len(keep) < 3:
+        raise ValueError(f"run {run.label}: fewer than 3 samples deeper than {min_depth} cm")
+    d = run.depth[keep]
+    if intercept:
+        d = d - d.mean()
+    return keep, d / (float(d @ d) * PLATE_LENGTH_CM * PLATE_WIDTH_CM)
+
+
+def run_stress_origin(run: DEMRun, min_depth: float = 1.0) -> tuple[float, float]:
+    """The data README's per-run stress per depth (alpha_x, alpha_z), N/cm^3: F = s x depth with no
+    intercept (s = sum(F d) / sum(d^2)) over samples whose centre is deeper than ``min_depth`` cm below
+    ``z_top``, divided by the plate area; canonical convention (x flips for motion toward -x)."""
+    keep, coef = stress_functional(run, min_depth)
+    s = coef @ run.force[keep][:, [0, 2]]
+    return _sign_x(run) * float(s[0]), float(s[1])
+
+
+def recipe_functional(run: DEMRun, min_depth: float = 1.0, intercept: bool = False, surface_offset: float = 0.0,
+                      n_segments: int = 10, dtype=torch.float64) -> Contacts:
+    """One composite observation (1, n_segments) whose RFT force is the README's per-run stress of the
+    forces RFT predicts for this run: for any map, ``rft.forces(map, c)`` (and a model's
+    ``predict_forces(c)``, mean and exact variance) gives (alpha_x, alpha_z) of ``run_stress_origin``
+    (or of ``run_stress`` with ``intercept``) computed on the predicted force series, canonical sign
+    included. The contacts use the effective surface ``z_top - surface_offset``; the samples and the
+    depth d of the recipe are those of ``z_top``, as in the README."""
+    keep, coef = stress_functional(run, min_depth, intercept)
+    depth = _segment_depths(run, keep, n_segments, surface_offset)
+    area = PLATE_LENGTH_CM / n_segments * PLATE_WIDTH_CM
+    w = torch.as_tensor(coef @ depth * area, dtype=dtype)[None]  # (1, M): sum_t coef_t weight_tm
+    beta_c, gamma_c = canonical_angles(run)
+    full = lambda v: torch.full((1, n_segments), v, dtype=dtype)  # noqa: E731
+    # F_x = sign_x sum w alpha_x and the recipe applies sign_x again: weight_x = w (sign_x^2 = 1)
+    return Contacts(full(beta_c), full(gamma_c), w.clone(), w)
 
 
 def run_stress_rft(run: DEMRun, min_depth: float = 1.0, surface_offset: float = 0.0) -> tuple[float, float]:
