@@ -143,6 +143,75 @@ def test_real_data_surface_calibration_and_slopes_within_their_noise():
     assert (rms(fixed - slope) < 0.5 * rms(naive - slope)).all(), (rms(fixed - slope), rms(naive - slope))
 
 
+def test_through_origin_stress_by_hand():
+    # F_z = 0.3 d + 0.5 and F_x = -0.2 d + 0.1 (N) against centre depth d below z_top: the README's recipe
+    # (no intercept, d > 1 cm, over the plate area) by numpy's least squares, and with an intercept by polyfit
+    run = _ramp_run(0.0, 72.0, (0.0, 0.0), offset=0.0)
+    d = run.depth
+    run.force[:, 2] = 0.3 * d + 0.5
+    run.force[:, 0] = -0.2 * d + 0.1
+    m = d > 1.0
+    area = 3.81 * 2.54
+    want = [np.linalg.lstsq(d[m, None], run.force[m, k], rcond=None)[0][0] / area for k in (0, 2)]
+    ax, az = D.run_stress_origin(run)
+    assert az == pytest.approx(want[1], rel=1e-12) and az != pytest.approx(0.3 / area, rel=1e-3)
+    assert ax == pytest.approx(want[0], rel=1e-12)  # motion toward -x: canonical sign +1
+    slope = [np.polyfit(d[m], run.force[m, k], 1)[0] / area for k in (0, 2)]
+    np.testing.assert_allclose(D.run_stress(run), slope, rtol=1e-9)
+    keep, coef = D.stress_functional(run, intercept=True)
+    assert coef @ run.force[keep, 2] == pytest.approx(slope[1], rel=1e-9)
+    with pytest.raises(ValueError, match="fewer than 3"):
+        D.stress_functional(run, min_depth=50.0)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1.3])
+@pytest.mark.parametrize("intercept", [False, True])
+def test_recipe_functional_is_the_recipe_on_rft_forces(offset, intercept):
+    # an RFT map's forces on every sample, then the recipe by hand, equal the map's force on the functional
+    run = _ramp_run(30.0, 63.0, (0.0, 0.0), offset=0.0)
+    smap = FourierStressMap.generic(scale_x=0.4, scale_z=0.2)
+    c, _ = D.run_contacts(run, min_depth=1.0 - offset, surface_offset=offset)
+    f = irft_forces(smap, c).numpy()
+    d = run.depth[run.depth > 1.0]
+    assert len(d) == len(f)
+    A = np.stack([d, np.ones_like(d)], 1) if intercept else d[:, None]
+    want = np.linalg.lstsq(A, f, rcond=None)[0][0] / (3.81 * 2.54)  # F_x of motion toward -x: sign +1
+    got = irft_forces(smap, D.recipe_functional(run, intercept=intercept, surface_offset=offset))[0].numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    if offset == 0.0 and not intercept:
+        # below z_top and past the depth where the tilted plate is all under: the functional is the map itself
+        deep = D.recipe_functional(run, min_depth=3.0)
+        alpha = smap(*map(torch.tensor, D.canonical_angles(run)))
+        torch.testing.assert_close(irft_forces(smap, deep)[0], alpha)
+
+
+def irft_forces(smap, c):
+    from irft_torch.rft import forces
+
+    return forces(smap, c)
+
+
+@needs_data
+def test_real_data_reproduces_the_readme_through_origin_figures():
+    # the README's figures, recomputed here by numpy from the library's recipe: 54 runs, correlations with the
+    # generic map 0.949 / 0.948, scales 0.266 / 0.178, leave-one-beta-out RMSE 0.0166 / 0.0173 N/cm^3
+    runs, _ = D.read_runs(DATA)
+    runs = [r for r in runs if (r.depth > 1.0).sum() >= 3]
+    assert len(runs) == 54
+    S = np.array([D.run_stress_origin(r) for r in runs])
+    gen = FourierStressMap.generic()
+    g = np.array([gen(*map(torch.tensor, D.canonical_angles(r))).tolist() for r in runs])
+    corr = [np.corrcoef(S[:, k], g[:, k])[0, 1] for k in range(2)]
+    np.testing.assert_allclose(corr, [0.949, 0.948], atol=6e-4)
+    np.testing.assert_allclose((g * S).sum(0) / (g * g).sum(0), [0.266, 0.178], atol=6e-4)
+    betas = np.array([r.beta_deg for r in runs])
+    err = []
+    for b in np.unique(betas):
+        tr = betas != b
+        err.append(g[~tr] * (g[tr] * S[tr]).sum(0) / (g[tr] ** 2).sum(0) - S[~tr])
+    np.testing.assert_allclose(np.sqrt((np.concatenate(err) ** 2).mean(0)), [0.0166, 0.0173], atol=6e-5)
+
+
 @needs_data
 def test_dem_validation_experiment_runs_small(tmp_path):
     import importlib.util
@@ -151,8 +220,14 @@ def test_dem_validation_experiment_runs_small(tmp_path):
     spec = importlib.util.spec_from_file_location("dem_validation", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    mod.main(["--data", str(DATA), "--out", str(tmp_path), "--stride", "1000", "--n-iter", "3"])
+    res = mod.main(["--data", str(DATA), "--out", str(tmp_path), "--stride", "1000", "--eval-stride", "200",
+                    "--n-iter", "3", "--plain-iter", "3"])
     text = (tmp_path / "dem_validation.md").read_text()
     for name in mod.IRFT + mod.BASELINES:
-        assert f"| {name} |" in text
-    assert (tmp_path / "dem_maps.png").exists() and (tmp_path / "dem_forces_heldout.png").exists()
+        assert f"| {name}" in text
+    assert "leave-one-beta-out" in text and "leave-one-gamma-out" in text and "the README's figure" in text
+    for f in ("dem_maps.png", "dem_forces_heldout.png", "dem_stresses.png"):
+        assert (tmp_path / f).exists(), f
+    # the generic x LS row is the README's recipe: its leave-one-beta-out figures, to the printed digits
+    np.testing.assert_allclose(res["beta"]["generic x LS scales"]["rmse_origin"], [0.0166, 0.0173], atol=6e-5)
+    assert res["beta"]["I-RFT"]["pred_origin"].shape == (54, 2)
