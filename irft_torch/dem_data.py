@@ -22,6 +22,11 @@ proportional to the depth below the *effective* surface, ``z_top - surface_offse
 ``calibrate_surface_offset`` estimates that offset from runs (about 1.8 cm here); with it a run's RFT
 stress (fit through the origin) is within about the slopes' own noise of its force/depth slope (x: 1.0x,
 z: 1.7x their standard error, rms), where below ``z_top`` itself the two differ by 4x their noise.
+
+The data README's per-run target is the stress per depth *through the origin* below ``z_top``
+(``run_stress_origin``); ``run_stress`` is the slope with an intercept. Both are linear functionals of
+the force series (``stress_functional``), so a model that predicts forces predicts them exactly
+through ``recipe_functional``.
 """
 
 from __future__ import annotations
