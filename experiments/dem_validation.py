@@ -43,6 +43,7 @@ import torch
 
 import irft_torch as irft
 from irft_torch import dem_data, metrics
+from irft_torch.gp.backends.pairs import PairsBackend
 from irft_torch.rft import Contacts, FourierStressMap
 
 
@@ -90,6 +91,34 @@ class RunData:
         """sum_t coef_t^2 of the recipe (1/cm^6): the recipe's variance per unit of white 1 ms force noise."""
         _, coef = dem_data.stress_functional(self.run, self.min_depth, target == "intercept")
         return float(coef @ coef)
+
+
+class _RunEffectPairs(PairsBackend):
+    """The pairs backend with a per-run random stress: F_t = sum_m w_tm (alpha(theta_tm) + delta_run), delta ~
+    N(0, tau^2) per axis, independent between runs. Each DEM run has its own angle pair, so this is
+    Sigma = K_UU + tau^2 I (a nugget on the map at the training pairs); tau^2 is learned with the rest by the
+    marginal likelihood (``hypers.raw_run_effect``, registered by ``fit_run_effect``). An experiment-only
+    variant (``--run-effect``): no backend of the library has this hyperparameter yet."""
+
+    def _apply_sigma(self, X):
+        return X @ self._K() + run_effect_variance(self.hypers)[:, None, None] * X
+
+
+def run_effect_variance(hypers) -> torch.Tensor:
+    """tau^2 (2,) in (N/cm^3)^2: softplus of the raw parameter times the map's prior variance scale."""
+    return torch.nn.functional.softplus(hypers.raw_run_effect) * hypers.run_effect_scale
+
+
+def fit_run_effect(c: Contacts, f: torch.Tensor, prior_mean: str, n_iter: int) -> irft.InverseRFT:
+    """I-RFT in the pairs space with a per-run random stress (see ``_RunEffectPairs``)."""
+    m = irft.InverseRFT(c, f, prior_mean=prior_mean, method="pairs")
+    h = m.hypers
+    h.register_parameter("raw_run_effect", torch.nn.Parameter(torch.zeros(2, dtype=h.outputscale.dtype)))
+    h.run_effect_scale = h.outputscale.detach().clone()
+    m.backend.__class__ = _RunEffectPairs
+    m.backend._post_cache = None
+    m.fit(n_iter=n_iter, lr=0.05, progress=False)
+    return m
 
 
 def generic_scales(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -158,6 +187,9 @@ def run_fold(train: list[RunData], test: list[RunData], a) -> tuple[dict, dict]:
     models = {}
     for n, pm in zip(IRFT, ("zero", "physics")):
         torch.manual_seed(0)
+        if a.run_effect:
+            models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
+            continue
         m = irft.InverseRFT(ctr, ftr, prior_mean=pm)
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
@@ -178,6 +210,9 @@ def run_fold(train: list[RunData], test: list[RunData], a) -> tuple[dict, dict]:
                     p = m.predict_forces(fn)
                     # the run's own noise on its stress: white noise of variance sigma^2 every `stride` ms
                     noise = m.hypers.noise.detach().numpy() * stride * d.coef_sq(t)
+                    if a.run_effect:  # the held-out run's own random stress, through the recipe
+                        k = torch.stack([fn.weight_x.sum(), fn.weight_z.sum()])
+                        noise = noise + (run_effect_variance(m.hypers) * k**2).detach().numpy()
                     out[n][t].append((p.mean[0].numpy(), p.variance[0].numpy() + noise))
                 out[BASELINES[0]][t].append((scaled[t](b, gm)[0].numpy(), None))
                 out[BASELINES[1]][t].append((irft.rft.forces(fitted, fn)[0].numpy(), None))
@@ -228,6 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--offset", default="0",
                     help="I-RFT's free surface below z_top, cm, or 'auto' (calibrated per fold on its training runs)")
     ap.add_argument("--n-iter", type=int, default=300, help="Adam steps per I-RFT fit")
+    ap.add_argument("--run-effect", action="store_true",
+                    help="I-RFT with a per-run random stress learned by the marginal likelihood (experimental)")
     ap.add_argument("--plain-iter", type=int, default=300, help="Adam steps per plain-GP fit (the README's 300)")
     ap.add_argument("--splits", default="beta,gamma", help="which held-out splits: beta, gamma or both")
     return ap

@@ -231,3 +231,40 @@ def test_dem_validation_experiment_runs_small(tmp_path):
     # the generic x LS row is the README's recipe: its leave-one-beta-out figures, to the printed digits
     np.testing.assert_allclose(res["beta"]["generic x LS scales"]["rmse_origin"], [0.0166, 0.0173], atol=6e-5)
     assert res["beta"]["I-RFT"]["pred_origin"].shape == (54, 2)
+
+
+def test_run_effect_variant_matches_the_dense_likelihood():
+    # the experiment's per-run random stress: loss = dense Gaussian NLL with covariance W (K + tau^2 I) W^T + noise,
+    # K from gpytorch's own ScaleKernel(RBFKernel) on the embedding (sin 2b, cos 2b, sin g, cos g)
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "dem_validation.py"
+    spec = importlib.util.spec_from_file_location("dem_validation_re", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    runs = [_ramp_run(b, g, (0.05 + 0.001 * b, 0.2), offset=0.0, noise=0.3, n=600, seed=i)
+            for i, (b, g) in enumerate([(0, 90), (30, 63), (-45, 72), (60, 81)])]
+    parts = [D.run_contacts(r, stride=60, min_depth=1.0) for r in runs]
+    from irft_torch.rft import Contacts
+
+    c = Contacts.cat([p[0] for p in parts])
+    f = torch.cat([p[1] for p in parts])
+    m = mod.fit_run_effect(c, f, "zero", 5)
+    with torch.no_grad():
+        m.hypers.raw_run_effect.fill_(0.3)
+        got = float(m.loss())
+        tau2 = mod.run_effect_variance(m.hypers)
+        pairs = torch.tensor([D.canonical_angles(r) for r in runs], dtype=torch.float64)
+        X = torch.stack([torch.sin(2 * pairs[:, 0]), torch.cos(2 * pairs[:, 0]), torch.sin(pairs[:, 1]),
+                         torch.cos(pairs[:, 1])], -1)
+        K = m.kernel(X, X).to_dense()  # (2, U, U)
+        run_of = torch.cat([torch.full((len(p[0]),), i) for i, p in enumerate(parts)])
+        total = 0.0
+        for k, w in enumerate((c.weight_x, c.weight_z)):
+            Phi = torch.zeros(len(c), len(runs), dtype=torch.float64)
+            Phi[torch.arange(len(c)), run_of] = w.sum(-1)
+            C = Phi @ (K[k] + tau2[k] * torch.eye(len(runs))) @ Phi.T + m.hypers.noise[k] * torch.eye(len(c))
+            y = f[:, k]
+            total += float(0.5 * y @ torch.linalg.solve(C, y) + 0.5 * torch.logdet(C)
+                           + 0.5 * len(c) * math.log(2 * math.pi)) / len(c)
+    assert got == pytest.approx(total, rel=1e-8)
