@@ -117,7 +117,7 @@ def test_experiment_help_prints_the_whole_description_and_defaults(capsys):
     mod = _script("dem_validation")
     with pytest.raises(SystemExit):
         mod.main(["--help"])
-    assert "(default: 200)" in " ".join(capsys.readouterr().out.split())
+    assert "(default: auto)" in " ".join(capsys.readouterr().out.split())  # --stride, matched per fold
 
 
 def test_active_probing_summary_names_the_probes_or_says_none():
