@@ -340,8 +340,8 @@ def write_report(a, data, report, results, fold_info, tau, elapsed) -> list[str]
              ""]
     for split, (folds, res) in results.items():
         lines += [f"## {SPLITS[split]} ({len(folds)} folds)", "",
-                  "Per fold (held-out value: I-RFT's surface below z_top in cm, stride in ms): "
-                  + ", ".join(f"{v:g}: {o:.1f}, {s}" for v, o, s in fold_info[split]) + ".", "",
+                  f"Per held-out {split} (deg): I-RFT's surface below z_top / its stride: "
+                  + "; ".join(f"{v:g}: {o:.1f} cm / {s} ms" for v, o, s in fold_info[split]) + ".", "",
                   "| model | origin RMSE x (N/cm^3) | origin z | intercept RMSE x | intercept z | force RMSE x (N) "
                   "| force z (N) | 95 % coverage, origin x | z |",
                   "|---|---|---|---|---|---|---|---|---|"]
