@@ -177,8 +177,10 @@ class SpectralBackend(WeightSpaceBackend):
     def _kron(self, X: Tensor, Sb: Tensor, Sg: Tensor, s: Tensor) -> Tensor:
         """X (2, k, F) -> X (s Sb kron Sg) (2, k, F), without forming the Kronecker product."""
         Fb, Fg = self.basis.sizes
-        Y = X.reshape(*X.shape[:-1], Fb, Fg)
-        Y = Sb.mT[:, None] @ Y @ Sg[:, None]
+        k = X.shape[-2]
+        Y = X.reshape(2, k * Fb, Fg) @ Sg  # two large products instead of 2k small ones
+        Y = Y.reshape(2, k, Fb, Fg).transpose(1, 2).reshape(2, Fb, k * Fg)
+        Y = (Sb.mT @ Y).reshape(2, Fb, k, Fg).transpose(1, 2)
         return s[:, None, None] * Y.reshape(X.shape)
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
