@@ -238,11 +238,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_reproduce(a) -> int:
-    from .reproduce import StudySettings, run_study
+    from .reproduce import StudySettings, default_workers, run_study
 
     _out_dir(a.out, "--out")  # before the study: a bad --out fails now
     settings = StudySettings.quick_settings() if a.quick else StudySettings()
-    r = run_study(a.out, settings, progress=not a.no_progress)
+    if a.jobs < 0:
+        raise UsageError("--jobs", f"must be 0 (one per CPU) or a positive number of processes, got {a.jobs}")
+    workers = default_workers() if a.jobs == 0 else a.jobs
+    r = run_study(a.out, settings, progress=not a.no_progress, workers=workers)
     print(f"wrote tables, figures and report.md to {r['out_dir']}/ in {r['elapsed_s']:.0f} s")
     return 0
 
@@ -254,6 +257,8 @@ def _register_reproduce(sub) -> None:
                                    "table2.csv, figures and report.md.")
     p.add_argument("--out", default="experiments/results", help="output directory (default experiments/results)")
     p.add_argument("--quick", action="store_true", help="smaller grid, fewer steps and seeds (< 1 minute)")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="worker processes for the fits (default 0: one per CPU, at most 8; 1: this process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_reproduce)
 

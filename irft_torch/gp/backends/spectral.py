@@ -328,7 +328,7 @@ class SpectralBackend(WeightSpaceBackend):
                               f"error is now {self.truncation_error().max().item():.1e} (tol {self.tol:.0e})",
                               stacklevel=2)
             return False
-        if max(grown.n_beta, grown.n_gamma) >= MAX_HARMONICS:
+        if max(need.n_beta, need.n_gamma) >= MAX_HARMONICS:  # not just the margin: the tolerance is out of reach
             warnings.warn(f"lengthscales {self.hypers.lengthscale.detach().reshape(-1).tolist()} need more than "
                           f"{MAX_HARMONICS} harmonics per angle; the truncation error may exceed tol={self.tol:.0e}",
                           stacklevel=2)
