@@ -284,6 +284,23 @@ class InverseRFT(nn.Module):
 
         return surface_estimate(self)
 
+    def init_surface(self, offsets) -> Tensor:
+        """Start the surface offset(s) at the best of ``offsets`` (cm, a grid) by the loss at the current
+        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+        grid = torch.as_tensor(offsets, dtype=self.dtype).reshape(-1)
+        with torch.no_grad():
+            for g in range(self.surface.n_groups):
+                losses = []
+                for v in grid:
+                    self.surface.offset[g] = v
+                    losses.append(float(self._surface_loss()))
+                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+        self.eval()
+        return self.surface.offset.detach().clone()
+
     def _surface_loss(self) -> Tensor:
         from .surface import surface_negative_log_likelihood
 
