@@ -74,7 +74,7 @@ def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
 def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
     """Divide each composite observation (its force and its segment weights) by its noise scale:
     F_t / s_t = sum_m (w_tm / s_t) alpha(theta_tm) + eps_t, eps_t ~ N(0, sigma^2), exactly."""
-    return Contacts(c.beta, c.gamma, c.weight_x / s[:, :1], c.weight_z / s[:, 1:]), f / s
+    return c.scale_weights(1 / s[:, :1], 1 / s[:, 1:]), f / s
 
 
 def _check_units(c: Contacts, f: Tensor) -> None:
@@ -156,6 +156,12 @@ class InverseRFT(nn.Module):
             several): the spectral backend then skips its pass over the data. Checked against the
             data's sample count and force power (ValueError if they differ); ignored by the other
             backends; not allowed with a ``noise_scale``.
+        surface_offset: learn the free surface's height with the maps (``gp.surface``, docs/surface.md):
+            one offset in cm (positive: the surface is higher than stated), fitted by the marginal
+            likelihood through the segment depths; ``model.surface_offset`` gives it with its
+            Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
+        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
+            one for all (implies ``surface_offset``).
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -167,7 +173,8 @@ class InverseRFT(nn.Module):
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
-                 exact_max_segments=None, statistics=None) -> None:
+                 exact_max_segments=None, statistics=None, surface_offset: bool = False,
+                 surface_groups=None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -202,6 +209,12 @@ class InverseRFT(nn.Module):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
         _check_units(c, f)
+        self.surface = None
+        if surface_offset or surface_groups is not None:
+            from .surface import SurfaceOffset
+
+            self.surface = SurfaceOffset(c, surface_groups)
+        self._method_arg = method
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
@@ -233,6 +246,9 @@ class InverseRFT(nn.Module):
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         self.auto = method == "auto"
+        if statistics is not None and self.surface is not None:
+            raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "
+                             "learns the surface (drop statistics or surface_offset)")
         self._statistics = _check_statistics(statistics, f, noise_scale, prior_mean)
         self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol,
                                                 statistics=self._statistics)
@@ -283,8 +299,53 @@ class InverseRFT(nn.Module):
 
     @property
     def train_contacts(self) -> Contacts:
-        """The training contacts (T, M), whitened by ``noise_scale``."""
-        return self._join()[0]
+        """The training contacts (T, M), whitened by ``noise_scale`` (with a learned surface offset: at
+        the current offset)."""
+        c = self._join()[0]
+        return c if self.surface is None else self.surface.apply(c, detach=True)
+
+    @property
+    def surface_offset(self):
+        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in cm,
+        positive when the surface is higher than stated; ``.interval(0.95)``. Laplace, from the loss's
+        curvature in the offsets and the hyperparameters (computed on each access)."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+        from .surface import surface_estimate
+
+        return surface_estimate(self)
+
+    def init_surface(self, offsets) -> Tensor:
+        """Start the surface offset(s) at the best of ``offsets`` (cm, a grid) by the loss at the current
+        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+        grid = torch.as_tensor(offsets, dtype=self.dtype).reshape(-1)
+        with torch.no_grad():
+            for g in range(self.surface.n_groups):
+                losses = []
+                for v in grid:
+                    self.surface.offset[g] = v
+                    losses.append(float(self._surface_loss()))
+                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+        self.eval()
+        return self.surface.offset.detach().clone()
+
+    def _surface_loss(self) -> Tensor:
+        from .surface import surface_negative_log_likelihood
+
+        c, f, _ = self._join()
+        nll = surface_negative_log_likelihood(self.hypers, self.surface.apply(c), f, self.surface.table,
+                                              self.surface.index)
+        return nll.sum() - self.backend.log_prior() / max(len(f), 1)
+
+    def _rebuild_backend(self) -> None:
+        """The surface moved: the backend again, on the contacts at the current offset."""
+        method = self._method_arg if self._method_arg != "auto" else "auto"
+        self.backend = make_backend(method, self.hypers, self.train_contacts, self.train_forces, solver=self.solver,
+                                    tol=self.tol)
+        self._n_pairs = None
 
     @property
     def train_forces(self) -> Tensor:
@@ -330,6 +391,8 @@ class InverseRFT(nn.Module):
         """Negative log marginal likelihood per force sample, summed over the two axes (minus the log
         hyperparameter prior / T where priors are registered)."""
         self.train()
+        if self.surface is not None:
+            return self._surface_loss()
         return self.backend.loss()
 
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
@@ -339,7 +402,8 @@ class InverseRFT(nn.Module):
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
-        opt = torch.optim.Adam(self.hypers.parameters(), lr=lr)
+        params = list(self.hypers.parameters()) + ([] if self.surface is None else [self.surface.offset])
+        opt = torch.optim.Adam(params, lr=lr)
         history: list[float] = []
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
@@ -347,15 +411,15 @@ class InverseRFT(nn.Module):
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
-                loss = self.backend.loss()
+                loss = self.backend.loss() if self.surface is None else self._surface_loss()
                 loss.backward()
                 opt.step()
                 history.append(loss.item())
-                if step % 10 == 9 and self.backend.stale():
+                if self.surface is None and step % 10 == 9 and self.backend.stale():
                     self._adapt()
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
-            if self.backend.stale():
+            if self.surface is None and self.backend.stale():
                 self._adapt()
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
@@ -366,6 +430,8 @@ class InverseRFT(nn.Module):
             ) from e
         finally:
             self.backend.in_fit = False
+            if self.surface is not None:
+                self._rebuild_backend()
             bar.close()
             self.eval()
         self.loss_history.extend(history)
@@ -395,6 +461,10 @@ class InverseRFT(nn.Module):
         the constructor, for the new samples."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
+        if self.surface is not None:
+            raise NotImplementedError("add_data with a learned surface offset: the offset is fitted in batch; build "
+                                      "a new InverseRFT on all the data (or fix the offset: "
+                                      "contacts.with_surface_offset(model.surface_offset.mean) and no surface_offset)")
         device = self._parts[0][1].device
         c = contacts.to(dtype=self.dtype, device=device)
         f = _as_forces(forces, len(c), self.dtype, device)
@@ -487,12 +557,14 @@ class InverseRFT(nn.Module):
     # ---- persistence -----------------------------------------------------------------------------
     def _measured(self) -> tuple[Contacts, Tensor]:
         """The training data as measured (the whitening undone)."""
-        c, s = self.train_contacts, self.noise_scale
-        return Contacts(c.beta, c.gamma, c.weight_x * s[:, :1], c.weight_z * s[:, 1:]), self.train_forces * s
+        c, f, s = self._join()
+        return c.scale_weights(s[:, :1], s[:, 1:]), f * s
 
     def _data_digest_tensor(self) -> Tensor:
         c, f = self._measured()
-        d = digest({"contacts": c.as_dict(), "forces": f, "noise_scale": self.noise_scale})
+        # the weights (what the maps see); the signed depths and areas only where the surface is learned
+        data = c.as_dict() if self.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
+        d = digest({"contacts": data, "forces": f, "noise_scale": self.noise_scale})
         return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
 
     def _fresh_digest(self) -> None:
@@ -526,7 +598,12 @@ class InverseRFT(nn.Module):
                                               if k.startswith("hypers.")}, strict=strict)
         if "data_digest" in state_dict:
             self.data_digest.copy_(state_dict["data_digest"].to(self.data_digest))
-        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest")]
+        if self.surface is not None and "surface.offset" in state_dict:
+            with torch.no_grad():
+                self.surface.offset.copy_(state_dict["surface.offset"].to(self.surface.offset))
+            self._rebuild_backend()
+        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest"
+                                                    or (self.surface is not None and k == "surface.offset"))]
         if strict and unexpected:
             raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
         return result

@@ -59,6 +59,10 @@ def save_model(model, path) -> None:
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
     }
+    if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
+        payload["options"]["surface_offset"] = True
+        payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
+        payload["surface_offset"] = model.surface.offset.detach().cpu()
     torch.save({"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload),
                 "payload": payload}, path)
 
@@ -90,6 +94,10 @@ def load_model(cls, path, map_location=None):
     opts["dtype"] = getattr(torch, opts["dtype"])
     model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
     model.hypers.load_state_dict(payload["hypers"])
+    if "surface_offset" in payload:
+        with torch.no_grad():
+            model.surface.offset.copy_(payload["surface_offset"].to(model.surface.offset))
+        model._rebuild_backend()
     model.loss_history = list(payload.get("loss_history", []))
     return model
 

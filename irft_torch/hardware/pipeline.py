@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.ndimage import uniform_filter1d
 
-from ..rft.contacts import Contacts, contacts
+from ..rft.contacts import SURFACE_FIELDS, Contacts, contacts
 from ..rft.toes import Toe
 from .can_log import ResampledLog
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
@@ -295,10 +295,10 @@ STATISTICS_PREFIX = "statistics."
 
 
 def save_dataset(path, ds: Dataset, **meta) -> Path:
-    """npz with beta, gamma, weight_x, weight_z (T, M), forces (T, 2), time, toe_position, meta, and
-    ``ds.statistics`` (if any) as arrays named "statistics.<name>". ".npz" is appended when ``path``
-    lacks it; the file is written whole or not at all (a temporary file renamed into place).
-    Returns the path written."""
+    """npz with beta, gamma, weight_x, weight_z (T, M) (and depth, area_x, area_z where the contacts
+    carry them), forces (T, 2), time, toe_position, meta, and ``ds.statistics`` (if any) as arrays
+    named "statistics.<name>". ".npz" is appended when ``path`` lacks it; the file is written whole
+    or not at all (a temporary file renamed into place). Returns the path written."""
     import os
 
     path = Path(path)
@@ -334,6 +334,11 @@ def load_dataset(path) -> Dataset:
                 raise ValueError(f"{path} is not an irft dataset: missing {sorted(missing)}")
             arrays = {k: np.asarray(d[k]) for k in need}
             stats = {k[len(STATISTICS_PREFIX):]: np.asarray(d[k]) for k in d.files if k.startswith(STATISTICS_PREFIX)}
+            # the signed depths and areas (a learned surface offset, docs/surface.md): optional, all three
+            surface = [k for k in SURFACE_FIELDS if k in d.files]
+            if surface and len(surface) != len(SURFACE_FIELDS):
+                raise ValueError(f"{path} is damaged: it holds {surface} but not all of {list(SURFACE_FIELDS)}")
+            arrays.update({k: np.asarray(d[k]) for k in surface})
     except ValueError as e:
         if "not an irft dataset" in str(e):
             raise
@@ -344,13 +349,13 @@ def load_dataset(path) -> Dataset:
     T = len(arrays["forces"])
     shapes = {k: v.shape for k, v in arrays.items()}
     ok = (arrays["forces"].shape == (T, 2) and arrays["time"].shape == (T,) and arrays["toe_position"].shape == (T, 2)
-          and all(arrays[k].ndim == 2 and arrays[k].shape[0] == T for k in need[:4])
-          and len({arrays[k].shape for k in need[:4]}) == 1)
+          and all(arrays[k].ndim == 2 and arrays[k].shape[0] == T for k in need[:4] + tuple(surface))
+          and len({arrays[k].shape for k in need[:4] + tuple(surface)}) == 1)
     if not ok:
         raise ValueError(f"{path}: inconsistent array shapes {shapes}; the file is damaged")
     bad = [k for k, v in arrays.items() if not np.issubdtype(v.dtype, np.floating) or not np.isfinite(v).all()]
     if bad:
         raise ValueError(f"{path}: non-finite or non-numeric values in {bad}; the file is damaged")
-    c = Contacts(*(torch.as_tensor(arrays[k]) for k in need[:4]))
+    c = Contacts(**{k: torch.as_tensor(arrays[k]) for k in need[:4] + tuple(surface)})
     return Dataset(c, torch.as_tensor(arrays["forces"]), torch.as_tensor(arrays["time"]),
                    torch.as_tensor(arrays["toe_position"]), stats or None)

@@ -15,6 +15,12 @@ angle pair lies in [-pi/2, pi/2]^2 and
 
 with weight_z = depth [cm] x area [cm^2] (cm^3) and weight_x = -sign(v_x) weight_z: drag opposes
 the horizontal motion.
+
+The free surface is rarely known exactly. ``contacts`` therefore also keeps, per segment, the signed
+centre depth (cm, positive below the stated surface, negative above it) and the signed areas that
+multiply it on each axis (cm^2, zero for a segment too slow to have a direction), so that
+``Contacts.with_surface_offset(delta)`` recomputes the weights for a surface ``delta`` cm higher than
+stated, differentiably in ``delta``: weight = relu(depth + delta) x area (docs/surface.md).
 """
 
 from __future__ import annotations
@@ -28,9 +34,10 @@ from torch import Tensor
 from .paths import Path
 from .toes import Toe
 
-__all__ = ["Contacts", "SegmentKinematics", "segment_kinematics", "contacts", "M_TO_CM"]
+__all__ = ["Contacts", "SegmentKinematics", "segment_kinematics", "contacts", "M_TO_CM", "SURFACE_FIELDS"]
 
 M_TO_CM = 100.0  # the one place that converts SI lengths to the literature's centimetres
+SURFACE_FIELDS = ("depth", "area_x", "area_z")  # the optional fields that let the surface move
 
 
 @dataclass
@@ -42,15 +49,31 @@ class Contacts:
         gamma: velocity direction in the canonical square, rad.
         weight_x: signed weight of alpha_x in F_x, cm^3 (zero above the surface).
         weight_z: weight of alpha_z in F_z, cm^3, >= 0 (zero above the surface).
+        depth: optional (all three or none): signed depth of each segment's centre below the stated
+            surface, cm (negative above it, where the weights are zero).
+        area_x: optional: the signed area multiplying relu(depth) in weight_x, cm^2 (it carries the
+            sign of the drag, and is zero for a segment too slow to have a direction).
+        area_z: optional: the area multiplying relu(depth) in weight_z, cm^2, >= 0.
+
+    With the optional three, ``weight_c = relu(depth) * area_c`` (checked), and
+    ``with_surface_offset`` can move the surface; without them (older datasets, hand-built
+    contacts) everything else works the same.
     """
 
     beta: Tensor
     gamma: Tensor
     weight_x: Tensor
     weight_z: Tensor
+    depth: Tensor | None = None
+    area_x: Tensor | None = None
+    area_z: Tensor | None = None
 
     def __post_init__(self) -> None:
-        names = [f.name for f in fields(self)]
+        extra = [getattr(self, n) is None for n in SURFACE_FIELDS]
+        if any(extra) and not all(extra):
+            missing = [n for n, e in zip(SURFACE_FIELDS, extra) if e]
+            raise ValueError(f"Contacts.depth, area_x and area_z go together (all three or none); missing {missing}")
+        names = [f.name for f in fields(self) if getattr(self, f.name) is not None]
         for name in names:
             v = getattr(self, name)
             if not isinstance(v, Tensor):
@@ -71,6 +94,64 @@ class Contacts:
                 )
         if (self.weight_z < 0).any():
             raise ValueError("Contacts.weight_z must be >= 0 (depth x area)")
+        if self.has_surface:
+            if (self.area_z < 0).any():
+                raise ValueError("Contacts.area_z must be >= 0 (cm^2)")
+            d = torch.relu(self.depth)
+            for axis in ("x", "z"):
+                w, a = getattr(self, f"weight_{axis}"), getattr(self, f"area_{axis}")
+                with torch.no_grad():
+                    err = (w - d * a).abs().max() if w.numel() else w.new_zeros(())
+                    tol = 1e-5 * float(w.abs().max()) if w.numel() else 0.0
+                if float(err) > max(tol, 1e-12):
+                    raise ValueError(f"Contacts.weight_{axis} must equal relu(depth) * area_{axis} (max difference "
+                                     f"{float(err):.3g} cm^3): depth, area_x, area_z do not describe these weights")
+
+    @property
+    def has_surface(self) -> bool:
+        """Whether the signed depths and areas are kept (``with_surface_offset`` works)."""
+        return self.depth is not None
+
+    def _apply(self, fn) -> Contacts:
+        """fn applied to every tensor held (the optional ones where present)."""
+        return Contacts(**{k: fn(v) for k, v in self.as_dict().items()})
+
+    def with_surface_offset(self, delta, groups=None) -> Contacts:
+        """The contacts for a free surface ``delta`` cm higher than the stated one (every depth grows
+        by delta): ``depth + delta`` and weights ``relu(depth + delta) * area``, differentiable in
+        delta (segments enter and leave contact as it changes).
+
+        Args:
+            delta: a scalar (one offset), or (G,) offsets with ``groups``, cm (a tensor that requires
+                grad gives the weights' gradient).
+            groups: optional (T,) integer group of each time sample in [0, G) (one offset per
+                recording or trial); ``delta[groups]`` then shifts sample t.
+        """
+        if not self.has_surface:
+            raise ValueError("with_surface_offset needs Contacts.depth, area_x and area_z (the signed depths and "
+                             "areas, filled by rft.contacts); these contacts carry weights only")
+        delta = torch.as_tensor(delta, dtype=self.depth.dtype, device=self.depth.device)
+        if groups is None:
+            if delta.numel() != 1:
+                raise ValueError(f"delta must be one offset (cm) without groups, got shape {tuple(delta.shape)}")
+            shift = delta.reshape(())
+        else:
+            groups = torch.as_tensor(groups, device=self.depth.device)
+            if groups.dtype.is_floating_point or groups.shape != (len(self),):
+                raise ValueError(f"groups must be ({len(self)},) integers, got {groups.dtype} {tuple(groups.shape)}")
+            if delta.ndim != 1 or (len(groups) and (groups.min() < 0 or groups.max() >= delta.shape[0])):
+                raise ValueError(f"groups index delta (G,) = {tuple(delta.shape)}: need 0 <= groups < G")
+            shift = delta[groups][:, None]
+        depth = self.depth + shift
+        d = torch.relu(depth)
+        return Contacts(self.beta, self.gamma, d * self.area_x, d * self.area_z, depth, self.area_x, self.area_z)
+
+    def scale_weights(self, sx: Tensor, sz: Tensor) -> Contacts:
+        """Weights (and areas) of each axis multiplied by ``sx``, ``sz`` (broadcast against (..., T, M))."""
+        if not self.has_surface:
+            return Contacts(self.beta, self.gamma, self.weight_x * sx, self.weight_z * sz)
+        return Contacts(self.beta, self.gamma, self.weight_x * sx, self.weight_z * sz, self.depth, self.area_x * sx,
+                        self.area_z * sz)
 
     @property
     def shape(self) -> torch.Size:
@@ -86,10 +167,10 @@ class Contacts:
 
     def __getitem__(self, index) -> Contacts:
         """Select time steps (the second-to-last dimension), e.g. ``contacts[10:20]``."""
-        return Contacts(*(getattr(self, f.name)[..., index, :] for f in fields(self)))
+        return self._apply(lambda v: v[..., index, :])
 
     def to(self, *args, **kwargs) -> Contacts:
-        return Contacts(*(getattr(self, f.name).to(*args, **kwargs) for f in fields(self)))
+        return self._apply(lambda v: v.to(*args, **kwargs))
 
     def pad_segments(self, M: int) -> Contacts:
         """Pad to M segments with zero-weight segments (which add nothing to any force)."""
@@ -99,7 +180,7 @@ class Contacts:
         if extra == 0:
             return self
         pad = lambda v: torch.nn.functional.pad(v, (0, extra))  # noqa: E731
-        return Contacts(*(pad(getattr(self, f.name)) for f in fields(self)))
+        return self._apply(pad)
 
     @classmethod
     def cat(cls, parts: list[Contacts]) -> Contacts:
@@ -108,7 +189,8 @@ class Contacts:
             raise ValueError("Contacts.cat needs at least one Contacts")
         M = max(p.n_segments for p in parts)
         parts = [p.pad_segments(M) for p in parts]
-        return cls(*(torch.cat([getattr(p, f.name) for p in parts], dim=-2) for f in fields(cls)))
+        names = [n for n in parts[0].as_dict() if all(getattr(p, n) is not None for p in parts)]
+        return cls(**{n: torch.cat([getattr(p, n) for p in parts], dim=-2) for n in names})
 
     @classmethod
     def points(cls, beta, gamma, dtype=None, device=None) -> Contacts:
@@ -131,7 +213,8 @@ class Contacts:
         return cls(bc[:, None], gc[:, None], sx[:, None], torch.ones_like(bc)[:, None])
 
     def as_dict(self) -> dict[str, Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The tensors held, by name, in field order (the optional depth and areas only where present)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
 
 
 @dataclass
@@ -197,6 +280,9 @@ def contacts(toe: Toe, path: Path, min_speed: float = 1e-9) -> Contacts:
     beta = torch.where(toward_minus_x, -beta, beta)
     beta = torch.remainder(beta + math.pi / 2, math.pi) - math.pi / 2
     gamma = torch.where(moving, torch.atan2(-vz, vx.abs()), torch.zeros_like(vx))
-    weight = (k.depth * M_TO_CM) * (k.area * M_TO_CM**2) * moving
+    area = (k.area * M_TO_CM**2) * moving
+    depth = -k.position[..., 1] * M_TO_CM  # signed: negative above the surface
+    weight = torch.relu(depth) * area
     sign = torch.where(toward_minus_x, -torch.ones_like(vx), torch.ones_like(vx))
-    return Contacts(beta=beta, gamma=gamma, weight_x=-sign * weight, weight_z=weight)
+    return Contacts(beta=beta, gamma=gamma, weight_x=-sign * weight, weight_z=weight, depth=depth, area_x=-sign * area,
+                    area_z=area)
