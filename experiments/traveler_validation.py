@@ -325,7 +325,7 @@ def main(argv=None) -> None:
     ax2 = ax.twinx()
     ax2.plot(t, 100 * z, "k:", lw=0.8)
     ax2.axhline(-100 * ground, color="tab:brown", lw=0.8)
-    ax2.axhline(-100 * ground - est2.mean[0].item(), color="tab:green", lw=0.8, ls="--")
+    ax2.axhline(-100 * ground + est2.mean[0].item(), color="tab:green", lw=0.8, ls="--")
     ax2.set_ylabel("toe z [cm]: path (dotted),\nsurface stated (brown) / learned (green)", fontsize=8)
     post = fits["per stroke"][1]
     for k, (ax, name) in enumerate(zip(axes[1:], ("down", "up"))):
