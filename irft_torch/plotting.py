@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt
 import torch
 
 __all__ = ["angle_grid", "sampled_angles", "plot_stress_map", "plot_map_comparison", "plot_posterior_map",
-           "plot_toe_path", "plot_coverage", "plot_forces", "save"]
+           "plot_toe_path", "plot_coverage", "plot_forces", "plot_reliability", "save"]
 
 P = math.pi
 UNIT = "N/cm$^3$"
@@ -250,3 +250,29 @@ def save(fig, path) -> None:
     """Write ``fig`` (PNG, 120 dpi) and close it."""
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_reliability(observed: dict, levels, ax=None, title: str = "reliability"):
+    """Reliability diagram: for each central posterior interval (nominal level, x) the share of the
+    truth inside it (observed, y); the diagonal is perfect calibration, below it overconfident.
+
+    Args:
+        observed: {label: [share inside at each level]} (0-1), one line per label.
+        levels: the nominal levels (0-1), e.g. (0.5, 0.9, 0.95).
+    """
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(7.5, 6.5), constrained_layout=True)
+    lv = [100 * float(v) for v in levels]
+    ax.plot([0, 100], [0, 100], "k--", lw=1, label="calibrated (observed = nominal)")
+    many = len(observed) > 10
+    for i, (label, shares) in enumerate(observed.items()):
+        ax.plot(lv, [100 * float(v) for v in shares], "o-", lw=0.8 if many else 1.5, ms=3 if many else 5,
+                alpha=0.6 if many else 1.0, color=f"C{i % 10}", label=label)
+    ax.set_xlim(40, 100)
+    ax.set_ylim(0, 101)
+    ax.set_xlabel("nominal level of the central posterior interval (%)")
+    ax.set_ylabel("share of the truth inside the interval (%)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6 if many else 8, loc="lower right", ncol=2 if many else 1)
+    return ax.figure

@@ -71,6 +71,7 @@ class StudySettings:
     noise_seeds: tuple[int, ...] = (0, 1, 2)  # ours
     lengthscale: float = 1.0  # ours: initial lengthscale of every embedding dimension
     lengthscale_sensitivity: tuple[float, ...] = (2.0, 4.0)  # extra I-toe fits in the report
+    priors: str | None = "physical"  # ours: hyperparameter priors (gp.priors); None: the paper's plain likelihood
     seed: int = 0
     quick: bool = False
 
@@ -88,6 +89,7 @@ class FitResult:
     seed: int
     truth: str
     lengthscale: float = 1.0
+    priors: str | None = "physical"
     metrics: dict = field(default_factory=dict)  # axis -> metrics dict
     maps: dict = field(default_factory=dict)
 
@@ -118,7 +120,11 @@ def _grid(s: StudySettings) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.meshgrid(c, c, indexing="ij")
 
 
-def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None) -> FitResult:
+LEVELS = (0.5, 0.9, 0.95)  # central posterior intervals whose coverage of the truth is reported
+
+
+def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None,
+             priors="settings") -> FitResult:
     toe, path = _toe(config, s), _path(config, s)
     c = contacts(toe, path)
     f = forces(truth_map, c)
@@ -127,16 +133,19 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
         f = f * (1 + math.sqrt(noise) * torch.randn(f.shape, generator=g, dtype=f.dtype))
     torch.manual_seed(s.seed)
     ls = s.lengthscale if lengthscale is None else lengthscale
-    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls)
+    priors = s.priors if priors == "settings" else priors
+    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors)
     model.fit(n_iter=s.n_iter, lr=s.lr, progress=False)
     B, G = _grid(s)
     with torch.no_grad():
         post = model.stress_map(B, G)
         true = truth_map(B, G)
-    res = FitResult(config, prior_mean, noise, seed, truth_name, ls)
+    res = FitResult(config, prior_mean, noise, seed, truth_name, ls, priors)
     for a, axis in enumerate("XZ"):
         m = metrics.map_metrics(post.mean[..., a], true[..., a])
-        m["calibration95"] = metrics.calibration(post.mean[..., a], post.stddev[..., a], true[..., a])
+        for level in LEVELS:
+            m[f"calibration{round(100 * level)}"] = metrics.calibration(post.mean[..., a], post.stddev[..., a],
+                                                                        true[..., a], level)
         res.metrics[axis] = m
     if keep_maps:
         res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
@@ -195,7 +204,8 @@ def _fit_job(job, s: StudySettings, threads: int = 0) -> FitResult:
     if threads:
         torch.set_num_threads(threads)
     torch.set_default_dtype(torch.float64)
-    return _fit_one(*job[:6], s, keep_maps=job[6], lengthscale=job[7] if len(job) > 7 else None)
+    return _fit_one(*job[:6], s, keep_maps=job[6], lengthscale=job[7] if len(job) > 7 else None,
+                    priors=job[8] if len(job) > 8 else "settings")
 
 
 def _run_fits(jobs: list, s: StudySettings, progress: bool, workers: int) -> list[FitResult]:
@@ -248,6 +258,8 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
         jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", True))
         jobs.append((config, "physics", 0.0, 0, paper_truth, "paper scale", False))
         jobs.append((config, "zero", 0.0, 0, unscaled, "unscaled", False))
+        if s.priors is not None:  # the paper's plain marginal likelihood, for Table I
+            jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", False, None, None))
         for noise in s.noise_levels:
             if noise == 0:
                 continue
@@ -260,10 +272,11 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
     results = _run_fits(jobs, s, progress, workers)
     elapsed = time.perf_counter() - t0
 
-    def pick(config, prior="zero", noise=0.0, truth="paper scale", ls=None):
+    def pick(config, prior="zero", noise=0.0, truth="paper scale", ls=None, priors="settings"):
         ls = s.lengthscale if ls is None else ls
-        return [r for r in results
-                if (r.config, r.prior_mean, r.noise, r.truth, r.lengthscale) == (config, prior, noise, truth, ls)]
+        priors = s.priors if priors == "settings" else priors
+        return [r for r in results if (r.config, r.prior_mean, r.noise, r.truth, r.lengthscale, r.priors)
+                == (config, prior, noise, truth, ls, priors)]
 
     # Table I (zero mean, the paper's model, at the paper's scale)
     cols = ["rmse", "mae", "r2", "pearson", "acr_percent"]
@@ -299,9 +312,22 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
                     table2[(config, axis, noise)] = (float(rp.mean()), float(mp.mean()), sd(rp), sd(mp))
                     w.writerow([config, axis, noise, _fmt(float(rp.mean())), _fmt(float(mp.mean())),
                                 _fmt(sd(rp)), _fmt(sd(mp)), len(rs)])
+    # Calibration: share of the truth inside the central 50 / 90 / 95 % intervals, mean over seeds
+    calibration = {}
+    with open(out / "calibration.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["config", "axis", "noise", *(f"inside{round(100 * lv)}" for lv in LEVELS), "n_seeds"])
+        for config in CONFIGS:
+            for axis in "XZ":
+                for noise in s.noise_levels:
+                    rs = pick(config, "zero", noise)
+                    calibration[(config, axis, noise)] = [
+                        sum(r.metrics[axis][f"calibration{round(100 * lv)}"] for r in rs) / len(rs) for lv in LEVELS]
+                    w.writerow([config, axis, noise, *(_fmt(v) for v in calibration[(config, axis, noise)]), len(rs)])
     if figures:
         _figures(out, [pick(c)[0] for c in CONFIGS])
-    _report(out, s, results, pick, table2, elapsed)
+        _reliability_figure(out, calibration)
+    _report(out, s, results, pick, table2, elapsed, calibration)
     return {"results": results, "elapsed_s": elapsed, "out_dir": str(out)}
 
 
@@ -327,7 +353,63 @@ def _figures(out: Path, results: list[FitResult]) -> None:
         plotting.save(fig, out / f"fig5_{r.config.replace(' ', '_').replace('-', '')}.png")
 
 
-def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None:
+def _reliability_figure(out: Path, calibration: dict) -> None:
+    """Reliability plot: nominal level against the share of the truth inside the interval, one line
+    per configuration and axis, one panel per noise level."""
+    from . import plotting
+
+    noises = sorted({n for (_, _, n) in calibration})
+    fig, axes = plotting.plt.subplots(1, len(noises), figsize=(6.5 * len(noises), 5.5), constrained_layout=True,
+                                      squeeze=False)
+    for ax, n in zip(axes[0], noises):
+        plotting.plot_reliability({f"{c} $\\alpha_{a.lower()}$": v for (c, a, m), v in calibration.items() if m == n},
+                                  LEVELS, ax=ax, title=f"multiplicative noise variance {n}")
+    fig.suptitle("Calibration of the map posterior over the square (zero mean; truth: generic map at the "
+                 "paper's scale)")
+    plotting.save(fig, out / "reliability.png")
+
+
+def _priors_rows(s: StudySettings, pick) -> list[str]:
+    """Table I's RMSE and ACR% with the hyperparameter priors (the default) and with the paper's plain
+    marginal likelihood, beside the paper's."""
+    if s.priors is None:
+        return []
+    rows = ["## Table I: hyperparameter priors (default) against the plain marginal likelihood", "",
+            f"The same fits (zero mean, noise 0) with `priors={s.priors!r}` (MAP, `gp.priors`) and `priors=None` "
+            "(the paper's plain marginal likelihood). Each cell: priors / plain / paper.", "",
+            "| config | axis | RMSE priors / plain / paper | ACR% priors / plain / paper | at least as good as the "
+            "paper (RMSE and ACR) | 95% calibration priors / plain |", "|---|---|---|---|---|---|"]
+    for config in CONFIGS:
+        r, q = pick(config)[0], pick(config, priors=None)[0]
+        for axis in "XZ":
+            p = PAPER_TABLE1[(config, axis)]
+            mr, mq = r.metrics[axis], q.metrics[axis]
+            ok = mr["rmse"] <= p[0] and mr["acr_percent"] >= p[4]
+            rows.append(f"| {config} | {axis} | {_fmt(mr['rmse'])} / {_fmt(mq['rmse'])} / {_fmt(p[0])} | "
+                        f"{mr['acr_percent']:.2f} / {mq['acr_percent']:.2f} / {p[4]:.2f} | {'yes' if ok else 'no'} | "
+                        f"{mr['calibration95']:.3f} / {mq['calibration95']:.3f} |")
+    return rows + [""]
+
+
+def _calibration_rows(s: StudySettings, calibration) -> list[str]:
+    """Share of the truth inside the central 50 / 90 / 95 % posterior intervals per configuration, axis
+    and noise level (mean over seeds)."""
+    if not calibration:
+        return []
+    rows = ["## Calibration: share of the truth inside the posterior intervals", "",
+            "Over the evaluation grid, the share of points whose truth lies inside the central 50 % / 90 % / 95 % "
+            "posterior interval (zero mean, mean over noise seeds; calibrated: 0.50 / 0.90 / 0.95; lower: "
+            "overconfident). `calibration.csv`; reliability plot `reliability.png`.", "",
+            "| config | axis | " + " | ".join(f"noise {n}" for n in s.noise_levels) + " |",
+            "|---|---|" + "---|" * len(s.noise_levels)]
+    for config in CONFIGS:
+        for axis in "XZ":
+            cells = [" / ".join(f"{v:.2f}" for v in calibration[(config, axis, n)]) for n in s.noise_levels]
+            rows.append(f"| {config} | {axis} | " + " | ".join(cells) + " |")
+    return rows + [""]
+
+
+def _report(out: Path, s: StudySettings, results, pick, table2, elapsed, calibration=None) -> None:
     lines = ["# I-RFT numerical validation, rerun", "",
              f"Written by `irft reproduce`{' --quick' if s.quick else ''} in {elapsed:.0f} s "
              f"({len(results)} fits). Tables: `table1.csv`, `table1_prior_means.csv`, `table2.csv`; "
@@ -375,6 +457,8 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed) -> None
               "mean removes both limits when the medium has the generic shape (next table); the noise-free "
               "truth here is exactly that shape, so its near-zero errors are an upper bound, not a claim about "
               "real media (see the DEM validation).", "",
+              *_priors_rows(s, pick),
+              *_calibration_rows(s, calibration),
               "## Zero mean vs physics-informed mean (generic shape x learned scales)", "",
               "| config | axis | RMSE zero / physics | ACR% zero / physics | 95% calibration zero / physics "
               "| RMSE unscaled truth (zero mean) |", "|---|---|---|---|---|---|"]

@@ -22,6 +22,7 @@ from .backends.base import touching
 from .backends.select import estimated_costs
 from .hyperparameters import RFTHyperparameters
 from .model_file import ModelFileError, digest, load_model, save_model
+from .priors import PRIORS, prior_centres, register_physical_priors
 
 __all__ = ["Posterior", "InverseRFT"]
 
@@ -162,6 +163,10 @@ class InverseRFT(nn.Module):
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
         surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
             one for all (implies ``surface_offset``).
+        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``:
+            the map's variance from the medium's scale, lengthscales that keep what the data cannot
+            see at a documented extrapolation, noise from the force spread), fitted by MAP; None:
+            the paper's plain marginal likelihood.
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -174,7 +179,7 @@ class InverseRFT(nn.Module):
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None) -> None:
+                 surface_groups=None, priors: str | None = "physical") -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -191,6 +196,8 @@ class InverseRFT(nn.Module):
         if method not in ("auto", "exact", "observations", "pairs", "spectral"):
             raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', "
                              f"got {method!r}")
+        if priors not in PRIORS:
+            raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
         if solver not in ("cholesky", "gpytorch"):
             raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
         if grid_size is not None or exact_max_segments is not None:
@@ -216,6 +223,7 @@ class InverseRFT(nn.Module):
             self.surface = SurfaceOffset(c, surface_groups)
         self._method_arg = method
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
+        self.priors = priors
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
@@ -245,6 +253,11 @@ class InverseRFT(nn.Module):
                                                     1e-6 * map_scale.to(resid).pow(2))
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+        if priors == "physical":
+            centres = prior_centres(c, f, map_scale, prior_mean == "physics")
+            register_physical_priors(self.hypers, centres, prior_mean == "physics")
+            with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
+                self.hypers.outputscale = centres["outputscale"].to(dtype)
         self.auto = method == "auto"
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "

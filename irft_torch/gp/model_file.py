@@ -55,7 +55,8 @@ def save_model(model, path) -> None:
         "noise_scale": model.noise_scale.cpu(),
         "options": {"prior_mean": model.prior_mean_kind, "tied_noise": model.hypers.tied,
                     "lengthscale": model.init_lengthscale, "method": model.method, "tol": model.tol,
-                    "solver": model.solver, "dtype": str(model.dtype).replace("torch.", "")},
+                    "solver": model.solver, "dtype": str(model.dtype).replace("torch.", ""),
+                    "priors": model.priors},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
     }
@@ -92,6 +93,7 @@ def load_model(cls, path, map_location=None):
         raise ModelFileError(f"{path}: checksum mismatch: the file is damaged; save the model again or refit it")
     opts = dict(payload["options"])
     opts["dtype"] = getattr(torch, opts["dtype"])
+    opts.setdefault("priors", None)  # files written before the priors were fitted without them
     model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
     model.hypers.load_state_dict(payload["hypers"])
     if "surface_offset" in payload:
@@ -111,6 +113,7 @@ def _load_v1(cls, d: dict, path):
         if opts.get("method") in ("grid",):
             opts["method"] = "spectral"
         opts["dtype"] = getattr(torch, opts["dtype"])
+        opts.setdefault("priors", None)  # 0.1 fitted without hyperparameter priors
         model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
         sd = d["state_dict"]
         sp = torch.nn.functional.softplus

@@ -1,0 +1,116 @@
+"""Hyperparameter priors with a physical meaning (MAP fitting), registered the gpytorch way.
+
+``InverseRFT(..., priors="physical")`` (the default) registers three priors on the shared
+hyperparameter modules (``register_prior``); every backend's ``loss`` then subtracts their log
+density / T, as gpytorch's ``ExactMarginalLogLikelihood`` does. ``priors=None`` is the paper's
+plain marginal likelihood.
+
+Each prior is a normal density on log(value / centre), i.e. a log-normal prior on the value with
+MAP taken in log space (no Jacobian term, so the mode is the centre):
+
+- **outputscale** sigma_c^2 of map c: centre (zeta * rms_c)^2. Li et al. (Science 2013, Fig. 2 and
+  the supplement's Table S2) found that the stress-per-depth maps of the granular media they
+  measured share one generic shape and differ mainly by one scale factor zeta per medium; the
+  media used in public code span about an order of magnitude (plastic pellets 0.11, poppy seeds
+  0.25 loose / 0.46 close, glass beads 0.33; the I-RFT paper's own glass-bead bed 1.0 (x) and 1.5
+  (z)). So no fixed centre in N/cm^3 fits every medium; the medium's zeta is instead estimated from
+  the forces themselves (least squares of the measured forces on the generic shape's forces, both
+  axes together: one zeta per medium), and rms_c = (0.209, 0.381) is the root mean square of the
+  generic map over the canonical square (x, z) per unit zeta. The width, sigma_c within a factor
+  1.5 either way at two standard deviations (log-sd of sigma_c^2 ln 1.5), covers how far one axis
+  of a real medium strays from the common zeta: the poppy-seed sets' map stds are 0.84-0.91 (x)
+  and 0.96-0.97 (z) of the generic map's at their zeta, the I-RFT bed's scales 1.0 (x) and 1.5 (z)
+  are 0.82 and 1.22 of their geometric mean. So an axis the forces do not inform (F_x during a vertical intrusion) keeps
+  a prior of the size real media have, instead of collapsing to zero. With the physics mean
+  (generic shape x learned scales) the GP models the residual, so the centre is 0.3 of that and
+  the width a factor 10.
+- **lengthscales** (dimensionless, on the embedding (sin 2beta, cos 2beta, sin gamma, cos gamma),
+  each coordinate in [-1, 1]): centre ``LENGTHSCALE_CENTRE`` = 1.5, log-sd 1.5 (a factor 4.5 per
+  standard deviation: where the forces inform a lengthscale, they decide it). An RBF fitted to the
+  generic map itself, densely sampled, takes lengthscales 2.2-5.4 (a smooth, nearly bilinear map);
+  DEM and measured maps have sharper features (steeper gamma dependence), so the centre sits
+  below. Where the forces never vary a coordinate (an I-toe samples beta = 0 only), the lengthscale
+  is the centre: the map keeps correlation exp(-4 / (2 * 1.5^2)) = 0.41 between beta = 0 and
+  beta = +-pi/2 (exp(-1/4.5) = 0.80 at +-pi/4), so it extrapolates part of what it saw and reverts
+  to the prior's variance beyond, and that is what the posterior std then says.
+- **noise** variance of each force axis: centre 1e-2 of the mean squared force of that axis (a noise
+  std of 10 % of the force; the I-RFT paper's Table II studies relative noise variances of 0.05 and
+  0.2, i.e. 22 % and 45 %), log-sd ln 10 (a factor 10 per standard deviation): a noise-free simulation can still push it to its floor, but a flat
+  likelihood (few samples) no longer does.
+
+The priors carry no state: their centres are recomputed from the training data whenever a model
+is built (a model file rebuilds the model from its data and the option ``priors``), and their
+buffers are left out of state dicts.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from gpytorch.priors import NormalPrior
+from torch import Tensor
+
+from ..rft.contacts import Contacts
+from ..rft.stress_maps import FourierStressMap
+
+__all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "medium_scale", "prior_centres",
+           "register_physical_priors"]
+
+PRIORS = ("physical", None)
+GENERIC_RMS = (0.2088, 0.3805)  # rms of the generic Li et al. map over the square, (x, z), per unit zeta
+LENGTHSCALE_CENTRE = 1.5
+LENGTHSCALE_LOG_SD = 1.5
+OUTPUTSCALE_LOG_SD = math.log(1.5)  # of sigma^2: sigma within a factor 1.5 at two standard deviations
+NOISE_RELATIVE = 1e-2
+NOISE_LOG_SD = math.log(10.0)
+PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
+
+
+def medium_scale(contacts: Contacts, forces: Tensor) -> float:
+    """Least-squares zeta of the generic map on these forces, both axes together:
+    zeta = sum_c F_c . g_c / sum_c g_c . g_c, g_c the generic shape's forces (N per unit zeta).
+    Returns 0 where the forces do not project positively on the shape."""
+    a = FourierStressMap.generic().to(contacts.beta.dtype)(contacts.beta, contacts.gamma)
+    g = torch.stack([(contacts.weight_x * a[..., 0]).sum(-1), (contacts.weight_z * a[..., 1]).sum(-1)], -1)
+    den = float(g.pow(2).sum())
+    return max(float((forces * g).sum()) / den, 0.0) if den > 0 else 0.0
+
+
+def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics_mean: bool = False) -> dict:
+    """The centres (physical units) of the three priors for these (whitened) data: outputscale (2,)
+    in (N/cm^3)^2, lengthscale (dimensionless), noise (2,) in N^2."""
+    rms = torch.tensor(GENERIC_RMS, dtype=forces.dtype, device=forces.device)
+    # a fallback where the forces do not project on the generic shape: the data's own map scale
+    fallback = float((map_scale.to(rms) / rms).max())
+    zeta = max(medium_scale(contacts, forces), 0.1 * fallback)
+    sigma = zeta * rms * (PHYSICS_MEAN_RESIDUAL if physics_mean else 1.0)
+    return {"zeta": zeta, "outputscale": sigma.pow(2), "lengthscale": LENGTHSCALE_CENTRE,
+            "noise": NOISE_RELATIVE * forces.pow(2).mean(0)}
+
+
+def _stateless(prior):
+    """A prior's buffers out of state dicts: a model's state is its hyperparameters, whatever its priors."""
+    prior._non_persistent_buffers_set.update(prior._buffers.keys())
+    return prior
+
+
+def register_physical_priors(hypers, centres: dict, physics_mean: bool = False) -> None:
+    """Register the outputscale, lengthscale and noise priors on ``hypers`` (``RFTHyperparameters``)
+    with gpytorch's ``register_prior``, each a ``NormalPrior`` on log(value / centre)."""
+    dtype = hypers.kernel.raw_outputscale.dtype
+    log_os = centres["outputscale"].to(dtype).log().detach().clone()
+    log_ls = math.log(centres["lengthscale"])
+    noise = centres["noise"].to(dtype)
+    log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
+    os_sd = NOISE_LOG_SD if physics_mean else OUTPUTSCALE_LOG_SD
+    zero = lambda: torch.zeros((), dtype=dtype)  # noqa: E731
+    hypers.kernel.register_prior(
+        "outputscale_prior", _stateless(NormalPrior(zero(), os_sd)),
+        lambda m, c=log_os: m.outputscale.log() - c.to(m.outputscale))
+    hypers.kernel.base_kernel.register_prior(
+        "lengthscale_prior", _stateless(NormalPrior(zero(), LENGTHSCALE_LOG_SD)),
+        lambda m, c=log_ls: m.lengthscale.log() - c)
+    hypers.likelihood.noise_covar.register_prior(
+        "noise_prior", _stateless(NormalPrior(zero(), NOISE_LOG_SD)),
+        lambda m, c=log_noise: m.noise.reshape(-1).log() - c.to(m.noise))

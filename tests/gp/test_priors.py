@@ -1,0 +1,95 @@
+"""Hyperparameter priors (gp.priors): against the generic map as truth and hand-derived values."""
+
+import math
+
+import pytest
+import torch
+
+import irft_torch as irft
+from irft_torch.gp.priors import GENERIC_RMS, medium_scale, prior_centres
+
+from .test_diagnostics import TRUTH, vertical_intrusion
+
+P = math.pi
+
+
+def grid(n=24):
+    e = torch.linspace(-P / 2, P / 2, n + 1, dtype=torch.float64)
+    c = (e[1:] + e[:-1]) / 2
+    return torch.meshgrid(c, c, indexing="ij")
+
+
+def test_generic_rms_is_that_of_the_generic_map_over_the_square():
+    B, G = grid(200)
+    rms = TRUTH(B, G).pow(2).mean((0, 1)).sqrt()
+    torch.testing.assert_close(rms, torch.tensor(GENERIC_RMS, dtype=torch.float64), atol=2e-4, rtol=0)
+
+
+def test_medium_scale_recovers_zeta_of_a_scaled_generic_medium():
+    toe = irft.rft.CToe(0.02, 0.008, n_segments=8)
+    c = irft.rft.contacts(toe, irft.rft.rectangle_path(n_steps=60))
+    for zeta in (0.111, 0.33, 1.5):
+        f = irft.rft.forces(irft.rft.FourierStressMap.generic(zeta, zeta), c)
+        assert medium_scale(c, f) == pytest.approx(zeta, rel=1e-9)
+        # in mN the same medium reads 1000 x larger (the prior follows the data's units)
+        assert medium_scale(c, 1000 * f) == pytest.approx(1000 * zeta, rel=1e-9)
+
+
+def test_vertical_intrusion_alpha_x_interval_covers_the_generic_map():
+    """F_x is zero up to noise: alpha_x is informed at (0, pi/2) only. With the physical priors its
+    variance stays that of real media (the medium's zeta read from F_z, x the generic rms), so the
+    95 % interval covers the generic map over >= 90 % of the square (it collapsed to 0 +- 1e-4
+    with the plain marginal likelihood, covering only where alpha_x happens to be 0)."""
+    c, f = vertical_intrusion()
+    model = irft.InverseRFT(c, f)
+    model.fit(n_iter=150, progress=False)
+    B, G = grid()
+    post = model.stress_map(B, G)
+    lo, hi = post.interval(0.95)
+    truth = TRUTH(B, G)
+    inside = ((truth >= lo) & (truth <= hi)).double().mean((0, 1))
+    assert float(inside[0]) >= 0.90
+    assert float(inside[1]) >= 0.90
+    # the x prior is the size of the generic map's (zeta = 1 here: alpha_z(0, pi/2) = 1)
+    assert float(model.hypers.outputscale[0].sqrt()) == pytest.approx(GENERIC_RMS[0], rel=0.5)
+    plain = irft.InverseRFT(c, f, priors=None)
+    plain.fit(n_iter=150, progress=False)
+    lo, hi = plain.stress_map(B, G).interval(0.95)
+    assert float(((truth[..., 0] >= lo[..., 0]) & (truth[..., 0] <= hi[..., 0])).double().mean()) < 0.5
+
+
+def test_loss_subtracts_the_log_prior_over_T():
+    """loss(priors) - loss(None) at equal hyperparameters = -(sum of normal log densities of
+    log(value / centre)) / T, computed by hand."""
+    c, f = vertical_intrusion()
+    a = irft.InverseRFT(c, f, method="observations")
+    b = irft.InverseRFT(c, f, method="observations", priors=None)
+    b.hypers.load_state_dict(a.hypers.state_dict())
+    cen = prior_centres(a.train_contacts, a.train_forces, torch.ones(2), False)
+    h = a.hypers
+
+    def lognormal(v, centre, sd):
+        z = (v.log() - math.log(centre) if isinstance(centre, float) else v.log() - centre.log()) / sd
+        return (-0.5 * z.pow(2) - math.log(sd * math.sqrt(2 * P))).sum()
+
+    with torch.no_grad():
+        logp = (lognormal(h.outputscale, cen["outputscale"], math.log(1.5))
+                + lognormal(h.lengthscale, 1.5, 1.5)
+                + lognormal(h.noise, cen["noise"], math.log(10.0)))
+        diff = a.loss() - b.loss()
+    assert float(diff) == pytest.approx(-float(logp) / len(c), rel=1e-9)
+
+
+def test_priors_carry_no_state_and_files_keep_them(tmp_path):
+    c, f = vertical_intrusion()
+    a = irft.InverseRFT(c, f)
+    a.fit(n_iter=5, progress=False)
+    plain = irft.InverseRFT(c, f, priors=None)
+    assert set(a.state_dict()) == set(plain.state_dict())  # no prior buffers in the state
+    plain.load_state_dict(a.state_dict())
+    a.save(tmp_path / "m.pt")
+    back = irft.InverseRFT.load(tmp_path / "m.pt")
+    assert back.priors == "physical"
+    torch.testing.assert_close(back.loss(), a.loss())
+    with pytest.raises(ValueError, match="priors must be"):
+        irft.InverseRFT(c, f, priors="flat")
