@@ -163,10 +163,10 @@ class InverseRFT(nn.Module):
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
         surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
             one for all (implies ``surface_offset``).
-        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``:
-            the map's variance from the medium's scale, lengthscales that keep what the data cannot
-            see at a documented extrapolation, noise from the force spread), fitted by MAP; None:
-            the paper's plain marginal likelihood.
+        priors: None (default): the paper's plain marginal likelihood; "physical": hyperparameter
+            priors with a physical meaning (``gp.priors``: the map's variance from the medium's
+            scale, lengthscales that keep what the data cannot see at a documented extrapolation,
+            noise from the force spread), fitted by MAP (``irft reproduce`` uses them and reports both).
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -179,7 +179,7 @@ class InverseRFT(nn.Module):
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None, priors: str | None = "physical") -> None:
+                 surface_groups=None, priors: str | None = None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")

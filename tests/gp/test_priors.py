@@ -41,7 +41,7 @@ def test_vertical_intrusion_alpha_x_interval_covers_the_generic_map():
     95 % interval covers the generic map over >= 90 % of the square (it collapsed to 0 +- 1e-4
     with the plain marginal likelihood, covering only where alpha_x happens to be 0)."""
     c, f = vertical_intrusion()
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, priors="physical")
     model.fit(n_iter=150, progress=False)
     B, G = grid()
     post = model.stress_map(B, G)
@@ -62,7 +62,7 @@ def test_loss_subtracts_the_log_prior_over_T():
     """loss(priors) - loss(None) at equal hyperparameters = -(sum of normal log densities of
     log(value / centre)) / T, computed by hand."""
     c, f = vertical_intrusion()
-    a = irft.InverseRFT(c, f, method="observations")
+    a = irft.InverseRFT(c, f, method="observations", priors="physical")
     b = irft.InverseRFT(c, f, method="observations", priors=None)
     b.hypers.load_state_dict(a.hypers.state_dict())
     cen = prior_centres(a.train_contacts, a.train_forces, torch.ones(2), False)
@@ -82,7 +82,7 @@ def test_loss_subtracts_the_log_prior_over_T():
 
 def test_priors_carry_no_state_and_files_keep_them(tmp_path):
     c, f = vertical_intrusion()
-    a = irft.InverseRFT(c, f)
+    a = irft.InverseRFT(c, f, priors="physical")
     a.fit(n_iter=5, progress=False)
     plain = irft.InverseRFT(c, f, priors=None)
     assert set(a.state_dict()) == set(plain.state_dict())  # no prior buffers in the state
