@@ -156,3 +156,29 @@ def test_importing_the_experiments_keeps_the_matplotlib_backend():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().lower() == "svg"
+
+
+def test_calibration_study_quick_writes_coverage_that_matches_its_csv(tmp_path):
+    """experiments/calibration_study.py --quick: every cell's coverage is a share in [0, 1], the 95 %
+    interval covers at least the 50 % one's share (nested intervals), and the report's median is the
+    median of the CSV's 95 % column (recomputed here)."""
+    import csv
+    import statistics
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)], check=True,
+                   capture_output=True, text=True)
+    rows = list(csv.DictReader(open(tmp_path / "calibration_study.csv")))
+    assert rows
+    for r in rows:  # nested intervals: a wider one covers at least as much
+        assert 0 <= float(r["cover50"]) <= float(r["cover90"]) <= float(r["cover95"]) <= 1
+    cells = {}
+    for r in rows:
+        cells.setdefault((r["config"], r["axis"], r["noise"]), []).append(float(r["cover95"]))
+    median = statistics.median(sum(v) / len(v) for v in cells.values())
+    report = (tmp_path / "calibration_study.md").read_text()
+    assert f"median {median:.3f}" in report, report
+    assert (tmp_path / "calibration_reliability.png").stat().st_size > 10_000
