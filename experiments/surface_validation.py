@@ -70,7 +70,7 @@ def profile(c_stated, f, grid):
     """Profile negative log likelihood (total, hyperparameters refitted) at fixed offsets."""
     out = []
     for d in grid:
-        m = fit(c_stated.with_surface_offset(float(d)), f)
+        m = fit(c_stated.with_surface_offset(float(d) / 100), f)  # grid in cm, offsets in m
         with torch.no_grad():
             out.append(float(m.loss()) * len(f))
     return torch.tensor(out)
@@ -100,10 +100,10 @@ def main(argv=None) -> None:
     rm = {"true": [], "stated": [], "learned": []}
     for seed in range(args.seeds):
         c, f, truth = simulate(seed)
-        stated = c.with_surface_offset(-TRUE_OFFSET)  # every depth 1 cm too large
+        stated = c.with_surface_offset(-TRUE_OFFSET / 100)  # every depth 1 cm too large
         m_true, m_stated = fit(c, f), fit(stated, f)
         m = fit(stated, f, surface_offset=True)
-        est = m.surface_offset
+        est = m.surface_offset.in_cm()
         lo, hi = est.interval(0.95)
         mu, sd = est.mean.item(), est.std.item()
         err = 10 * (mu - TRUE_OFFSET)
@@ -124,7 +124,7 @@ def main(argv=None) -> None:
               f"{mean['learned'][0]:.4f} / {mean['learned'][1]:.4f} |", ""]
 
     # ---- profile likelihood (seed 0): an independent check of the Laplace interval ----------------
-    est0 = m0.surface_offset
+    est0 = m0.surface_offset.in_cm()
     mu0, sd0 = est0.mean.item(), est0.std.item()
     grid = torch.linspace(mu0 - 3 * sd0, mu0 + 3 * sd0, 13)
     prof = profile(stated0, f0, grid)
@@ -161,13 +161,13 @@ def main(argv=None) -> None:
     truth = FourierStressMap.generic(0.2, 0.2)
     f1 = forces(truth, c1)
     f1 = f1 + 0.02 * f1.abs().max() * torch.randn(f1.shape, generator=torch.Generator().manual_seed(0))
-    stated1 = c1.with_surface_offset(-TRUE_OFFSET)
+    stated1 = c1.with_surface_offset(-TRUE_OFFSET / 100)
     for name, keep in (("all: from 1.5 cm above the true surface", torch.ones(len(c1), dtype=torch.bool)),
                        ("stated depth > 0 (1 cm of them above the true surface, force 0)", stated1.depth[:, 0] > 0),
                        ("in contact only (true depth > 0.5 cm)", c1.depth[:, 0] > 0.5),
                        ("in contact, true depth 3 to 4.5 cm only", (c1.depth[:, 0] > 3) & (c1.depth[:, 0] < 4.5))):
         m1 = fit(stated1[keep], f1[keep], surface_offset=True)
-        e1 = m1.surface_offset
+        e1 = m1.surface_offset.in_cm()
         corr = e1.correlation.get("kernel.raw_outputscale[1]", [math.nan])[0]
         p = m1.stress_map(torch.tensor(0.0), torch.tensor(math.pi / 2))
         lines.append(f"| {name} ({int(keep.sum())}) | {e1.mean.item():+.4f} ({e1.std.item():.4f}) | {corr:+.3f} | "

@@ -207,9 +207,9 @@ def main(argv=None) -> None:
         torch.manual_seed(0)
         m = irft.InverseRFT(c, fobs, **kw)
         if kw:  # the likelihood in the offset has local optima: start at the best of a coarse grid
-            m.init_surface(torch.arange(-3.5, 2.0001, 0.1))
+            m.init_surface(torch.arange(-3.5, 2.0001, 0.1) / 100)  # m
         m.fit(n_iter=args.n_iter, lr=0.05, progress=False)
-        fits[key] = (m, m.stress_map(*angles), m.surface_offset if kw else None)
+        fits[key] = (m, m.stress_map(*angles), m.surface_offset.in_cm() if kw else None)  # reported in cm
     g = c.gamma[c.area_z > 0]
     lines += ["## 2. alpha_z at beta = 0 (flat toe), moving down and up, with the free surface learned", "",
               f"Stated free surface: the protocol's ground_height, {100 * ground:.1f} cm below the hip; assumed toe "
@@ -252,8 +252,10 @@ def main(argv=None) -> None:
     corr = est.correlation.get("kernel.raw_outputscale[1]", [math.nan])[0]
     # profile likelihoods: independent of the Laplace approximation and of where Adam stopped
     def profiled(cc, ff, centre, half):
-        grid = centre + torch.arange(-half, half + 1e-4, 0.1)
-        p = profile_surface(cc, ff, grid, n_iter=args.n_iter, lr=0.05)
+        grid = centre + torch.arange(-half, half + 1e-4, 0.1)  # cm
+        p = profile_surface(cc, ff, grid / 100, n_iter=args.n_iter, lr=0.05)  # offsets in m
+        p = {**p, "offsets": p["offsets"] * 100, "best": p["best"] * 100,
+             "interval": tuple(v * 100 for v in p["interval"])}  # back to cm for the report
         lo, hi = p["interval"]
         edge = " (a grid end: at least that far)" if lo <= grid[0] + 1e-9 or hi >= grid[-1] - 1e-9 else ""
         return p, f"best {p['best']:+.2f} cm, 95 % interval {lo:+.2f} .. {hi:+.2f} cm{edge}"
@@ -294,7 +296,7 @@ def main(argv=None) -> None:
     # alpha_z moving down at the two ends of the offset's profile interval (the offset fixed, both strokes)
     ends = []
     for d_end in (hi_d, lo_d):
-        m_end = irft.InverseRFT(c.with_surface_offset(d_end), fobs)
+        m_end = irft.InverseRFT(c.with_surface_offset(d_end / 100), fobs)
         m_end.fit(n_iter=args.n_iter, lr=0.05, progress=False)
         p_end = m_end.stress_map(*angles)
         ends.append((d_end, p_end.mean[0, 1].item(), p_end.stddev[0, 1].item()))

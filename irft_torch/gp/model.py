@@ -16,7 +16,7 @@ from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from ..rft.contacts import Contacts
+from ..rft.contacts import M_TO_CM, Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.select import estimated_costs
@@ -158,7 +158,7 @@ class InverseRFT(nn.Module):
             data's sample count and force power (ValueError if they differ); ignored by the other
             backends; not allowed with a ``noise_scale``.
         surface_offset: learn the free surface's height with the maps (``gp.surface``, docs/surface.md):
-            one offset in cm (positive: the surface is higher than stated), fitted by the marginal
+            one offset in m (positive: the surface is higher than stated), fitted by the marginal
             likelihood through the segment depths; ``model.surface_offset`` gives it with its
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
         surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
@@ -319,8 +319,8 @@ class InverseRFT(nn.Module):
 
     @property
     def surface_offset(self):
-        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in cm,
-        positive when the surface is higher than stated; ``.interval(0.95)``. Laplace, from the loss's
+        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
+        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``. Laplace, from the loss's
         curvature in the offsets and the hyperparameters (computed on each access)."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
@@ -329,12 +329,12 @@ class InverseRFT(nn.Module):
         return surface_estimate(self)
 
     def init_surface(self, offsets) -> Tensor:
-        """Start the surface offset(s) at the best of ``offsets`` (cm, a grid) by the loss at the current
+        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
         hyperparameters, one group at a time (the others held): the likelihood in the offset can have
         several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        grid = torch.as_tensor(offsets, dtype=self.dtype).reshape(-1)
+        grid = torch.as_tensor(offsets, dtype=self.dtype).reshape(-1) * M_TO_CM  # learned in cm
         with torch.no_grad():
             for g in range(self.surface.n_groups):
                 losses = []
@@ -343,7 +343,7 @@ class InverseRFT(nn.Module):
                     losses.append(float(self._surface_loss()))
                 self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
         self.eval()
-        return self.surface.offset.detach().clone()
+        return self.surface.offset.detach().clone() / M_TO_CM
 
     def _surface_loss(self) -> Tensor:
         from .surface import surface_negative_log_likelihood

@@ -1,7 +1,8 @@
-r"""The free surface's height, learned with the maps: one offset (cm) per group of samples.
+r"""The free surface's height, learned with the maps: one offset per group of samples (learned in
+cm, the unit of the segment depths; reported in m, the package's unit of length).
 
 A real log never knows exactly where the sand surface is. With contacts that carry their signed
-depths and areas (``rft.contacts`` fills them), a surface ``delta`` cm higher than stated gives the
+depths and areas (``rft.contacts`` fills them), a surface ``delta`` higher than stated gives the
 weights ``relu(depth + delta) x area`` (``Contacts.with_surface_offset``). ``InverseRFT(contacts,
 forces, surface_offset=True)`` (or ``surface_groups=g``, one offset per group) fits delta with the
 hyperparameters by the exact marginal likelihood, its gradient flowing through the weights.
@@ -35,7 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from ..rft.contacts import Contacts
+from ..rft.contacts import M_TO_CM, Contacts
 from .backends.pairs import distinct_pairs
 from .kernels import angle_covariance
 
@@ -44,7 +45,8 @@ __all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood"
 
 @dataclass
 class SurfaceEstimate:
-    """The fitted surface offsets, cm, positive = the surface is higher than stated (deeper contact).
+    """The fitted surface offsets, m, positive = the surface is higher than stated (deeper contact).
+    ``in_cm()`` gives the same in cm (the unit of depths in RFT tables).
 
     Attributes:
         mean: (G,) offsets.
@@ -62,15 +64,22 @@ class SurfaceEstimate:
     correlation: dict
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
-        """Central Laplace interval (lower, upper) in cm."""
+        """Central Laplace interval (lower, upper) in m (in cm after ``in_cm()``)."""
         if not 0 < level < 1:
             raise ValueError(f"level must be in (0, 1), got {level}")
         z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
         return self.mean - z * self.std, self.mean + z * self.std
 
+    def in_cm(self) -> SurfaceEstimate:
+        """The same estimate with offsets, stds and covariance in cm (correlations unchanged)."""
+        k = M_TO_CM
+        return SurfaceEstimate(self.mean * k, self.std * k, self.std_conditional * k, self.covariance * k**2,
+                               self.correlation)
+
 
 class SurfaceOffset(nn.Module):
-    """Learnable surface offsets (G,) in cm, and the fixed angle-pair structure of the training data.
+    """Learnable surface offsets (G,) in cm (the depths' unit; ``surface_estimate`` reports m), and the
+    fixed angle-pair structure of the training data.
 
     Args:
         contacts: the (whitened) training contacts with ``depth``, ``area_x``, ``area_z``.
@@ -118,7 +127,7 @@ class SurfaceOffset(nn.Module):
     def apply(self, contacts: Contacts, detach: bool = False) -> Contacts:
         """``contacts`` (the training ones, T rows) at the current offsets."""
         delta = self.offset.detach() if detach else self.offset
-        return contacts.with_surface_offset(delta, self.groups)
+        return contacts.with_depth_shift_cm(delta, self.groups)
 
 
 def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, table: Tensor,
@@ -215,12 +224,14 @@ def surface_estimate(model) -> SurfaceEstimate:
             corr[name] = (Cdt[:, j] / (sd_d * sd_t[j])).tolist() if informed else [0.0] * G
     except torch.linalg.LinAlgError:
         pass
-    return SurfaceEstimate(surface.offset.detach().clone(), std.detach(), cond.detach(), cov.detach(), corr)
+    k = 1 / M_TO_CM  # learned in cm (the depths' unit), reported in m
+    return SurfaceEstimate(surface.offset.detach().clone() * k, std.detach() * k, cond.detach() * k,
+                           cov.detach() * k**2, corr)
 
 
 def profile_surface(contacts: Contacts, forces, offsets, n_iter: int = 300, lr: float = 0.05,
                     level: float = 0.95, **kwargs) -> dict:
-    """Profile likelihood of one surface offset: at each offset (cm) on a grid, an ``InverseRFT`` on
+    """Profile likelihood of one surface offset: at each offset (m) on a grid, an ``InverseRFT`` on
     ``contacts.with_surface_offset(offset)`` (hyperparameters refitted, ``n_iter`` Adam steps, other
     constructor arguments in ``kwargs``) and its total negative log likelihood (T x loss).
 

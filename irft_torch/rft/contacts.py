@@ -19,8 +19,9 @@ the horizontal motion.
 The free surface is rarely known exactly. ``contacts`` therefore also keeps, per segment, the signed
 centre depth (cm, positive below the stated surface, negative above it) and the signed areas that
 multiply it on each axis (cm^2, zero for a segment too slow to have a direction), so that
-``Contacts.with_surface_offset(delta)`` recomputes the weights for a surface ``delta`` cm higher than
-stated, differentiably in ``delta``: weight = relu(depth + delta) x area (docs/surface.md).
+``Contacts.with_surface_offset(delta)`` recomputes the weights for a surface ``delta`` m higher than
+stated (converted to cm with ``M_TO_CM``), differentiably in ``delta``: weight = relu(depth + delta)
+x area (docs/surface.md).
 """
 
 from __future__ import annotations
@@ -117,23 +118,28 @@ class Contacts:
         return Contacts(**{k: fn(v) for k, v in self.as_dict().items()})
 
     def with_surface_offset(self, delta, groups=None) -> Contacts:
-        """The contacts for a free surface ``delta`` cm higher than the stated one (every depth grows
+        """The contacts for a free surface ``delta`` m higher than the stated one (every depth grows
         by delta): ``depth + delta`` and weights ``relu(depth + delta) * area``, differentiable in
         delta (segments enter and leave contact as it changes).
 
         Args:
-            delta: a scalar (one offset), or (G,) offsets with ``groups``, cm (a tensor that requires
+            delta: a scalar (one offset), or (G,) offsets with ``groups``, m (a tensor that requires
                 grad gives the weights' gradient).
             groups: optional (T,) integer group of each time sample in [0, G) (one offset per
                 recording or trial); ``delta[groups]`` then shifts sample t.
         """
+        return self.with_depth_shift_cm(torch.as_tensor(delta) * M_TO_CM, groups)
+
+    def with_depth_shift_cm(self, delta, groups=None) -> Contacts:
+        """``with_surface_offset`` with ``delta`` in cm, the unit of ``depth`` (what ``gp.surface``
+        learns in)."""
         if not self.has_surface:
             raise ValueError("with_surface_offset needs Contacts.depth, area_x and area_z (the signed depths and "
                              "areas, filled by rft.contacts); these contacts carry weights only")
         delta = torch.as_tensor(delta, dtype=self.depth.dtype, device=self.depth.device)
         if groups is None:
             if delta.numel() != 1:
-                raise ValueError(f"delta must be one offset (cm) without groups, got shape {tuple(delta.shape)}")
+                raise ValueError(f"delta must be one offset without groups, got shape {tuple(delta.shape)}")
             shift = delta.reshape(())
         else:
             groups = torch.as_tensor(groups, device=self.depth.device)

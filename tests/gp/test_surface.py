@@ -29,7 +29,7 @@ def test_offset_equals_the_shifted_path():
     c = plates()
     assert c.has_surface
     # a surface 1 cm higher than stated is the same as the path 1 cm lower
-    moved = c.with_surface_offset(torch.tensor(1.0))
+    moved = c.with_surface_offset(torch.tensor(0.01))  # m
     direct = plates(shift_m=-0.01)
     for k in ("weight_x", "weight_z", "beta", "gamma"):
         torch.testing.assert_close(getattr(moved, k), getattr(direct, k), rtol=1e-9, atol=1e-9)
@@ -40,14 +40,14 @@ def test_offset_equals_the_shifted_path():
 
 def test_surface_likelihood_matches_dense_reference_and_its_gradient():
     c = plates()
-    f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.4)))
+    f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
     m = irft.InverseRFT(c, f, surface_offset=True, method="observations")
-    for delta in (-0.7, -0.2, 0.3):
+    for delta in (-0.7, -0.2, 0.3):  # cm, the unit the offset is learned in
         with torch.no_grad():
             m.surface.offset.fill_(delta)
         loss = m._surface_loss()
-        cd = c.with_surface_offset(torch.tensor(delta))
+        cd = c.with_surface_offset(torch.tensor(delta / 100))
         hp = m.hypers
         ls, os, nz = hp.lengthscale.detach(), hp.outputscale.detach(), hp.noise.detach()
         ref = sum(-axis_reference(cd, f[:, a], w, ls[a, 0], os[a], nz[a])[0]
@@ -71,10 +71,11 @@ def test_one_centimetre_error_is_recovered_to_a_millimetre():
     learned = irft.InverseRFT(stated, f, surface_offset=True)
     learned.fit(300, progress=False)
     est = learned.surface_offset
-    assert abs(float(est.mean[0]) + 1.0) < 0.1, est.mean  # cm: within 1 mm of the truth, -1 cm
-    assert 0 < float(est.std[0]) < 0.1
+    assert abs(float(est.mean[0]) + 0.01) < 0.001, est.mean  # m: within 1 mm of the truth, -1 cm
+    assert 0 < float(est.std[0]) < 0.001
     lo, hi = est.interval(0.95)
-    assert lo[0] < -1.0 < hi[0]
+    assert lo[0] < -0.01 < hi[0]
+    torch.testing.assert_close(est.in_cm().mean, 100 * est.mean)
     ref = irft.InverseRFT(true_c, f)
     ref.fit(300, progress=False)
     ignored = irft.InverseRFT(stated, f)
