@@ -591,7 +591,8 @@ def cmd_fit(a) -> int:
         ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
     elif (basis := _spectral_start(ds.contacts.to(dtype=torch.float64), a.method)) is not None:
         stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds))
-    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats)
+    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
+                       priors=None if a.priors == "none" else a.priors)
     print(f"backend {model.backend.describe()}")
     model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
     print(model.diagnostics(warn=False))
@@ -723,6 +724,9 @@ def _register_hardware(sub) -> None:
     p.add_argument("--n-iter", type=int, default=300)
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--prior-mean", choices=["zero", "physics"], default="zero")
+    p.add_argument("--priors", choices=["physical", "none"], default="physical",
+                   help="hyperparameter priors (default physical: MAP, gp.priors; none: the paper's plain marginal "
+                        "likelihood)")
     p.add_argument("--max-samples", type=int, default=0,
                    help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
                         "by method='auto' keeps long recordings fast)")

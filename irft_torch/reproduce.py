@@ -65,7 +65,7 @@ class StudySettings:
     truth_scale: tuple[float, float] = (0.452, 0.417)  # implied by the paper's Table I (rft_facts.md)
     grid: int = 50  # ours: evaluation grid of grid x grid cell centres over [-pi/2, pi/2]^2
     n_iter: int = 150  # ours: Adam steps
-    lr: float = 0.05  # ours
+    lr: float = 0.1  # ours (150 steps at 0.1 reach what 300 at 0.05 do: C-toe gait 2 converged)
     tied_noise: bool = True  # the paper's single noise variance
     noise_levels: tuple[float, ...] = (0.0, 0.05, 0.2)  # variance of the multiplicative factor (paper)
     noise_seeds: tuple[int, ...] = (0, 1, 2)  # ours

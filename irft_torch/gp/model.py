@@ -163,10 +163,10 @@ class InverseRFT(nn.Module):
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
         surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
             one for all (implies ``surface_offset``).
-        priors: None (default): the paper's plain marginal likelihood; "physical": hyperparameter
-            priors with a physical meaning (``gp.priors``: the map's variance from the medium's
-            scale, lengthscales that keep what the data cannot see at a documented extrapolation,
-            noise from the force spread), fitted by MAP (``irft reproduce`` uses them and reports both).
+        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``:
+            the map's variance from the medium's scale, lengthscales that keep what the data cannot
+            see at a documented extrapolation, noise from the force spread), fitted by MAP; None: the
+            paper's plain marginal likelihood (``irft reproduce`` reports both).
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -179,7 +179,7 @@ class InverseRFT(nn.Module):
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None, priors: str | None = None) -> None:
+                 surface_groups=None, priors: str | None = "physical") -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -255,7 +255,7 @@ class InverseRFT(nn.Module):
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         if priors == "physical":
             centres = prior_centres(c, f, map_scale, prior_mean == "physics")
-            register_physical_priors(self.hypers, centres, prior_mean == "physics")
+            register_physical_priors(self.hypers, centres, prior_mean == "physics", self.surface is not None)
             with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
                 self.hypers.outputscale = centres["outputscale"].to(dtype)
         self.auto = method == "auto"

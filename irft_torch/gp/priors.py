@@ -20,7 +20,9 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   1.5 either way at two standard deviations (log-sd of sigma_c^2 ln 1.5), covers how far one axis
   of a real medium strays from the common zeta: the poppy-seed sets' map stds are 0.84-0.91 (x)
   and 0.96-0.97 (z) of the generic map's at their zeta, the I-RFT bed's scales 1.0 (x) and 1.5 (z)
-  are 0.82 and 1.22 of their geometric mean. So an axis the forces do not inform (F_x during a vertical intrusion) keeps
+  are 0.82 and 1.22 of their geometric mean. When the model also learns the surface height, zeta
+  (estimated at the stated surface) is not trusted and the width is a factor 10 (as with the physics
+  mean). So an axis the forces do not inform (F_x during a vertical intrusion) keeps
   a prior of the size real media have, instead of collapsing to zero. With the physics mean
   (generic shape x learned scales) the GP models the residual, so the centre is 0.3 of that and
   the width a factor 10.
@@ -95,15 +97,20 @@ def _stateless(prior):
     return prior
 
 
-def register_physical_priors(hypers, centres: dict, physics_mean: bool = False) -> None:
+def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, learned_surface: bool = False) -> None:
     """Register the outputscale, lengthscale and noise priors on ``hypers`` (``RFTHyperparameters``)
-    with gpytorch's ``register_prior``, each a ``NormalPrior`` on log(value / centre)."""
+    with gpytorch's ``register_prior``, each a ``NormalPrior`` on log(value / centre).
+
+    ``learned_surface``: the surface height is fitted too, so the medium's scale zeta estimated at the
+    stated surface is not trusted (a surface 2 cm off changes the depths, and zeta, by a factor of
+    2-3 on a shallow stroke): the outputscale prior then has the physics mean's width (a factor 10
+    per standard deviation), as in :func:`prior_centres`' fallback role, and the forces decide."""
     dtype = hypers.kernel.raw_outputscale.dtype
     log_os = centres["outputscale"].to(dtype).log().detach().clone()
     log_ls = math.log(centres["lengthscale"])
     noise = centres["noise"].to(dtype)
     log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
-    os_sd = NOISE_LOG_SD if physics_mean else OUTPUTSCALE_LOG_SD
+    os_sd = NOISE_LOG_SD if (physics_mean or learned_surface) else OUTPUTSCALE_LOG_SD
     zero = lambda: torch.zeros((), dtype=dtype)  # noqa: E731
     hypers.kernel.register_prior(
         "outputscale_prior", _stateless(NormalPrior(zero(), os_sd)),

@@ -42,7 +42,7 @@ def test_surface_likelihood_matches_dense_reference_and_its_gradient():
     c = plates()
     f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    m = irft.InverseRFT(c, f, surface_offset=True, method="observations")
+    m = irft.InverseRFT(c, f, surface_offset=True, method="observations", priors=None)
     for delta in (-0.7, -0.2, 0.3):  # cm, the unit the offset is learned in
         with torch.no_grad():
             m.surface.offset.fill_(delta)

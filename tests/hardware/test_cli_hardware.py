@@ -76,6 +76,12 @@ def test_record_simulate_ingest_fit(tmp_path, capsys):
     assert rc == 0 and "2 datasets, " in capsys.readouterr().out
     both = irft.InverseRFT.load(tmp_path / "fit2" / "model.pt")
     assert len(both.train_contacts) == 2 * len(ds) and both.method == "pairs"
+    # MAP by default; --priors none is the paper's plain likelihood (no prior term in the loss)
+    assert model.priors == "physical" and both.priors == "physical"
+    rc = main(["fit", str(tmp_path / "ds.npz"), "--out", str(tmp_path / "fit3"), "--n-iter", "2",
+               "--max-samples", "60", "--priors", "none", "--no-progress"])
+    plain = irft.InverseRFT.load(tmp_path / "fit3" / "model.pt")
+    assert rc == 0 and plain.priors is None and float(plain.backend.log_prior()) == 0.0
 
 
 def test_ingest_truncated_log_is_a_clear_error(tmp_path, capsys):
