@@ -428,8 +428,9 @@ class InverseRFT(nn.Module):
                 loss.backward()
                 opt.step()
                 history.append(loss.item())
-                if self.surface is None and step % 10 == 9 and self.backend.stale():
-                    self._adapt()
+                if self.surface is None and step % 10 == 9 and (self.backend.stale() or
+                                                                 (self.auto and step % 30 == 29)):
+                    self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
             if self.surface is None and self.backend.stale():
@@ -451,9 +452,11 @@ class InverseRFT(nn.Module):
         return history
 
     def _adapt(self) -> None:
-        """The hyperparameters moved so that the backend must adapt (the spectral basis must grow).
-        With ``method="auto"``, first ask whether another backend is now cheaper (by more than 2x) and
-        move there instead (the hyperparameters are shared, nothing is lost); else refresh."""
+        """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
+        (``method="auto"``, every 30 steps) may have made another space cheaper: with "auto", first ask
+        whether another backend is now cheaper (by more than 2x) and move there instead (the
+        hyperparameters are shared, nothing is lost; a lengthscale that dips below what the spectral
+        basis can hold and recovers brings the fit back to spectral); else refresh."""
         if self.auto:
             if getattr(self, "_n_pairs", None) is None:
                 from .backends.select import estimate_pairs

@@ -18,14 +18,21 @@ METHODS = ("observations", "pairs", "spectral")
 ALIASES = {"exact": "observations"}
 N_ITER = 300  # Adam steps the one-time costs are spread over
 SPECTRAL_PENALTY = 1.5  # prefer the arithmetic-exact spaces when costs are close
+# Per kernel-block element of the observations backend: the exp, its gradient, gathers and index
+# arithmetic. Calibrated so that all three estimates are in the same units of time: one likelihood +
+# gradient step of the paper's C-toe gait 2 (T = 100 / 200, 750 / 1500 distinct pairs, one thread)
+# takes 22-24 / 142-147 ms in observations, 3.4-7.4 / 8-19 ms in spectral (F = 289-1037) and
+# 19-28 / 200 ms in pairs, i.e. about 3 Gflop/s of the pairs and spectral estimates and, with 40
+# here, 1 Gflop/s of the observations one.
+KERNEL_FLOPS = 120.0
 
 
 def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int | None = None) -> dict[str, float]:
     """Rough flop counts of a fit (N_ITER likelihood + gradient steps and the one-time work) in each space.
 
     T: samples in contact, U: distinct angle pairs, S: segments in contact, F: Fourier features for the
-    current lengthscales. Observations: T^3 / 3 per step plus the kernel block (about 40 flops per
-    element for the exp and its gradient, over S x min(U, S) elements); pairs: O(min(T, U)^3 + U^2 (10 +
+    current lengthscales. Observations: T^3 / 3 per step plus the kernel block (``KERNEL_FLOPS`` per
+    element for the exp, its gradient and the gathers, over S x min(U, S) elements); pairs: O(min(T, U)^3 + U^2 (10 +
     min(T, U))); spectral: O(r^3 + r^2 F + r F (F_beta + F_gamma)), r = min(T, F), plus the one pass
     T F^2.
     """
@@ -36,7 +43,7 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
     F, (Fb, Fg) = basis.size, basis.sizes
     capped = max(basis.n_beta, basis.n_gamma) >= MAX_HARMONICS  # the tolerance is out of reach: not exact
-    obs = T**3 / 3 + 40.0 * S * min(U, S)
+    obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
     r = min(T, U)
     pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
     r = min(T, F)
