@@ -94,7 +94,8 @@ def main(argv=None) -> None:
              "0.5 rad) on the rectangle gait from 1.5 cm above the surface, generic map x 0.2 N/cm^3, noise 2 % of the "
              f"largest force; the stated surface is 1 cm too high (true offset {TRUE_OFFSET:+.1f} cm). Map RMSE at the "
              "visited angle pairs, N/cm^3 (x / z).", "",
-             "| seed | learned offset [cm] (Laplace std) | error [mm] | 95 % interval holds truth | RMSE true surface | "
+             "| seed | learned offset [cm] (Laplace std) | error [mm] | 95 % interval holds truth | RMSE "
+             "true surface | "
              "RMSE stated surface | RMSE learned surface |", "|---|---|---|---|---|---|---|"]
     errs, covered = [], 0
     rm = {"true": [], "stated": [], "learned": []}
@@ -117,7 +118,7 @@ def main(argv=None) -> None:
         lines.append(f"| {seed} | {mu:+.4f} ({sd:.4f}) | {err:+.2f} | {'yes' if lo <= TRUE_OFFSET <= hi else 'no'} | "
                      f"{fmt(r['true'])} | {fmt(r['stated'])} | {fmt(r['learned'])} |")
         if seed == 0:
-            m0, c0, f0, stated0 = m, c, f, stated
+            m0, f0, stated0 = m, f, stated
     mean = {k: torch.tensor(v).mean(0).tolist() for k, v in rm.items()}
     lines += [f"| mean | | max abs {max(abs(e) for e in errs):.2f} | {covered}/{args.seeds} | "
               f"{mean['true'][0]:.4f} / {mean['true'][1]:.4f} | {mean['stated'][0]:.4f} / {mean['stated'][1]:.4f} | "
@@ -135,7 +136,8 @@ def main(argv=None) -> None:
     prof_mu, prof_sd = -b / (2 * a), 1 / math.sqrt(2 * a)
     lines += ["## Laplace against the profile likelihood (seed 0)", "",
               f"Laplace: {mu0:+.4f} +- {sd0:.4f} cm (hyperparameters marginalized; {est0.std_conditional.item():.4f} "
-              f"with them fixed). Profile likelihood (offset fixed on 13 points over +-3 std, hyperparameters refitted, "
+              f"with them fixed). Profile likelihood (offset fixed on 13 points over +-3 std, "
+              f"hyperparameters refitted, "
               f"a parabola through the total negative log likelihood): {prof_mu:+.4f} +- {prof_sd:.4f} cm.", ""]
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.plot(grid, prof, "o", label="profile NLL (refitted)")

@@ -226,7 +226,8 @@ def main(argv=None) -> None:
               f"{out['up']['dxdz']:+.3f} up).", "",
               "The surface offset is in cm, positive when the sand surface is higher than stated (docs/surface.md); "
               "intervals are 95 %.", "",
-              "| direction | least squares, stated surface: alpha_z [N/cm^3] | least squares, free surface: offset [cm], "
+              "| direction | least squares, stated surface: alpha_z [N/cm^3] | least squares, free "
+              "surface: offset [cm], "
               "alpha_z [N/cm^3] | I-RFT, stated surface: alpha_z [N/cm^3] | I-RFT, free surface (one offset): "
               "alpha_z [N/cm^3] | I-RFT, one offset per stroke: alpha_z [N/cm^3] |",
               "|---|---|---|---|---|---|"]
@@ -266,7 +267,8 @@ def main(argv=None) -> None:
     laplace_ok = prof_down["interval"][1] - prof_down["interval"][0] < 2 * 1.96 * 1.5 * est2.std[0].item()
     stuck = not (prof_one["interval"][0] - 1e-9 <= est.mean.item() <= prof_one["interval"][1] + 1e-9)
     h_down = out["down"]["hinge"]
-    lines += ["", f"**Learned surface, one offset per stroke (the estimate this log supports):** down {off_cell(est2, 0)}; "
+    lines += ["", f"**Learned surface, one offset per stroke (the estimate this log supports):** down "
+              f"{off_cell(est2, 0)}; "
               f"up {off_cell(est2, 1)}. Profile likelihood of the down stroke's offset (its samples alone, the offset "
               f"fixed on a 0.1 cm grid over +-1.5 cm, hyperparameters refitted): {prof_down_txt}"
               + ("" if laplace_ok else ": much wider than the Laplace interval, the likelihood is not quadratic "
@@ -281,7 +283,8 @@ def main(argv=None) -> None:
                  "modes (the down stroke's and the up stroke's), where the Laplace std describes only the local "
                  "curvature. One surface for both strokes does not describe this log." if stuck else "."), "",
               f"Least squares with a free surface (per stroke, F_z = alpha_z x area x relu(depth + offset), the "
-              "offset profiled on a 0.01 cm grid over -3 .. +2 cm, its interval where the residual sum of squares rises "
+              "offset profiled on a 0.01 cm grid over -3 .. +2 cm, its interval where the residual sum "
+              "of squares rises "
               "by 3.84 residual variances x the autocorrelation time): autocorrelation time of its residuals "
               f"{out['down']['hinge']['tau']:.0f} (down), {out['up']['hinge']['tau']:.0f} (up) samples, against "
               f"{out['down']['tau']:.0f} and {out['up']['tau']:.0f} for the line through the origin at the stated "
@@ -300,7 +303,7 @@ def main(argv=None) -> None:
         m_end.fit(n_iter=args.n_iter, lr=0.05, progress=False)
         p_end = m_end.stress_map(*angles)
         ends.append((d_end, p_end.mean[0, 1].item(), p_end.stddev[0, 1].item()))
-    lines += [f"alpha_z moving down with the offset fixed at the ends of its profile interval: "
+    lines += ["alpha_z moving down with the offset fixed at the ends of its profile interval: "
               + "; ".join(f"{d:+.2f} cm: {a:.4f} ({a - 1.96 * sd:.4f} .. {a + 1.96 * sd:.4f}) N/cm^3"
                           for d, a, sd in ends)
               + ". The I-RFT intervals in the table hold the offset at its fitted value: the surface's "
@@ -334,7 +337,8 @@ def main(argv=None) -> None:
         delta = est2.mean[k].item()
         o = out[name]
         d = 100 * signed[o["near"]]
-        ax.plot(d, Fz[o["near"]] - o["base"][1], ".", ms=2, alpha=0.4, color="0.5", label="samples (in-air level removed)")
+        ax.plot(d, Fz[o["near"]] - o["base"][1], ".", ms=2, alpha=0.4, color="0.5", label="samples "
+                        "(in-air level removed)")
         dd = np.linspace(d.min(), d.max(), 200)
         ax.plot(dd, o["alpha"] * A_cm2 * np.clip(dd, 0, None), "r-",
                 label=f"LS, stated surface: alpha_z = {o['alpha']:.3f} N/cm^3")

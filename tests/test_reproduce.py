@@ -5,6 +5,8 @@ import csv
 import re
 import sys
 
+import pytest
+
 from irft_torch.cli import main
 
 
@@ -182,3 +184,24 @@ def test_calibration_study_quick_writes_coverage_that_matches_its_csv(tmp_path):
     report = (tmp_path / "calibration_study.md").read_text()
     assert f"median {median:.3f}" in report, report
     assert (tmp_path / "calibration_reliability.png").stat().st_size > 10_000
+
+
+def test_sampling_statistics_match_the_hand_count():
+    # an I-toe sample covers one (beta, gamma) cell (its segments share one angle pair), a C-toe sample
+    # one per segment in contact (on gait 1 the whole C is submerged), so the gait-1 area ratio is
+    # the C-toe's segment count; the I-toe's gait-1 samples repeat three pairs (down, across, up)
+    import torch
+
+    from irft_torch import reproduce as R
+    from irft_torch.rft import contacts
+
+    torch.set_default_dtype(torch.float64)
+    for M in (6, 10):
+        s = R.StudySettings(n_steps=40, n_segments=M)
+        st = R.sampling_statistics(s)
+        assert st["C/I gait 1"] == pytest.approx(M, rel=1e-12)
+        c = contacts(*R.configuration("I-toe gait 1", s))
+        n_total = int((c.weight_z != 0).sum())  # segment samples in contact
+        assert st["I-toe gait 1 (1e-3 rad)"] == pytest.approx(1 - 3 / n_total, rel=1e-12)
+    text = "\n".join(R._pinning_rows(R.StudySettings()))
+    assert "| paper | 10.0 | 18.1 | 5.1 | 0.97 | 0.68 | 0.11 |" in text and "| 100 (the study) |" in text

@@ -320,8 +320,8 @@ class InverseRFT(nn.Module):
     @property
     def surface_offset(self):
         """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
-        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``. Laplace, from the loss's
-        curvature in the offsets and the hyperparameters (computed on each access)."""
+        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
+        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
         from .surface import surface_estimate

@@ -37,7 +37,8 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   to the prior's variance beyond, and that is what the posterior std then says.
 - **noise** variance of each force axis: centre 1e-2 of the mean squared force of that axis (a noise
   std of 10 % of the force; the I-RFT paper's Table II studies relative noise variances of 0.05 and
-  0.2, i.e. 22 % and 45 %), log-sd ln 10 (a factor 10 per standard deviation): a noise-free simulation can still push it to its floor, but a flat
+  0.2, i.e. 22 % and 45 %), log-sd ln 10 (a factor 10 per standard deviation): a noise-free
+  simulation can still push it to its floor, but a flat
   likelihood (few samples) no longer does.
 
 The priors carry no state: their centres are recomputed from the training data whenever a model

@@ -354,7 +354,8 @@ def test_many_queries_in_a_row_never_reuse_another_querys_structure():
     query's id reused by the next one gave that one the old structure (a wrong, non-PSD covariance).
     Twenty fresh queries under no_grad, each against the pairs backend (exact, no such cache)."""
     c, f = data(T=20, M=3, seed=81, repeated=True)
-    obs, pairs = irft.InverseRFT(c, f, method="observations", priors=None), irft.InverseRFT(c, f, method="pairs", priors=None)
+    obs = irft.InverseRFT(c, f, method="observations", priors=None)
+    pairs = irft.InverseRFT(c, f, method="pairs", priors=None)
     for m in (obs, pairs):
         set_hypers(m, seed=8)
     with torch.no_grad():
