@@ -9,7 +9,9 @@ speed and rim speed (``rft.wheel``; leading contact, the front half of the rim; 
 averaged over 6 poses across one grouser pitch). For each slip level, everything is fitted on the
 other 8 levels (all trials) and the held-out runs are predicted by:
 
-  I-RFT          irft.InverseRFT on the training runs' contacts and mean forces (zero prior mean,
+  I-RFT          irft.InverseRFT on the training runs' contacts and mean forces (the library's
+                 default physical hyperparameter priors, MAP; a second row with the paper's plain
+                 likelihood, priors=None; zero prior mean,
                  the paper's; ``--physics-mean`` adds the generic-shape mean as a second row)
   generic x LS   the generic Li et al. map with one least-squares scale per axis (fit on training)
   others' RFT    the data authors' RFT prediction for that run (from the files; nothing fitted)
@@ -39,6 +41,8 @@ from irft_torch.rft import Contacts, FourierStressMap
 from irft_torch.rft.wheel import average_rows, wheel_contacts, wheel_kinematics
 
 PREDICTORS = ("I-RFT", "generic x LS scale", "others' RFT (files)", "trivial (training mean)")
+PLAIN = "I-RFT, plain likelihood (priors=None)"
+BASELINES = PREDICTORS[1:]
 N_PHASES = {"smooth": 1, "grouser": 6}
 
 
@@ -50,8 +54,8 @@ def run_contacts(profile, run, wheel: str, sinkage: float | None = None) -> Cont
     return average_rows(wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, s, phases=phases))
 
 
-def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args):
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol)
+def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args, priors: str | None = "physical"):
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors)
     model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
     return model
 
@@ -117,10 +121,11 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     group = np.array([levels.index(r.commanded_rim_speed) for r in runs])
     generic = FourierStressMap.generic()
     G = torch.cat([irft.rft.forces(generic, c) for c in c_all])  # (n, 2) generic forces, unit scale
-    kinds = ["zero"] + (["physics"] if args.physics_mean else [])
+    kinds = ["zero", "plain"] + (["physics"] if args.physics_mean else [])
+    names = {"zero": "I-RFT", "plain": PLAIN, "physics": "I-RFT + physics mean"}
     pred = {p: torch.full_like(F, math.nan) for p in PREDICTORS}
     for k in kinds[1:]:
-        pred["I-RFT + physics mean"] = torch.full_like(F, math.nan)
+        pred[names[k]] = torch.full_like(F, math.nan)
     std = {k: torch.full_like(F, math.nan) for k in pred}
     s_grid = np.linspace(0.001, 0.0625, 124)  # sinkages searched, m (0.5 mm steps, to the axle)
     sink = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
@@ -133,9 +138,10 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         c_train = Contacts.cat([c_all[i] for i in train])
         c_test = Contacts.cat([c_all[i] for i in test])
         for kind in kinds:
-            name = "I-RFT" if kind == "zero" else "I-RFT + physics mean"
+            name = names[kind]
             t0 = time.perf_counter()
-            model = fit_irft(c_train, F[train], kind, args)
+            model = fit_irft(c_train, F[train], "physics" if kind == "physics" else "zero", args,
+                             None if kind == "plain" else "physical")
             fit_time.append(time.perf_counter() - t0)
             with torch.no_grad():
                 post = model.predict_forces(c_test, include_noise=True)
@@ -157,7 +163,9 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
     rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
     inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
-    return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, sink=sink, drawbar=drawbar,
+    inside_plain = ((pred[PLAIN] - F).abs() <= 1.96 * std[PLAIN]).double().mean(0).tolist()
+    return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, coverage_plain=inside_plain,
+                sink=sink, drawbar=drawbar,
                 peak=peak, s_max=float(s_grid[-1]),
                 fit_time=float(np.mean(fit_time)), n_segments=[c.n_segments for c in c_all])
 
@@ -244,8 +252,21 @@ def report(results: dict, args, elapsed: float) -> str:
     for wheel, res in results.items():
         for name, (rx, rz) in res["rmse"].items():
             lines.append(f"| {wheel} | {name} | {rx:.2f} | {rz:.2f} |")
+    lines += ["", "Does I-RFT beat every baseline (generic x LS scale, others' RFT, trivial) on held-out slips?", ""]
+    for model in ("I-RFT", PLAIN):
+        for wheel, res in results.items():
+            r = res["rmse"]
+            cells = []
+            for a, axis in enumerate(("F_x", "F_z")):
+                worst = min(BASELINES, key=lambda b: r[b][a])
+                ok = r[model][a] < r[worst][a]
+                cells.append(f"{axis} {'yes' if ok else 'no'} ({r[model][a]:.2f} N vs best baseline "
+                             f"{r[worst][a]:.2f} N, {worst})")
+            lines.append(f"- {model}, {wheel}: " + "; ".join(cells))
     lines += ["", "I-RFT held-out runs inside the 95 % predictive interval (with the learned noise): "
               + ", ".join(f"{w} {100 * r['coverage'][0]:.0f} % (x) / {100 * r['coverage'][1]:.0f} % (z)"
+                          for w, r in results.items()) + "; with the plain likelihood "
+              + ", ".join(f"{w} {100 * r['coverage_plain'][0]:.0f} % (x) / {100 * r['coverage_plain'][1]:.0f} % (z)"
                           for w, r in results.items()) + ".",
               "Spread of the measured vertical force (std over runs): "
               + ", ".join(f"{w} {r['F'][:, 1].std().item():.2f} N" for w, r in results.items())
