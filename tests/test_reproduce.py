@@ -205,3 +205,18 @@ def test_sampling_statistics_match_the_hand_count():
         assert st["I-toe gait 1 (1e-3 rad)"] == pytest.approx(1 - 3 / n_total, rel=1e-12)
     text = "\n".join(R._pinning_rows(R.StudySettings()))
     assert "| paper | 10.0 | 18.1 | 5.1 | 0.97 | 0.68 | 0.11 |" in text and "| 100 (the study) |" in text
+
+
+def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(tmp_path):
+    # the benchmark asserts its paper-scale step equals the dense formula before timing it; a change
+    # of defaults (priors, backends) must not break that check. No timing is asserted here.
+    import subprocess
+
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parents[1] / "experiments" / "bench_inference.py"
+    r = subprocess.run([sys.executable, str(bench), "--quick", "--repeats", "1",
+                        "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    text = (tmp_path / "benchmarks.md").read_text()
+    assert "1. paper scale" in text and "5. streaming" in text
