@@ -211,7 +211,6 @@ def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(
     # the benchmark asserts its paper-scale step equals the dense formula before timing it; a change
     # of defaults (priors, backends) must not break that check. No timing is asserted here.
     import subprocess
-
     from pathlib import Path
 
     bench = Path(__file__).resolve().parents[1] / "experiments" / "bench_inference.py"
