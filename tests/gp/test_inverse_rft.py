@@ -282,8 +282,9 @@ def test_half_precision_is_refused_with_a_clear_error(gait1):
         irft.InverseRFT(c, f, dtype=torch.float16)
 
 
+@pytest.mark.parametrize("priors", ["physical", None])
 @pytest.mark.parametrize("method", ["observations", "spectral"])
-def test_a_fit_does_not_depend_on_the_units(gait1, method):
+def test_a_fit_does_not_depend_on_the_units(gait1, method, priors):
     """The same data in mN, or with weights in mm^3, fit to the same maps in those units: the raw
     hyperparameters are measured in the data's own scales (ScaledGreaterThan)."""
     c, f = gait1
@@ -291,7 +292,7 @@ def test_a_fit_does_not_depend_on_the_units(gait1, method):
     b, g = torch.linspace(-1.2, 1.2, 7), torch.linspace(-1.4, 1.4, 7)
 
     def fitted(contacts, forces):
-        m = irft.InverseRFT(contacts, forces, method=method, prior_mean="physics")
+        m = irft.InverseRFT(contacts, forces, method=method, prior_mean="physics", priors=priors)
         m.fit(n_iter=40, progress=False)
         return m.stress_map(b, g), m.predict_forces(c[10:20]).mean
 
