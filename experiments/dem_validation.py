@@ -14,13 +14,18 @@ direction (LOGO, 9 folds), everything is fitted on the other runs only:
   * generic x LS scales, fit to forces: the same scales fitted to the force time series (the usual
     RFT calibration);
   * plain GP on run stresses: an exact GP (ARD RBF on the angle embedding, learned noise, 300 Adam
-    steps) on the training runs' stresses of the target being scored (the README's second baseline);
+    steps, the plain marginal likelihood: ``priors=None``) on the training runs' stresses of the
+    target being scored (the README's second baseline);
   * I-RFT (zero mean, the paper's model: the default) and I-RFT + physics mean, fitted to the force
     time series of the training runs (the plate cut into 10 segments, centre deeper than 1 cm below
-    z_top, the free surface at z_top: the surface the target is defined with). Their prediction of
-    a held-out run's target is the README's recipe applied to the forces they predict for that run
-    (``dem_data.recipe_functional``: one linear functional, so its posterior mean and variance are
-    exact).
+    z_top, the free surface at z_top: the surface the target is defined with; the library's default
+    physical hyperparameter priors). Their prediction of a held-out run's target is the README's
+    recipe applied to the forces they predict for that run (``dem_data.recipe_functional``: one
+    linear functional, so its posterior mean and variance are exact);
+  * I-RFT, learned surface: zero mean, the free surface learned with the maps (``gp.surface``: one
+    offset for the bed per fold, started at the best of a grid), on every tau-th sample, tau the
+    training runs' median force-residual autocorrelation time; its prediction of a held-out run
+    uses the recipe on the forces it predicts at its learned surface.
 
 The force noise of I-RFT is white; the DEM's is not (force chains: slow, run-long fluctuations), so
 the sampling stride sets how much one run's stress is trusted. ``--stride auto`` (default) picks it per
@@ -52,7 +57,8 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefa
 
 
 TARGETS = {"origin": "through the origin (README)", "intercept": "slope with an intercept"}
-IRFT = ("I-RFT", "I-RFT + physics mean")
+LEARNED = "I-RFT, learned surface"
+IRFT = ("I-RFT", "I-RFT + physics mean", LEARNED)
 DEFAULT = "I-RFT"
 BASELINES = ("generic x LS scales", "generic x LS scales, fit to forces", "plain GP on run stresses")
 SPLITS = {"beta": "leave-one-beta-out", "gamma": "leave-one-gamma-out"}
@@ -131,7 +137,8 @@ def plain_gp(train: list[RunData], target: str, n_iter: int) -> irft.InverseRFT:
     th = torch.tensor([d.angles for d in train])
     one = torch.ones(len(train), 1)
     y = torch.tensor(np.array([d.target[target] for d in train]))
-    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y)
+    # the README's plain exact GP: ML-II on the plain marginal likelihood (no hyperparameter priors)
+    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y, priors=None)
     torch.manual_seed(0)
     m.fit(n_iter=n_iter, lr=0.05, progress=False)
     return m
@@ -184,8 +191,8 @@ def run_fold(train: list[RunData], test: list[RunData], a) -> tuple[dict, dict]:
     stride, _ = matched_stride(train, scatter, off) if a.stride == "auto" else (int(a.stride), None)
     parts = [d.contacts(off, stride) for d in train]
     ctr, ftr = Contacts.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
-    models = {}
-    for n, pm in zip(IRFT, ("zero", "physics")):
+    models, offs, off_std = {}, {n: off for n in IRFT}, {n: None for n in IRFT}
+    for n, pm in zip(IRFT[:2], ("zero", "physics")):
         torch.manual_seed(0)
         if a.run_effect:
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
@@ -193,6 +200,24 @@ def run_fold(train: list[RunData], test: list[RunData], a) -> tuple[dict, dict]:
         m = irft.InverseRFT(ctr, ftr, prior_mean=pm)
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
+    # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
+    # smaller than at z_top, so the stride matched at z_top does not apply; it takes every tau-th sample, tau the
+    # training runs' median integrated autocorrelation time of the force residuals (nearly independent samples
+    # for the white-noise model), and starts the offset at the best of a grid (the likelihood has shoulders).
+    n = LEARNED
+    if a.stride == "auto":
+        stride_l = int(np.clip(round(float(np.mean(residual_time_ms(train, off)))), 5, 1000))
+    else:
+        stride_l = int(a.stride)
+    parts_l = [d.contacts(off, stride_l) for d in train]
+    c_l, f_l = Contacts.cat([p[0] for p in parts_l]), torch.cat([p[1] for p in parts_l])
+    torch.manual_seed(0)
+    m = irft.InverseRFT(c_l, f_l, surface_offset=True)
+    m.init_surface(torch.linspace(-0.03, 0.01, 17))
+    m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
+    est = m.surface_offset.in_cm()  # cm, positive when the surface is above the stated one
+    offs[n], off_std[n] = off - float(est.mean[0]), float(est.std[0])
+    models[n] = m
     g = irft.rft.forces(generic, ctr)
     fitted = generic.scaled(*((g * ftr).sum(0) / g.pow(2).sum(0)).tolist())
     scaled = {t: generic.scaled(*generic_scales(shape, np.array([d.target[t] for d in train])).tolist())
@@ -203,30 +228,32 @@ def run_fold(train: list[RunData], test: list[RunData], a) -> tuple[dict, dict]:
         c_top, _ = d.contacts(0.0, a.eval_stride)  # the target's own law: F = s x depth below z_top
         w_top = torch.stack([c_top.weight_x.sum(-1), c_top.weight_z.sum(-1)], -1)
         for t in TARGETS:
-            fn = d.functional(t, off)
             with torch.no_grad():
                 for n in IRFT:
                     m = models[n]
+                    fn = d.functional(t, offs[n])  # the recipe on forces predicted at the model's surface
                     p = m.predict_forces(fn)
                     # the run's own noise on its stress: white noise of variance sigma^2 every `stride` ms
-                    noise = m.hypers.noise.detach().numpy() * stride * d.coef_sq(t)
-                    if a.run_effect:  # the held-out run's own random stress, through the recipe
+                    noise = m.hypers.noise.detach().numpy() * (stride_l if n == LEARNED else stride) * d.coef_sq(t)
+                    if a.run_effect and n != LEARNED:  # the held-out run's own random stress, through the recipe
                         k = torch.stack([fn.weight_x.sum(), fn.weight_z.sum()])
                         noise = noise + (run_effect_variance(m.hypers) * k**2).detach().numpy()
                     out[n][t].append((p.mean[0].numpy(), p.variance[0].numpy() + noise))
                 out[BASELINES[0]][t].append((scaled[t](b, gm)[0].numpy(), None))
-                out[BASELINES[1]][t].append((irft.rft.forces(fitted, fn)[0].numpy(), None))
+                out[BASELINES[1]][t].append((irft.rft.forces(fitted, d.functional(t, off))[0].numpy(), None))
                 post = plains[t].stress_map(b, gm)
                 out[BASELINES[2]][t].append((post.mean[0].detach().numpy(),
                                              (post.variance[0] + plains[t].hypers.noise).detach().numpy()))
         with torch.no_grad():
             for n in IRFT:
-                forces[n].append((models[n].predict_forces(c_eval).mean - f_eval).numpy())
+                c_n, f_n = d.contacts(offs[n], a.eval_stride) if offs[n] != off else (c_eval, f_eval)
+                forces[n].append((models[n].predict_forces(c_n).mean - f_n).numpy())
             forces[BASELINES[0]].append((irft.rft.forces(scaled["origin"], c_top) - f_eval).numpy())
             forces[BASELINES[1]].append((irft.rft.forces(fitted, c_eval) - f_eval).numpy())
             s = plains["origin"].stress_map(b, gm).mean[0].detach()
             forces[BASELINES[2]].append((w_top * s - f_eval).numpy())
-    return out, {"offset": off, "stride": stride, "models": models, "forces": forces}
+    return out, {"offset": off, "learned": (offs[LEARNED], off_std[LEARNED], stride_l), "stride": stride,
+                 "models": models, "forces": forces}
 
 
 def score(data: list[RunData], folds: list[tuple[float, list[int]]], preds: dict, force_err: dict) -> dict:
@@ -300,11 +327,14 @@ def main(argv=None) -> dict:
                 for t in TARGETS:
                     preds[n][t].append(out[n][t])
                 force_err[n].append(info["forces"][n])
-            fold_info[split].append((v, info["offset"], info["stride"]))
+            fold_info[split].append((v, info["offset"], info["stride"], *info["learned"]))
             if split == "beta" and v == 45.0:
-                fig_fold = (info["models"][DEFAULT], train, test, info["offset"])
+                fig_fold = (info["models"][DEFAULT], train, test, info["offset"], info["models"][LEARNED],
+                            info["learned"][0])
+            lo, lsd, ls = info["learned"]
             print(f"{SPLITS[split]}: held out {split} {v:g} ({len(test)} runs): surface {info['offset']:.1f} cm below "
-                  f"z_top, stride {info['stride']} ms ({time.perf_counter() - t0:.0f} s)", flush=True)
+                  f"z_top, stride {info['stride']} ms; learned surface {lo:.2f} +- {lsd:.2f} cm below z_top, stride "
+                  f"{ls} ms ({time.perf_counter() - t0:.0f} s)", flush=True)
         results[split] = (folds, score(data, folds, preds, force_err))
     tau = residual_time_ms(data, 0.0)
     elapsed = time.perf_counter() - t0
@@ -341,7 +371,10 @@ def write_report(a, data, report, results, fold_info, tau, elapsed) -> list[str]
     for split, (folds, res) in results.items():
         lines += [f"## {SPLITS[split]} ({len(folds)} folds)", "",
                   f"Per held-out {split} (deg): I-RFT's surface below z_top / its stride: "
-                  + "; ".join(f"{v:g}: {o:.1f} cm / {s} ms" for v, o, s in fold_info[split]) + ".", "",
+                  + "; ".join(f"{v:g}: {o:.1f} cm / {s} ms" for v, o, s, *_ in fold_info[split]) + ".",
+                  f"{LEARNED}: the surface it learned (cm below z_top, Laplace std) / its stride: "
+                  + "; ".join(f"{v:g}: {lo:.2f} +- {lsd:.2f} cm / {ls} ms" for v, _, _, lo, lsd, ls in fold_info[split])
+                  + ".", "",
                   "| model | origin RMSE x (N/cm^3) | origin z | intercept RMSE x | intercept z | force RMSE x (N) "
                   "| force z (N) | 95 % coverage, origin x | z |",
                   "|---|---|---|---|---|---|---|---|---|"]
@@ -360,7 +393,7 @@ def write_report(a, data, report, results, fold_info, tau, elapsed) -> list[str]
                     lines.append(f"| {n}: the README's figure | {_pair(o) if o else '| '} | {_pair(i) if i else '| '} "
                                  "| | | | |")
         target = np.array([data[i].target["origin"] for _, idx in folds for i in idx])
-        lines += [""] + bars(res, target) + [""]
+        lines += [""] + bars(res, target) + bars(res, target, LEARNED) + [""]
     return lines
 
 
@@ -373,9 +406,10 @@ def paired_bootstrap(err_a: np.ndarray, err_b: np.ndarray, n: int = 2000, seed: 
     return np.quantile(d, [0.025, 0.975], axis=0)
 
 
-def bars(res: dict, target: np.ndarray) -> list[str]:
-    """Issue #14's bars for the default I-RFT, in words; ``target`` (N, 2) the held-out runs' origin stresses."""
-    r = res[DEFAULT]
+def bars(res: dict, target: np.ndarray, model: str = DEFAULT) -> list[str]:
+    """Issue #14's bars for an I-RFT row (the default), in words; ``target`` (N, 2) the held-out runs' origin
+    stresses."""
+    r = res[model]
     out = []
     for n in ("generic x LS scales", "plain GP on run stresses"):
         b = res[n]
@@ -386,13 +420,14 @@ def bars(res: dict, target: np.ndarray) -> list[str]:
               for k, ax in enumerate(stress)]
         ok = (r["rmse_origin"] < b["rmse_origin"]).all() and (r["force"] < b["force"]).all()
         ci = paired_bootstrap(r["pred_origin"] - target, b["pred_origin"] - target)
-        out.append(f"- {DEFAULT} vs {n}: origin stresses {', '.join(wins)}; forces {', '.join(fw)} N: "
+        out.append(f"- {model} vs {n}: origin stresses {', '.join(wins)}; forces {', '.join(fw)} N: "
                    f"**{'beats it' if ok else 'does not beat it everywhere'}**. RMSE difference, 95 % paired "
                    f"bootstrap over the held-out runs: x [{ci[0, 0]:+.4f}, {ci[1, 0]:+.4f}], "
                    f"z [{ci[0, 1]:+.4f}, {ci[1, 1]:+.4f}] N/cm^3.")
     c = r["cover_origin"]
     ok = ((c >= 0.85) & (c <= 0.99)).all()
-    out.append(f"- 95 % coverage of held-out runs (origin target): {100 * c[0]:.0f} % (x), {100 * c[1]:.0f} % (z): "
+    out.append(f"- {model}: 95 % coverage of held-out runs (origin target): {100 * c[0]:.0f} % (x), "
+               f"{100 * c[1]:.0f} % (z): "
                f"**{'within' if ok else 'outside'} 85-99 %**.")
     return out
 
@@ -425,7 +460,7 @@ def figures(a, out: Path, data, results, fig_fold) -> list[str]:
     lines.append("`dem_stresses.png`: every held-out run's through-origin stress (x axis) against each model's "
                  "prediction of it, per split and axis, I-RFT with its 95 % interval.")
     if fig_fold is not None:
-        m, train, test, off = fig_fold
+        m, train, test, off, m_l, off_l = fig_fold
         points = ([d.angles[0] for d in train], [d.angles[1] for d in train]), \
                  ([d.angles[0] for d in test], [d.angles[1] for d in test])
         fig = plotting.plot_posterior_map(m, 48, f"{DEFAULT} (beta 45 held out)", points=points)
@@ -434,8 +469,10 @@ def figures(a, out: Path, data, results, fig_fold) -> list[str]:
         for k, d in enumerate(test):
             c, f = d.contacts(off, a.eval_stride)
             depth = d.run.depth[d.run.depth > a.min_depth][::a.eval_stride]
+            c_l, _ = d.contacts(off_l, a.eval_stride)  # the same samples, depths below the learned surface
             with torch.no_grad():
                 pred = m.predict_forces(c, include_noise=True)
+                pred_l = m_l.predict_forces(c_l).mean
             lo, hi = pred.interval(0.95)
             for i in range(2):
                 ax = axes[k, i]
@@ -443,6 +480,9 @@ def figures(a, out: Path, data, results, fig_fold) -> list[str]:
                 ax.plot(depth, pred.mean[:, i].numpy(), "C1-", lw=1, label=f"{DEFAULT}, trained on the other tilts")
                 ax.fill_between(depth, lo[:, i].numpy(), hi[:, i].numpy(), color="C1", alpha=0.2,
                                 label="95 % band of a measurement")
+                ax.plot(depth, pred_l[:, i].numpy(), "C0--", lw=1,
+                        label=f"{LEARNED} ({off_l:.2f} cm below z_top), mean")
+                ax.axvline(off_l, color="C0", lw=0.6, ls=":")
                 ax.set_title(f"{d.run.label}: F_{'xz'[i]} (N)", fontsize=8)
         axes[0, 0].legend(fontsize=7)
         for ax in axes[-1]:
@@ -451,7 +491,7 @@ def figures(a, out: Path, data, results, fig_fold) -> list[str]:
         lines.append("`dem_maps.png`: the default I-RFT's maps and their std with beta = 45 held out (training "
                      "angle pairs as dots, the held-out runs as stars); `dem_forces_heldout.png`: the held-out "
                      "beta = 45 runs' forces against depth, DEM and I-RFT's prediction with the 95 % band of a "
-                     "measurement.")
+                     "measurement, and the learned-surface I-RFT's mean (its surface dotted).")
     return lines
 
 

@@ -179,12 +179,15 @@ def _sign_x(run: DEMRun) -> float:
     return 1.0 if vx < 0 else -1.0
 
 
-def _segment_depths(run: DEMRun, keep: np.ndarray, n_segments: int, surface_offset: float) -> np.ndarray:
-    """(len(keep), n_segments) depth of each segment centre below the effective surface, cm (>= 0)."""
+def _segment_depths(run: DEMRun, keep: np.ndarray, n_segments: int, surface_offset: float,
+                    signed: bool = False) -> np.ndarray:
+    """(len(keep), n_segments) depth of each segment centre below the effective surface, cm (>= 0;
+    ``signed``: negative above it)."""
     tilt = TILT_SIGN * math.radians(run.beta_deg)
     s = (np.arange(n_segments) + 0.5) / n_segments * PLATE_LENGTH_CM - PLATE_LENGTH_CM / 2
     seg_z = run.centre[keep, 2][:, None] + s[None, :] * math.sin(tilt)
-    return np.clip(run.z_top[keep][:, None] - surface_offset - seg_z, 0.0, None)
+    depth = run.z_top[keep][:, None] - surface_offset - seg_z
+    return depth if signed else np.clip(depth, 0.0, None)
 
 
 def run_contacts(run: DEMRun, n_segments: int = 10, stride: int = 1, min_depth: float = 0.0,
@@ -192,23 +195,29 @@ def run_contacts(run: DEMRun, n_segments: int = 10, stride: int = 1, min_depth: 
     """Contacts (T, M) of the plate split into ``n_segments`` along its length, and the DEM forces
     (T, 2) = (F_x, F_z) [N], for every ``stride``-th sample whose centre is deeper than
     ``min_depth`` cm below the effective surface ``z_top - surface_offset`` [cm]. Segment depths
-    follow the plate's tilt (z of segment = z_centre + s sin tilt)."""
+    follow the plate's tilt (z of segment = z_centre + s sin tilt). The contacts keep the signed
+    segment depths and areas (``Contacts.depth``, ``area_x``, ``area_z``), so that a model can learn
+    the surface (``InverseRFT(..., surface_offset=True)``, ``Contacts.with_surface_offset``)."""
     _check_offset(surface_offset)
     beta_c, gamma_c = canonical_angles(run)
     keep = np.nonzero(run.depth - surface_offset > min_depth)[0][::stride]
-    depth = _segment_depths(run, keep, n_segments, surface_offset)
-    area = PLATE_LENGTH_CM / n_segments * PLATE_WIDTH_CM  # cm^2
-    w = torch.as_tensor(depth * area, dtype=dtype)
+    depth = torch.as_tensor(_segment_depths(run, keep, n_segments, surface_offset, signed=True), dtype=dtype)
+    area = torch.full_like(depth, PLATE_LENGTH_CM / n_segments * PLATE_WIDTH_CM)  # cm^2
+    w = torch.relu(depth) * area
     T = len(keep)
+    sign = _sign_x(run)
     c = Contacts(torch.full((T, n_segments), beta_c, dtype=dtype), torch.full((T, n_segments), gamma_c, dtype=dtype),
-                 _sign_x(run) * w, w)
+                 sign * w, w, depth, sign * area, area)
     f = torch.as_tensor(run.force[keep][:, [0, 2]], dtype=dtype)
     return c, f
 
 
 def _check_offset(surface_offset: float) -> None:
-    if not (math.isfinite(surface_offset) and 0.0 <= surface_offset < PLATE_LENGTH_CM * 3):
-        raise ValueError(f"surface_offset must be a depth in cm in [0, {PLATE_LENGTH_CM * 3:g}), got {surface_offset}")
+    """The effective surface lies between a plate length above z_top (heaped grains; a learned surface
+    may end there) and three plate lengths below it."""
+    lo, hi = -PLATE_LENGTH_CM, PLATE_LENGTH_CM * 3
+    if not (math.isfinite(surface_offset) and lo < surface_offset < hi):
+        raise ValueError(f"surface_offset must be a depth below z_top in cm in ({lo:g}, {hi:g}), got {surface_offset}")
 
 
 def _depth_regression(run: DEMRun, min_depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 import math
 import pathlib
+import re
 
 import numpy as np
 import pytest
@@ -115,7 +116,7 @@ def test_surface_offset_is_recovered_and_makes_slope_and_rft_stress_agree():
         np.testing.assert_allclose(fixed, slope, atol=3e-3)
         assert abs(naive[1] - slope[1]) > 0.02  # through the origin below z_top, the intercept biases it
     with pytest.raises(ValueError, match="surface_offset"):
-        D.run_contacts(runs[0], surface_offset=-1.0)
+        D.run_contacts(runs[0], surface_offset=-10.0)  # a surface 10 cm above the top grain
     with pytest.raises(ValueError, match="at least one run"):
         D.calibrate_surface_offset([])
 
@@ -231,6 +232,10 @@ def test_dem_validation_experiment_runs_small(tmp_path):
     # the generic x LS row is the README's recipe: its leave-one-beta-out figures, to the printed digits
     np.testing.assert_allclose(res["beta"]["generic x LS scales"]["rmse_origin"], [0.0166, 0.0173], atol=6e-5)
     assert res["beta"]["I-RFT"]["pred_origin"].shape == (54, 2)
+    # the learned surface: within a cm of the README's effective surface (1.8 cm below the top grain) after
+    # 3 steps on every 1000th sample (a Laplace std may then be inf)
+    learned = [float(v) for v in re.findall(r"(-?[0-9.]+) \+- (?:[0-9.]+|inf) cm / 1000 ms", text)]
+    assert len(learned) == 17 and all(0.8 < v < 2.8 for v in learned), learned
 
 
 def test_run_effect_variant_matches_the_dense_likelihood():
@@ -268,3 +273,18 @@ def test_run_effect_variant_matches_the_dense_likelihood():
             total += float(0.5 * y @ torch.linalg.solve(C, y) + 0.5 * torch.logdet(C)
                            + 0.5 * len(c) * math.log(2 * math.pi)) / len(c)
     assert got == pytest.approx(total, rel=1e-8)
+
+
+def test_run_contacts_keep_signed_depths_so_the_surface_can_move():
+    # the same samples (centre deeper than 3 cm below z_top) built against two surfaces 0.5 cm apart:
+    # moving the first one's surface down by 0.5 cm (Contacts.with_surface_offset, m) gives the second
+    run = _ramp_run(30.0, 63.0, (0.06, 0.2), offset=0.0)
+    c0, f0 = D.run_contacts(run, min_depth=2.0, surface_offset=1.0)
+    c1, f1 = D.run_contacts(run, min_depth=1.5, surface_offset=1.5)
+    assert c0.has_surface and len(c0) == len(c1) > 10
+    torch.testing.assert_close(f0, f1)
+    moved = c0.with_surface_offset(torch.tensor(-0.005))
+    torch.testing.assert_close(moved.weight_z, c1.weight_z, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(moved.weight_x, c1.weight_x, rtol=1e-12, atol=1e-12)
+    # the weights are relu(depth) x area of the plate's 10 strips (3.81 / 10 x 2.54 cm^2)
+    torch.testing.assert_close(c0.area_z, torch.full_like(c0.area_z, 3.81 / 10 * 2.54))
