@@ -219,3 +219,30 @@ def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(
     assert r.returncode == 0, r.stderr[-2000:]
     text = (tmp_path / "benchmarks.md").read_text()
     assert "1. paper scale" in text and "5. streaming" in text
+
+
+def test_calibration_prior_draws_have_the_kernels_covariance():
+    # maps drawn by the calibration study's --truth prior: their covariance across draws at three angle
+    # pairs against the RBF on the embedding (sin 2b, cos 2b, sin g, cos g) / l, written out here
+    import importlib.util
+    from pathlib import Path
+
+    import torch
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    spec = importlib.util.spec_from_file_location("calibration_study_draws", path)
+    cs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cs)
+    torch.set_default_dtype(torch.float64)
+    b, g = torch.tensor([0.0, 0.5, -1.0]), torch.tensor([0.3, -0.7, 1.2])
+    vals = torch.stack([cs.PriorDraw([0.04, 0.09], 1.5, s)(b, g) for s in range(300)])  # (300, 3, 2)
+    emb = torch.stack([torch.sin(2 * b), torch.cos(2 * b), torch.sin(g), torch.cos(g)], -1) / 1.5
+    K = torch.exp(-0.5 * torch.cdist(emb, emb).pow(2))
+    for a, s in ((0, 0.04), (1, 0.09)):
+        C = torch.cov(vals[..., a].T) / s
+        assert (C - K).abs().max() < 0.25, (C, K)  # 300 draws: sampling error about 0.1
+    # the mirror identity: alpha_x flips sign, alpha_z does not, under (b, g) -> (-b, pi - g)
+    d = cs.PriorDraw([0.04, 0.09], 1.5, 7)
+    a1, a2 = d(b, g), d(-b, torch.pi - g)
+    torch.testing.assert_close(a2[..., 0], -a1[..., 0])
+    torch.testing.assert_close(a2[..., 1], a1[..., 1])
