@@ -154,7 +154,8 @@ def _figure(out, cells, noises, suffix="") -> None:
 
     fig = plotting.plot_reliability(
         {f"{c} {a}, noise {n}": [cells[(c, a, n)][lv] for lv in LEVELS] for (c, a, n) in cells}, LEVELS,
-        title="Calibration study: share of the truth inside the central posterior interval")
+        title="Calibration study: share of the truth inside the central posterior interval"
+              + ("\n(truth: maps drawn from the GP prior)" if suffix else "\n(truth: the generic map, paper's scale)"))
     plotting.save(fig, out / f"calibration_reliability{suffix}.png")
 
 
