@@ -20,12 +20,11 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   1.5 either way at two standard deviations (log-sd of sigma_c^2 ln 1.5), covers how far one axis
   of a real medium strays from the common zeta: the poppy-seed sets' map stds are 0.84-0.91 (x)
   and 0.96-0.97 (z) of the generic map's at their zeta, the I-RFT bed's scales 1.0 (x) and 1.5 (z)
-  are 0.82 and 1.22 of their geometric mean. When the model also learns the surface height, zeta
-  (estimated at the stated surface) is not trusted and the width is a factor 10 (as with the physics
-  mean). So an axis the forces do not inform (F_x during a vertical intrusion) keeps
-  a prior of the size real media have, instead of collapsing to zero. With the physics mean
-  (generic shape x learned scales) the GP models the residual, so the centre is 0.3 of that and
-  the width a factor 10.
+  are 0.82 and 1.22 of their geometric mean. So an axis the forces do not inform (F_x during a
+  vertical intrusion) keeps a prior of the size real media have, instead of collapsing to zero.
+  With the physics mean (generic shape x learned scales) the GP models the residual, so the centre
+  is 0.3 of that and the width a factor 10. When the model also learns the surface height, zeta
+  (estimated at the stated surface) is not trusted and the width is a factor 10 too.
 - **lengthscales** (dimensionless, on the embedding (sin 2beta, cos 2beta, sin gamma, cos gamma),
   each coordinate in [-1, 1]): centre ``LENGTHSCALE_CENTRE`` = 1.5, log-sd 1.5 (a factor 4.5 per
   standard deviation: where the forces inform a lengthscale, they decide it). An RBF fitted to the
@@ -105,7 +104,7 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     ``learned_surface``: the surface height is fitted too, so the medium's scale zeta estimated at the
     stated surface is not trusted (a surface 2 cm off changes the depths, and zeta, by a factor of
     2-3 on a shallow stroke): the outputscale prior then has the physics mean's width (a factor 10
-    per standard deviation), as in :func:`prior_centres`' fallback role, and the forces decide."""
+    per standard deviation), and the forces decide."""
     dtype = hypers.kernel.raw_outputscale.dtype
     log_os = centres["outputscale"].to(dtype).log().detach().clone()
     log_ls = math.log(centres["lengthscale"])

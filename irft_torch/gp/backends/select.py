@@ -22,8 +22,8 @@ SPECTRAL_PENALTY = 1.5  # prefer the arithmetic-exact spaces when costs are clos
 # arithmetic. Calibrated so that all three estimates are in the same units of time: one likelihood +
 # gradient step of the paper's C-toe gait 2 (T = 100 / 200, 750 / 1500 distinct pairs, one thread)
 # takes 22-24 / 142-147 ms in observations, 3.4-7.4 / 8-19 ms in spectral (F = 289-1037) and
-# 19-28 / 200 ms in pairs, i.e. about 3 Gflop/s of the pairs and spectral estimates and, with 40
-# here, 1 Gflop/s of the observations one.
+# 19-28 / 200 ms in pairs: about 3 Gflop/s of the pairs and spectral estimates, and of this one
+# only with 120 flops per element (the former 40 made observations look 3x cheaper than it is).
 KERNEL_FLOPS = 120.0
 
 
@@ -32,9 +32,9 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
 
     T: samples in contact, U: distinct angle pairs, S: segments in contact, F: Fourier features for the
     current lengthscales. Observations: T^3 / 3 per step plus the kernel block (``KERNEL_FLOPS`` per
-    element for the exp, its gradient and the gathers, over S x min(U, S) elements); pairs: O(min(T, U)^3 + U^2 (10 +
-    min(T, U))); spectral: O(r^3 + r^2 F + r F (F_beta + F_gamma)), r = min(T, F), plus the one pass
-    T F^2.
+    element for the exp, its gradient and the gathers, over S x min(U, S) elements); pairs:
+    O(min(T, U)^3 + U^2 (10 + min(T, U))); spectral: O(r^3 + r^2 F + r F (F_beta + F_gamma)),
+    r = min(T, F), plus the one pass T F^2.
     """
     rows = touching(contacts)
     T = int(rows.sum())
