@@ -1,7 +1,7 @@
 """Scoring candidate probes on a model with T = 1,000 force samples: time and agreement, against
 gpytorch's own exact predictive covariance in the same run.
 
-    python experiments/bench_active_probing.py [--T 1000] [--candidates 100] [--steps 200]
+    python experiments/bench_active_probing.py [--T 1000] [--candidates 100] [--steps 200] [--device cuda]
 
 The model: 5 random probes (I- and C-toe, 200 samples each: T = 1,000, about 9,000 segments in
 contact), hyperparameters at their data-scaled initial values (the cost does not depend on them).
@@ -43,7 +43,7 @@ def reference_eig(model, contacts) -> torch.Tensor:
     with torch.no_grad(), gpytorch.settings.max_cholesky_size(2**31), gpytorch.settings.fast_pred_var(False):
         S = model.gp(encode_contacts(contacts, M)).covariance_matrix  # (2, T_c, T_c)
         noise = model.hypers.noise
-        eye = torch.eye(S.shape[-1], dtype=S.dtype)
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         return 0.5 * torch.logdet(eye + S / noise[:, None, None]).sum()
 
 
@@ -55,7 +55,14 @@ def main(argv=None) -> None:
     ap.add_argument("--reference", type=int, default=10, help="candidates timed with the gpytorch reference")
     ap.add_argument("--observations", type=int, default=10,
                     help="candidates scored on the observations backend (its time is scaled to all)")
+    ap.add_argument("--device", default="cpu", help="cpu (default) or cuda: model, candidates and reference there")
     a = ap.parse_args(argv)
+    dev = torch.device(a.device)
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
     torch.set_default_dtype(torch.float64)
     toes = {"I": IToe(0.02, 0.008), "C": CToe(0.02, 0.008, opening="left")}
     train_probes = random_probes(toes, 3, 0.44, n_steps=a.T // 5, seed=1)[:5]
@@ -63,28 +70,33 @@ def main(argv=None) -> None:
     smap = irft.rft.FourierStressMap.generic(0.452, 0.417)
     f = irft.rft.forces(smap, train)
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
+    train, f = train.to(device=dev), f.to(dev)
     model = irft.InverseRFT(train, f)
     exact = irft.InverseRFT(train, f, method="observations")
     n_seg = int((train.weight_z > 0).sum())
     cands = random_probes(toes, a.candidates // 2, 0.44, n_steps=a.steps, seed=2)
-    cand_c = [p.contacts() for p in cands]
+    cand_c = [p.contacts().to(device=dev) for p in cands]
     seg_c = sum(int((c.weight_z > 0).sum()) for c in cand_c) / len(cand_c)
     print(f"model: T = {len(train)} force samples, {n_seg} segments in contact, backend {model.backend.describe()}; "
           f"{len(cands)} candidates of {a.steps} samples ({seg_c:.0f} segments in contact on average); "
-          f"{torch.get_num_threads()} threads")
+          f"{torch.get_num_threads()} threads, device {a.device}")
     results = {}
     for name, m in (("auto", model), ("observations", exact)):
         n = len(cand_c) if name == "auto" else min(a.observations, len(cand_c))
+        sync()
         t0 = time.perf_counter()
         scorer = ProbeScorer.from_model(m)
         with torch.no_grad():
             scorer.integrated_variance()  # the region's current variance: part of the set-up
+            sync()
             t_setup = time.perf_counter() - t0
             t0 = time.perf_counter()
             iv = scorer.score(cand_c[:n], "variance")
+            sync()
             t_iv = (time.perf_counter() - t0) * len(cand_c) / n
             t0 = time.perf_counter()
             eig = scorer.score(cand_c[:n], "eig")
+            sync()
             t_eig = (time.perf_counter() - t0) * len(cand_c) / n
         results[name] = (iv, eig, t_setup + t_iv, t_setup + t_eig)
         print(f"ProbeScorer on {scorer.method:12s}: set-up {t_setup:6.2f} s, {len(cands)} candidates: integrated "
@@ -93,6 +105,7 @@ def main(argv=None) -> None:
     n_ref = min(a.reference, len(cands))
     t0 = time.perf_counter()
     ref = torch.stack([reference_eig(exact, c) for c in cand_c[:n_ref]])
+    sync()
     t_ref = (time.perf_counter() - t0) * len(cands) / n_ref
     print(f"reference (gpytorch exact predictive covariance): {t_ref:6.2f} s for {len(cands)} candidates "
           f"(timed on {n_ref}, scaled)")

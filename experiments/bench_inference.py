@@ -1,6 +1,6 @@
 """Inference speed: the issue-12 cases, each against a reference timed in the same run.
 
-    python experiments/bench_inference.py [--quick] [--out experiments/results]
+    python experiments/bench_inference.py [--quick] [--device cuda] [--out experiments/results]
 
 Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts, forces)``):
   1. paper scale: C-toe (M = 10) on the paper's cubic gait, T = 200: one likelihood + gradient step
@@ -15,7 +15,8 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
   6. a fleet: 4 datasets of 250,000 samples x M = 10 reduced to their spectral statistics (what
      ``irft fit a.npz b.npz ...`` does first) in 2 worker processes, and from statistics saved with
      the datasets (``irft ingest`` saves them), vs one process making every pass.
-Writes benchmarks.md under --out.
+Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
+GPU, the references too; case 6 is CPU work and is skipped there).
 """
 
 from __future__ import annotations
@@ -34,6 +35,16 @@ import torch
 import irft_torch as irft
 
 TRUTH = irft.rft.FourierStressMap.generic(0.452, 0.417)
+DEVICE = torch.device("cpu")
+
+
+def on_device(c, f):
+    return c.to(device=DEVICE), f.to(DEVICE)
+
+
+def sync():
+    if DEVICE.type == "cuda":
+        torch.cuda.synchronize()
 
 
 def paper_contacts(T: int, M: int = 10):
@@ -88,14 +99,15 @@ def dense_step(model, c, f) -> float:
     th_b, th_g = c.beta.reshape(-1), c.gamma.reshape(-1)
     phi = torch.stack([torch.sin(2 * th_b), torch.cos(2 * th_b), torch.sin(th_g), torch.cos(th_g)], -1)
     total = 0.0
-    rows = torch.arange(T).repeat_interleave(M)
-    cols = torch.arange(T * M)
+    dev = c.beta.device
+    rows = torch.arange(T, device=dev).repeat_interleave(M)
+    cols = torch.arange(T * M, device=dev)
     for a, w in enumerate((c.weight_x, c.weight_z)):
-        W = torch.zeros(T, T * M)
+        W = torch.zeros(T, T * M, device=dev)
         W[rows, cols] = w.reshape(-1)
         x = phi / ls[a, 0]
         K = os[a] * torch.exp(-0.5 * ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
-        S = W @ K @ W.T + noise[a] * torch.eye(T)
+        S = W @ K @ W.T + noise[a] * torch.eye(T, device=dev)
         L = torch.linalg.cholesky(S)
         y = f[:, a]
         alpha = torch.cholesky_solve(y[:, None], L)[:, 0]
@@ -108,34 +120,46 @@ def best_time(fn, repeats: int) -> float:
     fn()
     best = float("inf")
     for _ in range(repeats):
+        sync()
         t0 = time.perf_counter()
         fn()
+        sync()
         best = min(best, time.perf_counter() - t0)
     return best
 
 
+def ratio(r: float) -> str:
+    return f"{r:.0f}x" if r >= 10 else f"{r:.2g}x"
+
+
 def grid(n=50):
-    g = torch.linspace(-1.5, 1.5, n)
+    g = torch.linspace(-1.5, 1.5, n, device=DEVICE)
     return torch.meshgrid(g, g, indexing="ij")
 
 
 def big_child(T: int, n_iter: int) -> None:
     torch.set_default_dtype(torch.float64)
+    gpu = DEVICE.type == "cuda"
     rss = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # noqa: E731  GB (Linux: KB)
     before = rss()
-    c, f = recording(T)
+    c, f = on_device(*recording(T))
     with_data = rss()
+    sync()
     t0 = time.perf_counter()
     model = irft.InverseRFT(c, f)
+    sync()
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
     model.fit(n_iter=n_iter, progress=False)
+    sync()
     t_fit = time.perf_counter() - t0
     t0 = time.perf_counter()
     model.stress_map(*grid())
+    sync()
     t_map = time.perf_counter() - t0
     print(json.dumps({"T": T, "backend": model.backend.describe(), "build_s": t_build, "fit_s": t_fit,
-                      "map_s": t_map, "peak_gb": rss(), "import_gb": before, "data_gb": with_data - before}))
+                      "map_s": t_map, "peak_gb": rss(), "import_gb": before, "data_gb": with_data - before,
+                      "gpu_peak_gb": torch.cuda.max_memory_allocated() / 2**30 if gpu else 0.0}))
 
 
 def main(argv=None) -> None:
@@ -143,15 +167,19 @@ def main(argv=None) -> None:
     ap.add_argument("--quick", action="store_true", help="smaller sizes (seconds; for tests)")
     ap.add_argument("--out", default="experiments/results")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--device", default="cpu", help="cpu (default) or cuda: data, model and references there")
     ap.add_argument("--_child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--_iters", type=int, default=100, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    global DEVICE
+    DEVICE = torch.device(a.device)
     if a._child:
         return big_child(a._child, a._iters)
     torch.set_default_dtype(torch.float64)
     q = a.quick
     lines = [f"# Inference benchmarks (`python experiments/bench_inference.py{' --quick' if q else ''}`)", "",
-             f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64.", "",
+             f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, device "
+             f"{torch.cuda.get_device_name() if DEVICE.type == 'cuda' else 'cpu'}.", "",
              "| case | ours | reference (same run) | ratio | target |", "|---|---|---|---|---|"]
 
     def row(*cells):
@@ -163,33 +191,38 @@ def main(argv=None) -> None:
     c = paper_contacts(T1)
     f = irft.rft.forces(TRUTH, c)
     f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
+    c, f = on_device(c, f)
     model = irft.InverseRFT(c, f, priors=None)  # the dense formula is the plain marginal likelihood
     ours, ref = step(model), dense_step(model, c, f)
     assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
     t_ours = best_time(lambda: step(model), a.repeats)
     t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
     row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
-        f"{t_ours * 1e3:.2f} ms", f"dense formula {t_dense * 1e3:.1f} ms", f"{t_dense / t_ours:.0f}x", ">= 100x")
+        f"{t_ours * 1e3:.2f} ms", f"dense formula {t_dense * 1e3:.1f} ms", ratio(t_dense / t_ours), ">= 100x")
 
     # 2. DEM-like
-    c, f = dem_like()
+    c, f = on_device(*dem_like())
     model = irft.InverseRFT(c, f)
+    sync()
     t0 = time.perf_counter()
     n = 50 if q else 200
     model.fit(n_iter=n, progress=False)
+    sync()
     per_s = n / (time.perf_counter() - t0)
     obs = irft.InverseRFT(c, f, method="observations")
     t_obs = best_time(lambda: step(obs), 2)
     row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method})", f"{per_s:.0f} steps/s",
-        f"observations backend {1 / t_obs:.1f} steps/s", f"{per_s * t_obs:.0f}x", ">= 50 steps/s")
+        f"observations backend {1 / t_obs:.1f} steps/s", ratio(per_s * t_obs), ">= 50 steps/s")
 
     # 3. T = 10^4
     T3 = 2000 if q else 10_000
-    c, f = recording(T3)
+    c, f = on_device(*recording(T3))
+    sync()
     t0 = time.perf_counter()
     model = irft.InverseRFT(c, f)
     model.fit(n_iter=300, progress=False)
     model.stress_map(*grid())
+    sync()
     t3 = time.perf_counter() - t0
     ref = irft.InverseRFT(c[:1000], f[:1000], method="observations")
     t_ref = best_time(lambda: step(ref), 1)
@@ -200,27 +233,38 @@ def main(argv=None) -> None:
 
     # 4. 10^6 (a fresh process)
     T4 = 50_000 if q else 1_000_000
-    out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100"],
+    out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100", "--device", a.device],
                          capture_output=True, text=True, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     total = r["build_s"] + r["fit_s"] + r["map_s"]
     row(f"4. T = {T4:,} x M = 10: one pass + 100 steps + map ({r['backend']})",
         f"{total:.1f} s (pass {r['build_s']:.1f}, fit {r['fit_s']:.1f}, map {r['map_s']:.2f}); "
         f"peak {r['peak_gb']:.2f} GB", f"import {r['import_gb']:.2f} GB, the recording itself "
-        f"{r['data_gb']:.2f} GB", "-", "<= 20 s, peak < 2 GB")
+        f"{r['data_gb']:.2f} GB" + (f"; GPU peak {r['gpu_peak_gb']:.2f} GB" if r["gpu_peak_gb"] else ""),
+        "-", "<= 20 s, peak < 2 GB")
 
     # 5. streaming
     T5 = 2000 if q else 10_000
-    c, f = recording(T5 + 2000, seed=3)
+    c, f = on_device(*recording(T5 + 2000, seed=3))
     model = irft.InverseRFT(c[:T5], f[:T5], method="spectral")
+    sync()
     t0 = time.perf_counter()
     for i in range(T5, T5 + 2000, 100):
         model.add_data(c[i:i + 100], f[i:i + 100])
-    model.stress_map(torch.zeros(1), torch.zeros(1))
+    z = torch.zeros(1, device=DEVICE)
+    model.stress_map(z, z)
+    sync()
     per = (time.perf_counter() - t0) / 2000
     t_step = best_time(lambda: step(model), 1)
     row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
         f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
+    out_dir = Path(a.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = out_dir / ("benchmarks.md" if DEVICE.type == "cpu" else f"benchmarks_{DEVICE.type}.md")
+    if DEVICE.type != "cpu":  # case 6 reduces files in CPU worker processes
+        report.write_text("\n".join(lines) + "\n")
+        print(f"wrote {report}")
+        return
     # 6. a fleet of datasets
     import tempfile
 
@@ -247,10 +291,8 @@ def main(argv=None) -> None:
         f"2 worker processes {times['2 workers']:.1f} s; saved with the datasets {times['saved']:.1f} s",
         f"one process, every pass {times['one process']:.1f} s",
         f"{times['one process'] / times['2 workers']:.1f}x; {times['one process'] / times['saved']:.1f}x", "-")
-    out_dir = Path(a.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "benchmarks.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {out_dir / 'benchmarks.md'}")
+    report.write_text("\n".join(lines) + "\n")
+    print(f"wrote {report}")
 
 
 if __name__ == "__main__":

@@ -334,7 +334,7 @@ class InverseRFT(nn.Module):
         several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        grid = torch.as_tensor(offsets, dtype=self.dtype).reshape(-1) * M_TO_CM  # learned in cm
+        grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
         with torch.no_grad():
             for g in range(self.surface.n_groups):
                 losses = []

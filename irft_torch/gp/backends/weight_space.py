@@ -160,7 +160,9 @@ def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype) -> _D
     """The same factor from the rows themselves, Phi (2, T, F) = U S V^T (thin SVD, float64): R = S V^T,
     c = U^T y. Cheaper than the eigendecomposition of P when T < F, and better conditioned."""
     Phi, y = Phi.double(), y.double()
-    U, S, Vh = torch.linalg.svd(Phi, full_matrices=False)
+    # On CUDA the default Jacobi driver can fail to converge on these rank-deficient rows (it then warns and
+    # falls back); QR-based gesvd is the one that does not.
+    U, S, Vh = torch.linalg.svd(Phi, full_matrices=False, driver="gesvd" if Phi.is_cuda else None)
     tol = Phi.shape[-1] * torch.finfo(torch.float64).eps * 10 * S[..., :1].pow(2).clamp_min(1e-300)
     keep = S.pow(2) > tol
     S = torch.where(keep, S, torch.zeros_like(S))
