@@ -145,7 +145,7 @@ def test_sufficient_statistics_on_cuda_match_cpu():
     out = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        s = recording_statistics(c, f)
+        s = recording_statistics(c, f.cpu().numpy())  # forces as a user may pass them: numpy, on the host
         m = irft.InverseRFT(c, f, method="spectral", statistics=s)
         out.append(m.loss())
     close(out[1], out[0])

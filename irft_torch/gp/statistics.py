@@ -59,11 +59,11 @@ def recording_statistics(contacts: Contacts, forces: Tensor, basis: FourierBasis
     """
     if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
         raise ValueError("contacts must be an rft.Contacts of shape (T, M)")
-    f = torch.as_tensor(forces, dtype=contacts.beta.dtype)
+    f = torch.as_tensor(forces, dtype=contacts.beta.dtype, device=contacts.beta.device)
     if f.shape != (len(contacts), 2):
         raise ValueError(f"forces must be (T, 2) = ({len(contacts)}, 2), got {tuple(f.shape)}")
     basis = basis or initial_basis(lengthscale, tol)
-    mean = GenericShapeMean().to(contacts.beta.dtype)
+    mean = GenericShapeMean().to(dtype=contacts.beta.dtype, device=contacts.beta.device)
     stats = spectral_statistics(contacts, f, basis, mean)
     stats.meta["mean"] = "generic shape"
     return stats
