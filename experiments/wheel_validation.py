@@ -36,18 +36,30 @@ import torch
 import irft_torch as irft
 from irft_torch import wheel_data as wd
 from irft_torch.rft import Contacts, FourierStressMap
-from irft_torch.rft.wheel import average_rows, wheel_contacts, wheel_kinematics
+from irft_torch.rft.wheel import average_rows, envelope_profile, wheel_contacts, wheel_kinematics
 
 PREDICTORS = ("I-RFT", "generic x LS scale", "others' RFT (files)", "trivial (training mean)")
-N_PHASES = {"smooth": 1, "grouser": 6}
+RIM_ROW = "I-RFT, grouser faces as plates (6 poses)"  # the ablation: the rim as meshed
+N_PHASES = {"smooth": 1, "grouser": 6}  # poses averaged over one grouser pitch (the rim as meshed)
 
 
-def run_contacts(profile, run, wheel: str, sinkage: float | None = None) -> Contacts:
-    """One observation (1, M): the mean over the poses of the run's wheel at a sinkage."""
-    K = N_PHASES[wheel]
-    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
+def contact_profile(data: Path, wheel: str, surface: str):
+    """The profile that meets the sand: ``envelope`` (default) the convex hull of the wheel (sand in
+    the grouser pockets turns with the wheel; the smooth rim is its own hull), ``rim`` the rim as
+    meshed, grouser faces included. Returns (profile, number of poses to average)."""
+    prof = wd.read_profile(data, wheel)
+    # the hull through the grouser tips is faceted (one chord per tip): averaged over the same poses
+    return (envelope_profile(prof) if surface == "envelope" else prof), N_PHASES[wheel]
+
+
+def _phases(K: int):
+    return None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
+
+
+def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts:
+    """One observation (1, M): the mean over the K poses of the run's wheel at a sinkage."""
     s = run.sinkage if sinkage is None else sinkage
-    return average_rows(wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, s, phases=phases))
+    return average_rows(wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, s, phases=_phases(K)))
 
 
 def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args):
@@ -56,24 +68,20 @@ def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args):
     return model
 
 
-def pose_contacts(profile, run, wheel: str, sinkage: float) -> Contacts:
+def pose_contacts(profile, run, K: int, sinkage: float) -> Contacts:
     """The run's wheel at a sinkage, one row per pose (K, M), no segment dropped: the angles do not
     depend on the sinkage (velocities and tangents do not), only the weights do."""
-    K = N_PHASES[wheel]
-    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
-    return wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, sinkage, phases=phases)
+    return wheel_contacts(profile, run.v, run.omega, wd.WHEEL_RADIUS, sinkage, phases=_phases(K))
 
 
-def force_vs_sinkage(smap, profile, run, wheel: str, sinkages) -> np.ndarray:
+def force_vs_sinkage(smap, profile, run, K: int, sinkages) -> np.ndarray:
     """(S, 2) mean force of the run's wheel at each sinkage under a stress map. RFT is linear in the
     weights and the angles do not change with sinkage, so the map is evaluated once per segment (with
     the wheel sunk to 2 r, every segment submerged) and each segment's weight scales with its depth,
     which shifts rigidly with the axle: depth(s) = depth(2 r) - (2 r - s), clamped at 0."""
     s0 = 2 * wd.WHEEL_RADIUS
-    K = N_PHASES[wheel]
-    phases = None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
-    c0 = pose_contacts(profile, run, wheel, s0)
-    depth = wheel_kinematics(profile, run.v, run.omega, wd.WHEEL_RADIUS, s0, phases).depth  # (K, M) m
+    c0 = pose_contacts(profile, run, K, s0)
+    depth = wheel_kinematics(profile, run.v, run.omega, wd.WHEEL_RADIUS, s0, _phases(K)).depth  # (K, M) m
     with torch.no_grad():
         a = smap(c0.beta, c0.gamma)  # (K, M, 2)
     s = torch.as_tensor(np.asarray(sinkages, dtype=np.float64))[:, None, None]
@@ -95,23 +103,28 @@ def solve_sinkage(sinkages: np.ndarray, fz: np.ndarray, load: float) -> float:
     return float(s0 + (load - f0) * (s1 - s0) / (f1 - f0))
 
 
-def load_sinkage(smap, profile, run, wheel: str, s_grid: np.ndarray) -> tuple[float, float, float, float]:
+def load_sinkage(smap, profile, run, K: int, s_grid: np.ndarray) -> tuple[float, float, float, float]:
     """The sinkage at which the map's lift equals the run's measured load, the drawbar there, and
     where the map's lift-vs-sinkage curve peaks (sinkage, lift): a quasi-static map's lift should
     grow with sinkage; a peak inside the range says the map bends to fit loads that do not."""
-    curve = force_vs_sinkage(smap, profile, run, wheel, s_grid)
+    curve = force_vs_sinkage(smap, profile, run, K, s_grid)
     k = int(np.argmax(curve[:, 1]))
     peak = (float(s_grid[k]), float(curve[k, 1]))
     s_star = solve_sinkage(s_grid, curve[:, 1], run.force[1])
     if not math.isfinite(s_star):
         return math.nan, math.nan, *peak
-    return s_star, float(force_vs_sinkage(smap, profile, run, wheel, [s_star])[0, 0]), *peak
+    return s_star, float(force_vs_sinkage(smap, profile, run, K, [s_star])[0, 0]), *peak
 
 
 def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     runs = wd.read_wheel_runs(data, wheel)
-    profile = wd.read_profile(data, wheel)
-    c_all = [run_contacts(profile, r, wheel) for r in runs]
+    profile, K = contact_profile(data, wheel, args.contact_surface)
+    c_all = [run_contacts(profile, r, K) for r in runs]
+    # the ablation (grousered wheel, envelope run): the rim as meshed, grouser faces as plates
+    ablate = wheel == "grouser" and args.contact_surface == "envelope"
+    if ablate:
+        rim, K_rim = contact_profile(data, wheel, "rim")
+        c_rim = [run_contacts(rim, r, K_rim) for r in runs]
     F = torch.tensor([r.force for r in runs], dtype=torch.float64)
     levels = sorted({r.commanded_rim_speed for r in runs})
     group = np.array([levels.index(r.commanded_rim_speed) for r in runs])
@@ -121,6 +134,9 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     pred = {p: torch.full_like(F, math.nan) for p in PREDICTORS}
     for k in kinds[1:]:
         pred["I-RFT + physics mean"] = torch.full_like(F, math.nan)
+    if ablate:
+        pred[RIM_ROW] = torch.full_like(F, math.nan)
+    nll = {}  # training folds' negative log marginal likelihood per observation (last Adam step)
     std = {k: torch.full_like(F, math.nan) for k in pred}
     s_grid = np.linspace(0.001, 0.0625, 124)  # sinkages searched, m (0.5 mm steps, to the axle)
     sink = {k: np.full(len(runs), math.nan) for k in ("I-RFT", "generic x LS scale")}
@@ -137,6 +153,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
             t0 = time.perf_counter()
             model = fit_irft(c_train, F[train], kind, args)
             fit_time.append(time.perf_counter() - t0)
+            nll.setdefault(name, []).append(model.loss_history[-1])
             with torch.no_grad():
                 post = model.predict_forces(c_test, include_noise=True)
             pred[name][test] = post.mean
@@ -144,20 +161,32 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
             if kind == "zero":  # the sinkage question, with the I-RFT posterior mean map
                 for i in test:
                     sink["I-RFT"][i], drawbar["I-RFT"][i], *peak["I-RFT"][i] = load_sinkage(
-                        model, profile, runs[i], wheel, s_grid)
+                        model, profile, runs[i], K, s_grid)
+        if ablate:
+            model = fit_irft(Contacts.cat([c_rim[i] for i in train]), F[train], "zero", args)
+            nll.setdefault(RIM_ROW, []).append(model.loss_history[-1])
+            with torch.no_grad():
+                post = model.predict_forces(Contacts.cat([c_rim[i] for i in test]), include_noise=True)
+            pred[RIM_ROW][test] = post.mean
+            std[RIM_ROW][test] = post.variance.clamp_min(0).sqrt()
         # generic x one least-squares scale per axis
         scale = (G[train] * F[train]).sum(0) / G[train].pow(2).sum(0)
         pred["generic x LS scale"][test] = G[test] * scale
         scaled = lambda b, g, sc=scale: generic(b, g) * sc  # noqa: E731
         for i in test:
             sink["generic x LS scale"][i], drawbar["generic x LS scale"][i], *peak["generic x LS scale"][i] = \
-                load_sinkage(scaled, profile, runs[i], wheel, s_grid)
+                load_sinkage(scaled, profile, runs[i], K, s_grid)
         pred["trivial (training mean)"][test] = F[train].mean(0)
         print(f"  {wheel}: held-out slip level {g + 1}/{len(levels)} done", flush=True)
     pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
     rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
     inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
-    return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, sink=sink, drawbar=drawbar,
+    coverage = {k: ((pred[k] - F).abs() <= 1.96 * std[k]).double().mean(0).tolist()
+                for k in pred if not torch.isnan(std[k]).all()}
+    return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, coverages=coverage,
+                nll={k: float(np.mean(v)) for k, v in nll.items()}, levels=levels, group=group,
+                surface="convex hull" if args.contact_surface == "envelope" else "rim as meshed",
+                sink=sink, drawbar=drawbar,
                 peak=peak, s_max=float(s_grid[-1]),
                 fit_time=float(np.mean(fit_time)), n_segments=[c.n_segments for c in c_all])
 
@@ -185,6 +214,10 @@ def plot_forces(res: dict, wheel: str, out: Path) -> None:
             hi.append((m[k] + 2 * s[k]).mean())
         ax.fill_between(xs, lo, hi, color="tab:blue", alpha=0.25, label="I-RFT held out, +- 2 sd (incl. noise)")
         ax.plot(xs, mid, color="tab:blue", lw=2, label="I-RFT held out (mean)")
+        if RIM_ROW in res["pred"]:  # the ablation: grouser faces as plates
+            p = res["pred"][RIM_ROW].numpy()[:, a]
+            ax.plot(slip[order], p[order], color="tab:purple", marker="d", ls="--", ms=4, lw=1,
+                    label="I-RFT held out, grouser faces as plates")
         for name, (col, mk, ls) in styles.items():
             p = res["pred"][name].numpy()[:, a]
             ax.plot(slip[order], p[order], color=col, marker=mk, ls=ls, ms=4, lw=1, label=name)
@@ -193,7 +226,8 @@ def plot_forces(res: dict, wheel: str, out: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"{wheel} wheel, slip angle 0: leave-one-slip-out predictions at the measured sinkage")
+    fig.suptitle(f"{wheel} wheel, slip angle 0: leave-one-slip-out predictions at the measured sinkage "
+                 f"(contact: {res['surface']})")
     fig.tight_layout()
     fig.savefig(out / f"wheel_forces_{wheel}.png", dpi=120)
     plt.close(fig)
@@ -233,20 +267,52 @@ def plot_sinkage(results: dict, out: Path) -> None:
 def report(results: dict, args, elapsed: float) -> str:
     lines = ["# Rover wheel in sand: leave-one-slip-out (slip angle 0)", "",
              f"Command: `python experiments/wheel_validation.py --data DIR"
-             f"{' --physics-mean' if args.physics_mean else ''} --n-iter {args.n_iter} --lr {args.lr:g} "
+             f"{' --physics-mean' if args.physics_mean else ''} --contact-surface {args.contact_surface} "
+             f"--n-iter {args.n_iter} --lr {args.lr:g} "
              f"--method {args.method} --tol {args.tol:g}` ({elapsed:.0f} s). Data by others "
              "(qishuny/3D-RFT-wheel), read from DIR, not copied.",
              "", "Each run is one observation: its mean force over the steady run, with the wheel's contacts at the",
-             "run's measured sinkage, carriage and rim speeds (leading contact: the front half of the rim; the",
-             "grousered wheel averaged over 6 poses across one 15-degree grouser pitch). Held out: all trials of one",
-             "commanded slip; fitted on the other 8 levels. RMSE in N over all 27 held-out runs per wheel.", "",
+             "run's measured sinkage, carriage and rim speeds (leading contact: the part of the surface moving into",
+             "the sand). "
+             + ("Surface in contact: the wheel's convex hull (``rft.wheel.envelope_profile``): the sand in the "
+                "grouser pockets turns with the wheel, so the grousered wheel meets the sand along the polygon "
+                "through its grouser tips (averaged over 6 poses across one 15-degree pitch); the smooth rim is "
+                "its own hull. The ablation row fits the grousered rim as meshed (grouser faces as plates, the "
+                "same 6 poses)."
+                if args.contact_surface == "envelope" else
+                "Surface in contact: the rim as meshed (the grousered wheel's grouser faces as plates, averaged "
+                "over 6 poses across one 15-degree pitch)."),
+             "Held out: all trials of one commanded slip; fitted on the other 8 levels. RMSE in N over all 27 "
+             "held-out runs per wheel.", "",
              "| wheel | predictor | RMSE F_x (longitudinal) [N] | RMSE F_z (vertical) [N] |", "|---|---|---|---|"]
     for wheel, res in results.items():
         for name, (rx, rz) in res["rmse"].items():
             lines.append(f"| {wheel} | {name} | {rx:.2f} | {rz:.2f} |")
-    lines += ["", "I-RFT held-out runs inside the 95 % predictive interval (with the learned noise): "
-              + ", ".join(f"{w} {100 * r['coverage'][0]:.0f} % (x) / {100 * r['coverage'][1]:.0f} % (z)"
-                          for w, r in results.items()) + ".",
+    bar = []
+    for w, r in results.items():
+        mine = r["rmse"]["I-RFT"]
+        others = [n for n in ("generic x LS scale", "others' RFT (files)", "trivial (training mean)")]
+        fails = [f"{n} {('F_x', 'F_z')[a]} ({r['rmse'][n][a]:.2f} <= {mine[a]:.2f} N)"
+                 for n in others for a in (0, 1) if r["rmse"][n][a] <= mine[a]]
+        bar.append(f"{w}: " + ("I-RFT beats all three in both axes" if not fails else "not met, " + "; ".join(fails)))
+    lines += ["", "The bar (I-RFT below each baseline, both axes): " + "; ".join(bar) + "."]
+    lines += ["", "Held-out runs inside the 95 % predictive interval (with the learned noise): "
+              + "; ".join(f"{w} {k} {100 * c[0]:.0f} % (x) / {100 * c[1]:.0f} % (z)"
+                          for w, r in results.items() for k, c in r["coverages"].items()) + ".",
+              "Training folds' negative log marginal likelihood per observation (mean over the 9 folds; lower: "
+              "the training runs alone prefer that contact model): "
+              + "; ".join(f"{w} {k} {v:.3f}" for w, r in results.items() for k, v in r["nll"].items()) + ".",
+              "", "Held-out error per slip level, I-RFT prediction - measured, mean over trials [N] (F_x / F_z):", ""]
+    for wheel, res in results.items():
+        err = {k: (v - res["F"]).numpy() for k, v in res["pred"].items() if k.startswith("I-RFT")}
+        for k, e in err.items():
+            cells = []
+            for g, _ in enumerate(res["levels"]):
+                m = res["group"] == g
+                sl = np.mean([r.slip for r, mm in zip(res["runs"], m) if mm])
+                cells.append(f"{sl:+.2f}: {e[m, 0].mean():+.1f} / {e[m, 1].mean():+.1f}")
+            lines.append(f"- {wheel}, {k}: " + "; ".join(cells))
+    lines += ["",
               "Spread of the measured vertical force (std over runs): "
               + ", ".join(f"{w} {r['F'][:, 1].std().item():.2f} N" for w, r in results.items())
               + "; mean I-RFT fit time "
@@ -307,6 +373,10 @@ def main(argv=None) -> None:
     ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
     ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
+    ap.add_argument("--contact-surface", default="envelope", choices=["envelope", "rim"],
+                    help="what meets the sand: the wheel's convex hull (sand in the grouser pockets turns with "
+                         "the wheel) or the rim as meshed (grouser faces as plates, 6 poses per pitch); with "
+                         "envelope the grousered wheel is also fitted the rim way, as an ablation row")
     ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
     args = ap.parse_args(argv)
     import matplotlib
