@@ -62,3 +62,19 @@ def test_profiles_are_closed_counter_clockwise_rims(wheel):
     # a locked wheel at 3 cm sinkage under the generic map: drag against the motion, lift up
     F = forces(FourierStressMap.generic(), wheel_contacts(prof, 0.01, 0.0, wd.WHEEL_RADIUS, 0.03))[0]
     assert F[0] < 0 < F[1]
+
+
+@needs_data
+def test_grousered_envelope_is_the_tips_circle():
+    """The grousered rim's convex hull: every vertex at a grouser tip (radius 62.2-62.8 mm: the
+    mesh's tips, whose merged segments' ends stick out a little), a polygon of perimeter 2 pi r_tip
+    to 0.1 %, shorter than the rim with its grouser faces."""
+    from irft_torch.rft.wheel import envelope_profile
+
+    prof = wd.read_profile(DATA, "grouser")
+    hull = envelope_profile(prof)
+    half = hull.tangents * (hull.lengths / 2)[:, None]
+    r = (hull.centres - half).norm(dim=-1)
+    assert 0.0622 < r.min().item() and r.max().item() < 0.0628
+    assert hull.lengths.sum().item() == pytest.approx(2 * math.pi * r.mean().item(), rel=1e-3)
+    assert hull.lengths.sum() < prof.lengths.sum()

@@ -54,8 +54,8 @@ def test_force_vs_sinkage_equals_contacts_at_each_sinkage():
     prof = circle_profile(0.0625, 0.06, 200)
     smap = FourierStressMap.generic()
     s = [0.005, 0.02, 0.04]
-    got = W.force_vs_sinkage(smap, prof, Run, "smooth", s)
-    want = np.stack([forces(smap, W.run_contacts(prof, Run, "smooth", x))[0].numpy() for x in s])
+    got = W.force_vs_sinkage(smap, prof, Run, 1, s)
+    want = np.stack([forces(smap, W.run_contacts(prof, Run, 1, x))[0].numpy() for x in s])
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
 
 

@@ -15,7 +15,10 @@ z = radius - sinkage.
 A profile is any ``Toe`` (segments in the axle's frame) traversed counter-clockwise, so that each
 segment's outward normal is its tangent rotated by -90 degrees: ``circle_profile`` for a plain rim,
 ``profile_from_elements`` for a list of surface elements (points, outward normals, lengths), e.g. a
-grousered wheel's mesh cut at the mid-plane.
+grousered wheel's mesh cut at the mid-plane. ``envelope_profile`` replaces a profile by its convex
+hull: the surface that meets the sand when the pockets between grousers fill with sand that turns
+with the wheel (the shear surface at the grouser tips of terramechanics, Wong's "Theory of Ground
+Vehicles" and Bekker for closely spaced grousers); for a convex rim it is the rim itself.
 
 Which part of the rim is in contact (a modelling choice, stated here): ``contact="leading"``
 (default) keeps a submerged segment only when it moves into the sand, i.e. its velocity has a
@@ -44,7 +47,7 @@ from .contacts import Contacts, SegmentKinematics, contacts, segment_kinematics
 from .paths import Path
 from .toes import Toe, _from_vertices, _n_segments, _positive
 
-__all__ = ["circle_profile", "profile_from_elements", "slip_ratio", "wheel_speeds", "wheel_path",
+__all__ = ["circle_profile", "profile_from_elements", "envelope_profile", "slip_ratio", "wheel_speeds", "wheel_path",
            "wheel_kinematics", "contact_mask", "wheel_contacts", "average_rows"]
 
 
@@ -81,6 +84,50 @@ def profile_from_elements(points, normals, lengths, width: float, dtype=torch.fl
     n = n / norm
     tangent = torch.stack([-n[:, 1], n[:, 0]], -1)  # outward normal = tangent rotated by -90 degrees
     return Toe(p, tangent, L, width)
+
+
+def envelope_profile(profile: Toe) -> Toe:
+    """The convex hull of a profile (counter-clockwise ``Toe`` with the same width): its segments'
+    end points (centre -+ tangent x length / 2) hulled, one segment per hull edge. A grousered rim
+    becomes the polygon through its grouser tips (the sand in the pockets moves with the wheel); a
+    convex rim (``circle_profile``) comes back unchanged up to the order of its segments."""
+    if not isinstance(profile, Toe):
+        raise TypeError(f"profile must be a Toe, got {type(profile).__name__}")
+    import numpy as np
+
+    half = profile.tangents * (profile.lengths / 2)[:, None]
+    pts = torch.cat([profile.centres - half, profile.centres + half]).detach().cpu().double().numpy()
+    hull = np.asarray(_convex_hull(pts))
+    # adjacent segments' shared end points differ by rounding: merge vertices closer than 1e-6 x size
+    size = np.ptp(pts, axis=0).max()
+    gap = np.linalg.norm(hull - np.roll(hull, 1, axis=0), axis=1)
+    hull = hull[gap > 1e-6 * size]
+    if len(hull) < 3:
+        raise ValueError("the profile's convex hull is degenerate (all points on a line)")
+    v = torch.as_tensor(hull, dtype=profile.centres.dtype, device=profile.centres.device)
+    return _from_vertices(torch.cat([v, v[:1]]), profile.width)
+
+
+def _convex_hull(pts) -> list:
+    """Andrew's monotone chain: the hull's vertices counter-clockwise, collinear points dropped."""
+    import numpy as np
+
+    p = np.unique(np.round(np.asarray(pts, dtype=np.float64), 15), axis=0)
+    p = p[np.lexsort((p[:, 1], p[:, 0]))]
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower, upper = [], []
+    for q in p:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], q) <= 0:
+            lower.pop()
+        lower.append(q)
+    for q in p[::-1]:
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], q) <= 0:
+            upper.pop()
+        upper.append(q)
+    return lower[:-1] + upper[:-1]
 
 
 def slip_ratio(v, omega, radius: float) -> Tensor:

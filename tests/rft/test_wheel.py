@@ -9,6 +9,7 @@ from irft_torch.rft import FourierStressMap, forces
 from irft_torch.rft.wheel import (
     average_rows,
     circle_profile,
+    envelope_profile,
     profile_from_elements,
     slip_ratio,
     wheel_contacts,
@@ -129,3 +130,48 @@ def test_profile_from_elements_matches_the_circle():
         wheel_contacts(prof, 0.01, 0.1, R, -0.01)
     with pytest.raises(ValueError, match="contact"):
         wheel_contacts(prof, 0.01, 0.1, R, 0.01, contact="all")
+
+
+def _polygon_toe(vertices, width):
+    """A closed polygon (counter-clockwise vertices) as a Toe, built here from the vertices directly."""
+    from irft_torch.rft.toes import Toe
+
+    v = torch.as_tensor(vertices, dtype=torch.float64)
+    a, b = v, torch.roll(v, -1, 0)
+    d = b - a
+    L = d.norm(dim=-1)
+    return Toe((a + b) / 2, d / L[:, None], L, width)
+
+
+def test_envelope_of_a_toothed_rim_is_the_polygon_through_the_tips():
+    """A 12-point star (tips at R, notches at R/2 between them): the hull is the regular hexagon
+    through the 6 tips, side R, perimeter 6 R, area 3 sqrt(3) / 2 R^2, every normal outward."""
+    k = torch.arange(12, dtype=torch.float64)
+    rad = torch.where(k % 2 == 0, torch.full_like(k, R), torch.full_like(k, R / 2))
+    ang = -math.pi / 2 + 2 * math.pi * k / 12
+    star = _polygon_toe(torch.stack([rad * torch.cos(ang), rad * torch.sin(ang)], -1), W)
+    hull = envelope_profile(star)
+    assert hull.n_segments == 6 and hull.width == W
+    torch.testing.assert_close(hull.lengths, torch.full((6,), R, dtype=torch.float64))
+    normal = torch.stack([hull.tangents[:, 1], -hull.tangents[:, 0]], -1)
+    # each edge's outward normal points from the centre to the edge's midpoint (apothem R cos 30 deg)
+    torch.testing.assert_close(normal, hull.centres / hull.centres.norm(dim=-1, keepdim=True))
+    torch.testing.assert_close(hull.centres.norm(dim=-1), torch.full((6,), R * math.cos(math.pi / 6),
+                                                                         dtype=torch.float64))
+    start = hull.centres - hull.tangents * (hull.lengths / 2)[:, None]
+    x, z = start[:, 0], start[:, 1]
+    area = 0.5 * (x * torch.roll(z, -1) - torch.roll(x, -1) * z).sum()  # shoelace: > 0 counter-clockwise
+    assert area.item() == pytest.approx(3 * math.sqrt(3) / 2 * R**2)
+
+
+def test_envelope_of_a_convex_rim_is_the_rim():
+    prof = circle_profile(R, W, 360)
+    hull = envelope_profile(prof)
+    assert hull.n_segments == 360
+    assert hull.lengths.sum().item() == pytest.approx(prof.lengths.sum().item(), rel=1e-12)
+    smap = FourierStressMap.generic()
+    for v, om, s in ((0.01, 0.0, 0.03), (0.01, 0.1 / R, 0.02)):
+        torch.testing.assert_close(forces(smap, average_rows(wheel_contacts(hull, v, om, R, s))),
+                                   forces(smap, average_rows(wheel_contacts(prof, v, om, R, s))))
+    with pytest.raises(TypeError, match="Toe"):
+        envelope_profile(prof.centres)
