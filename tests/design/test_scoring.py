@@ -111,6 +111,55 @@ def test_information_gain_and_integrated_variance_match_dense(method):
     torch.testing.assert_close(scorer.covariance(cand), want, rtol=tol, atol=tol * want.abs().max().item())
 
 
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+def test_batched_scores_of_unequal_candidates_match_dense(method, monkeypatch):
+    """``score`` stacks candidates of different lengths and segment counts into zero-padded blocks,
+    a few rows at a time: each score is still that candidate's own (dense, one at a time)."""
+    import irft_torch.design.scoring as scoring
+
+    monkeypatch.setattr(scoring, "SCORE_ROWS", 12)  # several batches, some with one candidate
+    model = fitted(method)
+    tol = TOL[method]
+    ls, os, noise = hypers(model)
+    cands = [random_contacts(T=T, M=M, seed=30 + i) for i, (T, M) in enumerate([(8, 4), (3, 2), (8, 4), (11, 5),
+                                                                                  (5, 3)])]
+    region = Region.square(5)
+    scorer = ProbeScorer.from_model(model)
+    eig = scorer.score(cands, "eig")
+    iv = scorer.score(cands, "variance", region=region)
+    assert eig.shape == iv.shape == (len(cands),)
+    for i, cand in enumerate(cands):
+        want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand]), noise)
+        assert eig[i].item() == pytest.approx(want.item(), rel=tol)
+        covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
+        _, after = iv_dense(covs, noise, os, region, len(cand))
+        assert iv[i].item() == pytest.approx(after.item(), rel=tol)
+
+
+def test_long_candidates_are_scored_in_the_spectral_root_space_exactly():
+    """Candidates with more samples than the spectral basis has features are scored in F dimensions
+    (Woodbury on the posterior root): the same numbers as the dense T x T computation."""
+    model = fitted("spectral")
+    with torch.no_grad():
+        model.hypers.lengthscale = torch.full((2, 1, 4), 2.5)
+    model.backend.refresh()
+    ls, os, noise = hypers(model)
+    scorer = ProbeScorer.from_model(model)
+    F = scorer.backend.posterior_root(random_contacts(T=2, M=2)).shape[-1]
+    cands = [random_contacts(T=T, M=3, seed=40 + T) for T in (F + 20, F + 7)]
+    assert all(len(c) > F for c in cands)  # the root path
+    region = Region.sign_change(6)
+    eig = scorer.score(cands, "eig")
+    iv = scorer.score(cands, "variance", region=region)
+    for i, cand in enumerate(cands):
+        want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand]), noise)
+        assert eig[i].item() == pytest.approx(want.item(), rel=1e-6)
+        covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
+        _, after = iv_dense(covs, noise, os, region, len(cand))
+        assert iv[i].item() == pytest.approx(after.item(), rel=1e-6)
+        assert iv[i].item() == pytest.approx(scorer.integrated_variance(cand, region).item(), rel=1e-6)
+
+
 def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
     """A candidate sample t with noise scale s_t has noise variance sigma^2 s_t^2: the scores equal a
     dense computation with S + sigma^2 diag(s^2) (the bug: candidates were scored with unit noise)."""

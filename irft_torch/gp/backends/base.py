@@ -80,6 +80,23 @@ class RFTBackend(nn.Module):
     def condition(self, contacts: Contacts, forces: Tensor | None = None) -> RFTBackend:
         raise NotImplementedError
 
+    def posterior_root(self, contacts: Contacts) -> Tensor | None:
+        """Z (2, N, F) with Z Z^T the posterior covariance of the contacts' weighted sums, where the
+        backend has a finite root (the spectral one: F Fourier features), else None."""
+        return None
+
+    def block_covariance(self, contacts: Contacts, sizes: list[int]) -> Tensor:
+        """The diagonal blocks of the posterior covariance of ``contacts`` (sum(sizes), M) split along
+        time into consecutive blocks of ``sizes``: (B, 2, T_max, T_max), each block zero-padded to the
+        longest (noise not included). What scoring B candidates at once needs: each one's own
+        covariance, not the ones between them. This default asks ``posterior`` once per block."""
+        out = contacts.beta.new_zeros(len(sizes), 2, max(sizes), max(sizes))
+        start = 0
+        for i, n in enumerate(sizes):
+            out[i, :, :n, :n] = self.posterior(contacts[start:start + n], covariance=True).covariance
+            start += n
+        return out
+
     def add_data(self, contacts: Contacts, forces: Tensor) -> None:
         raise NotImplementedError
 

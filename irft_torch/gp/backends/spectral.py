@@ -285,6 +285,37 @@ class SpectralBackend(WeightSpaceBackend):
         self._ensure_basis()
         return self._times_posterior(c1) @ self._features_of(c2).mT
 
+    def posterior_root(self, contacts: Contacts) -> Tensor:
+        """Z = Phi R (2, N, F) with R R^T = A, so that Z Z^T is the posterior covariance of the
+        contacts' weighted sums (noise not included): scoring works with it in F dimensions when a
+        candidate has more samples than the basis has features."""
+        self._ensure_basis()
+        _, A = self._u_posterior()
+        hit = self.__dict__.get("_root_cache")
+        if hit is None or hit[0] is not A:
+            lam, V = torch.linalg.eigh(A)
+            hit = self._root_cache = (A, V * lam.clamp_min(0).sqrt()[..., None, :])
+        return self._features_of(contacts) @ hit[1]
+
+    def block_covariance(self, contacts: Contacts, sizes: list[int]) -> Tensor:
+        """Diagonal blocks Phi_i A Phi_i^T (B, 2, T_max, T_max): one product Phi A over every block's rows,
+        then one batched product of the blocks (zero-padded rows add zero rows and columns)."""
+        self._ensure_basis()
+        Phi = self._features_of(contacts)  # (2, N, F)
+        X = self._times_posterior(contacts)
+        B, T = len(sizes), max(sizes)
+        if all(n == T for n in sizes):
+            Pb, Xb = (v.reshape(2, B, T, -1).transpose(0, 1) for v in (Phi, X))
+        else:
+            Pb = Phi.new_zeros(B, 2, T, Phi.shape[-1])
+            Xb = torch.zeros_like(Pb)
+            start = 0
+            for i, n in enumerate(sizes):
+                Pb[i, :, :n], Xb[i, :, :n] = Phi[:, start:start + n], X[:, start:start + n]
+                start += n
+        cov = Xb @ Pb.mT
+        return 0.5 * (cov + cov.mT)
+
     # ---- more data and a growing basis --------------------------------------------------------
     def _with_data(self, c: Contacts, f: Tensor) -> SpectralBackend:
         new = SpectralBackend.__new__(SpectralBackend)
