@@ -6,6 +6,7 @@ leaves open is a field of ``StudySettings`` and is written into the report.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import math
@@ -274,29 +275,27 @@ def _fit_job(job, s: StudySettings, threads: int = 0) -> FitResult:
                     priors=job[8] if len(job) > 8 else "settings")
 
 
-def _run_fits(jobs: list, s: StudySettings, progress: bool, workers: int) -> list[FitResult]:
-    """Every fit, in order; in ``workers`` processes when > 1 (each fit is seeded on its own, so the
-    results do not depend on where or in which order it runs). Large fits are submitted first."""
+def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: int = 1) -> list[FitResult]:
+    """Every fit, in order; in ``pool`` (a process pool of ``workers``) when given (each fit is seeded on
+    its own, so the results do not depend on where or in which order it runs). Large fits first."""
     bar = tqdm(total=len(jobs), desc="irft reproduce", disable=not progress)
     try:
-        if workers <= 1:
+        if pool is None:
             out = []
             for job in jobs:
                 out.append(_fit_job(job, s))
                 bar.update()
             return out
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        from multiprocessing import get_context
+        from concurrent.futures import as_completed
 
         cost = {c: (4 if c.startswith("C") and c.endswith("2") else 1) for c in CONFIGS}  # C-toe gait 2 the dearest
         order = sorted(range(len(jobs)), key=lambda i: -cost.get(jobs[i][0], 1))
         threads = max(1, (os.cpu_count() or 1) // workers)
         out: list = [None] * len(jobs)
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(_fit_job, jobs[i], s, threads): i for i in order}
-            for fut in as_completed(futures):
-                out[futures[fut]] = fut.result()
-                bar.update()
+        futures = {pool.submit(_fit_job, jobs[i], s, threads): i for i in order}
+        for fut in as_completed(futures):
+            out[futures[fut]] = fut.result()
+            bar.update()
         return out
     finally:
         bar.close()
@@ -334,9 +333,34 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
         if config.startswith("I"):
             for ls in s.lengthscale_sensitivity:
                 jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", False, ls, None))
-    t0 = time.perf_counter()
-    results = _run_fits(jobs, s, progress, workers)
-    elapsed = time.perf_counter() - t0
+    with contextlib.ExitStack() as stack:
+        pool = None
+        if workers > 1:
+            from concurrent.futures import ProcessPoolExecutor
+
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=_worker_context()))
+        t0 = time.perf_counter()
+        results = _run_fits(jobs, s, progress, pool, workers)
+        elapsed = time.perf_counter() - t0
+        return _write_study(out, s, results, elapsed, figures, pool)
+
+
+def _worker_context():
+    """Worker processes forked from a server that has imported the study once ("forkserver", where the
+    platform has it: one import instead of one per worker, and no fork of a process whose thread
+    pools are running), else spawned."""
+    from multiprocessing import get_all_start_methods, get_context
+
+    if "forkserver" not in get_all_start_methods():
+        return get_context("spawn")
+    ctx = get_context("forkserver")
+    ctx.set_forkserver_preload(["irft_torch.reproduce"])
+    return ctx
+
+
+def _write_study(out: Path, s: StudySettings, results: list[FitResult], elapsed: float, figures: bool,
+                 pool=None) -> dict:
+    """The tables, figures (in ``pool``'s processes when given) and report of the fitted study."""
 
     def pick(config, prior="zero", noise=0.0, truth="paper scale", ls=None, priors="settings"):
         ls = s.lengthscale if ls is None else ls
@@ -391,8 +415,14 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
                         sum(r.metrics[axis][f"calibration{round(100 * lv)}"] for r in rs) / len(rs) for lv in LEVELS]
                     w.writerow([config, axis, noise, *(_fmt(v) for v in calibration[(config, axis, noise)]), len(rs)])
     if figures:
-        _figures(out, [pick(c)[0] for c in CONFIGS])
-        _reliability_figure(out, calibration)
+        if pool is None:
+            _figures(out, [pick(c)[0] for c in CONFIGS])
+            _reliability_figure(out, calibration)
+        else:  # about a second each: drawn in the workers, side by side
+            tasks = [pool.submit(_figures, out, [pick(c)[0]]) for c in CONFIGS]
+            tasks.append(pool.submit(_reliability_figure, out, calibration))
+            for t in tasks:
+                t.result()
     _report(out, s, results, pick, table2, elapsed, calibration)
     return {"results": results, "elapsed_s": elapsed, "out_dir": str(out)}
 

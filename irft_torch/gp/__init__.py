@@ -18,11 +18,12 @@ from .kernels import AngleKernel, RFTCompositeKernel, angle_covariance
 from .means import GenericShapeMean
 from .model import InverseRFT, Posterior
 from .model_file import ModelFileError
-from .operators import RFTKernelLinearOperator, memory_budget, unique_pairs
+from .operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
 
 __all__ = [
     "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",
+    "RowSeparableRFTOperator",
     "memory_budget", "unique_pairs", "GenericShapeMean", "RFTHyperparameters", "FourierBasis", "RFTBackend",
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",

@@ -82,10 +82,11 @@ def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
         C = factor_coefficients(ls, n_max)  # (..., F, F)
         x = _grid(GRID, ls.dtype, ls.device)
         psi = fourier_features(torch.cat([x, x + math.pi / GRID]), n_max)  # (P, F)
-        terms = psi[:, :, None] * C[..., None, :, :] * psi[:, None, :]  # (..., P, F, F)
         sizes = torch.arange(n_max + 1, device=ls.device) * 2 + 1
-        cum = terms.cumsum(-1).cumsum(-2)  # 2-D prefix sums: the leading blocks' quadratic forms
-        kk = cum[..., sizes - 1, sizes - 1]  # (..., P, n_max + 1)
+        # the leading blocks' quadratic forms psi_:k^T C_:k,:k psi_:k are prefix sums over i of
+        # r_i = psi_i (2 sum_{j<i} C_ij psi_j + C_ii psi_i): one product with the lower triangle
+        Ct = 2 * torch.tril(C, -1) + torch.diag_embed(torch.diagonal(C, dim1=-2, dim2=-1))
+        kk = (psi * (psi @ Ct.mT)).cumsum(-1)[..., sizes - 1]  # (..., P, n_max + 1)
         return (1 - kk).abs().amax(-2)
 
 

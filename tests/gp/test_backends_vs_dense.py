@@ -22,11 +22,17 @@ TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
 
 def random_contacts(T=25, M=4, seed=0, repeated=False):
     """Random angles, zero-weight segments, mixed left/right motion (sign of weight_x); with
-    ``repeated`` the angles come from a few values (many segments share a pair)."""
+    ``repeated`` the angles come from a few values (many segments share a pair); with
+    ``repeated="translating"`` a translating toe: one gamma per row, one beta per segment slot (its
+    sign flipped on some rows, as the canonical mirror does)."""
     g = torch.Generator().manual_seed(seed)
     beta = (torch.rand(T, M, generator=g) - 0.5) * P
     gamma = (torch.rand(T, M, generator=g) - 0.5) * P
-    if repeated:
+    if repeated == "translating":
+        flip = torch.where(torch.rand(T, 1, generator=g) < 0.3, -1.0, 1.0)
+        beta = flip * beta[:1].expand(T, M)
+        gamma = gamma[:, :1].expand(T, M).clone()
+    elif repeated:
         beta, gamma = (beta * 1.3).round() / 1.3, (gamma * 1.3).round() / 1.3
     w = torch.rand(T, M, generator=g) * 3
     w[torch.rand(T, M, generator=g) < 0.3] = 0.0  # above the surface / padding
@@ -62,7 +68,7 @@ def references(model, c, f):
             for a, w in enumerate((c.weight_x, c.weight_z))]
 
 
-@pytest.mark.parametrize("repeated", [False, True])
+@pytest.mark.parametrize("repeated", [False, True, "translating"])
 @pytest.mark.parametrize("prior", ["zero", "physics"])
 @pytest.mark.parametrize("method", BACKENDS)
 def test_likelihood_and_every_gradient_match_dense(method, prior, repeated):
@@ -116,6 +122,28 @@ def test_map_and_force_posteriors_match_dense(method, prior):
         mu, var = refs[a][2](cs, w, prior_mean(model, cs, a, w))
         torch.testing.assert_close(pred.mean[:, a], mu, rtol=tol, atol=tol * mu.abs().max().item())
         torch.testing.assert_close(pred.variance[:, a], var, rtol=tol, atol=tol * var.abs().max().item())
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_translating_toe_posteriors_match_dense(method):
+    """A translating toe (one gamma per row): the observations backend's kernel takes its product form
+    (``RowSeparableRFTOperator``); posteriors of translating and of general queries match dense."""
+    from irft_torch.gp import RowSeparableRFTOperator
+
+    c, f = data(T=30, M=4, seed=5, repeated="translating")
+    model = irft.InverseRFT(c, f, prior_mean="physics", method=method, priors=None)
+    set_hypers(model, seed=4)
+    if method == "observations":
+        gp = model.backend.gp
+        assert isinstance(gp.covar_module.forward(*gp.train_inputs * 2), RowSeparableRFTOperator)
+    refs = references(model, c, f)
+    tol = TOL[method]
+    for cs in (random_contacts(T=9, M=3, seed=6, repeated="translating"), random_contacts(T=7, M=5, seed=8)):
+        pred = model.predict_forces(cs)
+        for a, w in enumerate((cs.weight_x, cs.weight_z)):
+            mu, var = refs[a][2](cs, w, prior_mean(model, cs, a, w))
+            torch.testing.assert_close(pred.mean[:, a], mu, rtol=tol, atol=tol * mu.abs().max().item())
+            torch.testing.assert_close(pred.variance[:, a], var, rtol=tol, atol=tol * var.abs().max().item())
 
 
 @pytest.mark.parametrize("method", BACKENDS)

@@ -5,7 +5,7 @@ import unittest
 import torch
 from linear_operator.test.linear_operator_test_case import LinearOperatorTestCase, RectangularLinearOperatorTestCase
 
-from irft_torch.gp import RFTKernelLinearOperator
+from irft_torch.gp import RFTKernelLinearOperator, RowSeparableRFTOperator
 
 
 def make(batch=(), T1=6, T2=6, M=3, U=20, seed=0, square=True):
@@ -119,3 +119,52 @@ def test_unique_pairs_agrees_with_torch_unique():
         assert u.shape == want.shape and torch.equal(torch.unique(u, dim=0), want)
     u, inv = unique_pairs(torch.zeros(0, 2, dtype=torch.float64))
     assert u.shape == (0, 2) and inv.shape == (0,)
+
+
+def make_separable(batch=(), T1=6, T2=5, nb=3, seed=0, square=True):
+    """A RowSeparableRFTOperator with random tables: n_b distinct betas, one gamma per row."""
+    g = torch.Generator().manual_seed(seed)
+    zb = torch.randn(*batch, nb, 2, generator=g, dtype=torch.float64)
+    zg1 = torch.randn(*batch, T1, 2, generator=g, dtype=torch.float64) * 2.0
+    s = torch.rand(*batch, 1, 1, generator=g, dtype=torch.float64) + 2.0
+    L1 = torch.rand(*batch, T1, nb, generator=g, dtype=torch.float64) + 0.5
+    if square:
+        return RowSeparableRFTOperator(zb, zb, zg1, zg1, s, L1, L1)
+    zg2 = torch.randn(*batch, T2, 2, generator=g, dtype=torch.float64)
+    L2 = torch.randn(*batch, T2, nb + 1, generator=g, dtype=torch.float64)
+    zb2 = torch.randn(*batch, nb + 1, 2, generator=g, dtype=torch.float64)
+    return RowSeparableRFTOperator(zb, zb2, zg1, zg2, s, L1, L2)
+
+
+def dense_separable(op):
+    """s exp(-|zg_t - zg_t'|^2 / 2) (L1 exp(-|zb - zb'|^2 / 2) L2^T), written with explicit differences."""
+    zb1, zb2, zg1, zg2, s, L1, L2 = op._args
+    kb = torch.exp(-0.5 * ((zb1[..., :, None, :] - zb2[..., None, :, :]) ** 2).sum(-1))
+    kg = torch.exp(-0.5 * ((zg1[..., :, None, :] - zg2[..., None, :, :]) ** 2).sum(-1))
+    return s * kg * (L1 @ kb @ L2.mT)
+
+
+class TestRowSeparableRFTOperator(LinearOperatorTestCase, unittest.TestCase):
+    seed = 0
+    should_test_sample = False
+
+    def create_linear_op(self):
+        return with_grads(make_separable(T1=6, nb=6))  # n_b = T: full rank, so the battery's solves are defined
+
+    def evaluate_linear_op(self, linear_op):
+        return dense_separable(linear_op)
+
+
+class TestRowSeparableRFTOperatorBatch(TestRowSeparableRFTOperator):
+    def create_linear_op(self):
+        return with_grads(make_separable(batch=(2,), T1=5, nb=5, seed=1))
+
+
+class TestRowSeparableRFTOperatorRectangular(RectangularLinearOperatorTestCase, unittest.TestCase):
+    seed = 0
+
+    def create_linear_op(self):
+        return with_grads(make_separable(seed=2, square=False))
+
+    def evaluate_linear_op(self, linear_op):
+        return dense_separable(linear_op)

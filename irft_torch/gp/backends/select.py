@@ -6,7 +6,7 @@ import torch
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
-from ..operators import unique_pairs
+from ..operators import row_separable, unique_pairs
 from .base import RFTBackend, touching
 from .observations import ObservationsBackend
 from .pairs import PairsBackend, distinct_pairs
@@ -25,14 +25,20 @@ SPECTRAL_PENALTY = 1.5  # prefer the arithmetic-exact spaces when costs are clos
 # 19-28 / 200 ms in pairs: about 3 Gflop/s of the pairs and spectral estimates, and of this one
 # only with 120 flops per element (the former 40 made observations look 3x cheaper than it is).
 KERNEL_FLOPS = 120.0
+# Each backend's floor per step, whatever the size (Python, autograd and gpytorch's bookkeeping), in
+# the same units (about 3 Mflop per ms): measured on the paper's four configurations (T = 100, one
+# thread) at 2.4 ms (observations), 1.0 ms (pairs) and 3.5 ms (spectral) per likelihood + gradient step.
+STEP_OVERHEAD = {"observations": 7e6, "pairs": 3e6, "spectral": 10e6}
 
 
 def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int | None = None) -> dict[str, float]:
-    """Rough flop counts of a fit (N_ITER likelihood + gradient steps and the one-time work) in each space.
+    """Rough flop counts of one likelihood + gradient step (the one-time work spread over N_ITER steps)
+    in each space, plus each backend's fixed floor per step (``STEP_OVERHEAD``).
 
     T: samples in contact, U: distinct angle pairs, S: segments in contact, F: Fourier features for the
     current lengthscales. Observations: T^3 / 3 per step plus the kernel block (``KERNEL_FLOPS`` per
-    element for the exp, its gradient and the gathers, over S x min(U, S) elements); pairs:
+    element for the exp, its gradient and the gathers, over S x min(U, S) elements; for a translating
+    toe, ``operators.row_separable``, T^2 (n_b + KERNEL_FLOPS / 10): one exp per pair of rows); pairs:
     O(min(T, U)^3 + U^2 (10 + min(T, U))); spectral: O(r^3 + r^2 F + r F (F_beta + F_gamma)),
     r = min(T, F), plus the one pass T F^2.
     """
@@ -43,13 +49,18 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     basis = FourierBasis.for_lengthscale(hypers.lengthscale, tol)
     F, (Fb, Fg) = basis.size, basis.sizes
     capped = max(basis.n_beta, basis.n_gamma) >= MAX_HARMONICS  # the tolerance is out of reach: not exact
-    obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
+    sep = row_separable(contacts.beta, contacts.gamma, contacts.weight_x.abs() + contacts.weight_z.abs())
+    if sep is not None:  # a translating toe: the kernel's product form, T^2 (n_b + 1) per step, no exp per segment
+        obs = T**3 / 3 + T**2 * (sep["betas"].numel() + KERNEL_FLOPS / 10)
+    else:
+        obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
     r = min(T, U)
     pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
     r = min(T, F)
     spectral = (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
     spectral = float("inf") if capped else float(spectral * SPECTRAL_PENALTY)
-    return {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
+    costs = {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
+    return {m: v + STEP_OVERHEAD[m] for m, v in costs.items()}
 
 
 def estimate_pairs(c: Contacts, sample: int = 50_000) -> int:
