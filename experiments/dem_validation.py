@@ -40,6 +40,7 @@ the target plus the run's own noise). The data are read from --data and never co
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -294,7 +295,31 @@ def build_parser() -> argparse.ArgumentParser:
                     help="I-RFT with a per-run random stress learned by the marginal likelihood (experimental)")
     ap.add_argument("--plain-iter", type=int, default=300, help="Adam steps per plain-GP fit (the README's 300)")
     ap.add_argument("--splits", default="beta,gamma", help="which held-out splits: beta, gamma or both")
+    ap.add_argument("--jobs", type=int, default=0,
+                    help="worker processes for the folds (0: one per CPU, at most 8; 1: this process)")
     return ap
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(a) -> None:
+    """A fold worker: one torch thread (the fits are small), the data read once."""
+    torch.set_num_threads(1)
+    torch.set_default_dtype(torch.float64)
+    runs, _ = dem_data.read_runs(a.data)
+    _WORKER["data"] = [RunData(r, a.min_depth) for r in runs if (r.depth > a.min_depth).sum() >= 3]
+    _WORKER["a"] = a
+
+
+def _fold_task(split: str, idx: list[int], keep_models: bool):
+    """One fold in a worker: run_fold on its data; the fitted models only where the figures need them."""
+    data, a = _WORKER["data"], _WORKER["a"]
+    train = [d for i, d in enumerate(data) if i not in idx]
+    out, info = run_fold(train, [data[i] for i in idx], a)
+    if not keep_models:
+        info["models"] = None
+    return out, info
 
 
 def main(argv=None) -> dict:
@@ -313,22 +338,38 @@ def main(argv=None) -> dict:
         if s not in SPLITS:
             raise SystemExit(f"--splits: expected beta and/or gamma, got {s!r}")
     results, fold_info, fig_fold = {}, {}, None
+    all_folds = {}
     for split in splits:
         key = [d.run.beta_deg if split == "beta" else d.run.gamma_deg for d in data]
-        folds = [(v, [i for i, k in enumerate(key) if k == v]) for v in sorted(set(key))]
+        all_folds[split] = [(v, [i for i, k in enumerate(key) if k == v]) for v in sorted(set(key))]
+    jobs = a.jobs or min(8, os.cpu_count() or 1)
+    figure_fold = ("beta", 45.0)  # the held-out force figure's fold: its models come back from the worker
+    if jobs > 1:  # folds are independent: one per worker process, the data read once per worker
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+
+        with ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=_init_worker,
+                                 initargs=(a,)) as pool:
+            futures = {(split, v): pool.submit(_fold_task, split, idx, (split, v) == figure_fold)
+                       for split in splits for v, idx in all_folds[split]}
+            fold_results = {k: f.result() for k, f in futures.items()}
+    else:
+        fold_results = None
+    for split in splits:
+        folds = all_folds[split]
         preds = {n: {t: [] for t in TARGETS} for n in IRFT + BASELINES}
         force_err = {n: [] for n in IRFT + BASELINES}
         fold_info[split] = []
         for v, idx in folds:
             train = [d for i, d in enumerate(data) if i not in idx]
             test = [data[i] for i in idx]
-            out, info = run_fold(train, test, a)
+            out, info = fold_results[(split, v)] if fold_results else run_fold(train, test, a)
             for n in out:
                 for t in TARGETS:
                     preds[n][t].append(out[n][t])
                 force_err[n].append(info["forces"][n])
             fold_info[split].append((v, info["offset"], info["stride"], *info["learned"]))
-            if split == "beta" and v == 45.0:
+            if (split, v) == figure_fold:
                 fig_fold = (info["models"][DEFAULT], train, test, info["offset"], info["models"][LEARNED],
                             info["learned"][0])
             lo, lsd, ls = info["learned"]

@@ -214,16 +214,19 @@ def test_real_data_reproduces_the_readme_through_origin_figures():
 
 
 @needs_data
-def test_dem_validation_experiment_runs_small(tmp_path):
-    import importlib.util
+def test_dem_validation_experiment_runs_small(tmp_path, monkeypatch):
+    import importlib
 
-    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "dem_validation.py"
-    spec = importlib.util.spec_from_file_location("dem_validation", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    res = mod.main(["--data", str(DATA), "--out", str(tmp_path), "--stride", "1000", "--eval-stride", "200",
-                    "--n-iter", "3", "--plain-iter", "3"])
+    # importable by name, as when run as a script: the fold workers (spawned processes) import it
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[1] / "experiments"))
+    mod = importlib.import_module("dem_validation")
+    small = ["--data", str(DATA), "--stride", "1000", "--eval-stride", "200", "--n-iter", "3", "--plain-iter", "3"]
+    res = mod.main([*small, "--out", str(tmp_path), "--jobs", "2"])
     text = (tmp_path / "dem_validation.md").read_text()
+    serial = mod.main([*small, "--out", str(tmp_path / "serial"), "--jobs", "1"])  # the folds in this process
+    tables = lambda t: [ln for ln in t.splitlines() if ln.startswith("|")]  # noqa: E731
+    assert tables((tmp_path / "serial" / "dem_validation.md").read_text()) == tables(text)
+    assert serial.keys() == res.keys()
     for name in mod.IRFT + mod.BASELINES:
         assert f"| {name}" in text
     assert "leave-one-beta-out" in text and "leave-one-gamma-out" in text and "the README's figure" in text

@@ -47,6 +47,7 @@ buffers are left out of state dicts.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -111,13 +112,24 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     noise = centres["noise"].to(dtype)
     log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
     os_sd = NOISE_LOG_SD if (physics_mean or learned_surface) else OUTPUTSCALE_LOG_SD
-    zero = lambda: torch.zeros((), dtype=dtype)  # noqa: E731
-    hypers.kernel.register_prior(
-        "outputscale_prior", _stateless(NormalPrior(zero(), os_sd)),
-        lambda m, c=log_os: m.outputscale.log() - c.to(m.outputscale))
-    hypers.kernel.base_kernel.register_prior(
-        "lengthscale_prior", _stateless(NormalPrior(zero(), LENGTHSCALE_LOG_SD)),
-        lambda m, c=log_ls: m.lengthscale.log() - c)
-    hypers.likelihood.noise_covar.register_prior(
-        "noise_prior", _stateless(NormalPrior(zero(), NOISE_LOG_SD)),
-        lambda m, c=log_noise: m.noise.reshape(-1).log() - c.to(m.noise))
+    zero = torch.zeros((), dtype=dtype)
+    # closures as partials of module-level functions, so that a model pickles (process pools, copies)
+    hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
+                                 functools.partial(_log_outputscale_ratio, c=log_os))
+    hypers.kernel.base_kernel.register_prior("lengthscale_prior",
+                                             _stateless(NormalPrior(zero.clone(), LENGTHSCALE_LOG_SD)),
+                                             functools.partial(_log_lengthscale_ratio, c=log_ls))
+    hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
+                                                 functools.partial(_log_noise_ratio, c=log_noise))
+
+
+def _log_outputscale_ratio(m, c):
+    return m.outputscale.log() - c.to(m.outputscale)
+
+
+def _log_lengthscale_ratio(m, c):
+    return m.lengthscale.log() - c
+
+
+def _log_noise_ratio(m, c):
+    return m.noise.reshape(-1).log() - c.to(m.noise)

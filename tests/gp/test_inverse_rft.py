@@ -332,3 +332,21 @@ def test_state_dict_holds_the_hyperparameters_whatever_the_backend(gait1):
     torch.testing.assert_close(b.hypers.lengthscale, a.hypers.lengthscale)
     bb = torch.linspace(-1, 1, 5)
     torch.testing.assert_close(b.stress_map(bb, bb).mean, a.stress_map(bb, bb).mean, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("surface", [False, True])
+def test_a_model_pickles_and_deep_copies(surface):
+    """Process pools and copies pickle a model (the priors' closures included): the copy answers the same."""
+    import copy
+    import pickle
+
+    toe = irft.rft.CToe(0.02, 0.008)
+    c = irft.rft.contacts(toe, irft.rft.rectangle_path(n_steps=60))
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
+    m = irft.InverseRFT(c, f, surface_offset=surface)
+    m.fit(n_iter=5, progress=False)
+    b = torch.linspace(-1, 1, 4)
+    for other in (pickle.loads(pickle.dumps(m)), copy.deepcopy(m)):
+        torch.testing.assert_close(other.stress_map(b, b).mean, m.stress_map(b, b).mean, rtol=0, atol=0)
+        assert float(other.loss()) == float(m.loss())
+        assert [n for n, *_ in other.hypers.named_priors()] == [n for n, *_ in m.hypers.named_priors()]
