@@ -38,6 +38,7 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
 from ..gp.backends import RFTBackend, make_backend
+from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
@@ -312,10 +313,9 @@ class ProbeScorer:
         observation of nothing: it adds 0 to the information gain and to the variance reduction)."""
         sizes = [len(c) for c in cands]
         both = Contacts.cat(cands)
-        T = max(sizes)
-        Z = self.backend.posterior_root(both)  # (2, sum T, F) or None
-        if Z is not None and Z.shape[-1] < T:
-            return self._score_root_batch(Z, sizes, criterion, region)
+        probe = self.backend.posterior_root(both[:1])  # the root's width F (or None), from one row
+        if probe is not None and probe.shape[-1] < max(sizes):
+            return self._score_root_batch(self.backend.posterior_root(both), sizes, criterion, region)
         S = self.backend.block_covariance(both, sizes)  # (B, 2, T, T)
         if criterion == "eig":
             eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
@@ -323,15 +323,7 @@ class ProbeScorer:
             return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum((-1, -2))
         region, rc, var = self._region(region)
         w = region.weight.to(var)
-        k = self.backend.cross_covariance(rc, both)  # (2, N, sum T)
-        if all(n == T for n in sizes):
-            kb = k.reshape(2, -1, len(sizes), T).permute(2, 0, 1, 3)
-        else:
-            kb = k.new_zeros(len(sizes), 2, k.shape[1], T)
-            start = 0
-            for i, n in enumerate(sizes):
-                kb[i, :, :, :n] = k[:, :, start:start + n]
-                start += n
+        kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
         L = psd_safe_cholesky(_plus_noise(S, self.noise))
         B = torch.linalg.solve_triangular(L, kb.mT, upper=False)  # (B, 2, T, N)
         iv = ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale  # (B, 2)
@@ -342,15 +334,8 @@ class ProbeScorer:
         the candidate's rows of the posterior root and L L^T = I + Z_i^T Z_i / noise,
         EIG = sum log diag L, and the region's variance after it is tr(Omega (L L^T)^{-1}), Omega =
         Z_r^T diag(w) Z_r (Woodbury: no T x T matrix, no subtraction)."""
-        B, T, F = len(sizes), max(sizes), Z.shape[-1]
-        if all(n == T for n in sizes):
-            Zb = Z.reshape(2, B, T, F).transpose(0, 1)
-        else:
-            Zb = Z.new_zeros(B, 2, T, F)
-            start = 0
-            for i, n in enumerate(sizes):
-                Zb[i, :, :n] = Z[:, start:start + n]
-                start += n
+        F = Z.shape[-1]
+        Zb = split_blocks(Z, sizes)  # (B, 2, T, F)
         gram = Zb.mT @ Zb  # (B, 2, F, F)
         eye = torch.eye(F, dtype=Z.dtype, device=Z.device)
         L = psd_safe_cholesky(eye + 0.5 * (gram + gram.mT) / self.noise[:, None, None])

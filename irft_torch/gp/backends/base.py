@@ -48,6 +48,21 @@ def touching(c: Contacts) -> Tensor:
     return ((c.weight_x != 0) | (c.weight_z != 0)).any(-1)
 
 
+def split_blocks(x: Tensor, sizes: list[int], dim: int = -2) -> Tensor:
+    """x (..., sum(sizes), ...) cut along ``dim`` into consecutive blocks of ``sizes``, stacked in front
+    and zero-padded to the longest: (B, ..., max(sizes), ...). A view when the blocks are equal."""
+    dim = dim % x.ndim
+    B, T = len(sizes), max(sizes)
+    if all(n == T for n in sizes):
+        return x.unflatten(dim, (B, T)).movedim(dim, 0)
+    out = x.new_zeros(B, *x.shape[:dim], T, *x.shape[dim + 1:])
+    start = 0
+    for i, n in enumerate(sizes):
+        out[i].narrow(dim, 0, n).copy_(x.narrow(dim, start, n))
+        start += n
+    return out
+
+
 class RFTBackend(nn.Module):
     """Base class of the exact backends ("observations", "pairs", "spectral").
 

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
-from .base import FunctionalPosterior
+from .base import FunctionalPosterior, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
 __all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features"]
@@ -303,17 +303,7 @@ class SpectralBackend(WeightSpaceBackend):
         self._ensure_basis()
         Phi = self._features_of(contacts)  # (2, N, F)
         X = self._times_posterior(contacts)
-        B, T = len(sizes), max(sizes)
-        if all(n == T for n in sizes):
-            Pb, Xb = (v.reshape(2, B, T, -1).transpose(0, 1) for v in (Phi, X))
-        else:
-            Pb = Phi.new_zeros(B, 2, T, Phi.shape[-1])
-            Xb = torch.zeros_like(Pb)
-            start = 0
-            for i, n in enumerate(sizes):
-                Pb[i, :, :n], Xb[i, :, :n] = Phi[:, start:start + n], X[:, start:start + n]
-                start += n
-        cov = Xb @ Pb.mT
+        cov = split_blocks(X, sizes) @ split_blocks(Phi, sizes).mT
         return 0.5 * (cov + cov.mT)
 
     # ---- more data and a growing basis --------------------------------------------------------
