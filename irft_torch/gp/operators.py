@@ -147,6 +147,12 @@ def _beta_gamma_embedding(betas: Tensor, gamma: Tensor, lengthscale: Tensor) -> 
     return zb, zg
 
 
+def _paired_rbf(a: Tensor, b: Tensor, s: Tensor) -> Tensor:
+    """s exp(-|a_i - b_i|^2 / 2) row by row, through ``rbf``: a, b (..., n, D), s broadcastable to
+    (..., n) -> (..., n)."""
+    return rbf(a[..., None, :], b[..., None, :], s.expand(a.shape[:-1])[..., None, None])[..., 0, 0]
+
+
 class RowSeparableRFTOperator(LinearOperator):
     r"""Lazy :math:`s\,K_\gamma(\gamma_1, \gamma_2) \circ (L_1 K_eta L_2^	op)`: the same W K W^T as
     :class:`RFTKernelLinearOperator` when each observation's segments share one gamma (a translating
@@ -188,14 +194,14 @@ class RowSeparableRFTOperator(LinearOperator):
         return torch.cat([self._rows(i, i + chunk, Kb) @ rhs for i in range(0, T1, chunk)], dim=-2)
 
     def _diagonal(self) -> Tensor:
-        kg = self.outputscale[..., 0] * torch.exp(-0.5 * (self.zg1 - self.zg2).pow(2).sum(-1))
+        kg = _paired_rbf(self.zg1, self.zg2, self.outputscale[..., 0])
         return kg * ((self.L1 @ self._beta_block()) * self.L2).sum(-1)
 
     def _get_indices(self, row_index, col_index, *batch_indices) -> Tensor:
         Kb = self._beta_block()
         zg1, zg2 = self.zg1[(*batch_indices, row_index)], self.zg2[(*batch_indices, col_index)]
         s = self.outputscale[(*batch_indices,)][..., 0, 0] if batch_indices else self.outputscale[..., 0, 0]
-        kg = s * torch.exp(-0.5 * (zg1 - zg2).pow(2).sum(-1))
+        kg = _paired_rbf(zg1, zg2, s)
         left = (self.L1 @ Kb)[(*batch_indices, row_index)]
         right = self.L2[(*batch_indices, col_index)]
         return kg * (left * right).sum(-1)
