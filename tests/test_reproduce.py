@@ -205,6 +205,19 @@ def test_sampling_statistics_match_the_hand_count():
         assert st["I-toe gait 1 (1e-3 rad)"] == pytest.approx(1 - 3 / n_total, rel=1e-12)
     text = "\n".join(R._pinning_rows(R.StudySettings()))
     assert "| paper | 10.0 | 18.1 | 5.1 | 0.97 | 0.68 | 0.11 |" in text and "| 100 (the study) |" in text
+    # the turning hypothesis: the C-toe's heading follows the direction of motion, so its segments' beta
+    # move with the path's slope (every segment's beta shifts by the heading's change) and gait 2's
+    # distinct pairs can only grow
+    s = R.StudySettings(n_steps=20)
+    toe, path = R.configuration("C-toe gait 2", s)
+    turned = R.tangent_heading(path)
+    v = path.velocity
+    torch.testing.assert_close(turned.heading, torch.atan2(v[:, 1], v[:, 0]))
+    fixed, turning = contacts(toe, path), contacts(toe, turned)
+    assert turning.beta[turning.weight_z != 0].unique().numel() > fixed.beta[fixed.weight_z != 0].unique().numel()
+    st = R.sampling_statistics(s, c_turns_on_gait_2=True)
+    assert st["C/I gait 2"] > R.sampling_statistics(s)["C/I gait 2"]
+    assert st["C/I gait 1"] == pytest.approx(10.0)  # gait 1 untouched
 
 
 def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(tmp_path):
