@@ -259,3 +259,21 @@ def test_calibration_prior_draws_have_the_kernels_covariance():
     a1, a2 = d(b, g), d(-b, torch.pi - g)
     torch.testing.assert_close(a2[..., 0], -a1[..., 0])
     torch.testing.assert_close(a2[..., 1], a1[..., 1])
+
+
+def test_pinned_fits_use_the_paper_sampling():
+    # Table I under the pinned sampling: PINNED_STEPS samples per path, the C-toe turning on gait 2 only
+    import torch
+
+    from irft_torch import reproduce as R
+    from irft_torch.rft import FourierStressMap
+
+    torch.set_default_dtype(torch.float64)
+    s = R.StudySettings(n_iter=2, grid=8)
+    truth = FourierStressMap.generic(*s.truth_scale)
+    for config in ("C-toe gait 1", "C-toe gait 2"):
+        r = R._fit_one(config, "zero", 0.0, 0, truth, "paper scale", s, keep_maps=True, pinned=True)
+        c = r.maps["contacts"]
+        assert r.pinned and len(c) == R.PINNED_STEPS
+        n_beta = c.beta[c.weight_z != 0].unique().numel()
+        assert (n_beta > s.n_segments) == (config == "C-toe gait 2")  # only the turning toe's betas move
