@@ -260,7 +260,19 @@ class ProbeScorer:
         eig = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         return eig if per_axis else eig.sum()
 
+    def _belief_key(self) -> tuple:
+        """What the cached region values depend on: the backend's data (its sample count grows with
+        ``add_data``) and the hyperparameters (a refit moves them; they are shared with the model)."""
+        with torch.no_grad():
+            return self.backend.n_samples, torch.cat([p.detach().reshape(-1) for p in self.backend.hypers.parameters()])
+
     def _region(self, region: Region | None) -> tuple[Region, Contacts, Tensor]:
+        key = self._belief_key()
+        old = self.__dict__.get("_cache_key")
+        if old is None or old[0] != key[0] or not torch.equal(old[1], key[1]):  # the model moved: forget
+            self._regions.clear()
+            self.__dict__.pop("_omega", None)
+            self._cache_key = key
         if region is None:
             self._square = self._square or Region.square(dtype=self.noise.dtype)
             region = self._square
@@ -297,15 +309,21 @@ class ProbeScorer:
         cands = [self._cast(c) for c in candidates]
         if not cands:
             return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
-        out, chunk, rows = [], [], 0
-        for c in cands:  # batches of about SCORE_ROWS rows: one covariance product and one Cholesky each
-            if chunk and rows + len(c) > SCORE_ROWS:
-                out.append(self._score_batch(chunk, criterion, region))
-                chunk, rows = [], 0
-            chunk.append(c)
-            rows += len(c)
-        out.append(self._score_batch(chunk, criterion, region))
-        return torch.cat(out)
+        # Batches of candidates of similar length (shortest first, so that padding to the longest wastes
+        # little), each at most SCORE_ROWS rows and SCORE_ROWS^2 / 10 padded block entries: one covariance
+        # product and one Cholesky per batch.
+        order = sorted(range(len(cands)), key=lambda i: len(cands[i]))
+        scores = [None] * len(cands)
+        chunk: list[int] = []
+        for i in order + [None]:
+            if chunk and (i is None or (sum(len(cands[j]) for j in chunk) + len(cands[i]) > SCORE_ROWS
+                                        or (len(chunk) + 1) * len(cands[i]) ** 2 > SCORE_ROWS**2 // 10)):
+                for j, v in zip(chunk, self._score_batch([cands[j] for j in chunk], criterion, region)):
+                    scores[j] = v
+                chunk = []
+            if i is not None:
+                chunk.append(i)
+        return torch.stack(scores)
 
     def _score_batch(self, cands: list[Contacts], criterion: str, region: Region | None) -> Tensor:
         """The scores of candidates already cast, at once: every candidate's own posterior covariance
@@ -313,8 +331,8 @@ class ProbeScorer:
         observation of nothing: it adds 0 to the information gain and to the variance reduction)."""
         sizes = [len(c) for c in cands]
         both = Contacts.cat(cands)
-        probe = self.backend.posterior_root(both[:1])  # the root's width F (or None), from one row
-        if probe is not None and probe.shape[-1] < max(sizes):
+        F = self.backend.root_size()
+        if F is not None and F < max(sizes):
             return self._score_root_batch(self.backend.posterior_root(both), sizes, criterion, region)
         S = self.backend.block_covariance(both, sizes)  # (B, 2, T, T)
         if criterion == "eig":

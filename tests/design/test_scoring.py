@@ -136,6 +136,35 @@ def test_batched_scores_of_unequal_candidates_match_dense(method, monkeypatch):
         assert iv[i].item() == pytest.approx(after.item(), rel=tol)
 
 
+@pytest.mark.parametrize("method", ["observations", "spectral"])
+def test_batches_pad_little_and_empty_candidates_teach_nothing(method, monkeypatch):
+    """One long candidate among many short ones is not padded into their batch (memory B T_max^2), the
+    scores come back in the candidates' order, and a candidate with no row at all scores EIG 0 and
+    leaves the variance as it is."""
+    import irft_torch.design.scoring as scoring
+
+    model = fitted(method)
+    scorer = ProbeScorer.from_model(model)
+    seen = []
+    real = scoring.ProbeScorer._score_batch
+
+    def spy(self, cands, criterion, region):
+        seen.append((len(cands), max(len(c) for c in cands)))
+        return real(self, cands, criterion, region)
+
+    monkeypatch.setattr(scoring.ProbeScorer, "_score_batch", spy)
+    short = [random_contacts(T=2, M=2, seed=50 + i) for i in range(30)]
+    cands = short[:15] + [random_contacts(T=600, M=2, seed=49)] + short[15:]
+    got = scorer.score(cands, "eig")
+    assert all(b * t**2 <= scoring.SCORE_ROWS**2 // 10 or b == 1 for b, t in seen), seen
+    one_by_one = torch.stack([scorer.information_gain(c) for c in cands])
+    torch.testing.assert_close(got, one_by_one, rtol=1e-9, atol=1e-12)
+    empty = random_contacts(T=3, M=2, seed=7)[:0]
+    eig, iv = scorer.score([empty, short[0]], "eig"), scorer.score([empty, short[0]], "variance")
+    assert eig[0].item() == 0.0 and iv[0].item() == pytest.approx(scorer.integrated_variance().item(), rel=1e-12)
+    assert eig[1].item() > 0
+
+
 def test_long_candidates_are_scored_in_the_spectral_root_space_exactly():
     """Candidates with more samples than the spectral basis has features are scored in F dimensions
     (Woodbury on the posterior root): the same numbers as the dense T x T computation."""
@@ -158,6 +187,28 @@ def test_long_candidates_are_scored_in_the_spectral_root_space_exactly():
         _, after = iv_dense(covs, noise, os, region, len(cand))
         assert iv[i].item() == pytest.approx(after.item(), rel=1e-6)
         assert iv[i].item() == pytest.approx(scorer.integrated_variance(cand, region).item(), rel=1e-6)
+
+
+@pytest.mark.parametrize("method", ["observations", "spectral"])
+def test_a_scorer_follows_its_model_after_add_data_and_a_refit(method):
+    """A scorer shares its model's backend: after ``model.add_data`` (or a refit moving the shared
+    hyperparameters) its cached region values must not describe the old belief."""
+    model = fitted(method)
+    if method == "spectral":
+        with torch.no_grad():
+            model.hypers.lengthscale = torch.full((2, 1, 4), 2.5)
+        model.backend.refresh()
+    scorer, region = ProbeScorer.from_model(model), Region.sign_change(6)
+    long, short = random_contacts(T=140, M=3, seed=1), random_contacts(T=5, M=2, seed=2)
+    scorer.score([long, short], "variance", region)  # fills the caches
+    new = random_contacts(T=40, M=3, seed=9)
+    model.add_data(new, irft.rft.forces(FourierStressMap.generic(), new))
+    want = ProbeScorer.from_model(model).score([long, short], "variance", region)
+    torch.testing.assert_close(scorer.score([long, short], "variance", region), want, rtol=1e-9, atol=0)
+    with torch.no_grad():
+        model.hypers.outputscale = model.hypers.outputscale * 1.7
+    want = ProbeScorer.from_model(model).score([long, short], "variance", region)
+    torch.testing.assert_close(scorer.score([long, short], "variance", region), want, rtol=1e-9, atol=0)
 
 
 def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():

@@ -95,6 +95,10 @@ class RFTBackend(nn.Module):
     def condition(self, contacts: Contacts, forces: Tensor | None = None) -> RFTBackend:
         raise NotImplementedError
 
+    def root_size(self) -> int | None:
+        """The width F of ``posterior_root`` (None where there is no finite root)."""
+        return None
+
     def posterior_root(self, contacts: Contacts) -> Tensor | None:
         """Z (2, N, F) with Z Z^T the posterior covariance of the contacts' weighted sums, where the
         backend has a finite root (the spectral one: F Fourier features), else None."""

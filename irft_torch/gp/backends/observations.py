@@ -95,6 +95,8 @@ class ObservationsBackend(RFTBackend):
         """Prior covariance (2, N1, N2) of two sets of weighted sums (the lazy operator, made dense)."""
         structure = {"pairs1": side1["pairs1"], "i1": side1["i1"], "w1": side1["w1"], "pairs2": side2["pairs1"],
                      "i2": side2["i1"], "w2": side2["w1"], "same": side1 is side2}
+        if "separable" in side1 and "separable" in side2:  # both toes translate: the product form
+            structure["separable"] = (side1["separable"][0], side2["separable"][0])
         k = self.hypers.kernel
         return RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
                                                       BATCH).to_dense()

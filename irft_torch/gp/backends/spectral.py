@@ -27,7 +27,7 @@ __all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "fea
 
 def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
     """sum_m w_nm psi_beta(beta_nm) kron psi_gamma(gamma_nm): w (N, M) -> (N, Fb Fg), one batched matmul."""
-    return torch.bmm((w[..., None] * pb).mT, pg).reshape(w.shape[0], -1)
+    return torch.bmm((w[..., None] * pb).mT, pg).reshape(w.shape[0], pb.shape[-1] * pg.shape[-1])
 
 
 def features(c: Contacts, basis: FourierBasis, axes: tuple[int, ...] = (0, 1)) -> Tensor:
@@ -284,6 +284,10 @@ class SpectralBackend(WeightSpaceBackend):
     def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
         self._ensure_basis()
         return self._times_posterior(c1) @ self._features_of(c2).mT
+
+    def root_size(self) -> int:
+        self._ensure_basis()
+        return self.basis.size
 
     def posterior_root(self, contacts: Contacts) -> Tensor:
         """Z = Phi R (2, N, F) with R R^T = A, so that Z Z^T is the posterior covariance of the
