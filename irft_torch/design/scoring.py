@@ -315,14 +315,16 @@ class ProbeScorer:
         order = sorted(range(len(cands)), key=lambda i: len(cands[i]))
         scores = [None] * len(cands)
         chunk: list[int] = []
+        rows = 0
         for i in order + [None]:
-            if chunk and (i is None or (sum(len(cands[j]) for j in chunk) + len(cands[i]) > SCORE_ROWS
-                                        or (len(chunk) + 1) * len(cands[i]) ** 2 > SCORE_ROWS**2 // 10)):
+            n = 0 if i is None else len(cands[i])  # the longest so far: the candidates come sorted
+            if chunk and (i is None or rows + n > SCORE_ROWS or (len(chunk) + 1) * n**2 > SCORE_ROWS**2 // 10):
                 for j, v in zip(chunk, self._score_batch([cands[j] for j in chunk], criterion, region)):
                     scores[j] = v
-                chunk = []
+                chunk, rows = [], 0
             if i is not None:
                 chunk.append(i)
+                rows += n
         return torch.stack(scores)
 
     def _score_batch(self, cands: list[Contacts], criterion: str, region: Region | None) -> Tensor:
