@@ -254,10 +254,7 @@ class ProbeScorer:
     def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
         """EIG of observing the candidate's forces, nats: summed over the two maps (scalar), or
         ``per_axis`` (2,) = (alpha_x, alpha_z) (each map is seen only through its own force axis)."""
-        S = self.covariance(contacts)
-        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-        L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) / self.noise[:, None, None])
-        eig = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        eig = self._score_batch([self._cast(contacts)], "eig", None)[0]
         return eig if per_axis else eig.sum()
 
     def _belief_key(self) -> tuple:
@@ -288,17 +285,11 @@ class ProbeScorer:
         """Expected integrated map variance over ``region`` (default: the whole square) after
         observing the candidate (now, if None), each map's divided by its prior variance: summed over
         the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
-        region, rc, var = self._region(region)
-        w = region.weight.to(var)
         if contacts is None:
-            iv = (var * w).sum(-1) / self.outputscale
+            region, _, var = self._region(region)
+            iv = (var * region.weight.to(var)).sum(-1) / self.outputscale
         else:
-            c = self._cast(contacts)
-            k = self.backend.cross_covariance(rc, c)  # (2, N, T_c)
-            S = self.backend.posterior(c, covariance=True).covariance
-            L = psd_safe_cholesky(_plus_noise(S, self.noise))
-            B = torch.linalg.solve_triangular(L, k.mT, upper=False)  # (2, T_c, N)
-            iv = ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale
+            iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
 
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
@@ -320,7 +311,7 @@ class ProbeScorer:
             n = 0 if i is None else len(cands[i])  # the longest so far: the candidates come sorted
             if chunk and (i is None or rows + n > SCORE_ROWS or (len(chunk) + 1) * n**2 > SCORE_ROWS**2 // 10):
                 for j, v in zip(chunk, self._score_batch([cands[j] for j in chunk], criterion, region)):
-                    scores[j] = v
+                    scores[j] = v.sum()
                 chunk, rows = [], 0
             if i is not None:
                 chunk.append(i)
@@ -328,9 +319,10 @@ class ProbeScorer:
         return torch.stack(scores)
 
     def _score_batch(self, cands: list[Contacts], criterion: str, region: Region | None) -> Tensor:
-        """The scores of candidates already cast, at once: every candidate's own posterior covariance
-        (``backend.block_covariance``), zero-padded to the longest (a padded row is a noise-only
-        observation of nothing: it adds 0 to the information gain and to the variance reduction)."""
+        """The scores (B, 2), per map, of candidates already cast, at once: every candidate's own posterior
+        covariance (``backend.block_covariance``), zero-padded to the longest (a padded row is a
+        noise-only observation of nothing: it adds 0 to the information gain and to the variance
+        reduction)."""
         sizes = [len(c) for c in cands]
         both = Contacts.cat(cands)
         F = self.backend.root_size()
@@ -340,14 +332,13 @@ class ProbeScorer:
         if criterion == "eig":
             eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
             L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) / self.noise[:, None, None])
-            return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum((-1, -2))
+            return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         region, rc, var = self._region(region)
         w = region.weight.to(var)
         kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
         L = psd_safe_cholesky(_plus_noise(S, self.noise))
         B = torch.linalg.solve_triangular(L, kb.mT, upper=False)  # (B, 2, T, N)
-        iv = ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale  # (B, 2)
-        return iv.sum(-1)
+        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale  # (B, 2)
 
     def _score_root_batch(self, Z: Tensor, sizes: list[int], criterion: str, region: Region | None) -> Tensor:
         """The same scores in the root's F dimensions (fewer than a candidate's samples): with Z_i (T_i, F)
@@ -360,15 +351,14 @@ class ProbeScorer:
         eye = torch.eye(F, dtype=Z.dtype, device=Z.device)
         L = psd_safe_cholesky(eye + 0.5 * (gram + gram.mT) / self.noise[:, None, None])
         if criterion == "eig":
-            return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum((-1, -2))
+            return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         omega = self._region_omega(region)  # (2, F, F)
-        iv = (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self.outputscale  # (B, 2)
-        return iv.sum(-1)
+        return (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self.outputscale  # (B, 2)
 
     def _region_omega(self, region: Region | None) -> Tensor:
         """Z_r^T diag(w) Z_r (2, F, F) of the region's points, cached with the region and the root."""
         region, rc, _ = self._region(region)
-        cache = self.__dict__.setdefault("_omega", {})  # the backend is fixed: one Omega per region
+        cache = self.__dict__.setdefault("_omega", {})  # one Omega per region (``_region`` empties it)
         hit = cache.get(id(region))
         if hit is None or hit[0] is not region:
             Zr = self.backend.posterior_root(rc)
