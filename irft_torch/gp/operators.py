@@ -140,10 +140,11 @@ def row_separable(b: Tensor, g: Tensor, w: Tensor) -> dict | None:
 
 
 def _beta_gamma_embedding(betas: Tensor, gamma: Tensor, lengthscale: Tensor) -> tuple[Tensor, Tensor]:
-    """(sin 2beta, cos 2beta) / l_beta (*B, n_b, 2) and (sin gamma, cos gamma) / l_gamma (*B, T, 2)."""
+    """The embedding's beta half (sin 2beta, cos 2beta) / l_beta (*B, n_b, 2) and gamma half
+    (sin gamma, cos gamma) / l_gamma (*B, T, 2), from ``embed_angles``."""
     ls = lengthscale  # (*B, 1, 4)
-    zb = torch.stack([torch.sin(2 * betas), torch.cos(2 * betas)], -1) / ls[..., :2]
-    zg = torch.stack([torch.sin(gamma), torch.cos(gamma)], -1) / ls[..., 2:]
+    zb = embed_angles(betas, torch.zeros_like(betas))[..., :2] / ls[..., :2]
+    zg = embed_angles(torch.zeros_like(gamma), gamma)[..., 2:] / ls[..., 2:]
     return zb, zg
 
 
@@ -154,7 +155,7 @@ def _paired_rbf(a: Tensor, b: Tensor, s: Tensor) -> Tensor:
 
 
 class RowSeparableRFTOperator(LinearOperator):
-    r"""Lazy :math:`s\,K_\gamma(\gamma_1, \gamma_2) \circ (L_1 K_eta L_2^	op)`: the same W K W^T as
+    r"""Lazy :math:`s\,K_\gamma(\gamma_1, \gamma_2) \circ (L_1 K_\beta L_2^\top)`: the same W K W^T as
     :class:`RFTKernelLinearOperator` when each observation's segments share one gamma (a translating
     toe; see :func:`row_separable`), in O(T1 T2 n_b) with no per-segment kernel evaluation.
 

@@ -50,7 +50,7 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     F, (Fb, Fg) = basis.size, basis.sizes
     capped = max(basis.n_beta, basis.n_gamma) >= MAX_HARMONICS  # the tolerance is out of reach: not exact
     sep = row_separable(contacts.beta, contacts.gamma, contacts.weight_x.abs() + contacts.weight_z.abs())
-    if sep is not None:  # a translating toe: the kernel's product form, T^2 (n_b + 1) per step, no exp per segment
+    if sep is not None:  # a translating toe: the kernel's product form, no exp per segment
         obs = T**3 / 3 + T**2 * (sep["betas"].numel() + KERNEL_FLOPS / 10)
     else:
         obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
