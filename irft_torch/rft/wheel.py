@@ -94,10 +94,14 @@ def envelope_profile(profile: Toe) -> Toe:
     if not isinstance(profile, Toe):
         raise TypeError(f"profile must be a Toe, got {type(profile).__name__}")
     import numpy as np
+    from scipy.spatial import ConvexHull, QhullError
 
     half = profile.tangents * (profile.lengths / 2)[:, None]
     pts = torch.cat([profile.centres - half, profile.centres + half]).detach().cpu().double().numpy()
-    hull = np.asarray(_convex_hull(pts))
+    try:
+        hull = pts[ConvexHull(pts).vertices]  # counter-clockwise in 2-D, collinear points dropped
+    except QhullError as e:
+        raise ValueError("the profile's convex hull is degenerate (all points on a line)") from e
     # adjacent segments' shared end points differ by rounding: merge vertices closer than 1e-6 x size
     size = np.ptp(pts, axis=0).max()
     gap = np.linalg.norm(hull - np.roll(hull, 1, axis=0), axis=1)
@@ -106,28 +110,6 @@ def envelope_profile(profile: Toe) -> Toe:
         raise ValueError("the profile's convex hull is degenerate (all points on a line)")
     v = torch.as_tensor(hull, dtype=profile.centres.dtype, device=profile.centres.device)
     return _from_vertices(torch.cat([v, v[:1]]), profile.width)
-
-
-def _convex_hull(pts) -> list:
-    """Andrew's monotone chain: the hull's vertices counter-clockwise, collinear points dropped."""
-    import numpy as np
-
-    p = np.unique(np.round(np.asarray(pts, dtype=np.float64), 15), axis=0)
-    p = p[np.lexsort((p[:, 1], p[:, 0]))]
-
-    def cross(o, a, b):
-        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-    lower, upper = [], []
-    for q in p:
-        while len(lower) >= 2 and cross(lower[-2], lower[-1], q) <= 0:
-            lower.pop()
-        lower.append(q)
-    for q in p[::-1]:
-        while len(upper) >= 2 and cross(upper[-2], upper[-1], q) <= 0:
-            upper.pop()
-        upper.append(q)
-    return lower[:-1] + upper[:-1]
 
 
 def slip_ratio(v, omega, radius: float) -> Tensor:
