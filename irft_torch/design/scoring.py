@@ -40,6 +40,7 @@ from torch import Tensor
 from ..gp.backends import RFTBackend, make_backend
 from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
+from ..gp.backends.spectral import SpectralBackend
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from ..rft.stress_maps import mirror_to_canonical
@@ -114,6 +115,7 @@ def _plus_noise(S: Tensor, noise: Tensor) -> Tensor:
 
 
 NoiseScale = Callable[[Contacts], Tensor] | Tensor | None
+SCORING_TOL = 1e-4  # kernel truncation error a spectral model's scorer is sized for by default (ranking, not a fit)
 SCORE_ROWS = 2_000  # candidate force samples scored at once (best measured: 1,000-2,000; memory B T^2 + N T per axis)
 
 
@@ -139,10 +141,32 @@ class ProbeScorer:
     """
 
     def __init__(self, backend: RFTBackend, noise_scale: NoiseScale = None) -> None:
-        self.backend = backend
+        self._backend = backend
+        self._model = None  # a spectral model this belief is a coarser copy of (``from_model``)
+        self._source_stats = None
         self.noise_scale = noise_scale
         self._regions: dict[int, tuple[Region, Contacts, Tensor]] = {}
         self._square: Region | None = None
+
+    @property
+    def backend(self) -> RFTBackend:
+        """The belief scored. A coarser copy of a spectral model's backend (``from_model``'s default
+        ``tol``) is re-cut from the model's statistics whenever they change (``add_data``, a grown
+        basis); the hyperparameters are shared with the model."""
+        model = self._model
+        if model is not None and model.backend.name != "spectral":  # refitted on another backend: score on it
+            self._backend, self._model = model.backend, None
+        elif model is not None and model.backend.stats is not self._source_stats:
+            self._backend = self._cut(model, self._backend.tol)
+            self._source_stats = model.backend.stats
+        return self._backend
+
+    @staticmethod
+    def _cut(model, tol: float) -> SpectralBackend:
+        """A spectral model's belief in the smaller basis that ``tol`` needs, its statistics cut from
+        the model's (no pass over the data)."""
+        return SpectralBackend(model.hypers, model.train_contacts, model.train_forces, tol=tol,
+                               statistics=model.backend.stats)
 
     @property
     def method(self) -> str:
@@ -159,7 +183,7 @@ class ProbeScorer:
     # ---- construction ----------------------------------------------------------------------
     @classmethod
     def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
-                   grid_size=None, tol: float | None = None) -> ProbeScorer:
+                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer:
         """The posterior of a (fitted) ``InverseRFT``, with its hyperparameters fixed.
 
         Args:
@@ -168,11 +192,16 @@ class ProbeScorer:
                 "grid"), "auto".
             noise_scale: as the constructor's. A model fitted with a ``noise_scale`` scores with unit
                 scale (and warns) unless one is given.
-            tol: score in a spectral basis sized for this kernel truncation error instead of the
-                model's (``method`` becomes "spectral"). Ranking candidates rarely needs the fit's 1e-7:
-                at 1e-4 the basis is about half as large and scoring 2-3x faster
-                (``experiments/bench_active_probing.py`` prints the scores' difference); the bound is
-                ``scorer.backend.truncation_error()``.
+            tol: the spectral basis the scores are computed in.
+                "auto" (default): a model on the spectral backend (``method`` None or "spectral") is scored in a basis
+                sized for ``SCORING_TOL`` = 1e-4 of the kernel variance (or the model's own, if
+                coarser); any other model on its own backend. Ranking candidates does not need the
+                fit's 1e-7: at 1e-4 the basis is about half as large per angle and scoring 3-5x
+                faster, the scores within 1-2 % of the model's basis and ranked the same
+                (``experiments/bench_active_probing.py`` prints both; a test checks the ranking).
+                None: the model's own backend and basis, exactly.
+                A float: a spectral basis sized for this truncation error (``method`` becomes
+                "spectral"). The bound reached is ``scorer.backend.truncation_error()``.
         """
         if grid_size is not None:
             warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
@@ -181,11 +210,22 @@ class ProbeScorer:
         if method is not None and method not in ("auto", "exact", "observations", "pairs", "spectral"):
             raise ValueError(f"method must be None, 'auto', 'observations', 'pairs' or 'spectral', got {method!r}")
         noise_scale = cls._model_noise_scale(model, noise_scale)
+        if isinstance(tol, str):
+            if tol != "auto":
+                raise ValueError(f"tol must be 'auto', None or a float in (0, 1), got {tol!r}")
+            own = model.backend
+            coarser = own.name == "spectral" and method in (None, "spectral") and own.tol < SCORING_TOL
+            tol = SCORING_TOL if coarser else None
         if tol is not None:
             if not (0 < tol < 1):
                 raise ValueError(f"tol must be in (0, 1), got {tol}")
             if method not in (None, "spectral", "grid"):
                 raise ValueError(f"tol= sizes a spectral basis: method must be None or 'spectral', got {method!r}")
+            own = model.backend
+            if own.name == "spectral" and own.stats is not None and tol >= own.tol:
+                out = cls(cls._cut(model, tol), noise_scale)  # cut from the model's statistics
+                out._model, out._source_stats = model, own.stats
+                return out
             return cls(make_backend("spectral", model.hypers, model.train_contacts, model.train_forces, tol=tol),
                        noise_scale)
         backend = model.backend

@@ -83,7 +83,7 @@ def test_information_gain_and_integrated_variance_match_dense(method):
     model = fitted(method)
     tol = TOL[method]
     ls, os, noise = hypers(model)
-    scorer = ProbeScorer.from_model(model)
+    scorer = ProbeScorer.from_model(model, tol=None)
     assert scorer.method == method
     cand = random_contacts(T=8, M=4, seed=22)  # more segments than the training rows: no padding needed
     want = eig_dense(dense_cov(ls, os, noise, model.train_contacts, [cand]), noise)
@@ -124,7 +124,7 @@ def test_batched_scores_of_unequal_candidates_match_dense(method, monkeypatch):
     cands = [random_contacts(T=T, M=M, seed=30 + i) for i, (T, M) in enumerate([(8, 4), (3, 2), (8, 4), (11, 5),
                                                                                   (5, 3)])]
     region = Region.square(5)
-    scorer = ProbeScorer.from_model(model)
+    scorer = ProbeScorer.from_model(model, tol=None)
     eig = scorer.score(cands, "eig")
     iv = scorer.score(cands, "variance", region=region)
     assert eig.shape == iv.shape == (len(cands),)
@@ -144,7 +144,7 @@ def test_batches_pad_little_and_empty_candidates_teach_nothing(method, monkeypat
     import irft_torch.design.scoring as scoring
 
     model = fitted(method)
-    scorer = ProbeScorer.from_model(model)
+    scorer = ProbeScorer.from_model(model, tol=None)
     seen = []
     real = scoring.ProbeScorer._score_batch
 
@@ -173,7 +173,7 @@ def test_long_candidates_are_scored_in_the_spectral_root_space_exactly():
         model.hypers.lengthscale = torch.full((2, 1, 4), 2.5)
     model.backend.refresh()
     ls, os, noise = hypers(model)
-    scorer = ProbeScorer.from_model(model)
+    scorer = ProbeScorer.from_model(model, tol=None)
     F = scorer.backend.posterior_root(random_contacts(T=2, M=2)).shape[-1]
     cands = [random_contacts(T=T, M=3, seed=40 + T) for T in (F + 20, F + 7)]
     assert all(len(c) > F for c in cands)  # the root path
@@ -218,7 +218,7 @@ def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
     ls, os, noise = hypers(model)
     cand = random_contacts(T=6, M=3, seed=24)
     s = 0.3 + 2 * torch.rand(6, 2, generator=torch.Generator().manual_seed(1))
-    scorer = ProbeScorer.from_model(model, noise_scale=lambda c: s)
+    scorer = ProbeScorer.from_model(model, tol=None, noise_scale=lambda c: s)
     region = Region.square(5)
     covs = dense_cov(ls, os, noise, model.train_contacts, [region.contacts(), cand])
     n = region.beta.numel()
@@ -232,7 +232,7 @@ def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
         after = after + (region.weight * post).sum() / os[a]
     assert scorer.information_gain(cand).item() == pytest.approx(eig.item(), rel=1e-8)
     assert scorer.integrated_variance(cand, region).item() == pytest.approx(after.item(), rel=1e-8)
-    plain = ProbeScorer.from_model(model).information_gain(cand).item()
+    plain = ProbeScorer.from_model(model, tol=None).information_gain(cand).item()
     assert abs(plain - eig.item()) > 1e-3  # the scale matters
     with pytest.warns(UserWarning, match="noise_scale"):
         heavy = irft.InverseRFT(model.train_contacts, irft.rft.forces(FourierStressMap.generic(), model.train_contacts),
@@ -343,3 +343,40 @@ def test_no_contact_teaches_nothing_and_bad_input_is_named(model):
     with pytest.raises(ValueError, match="budget"):
         greedy_design(scorer, [cand], budget=-1)
     assert math.isfinite(scorer.information_gain(cand).item())
+
+
+def test_a_spectral_model_is_scored_in_a_coarser_basis_by_default_and_ranked_the_same():
+    """``from_model``'s default ``tol="auto"`` scores a spectral model in the basis that 1e-4 of the
+    kernel variance needs, cut from the model's statistics: fewer features, scores within a few
+    percent of the model's own (exact to 1e-6) basis, the same choice and order (up to near ties); it
+    follows ``add_data``."""
+    from irft_torch.design.scoring import SCORING_TOL
+
+    toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
+    probes = irft.rft.random_probes(toes, 8, 0.3, n_steps=60, seed=5)
+    train = Contacts.cat([p.contacts() for p in probes[:3]])
+    smap = FourierStressMap.generic(0.45, 0.42)
+    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral")
+    coarse, fine = ProbeScorer.from_model(m), ProbeScorer.from_model(m, tol=None)
+    assert fine.backend is m.backend
+    assert coarse.backend.basis.size < m.backend.basis.size
+    assert float(coarse.backend.truncation_error().max()) <= SCORING_TOL
+    cands = probes[3:]
+    for criterion, rel in (("variance", 0.02), ("eig", 0.05)):
+        c, f = coarse.score(cands, criterion), fine.score(cands, criterion)
+        torch.testing.assert_close(c, f, rtol=rel, atol=0)
+        assert int(c.argmax()) == int(f.argmax())  # the choice
+        # the order, up to near ties (scores within 1 % of each other may swap)
+        i, j = torch.triu_indices(len(c), len(c), 1)
+        apart = (f[i] - f[j]).abs() > 0.01 * f[i].abs()
+        assert torch.equal(torch.sign(c[i] - c[j])[apart], torch.sign(f[i] - f[j])[apart])
+    # the coarse statistics are the model's cut, not a second pass: equal to a pass in that basis
+    direct = irft.gp.backends.SpectralBackend(m.hypers, m.train_contacts, m.train_forces,
+                                               basis=coarse.backend.basis)
+    torch.testing.assert_close(coarse.backend.stats.P, direct.stats.P, rtol=1e-12, atol=1e-12)
+    new = probes[1].contacts()
+    m.add_data(new, irft.rft.forces(smap, new))
+    assert coarse.backend.n_samples == m.backend.n_samples
+    torch.testing.assert_close(coarse.score(cands), ProbeScorer.from_model(m).score(cands), rtol=1e-10, atol=0)
+    with pytest.raises(ValueError, match="tol"):
+        ProbeScorer.from_model(m, tol="coarse")
