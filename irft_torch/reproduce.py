@@ -380,13 +380,14 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
 def _worker_context():
     """Worker processes forked from a server that has imported the study once ("forkserver", where the
     platform has it: one import instead of one per worker, and no fork of a process whose thread
-    pools are running), else spawned."""
+    pools are running), else spawned. The server also imports ``torch._dynamo``, which the first
+    optimizer step of each process would import (0.8 s)."""
     from multiprocessing import get_all_start_methods, get_context
 
     if "forkserver" not in get_all_start_methods():
         return get_context("spawn")
     ctx = get_context("forkserver")
-    ctx.set_forkserver_preload(["irft_torch.reproduce"])
+    ctx.set_forkserver_preload(["irft_torch.reproduce", "torch._dynamo"])  # the first Adam step imports the latter
     return ctx
 
 
