@@ -34,21 +34,23 @@ RMSE [N] over all held-out runs, per axis (longitudinal F_x, vertical F_z). Then
 question: with the map learned without that slip, the sinkage at which the wheel carries the
 measured load (F_z(s) = measured F_z), and the drawbar F_x there, against the measured ones.
 
-Measured (default settings, ~15 s): RMSE F_x / F_z [N] smooth I-RFT 1.65 / 1.66 (generic x LS 5.16 /
-14.99, others' RFT 4.84 / 10.75, trivial 15.22 / 2.18); grouser I-RFT 2.10 / 2.74 (4.81 / 11.13,
-6.11 / 11.26, 16.28 / 2.46; grouser faces as plates 1.29 / 3.90). The issue's bar (I-RFT below all
-three in both axes, both wheels) is met for the smooth wheel, not for the grousered one's vertical
-force: the trivial mean (the rig holds the load near 18-28 N) stays 0.28 N better. What is left is
-held-out slip +0.90 (+5.9 N, sinkage 42 mm, beyond every training run at positive slip: slip-sinkage
-by excavation, which no quasi-static map at the measured sinkage has; the others' RFT is 11 N high
-there too) and -0.20 (-3.5 N). Checked and not the cause: Adam steps (300: 3.73 N with the rim, and
-worse with the hull: the type-II likelihood overfits 24 runs), lr, the spectral tolerance (1e-8:
-unchanged), 12 or 24 poses, ``priors="physical"`` (2.62-2.66 N vertical but 2.25 N longitudinal with
-the hull; worse for the smooth wheel, 2.23 N), the physics mean, contact "submerged" (worse, and
-the likelihood says so), per-run noise scales from the runs' force std, and a learned surface: the
-training likelihood keeps improving up to a 15 mm higher surface (not identified: it trades off
-with the map's scale) while held-out errors grow, and the sinkage is measured, so none is learned.
-95 % coverage of I-RFT held out: smooth 89 / 81 %, grouser 85 / 81 % (x / z): the misses are the
+Measured (default settings, ~15 s; 2026-11-23): RMSE F_x / F_z [N], smooth wheel: I-RFT (default
+physical priors) 1.45 / 2.23, plain likelihood 1.65 / 1.66, generic x LS 5.16 / 14.99, others' RFT
+4.84 / 10.75, trivial 15.22 / 2.18; grousered wheel: I-RFT 2.29 / 2.61, plain 2.10 / 2.74, generic x LS
+4.81 / 11.13, others' RFT 6.11 / 11.26, trivial 16.28 / 2.46, grouser faces as plates 1.28 / 3.94. The
+issue's bar (I-RFT below all three baselines in both axes, both wheels) is met for the smooth wheel by
+the plain likelihood only; the vertical force of the grousered wheel (and of the smooth one with the
+default priors) stays behind the trivial mean (the rig holds the load near 18-28 N) by 0.05-0.28 N.
+What is left is held-out slip +0.90 (sinkage 42 mm, beyond every training run at positive slip:
+slip-sinkage by excavation, which no quasi-static map at the measured sinkage has; the others' RFT is
+11 N high there too) and -0.20. Checked and not the cause: Adam steps (300: worse, the type-II
+likelihood overfits 24 runs), lr, the spectral tolerance (1e-8: unchanged), 12 or 24 poses, each
+default prior widened in turn (outputscale sd a factor 10: grouser F_z 2.71, smooth 1.80; lengthscale
+sd 10: 2.67 / 2.18; noise sd 10: 2.62 / 2.21), the physics mean, contact "submerged" (worse, and the
+likelihood says so), per-run noise scales from the runs' force std, and a learned surface: the
+training likelihood keeps improving up to a 15 mm higher surface (not identified: it trades off with
+the map's scale) while held-out errors grow, and the sinkage is measured, so none is learned. 95 %
+coverage of I-RFT held out: smooth 89 / 81 %, grouser 85 / 78-81 % (x / z): the misses are the
 extrapolated slips, where the posterior's spread is too narrow for the model's error.
 
 Writes wheel_validation.md and wheel_forces_{smooth,grouser}.png, wheel_sinkage.png to --out. The
