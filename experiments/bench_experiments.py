@@ -36,6 +36,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 def run(cmd: list[str], pythonpath: Path, cwd: Path) -> float:
     """Wall seconds of ``cmd`` in a fresh process with ``irft_torch`` imported from ``pythonpath``."""
     env = {**os.environ, "PYTHONPATH": str(pythonpath), "PYTHONWARNINGS": "ignore"}
@@ -88,7 +92,7 @@ def compare(a: Path, b: Path) -> str:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="bench_experiments.py", description=__doc__, formatter_class=_HelpFormatter)
     ap.add_argument("--data", required=True, help="the DEM plate-intrusion folder (read, never copied)")
     ap.add_argument("--reference", default="25da515", help="the commit whose engine is the reference")
     ap.add_argument("--skip-current-dem", action="store_true", help="do not time today's full DEM experiment")

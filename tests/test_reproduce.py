@@ -286,3 +286,28 @@ def test_pinned_fits_use_the_paper_sampling():
         assert r.pinned and len(c) == R.PINNED_STEPS
         n_beta = c.beta[c.weight_z != 0].unique().numel()
         assert (n_beta > s.n_segments) == (config == "C-toe gait 2")  # only the turning toe's betas move
+
+
+def test_bench_experiments_help_and_its_table_comparison(tmp_path, capsys):
+    """bench_experiments.py's --help says what it runs; its cell-by-cell table comparison reads CSVs by
+    their key columns and markdown tables by row label, checked on hand-made tables."""
+    import pytest
+
+    mod = _script("bench_experiments")
+    with pytest.raises(SystemExit):
+        mod.main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "The data are read from --data and never copied." in text and "(default: 25da515)" in text
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    a.write_text("config,axis,noise,rmse,acr\nC,X,0.0,0.10,50\nC,Z,0.0,0.20,40\nI,X,0.2,1.0,10\n")
+    b.write_text("config,axis,noise,rmse,acr\nI,X,0.2,1.5,10\nC,Z,0.0,0.20,44\nC,X,0.0,0.11,50\n")  # rows reordered
+    cells = mod.table_cells(a)
+    assert cells[("C", "Z", "0.0", "rmse")] == 0.20 and ("C", "Z", "0.0", "noise") not in cells
+    # relative differences: 0.1, 0, 0, 0.1, 0.5, 0 -> median (upper) 0.1, largest 0.5 at (I, X, 0.2, rmse)
+    out = mod.compare(a, b)
+    assert out.startswith("6 common cells, median relative difference 10.0%, largest 50.0% (I, X, 0.2, rmse")
+    m1, m2 = tmp_path / "a.md", tmp_path / "b.md"
+    m1.write_text("| model | x | z |\n|---|---|---|\n| A | 0.0100 | 2 % |\n| B | - | 0.5 |\n")
+    m2.write_text("text\n| model | x | z |\n|---|---|---|\n| A | 0.0110 | 2 % |\n| B | 1 | 0.5 |\n")
+    assert mod.table_cells(m1) == {("A", 1): 0.01, ("A", 2): 2.0, ("B", 2): 0.5}
+    assert mod.compare(m1, m2).startswith("3 common cells, median relative difference 0.0%, largest 10.0% (A, 1")
