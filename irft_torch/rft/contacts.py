@@ -176,7 +176,13 @@ class Contacts:
         return self._apply(lambda v: v[..., index, :])
 
     def to(self, *args, **kwargs) -> Contacts:
-        return self._apply(lambda v: v.to(*args, **kwargs))
+        """The contacts with every tensor ``.to(*args, **kwargs)``; ``self`` when nothing changes (as
+        ``Tensor.to``: no copy, no second validation)."""
+        old = self.as_dict()
+        moved = {k: v.to(*args, **kwargs) for k, v in old.items()}
+        if all(moved[k] is v for k, v in old.items()):
+            return self
+        return Contacts(**moved)
 
     def pad_segments(self, M: int) -> Contacts:
         """Pad to M segments with zero-weight segments (which add nothing to any force)."""

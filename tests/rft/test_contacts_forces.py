@@ -122,6 +122,11 @@ def test_contacts_helpers():
     both = Contacts.cat([c, c[:5].pad_segments(6)])
     assert both.shape == (25, 6) and len(both) == 25
     torch.testing.assert_close(forces(GEN, both)[20:], forces(GEN, c)[:5])
+    # .to: self when nothing changes (as Tensor.to), a converted copy otherwise, the original untouched
+    assert c.to(c.beta.dtype) is c and c.to(device=c.beta.device) is c
+    c32 = c.to(torch.float32)
+    assert c32 is not c and c32.weight_z.dtype == torch.float32 and c.weight_z.dtype == torch.float64
+    torch.testing.assert_close(c32.weight_z, c.weight_z.float())
 
 
 @settings(max_examples=40, deadline=None)
