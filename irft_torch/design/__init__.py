@@ -1,7 +1,8 @@
 """What to measure next: probe scores (information gain, integrated variance), greedy and
-gradient-based gait/toe design. Uses ``gp`` only through a backend's ``posterior``,
-``cross_covariance`` and ``condition`` (like botorch's acquisition/ and optim/ on a model's
-posterior); neither ``gp`` nor ``rft`` imports it."""
+gradient-based gait/toe design. Uses ``gp`` through a backend's posterior interface
+(``posterior``, ``cross_covariance``, ``block_covariance``, ``posterior_root``, ``condition``; like
+botorch's acquisition/ and optim/ on a model's posterior) and ``make_backend`` to score in another
+space; neither ``gp`` nor ``rft`` imports it."""
 
 from .optimize import DesignedProbe, default_spec, optimize_probe
 from .scoring import DesignStep, ProbeScorer, Region, force_relative, greedy_design

@@ -15,9 +15,11 @@ with v_a(theta_j) the current map variance at the region's points theta_j, k_aj 
 covariance between the map there and the probe's forces, r_j the region's weights (summing to 1)
 and s_a the prior variance, so IV is 2 for the prior and 0 for maps known exactly.
 
-Every number comes from the belief's backend (``posterior``, ``cross_covariance``, ``condition``):
-no factorization here, in the way botorch's ``qNegIntegratedPosteriorVariance`` sits on a model's
-``posterior`` and ``fantasize``. Heteroscedastic noise: a candidate's samples are whitened by their
+Every posterior number comes from the belief's backend (``posterior``, ``cross_covariance``,
+``block_covariance``, ``posterior_root``, ``condition``), in the way botorch's
+``qNegIntegratedPosteriorVariance`` sits on a model's ``posterior`` and ``fantasize``; the scorer
+factors only each candidate's own small matrix (S_a + sigma_a^2 I, or its F x F Woodbury form) for its
+score. Heteroscedastic noise: a candidate's samples are whitened by their
 ``noise_scale`` exactly as ``InverseRFT`` whitens training samples.
 
 Example:
@@ -40,12 +42,13 @@ from torch import Tensor
 from ..gp.backends import RFTBackend, make_backend
 from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
+from ..gp.backends.select import ALIASES
 from ..gp.backends.spectral import SpectralBackend
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from ..rft.stress_maps import mirror_to_canonical
 
-__all__ = ["Region", "ProbeScorer", "DesignStep", "greedy_design"]
+__all__ = ["Region", "ProbeScorer", "DesignStep", "greedy_design", "force_relative", "SCORING_TOL"]
 
 
 # ---- regions of interest -------------------------------------------------------------------
@@ -56,6 +59,7 @@ class Region:
     Attributes:
         beta, gamma: (N,) angles in rad (mapped into the canonical square on construction).
         weight: (N,) non-negative weights, normalized to sum to 1 on construction.
+    The dtype is that of the first floating tensor given (else torch's default).
     """
 
     beta: Tensor
@@ -63,7 +67,9 @@ class Region:
     weight: Tensor
 
     def __post_init__(self) -> None:
-        b, g, w = (torch.as_tensor(v, dtype=torch.get_default_dtype()) for v in (self.beta, self.gamma, self.weight))
+        dtype = next((v.dtype for v in (self.beta, self.gamma, self.weight)
+                      if isinstance(v, Tensor) and v.dtype.is_floating_point), torch.get_default_dtype())
+        b, g, w = (torch.as_tensor(v, dtype=dtype) for v in (self.beta, self.gamma, self.weight))
         if b.ndim != 1 or b.shape != g.shape or b.shape != w.shape or b.numel() == 0:
             raise ValueError(f"Region needs beta, gamma, weight of one shape (N,), got {tuple(b.shape)}, "
                              f"{tuple(g.shape)}, {tuple(w.shape)}")
@@ -131,7 +137,7 @@ class ProbeScorer:
     Args:
         backend: the belief.
         noise_scale: relative noise standard deviation of a candidate's samples, as ``InverseRFT``'s
-            ``noise_scale``: None (1), or a function of the candidate's whitened-free contacts
+            ``noise_scale``: None (1), or a function of the candidate's raw (not whitened) contacts
             returning (T,) or (T, 2) (e.g. from the predicted force: see ``force_relative``).
 
     Attributes:
@@ -142,31 +148,39 @@ class ProbeScorer:
 
     def __init__(self, backend: RFTBackend, noise_scale: NoiseScale = None) -> None:
         self._backend = backend
-        self._model = None  # a spectral model this belief is a coarser copy of (``from_model``)
-        self._source_stats = None
+        self._recipe: tuple | None = None  # (model, method, tol) of ``from_model``: follow the model
+        self._derived_from: tuple | None = None
         self.noise_scale = noise_scale
         self._regions: dict[int, tuple[Region, Contacts, Tensor]] = {}
         self._square: Region | None = None
 
     @property
     def backend(self) -> RFTBackend:
-        """The belief scored. A coarser copy of a spectral model's backend (``from_model``'s default
-        ``tol``) is re-cut from the model's statistics whenever they change (``add_data``, a grown
-        basis); the hyperparameters are shared with the model."""
-        model = self._model
-        if model is not None and model.backend.name != "spectral":  # refitted on another backend: score on it
-            self._backend, self._model = model.backend, None
-        elif model is not None and model.backend.stats is not self._source_stats:
-            self._backend = self._cut(model, self._backend.tol)
-            self._source_stats = model.backend.stats
+        """The belief scored. A scorer from ``from_model`` follows its model: whenever the model's
+        backend changes (``add_data``, a refit that grows the basis or moves to another backend) the
+        scorer's is derived again from it in the same way (the model's own; cut from its spectral
+        statistics; or rebuilt on its data). The hyperparameters are shared with the model."""
+        if self._recipe is not None:
+            own = self._recipe[0].backend
+            key = (id(own), own.n_samples, id(getattr(own, "stats", None)))
+            if key != self._derived_from:
+                self._backend = self._derive(*self._recipe)
+                self._derived_from = key
         return self._backend
 
     @staticmethod
-    def _cut(model, tol: float) -> SpectralBackend:
-        """A spectral model's belief in the smaller basis that ``tol`` needs, its statistics cut from
-        the model's (no pass over the data)."""
-        return SpectralBackend(model.hypers, model.train_contacts, model.train_forces, tol=tol,
-                               statistics=model.backend.stats)
+    def _derive(model, method: str | None, tol) -> RFTBackend:
+        """The backend a scorer of ``model`` uses (see ``from_model``), from the model's current one."""
+        own = model.backend
+        own_tol = own.tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
+        target = "spectral" if isinstance(tol, float) else ALIASES.get(method or own.name, method or own.name)
+        t = {"auto": max(own_tol, SCORING_TOL), None: own_tol}.get(tol, tol) if not isinstance(tol, float) else tol
+        if target == own.name and (target != "spectral" or t == own.tol):
+            return own
+        if target == "spectral" and own.name == "spectral" and own.stats is not None and t >= own.tol:
+            # the model's statistics cover any coarser basis: cut from them, no pass over the data
+            return SpectralBackend(model.hypers, model.train_contacts, model.train_forces, tol=t, statistics=own.stats)
+        return make_backend(target, model.hypers, model.train_contacts, model.train_forces, tol=t)
 
     @property
     def method(self) -> str:
@@ -192,16 +206,22 @@ class ProbeScorer:
                 "grid"), "auto".
             noise_scale: as the constructor's. A model fitted with a ``noise_scale`` scores with unit
                 scale (and warns) unless one is given.
-            tol: the spectral basis the scores are computed in.
-                "auto" (default): a model on the spectral backend (``method`` None or "spectral") is scored in a basis
-                sized for ``SCORING_TOL`` = 1e-4 of the kernel variance (or the model's own, if
-                coarser); any other model on its own backend. Ranking candidates does not need the
-                fit's 1e-7: at 1e-4 the basis is about half as large per angle and scoring 3-5x
-                faster, the scores within 1-2 % of the model's basis and ranked the same
-                (``experiments/bench_active_probing.py`` prints both; a test checks the ranking).
-                None: the model's own backend and basis, exactly.
+            tol: the kernel truncation error of the spectral basis, wherever the scores are computed
+                in one (the model's backend is spectral, or ``method="spectral"``).
+                "auto" (default): ``SCORING_TOL`` = 1e-4 of the kernel variance (or the model's
+                own tolerance, if coarser). Ranking candidates does not need the fit's 1e-7: at 1e-4
+                the basis has about 40 % of the features (11 x 11 instead of 17 x 17 harmonics at
+                T = 1,000) and scoring is 2.5-3.5x faster, the scores within 2 % of the model's basis
+                and ranked the same (``experiments/bench_active_probing.py`` prints both; a test checks
+                the choice and the order). Cut from a spectral model's statistics: no pass over the data.
+                None: the model's own tolerance (a spectral model: its own backend and basis, exactly).
                 A float: a spectral basis sized for this truncation error (``method`` becomes
                 "spectral"). The bound reached is ``scorer.backend.truncation_error()``.
+
+        The scorer follows the model: after ``model.add_data`` or a refit (which may grow the basis or
+        move to another backend) it scores the model's current belief, derived the same way. Its
+        current map variance (``map_variance``, ``integrated_variance()``) is that of its own basis,
+        within the truncation error of the model's (6e-4 relative at 1e-4 in one check).
         """
         if grid_size is not None:
             warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
@@ -209,30 +229,18 @@ class ProbeScorer:
             method = "spectral"
         if method is not None and method not in ("auto", "exact", "observations", "pairs", "spectral"):
             raise ValueError(f"method must be None, 'auto', 'observations', 'pairs' or 'spectral', got {method!r}")
-        noise_scale = cls._model_noise_scale(model, noise_scale)
-        if isinstance(tol, str):
-            if tol != "auto":
-                raise ValueError(f"tol must be 'auto', None or a float in (0, 1), got {tol!r}")
-            own = model.backend
-            coarser = own.name == "spectral" and method in (None, "spectral") and own.tol < SCORING_TOL
-            tol = SCORING_TOL if coarser else None
-        if tol is not None:
+        if isinstance(tol, str) and tol != "auto":
+            raise ValueError(f"tol must be 'auto', None or a float in (0, 1), got {tol!r}")
+        if tol is not None and not isinstance(tol, str):
             if not (0 < tol < 1):
                 raise ValueError(f"tol must be in (0, 1), got {tol}")
-            if method not in (None, "spectral", "grid"):
+            if method not in (None, "spectral"):
                 raise ValueError(f"tol= sizes a spectral basis: method must be None or 'spectral', got {method!r}")
-            own = model.backend
-            if own.name == "spectral" and own.stats is not None and tol >= own.tol:
-                out = cls(cls._cut(model, tol), noise_scale)  # cut from the model's statistics
-                out._model, out._source_stats = model, own.stats
-                return out
-            return cls(make_backend("spectral", model.hypers, model.train_contacts, model.train_forces, tol=tol),
-                       noise_scale)
-        backend = model.backend
-        if method is not None and method != backend.name and not (method == "exact" and backend.name == "observations"):
-            backend = make_backend(method, model.hypers, model.train_contacts, model.train_forces,
-                                   tol=getattr(model, "tol", 1e-7))
-        return cls(backend, noise_scale)
+            tol = float(tol)
+        out = cls(cls._derive(model, method, tol), cls._model_noise_scale(model, noise_scale))
+        own = model.backend
+        out._recipe, out._derived_from = (model, method, tol), (id(own), own.n_samples, id(getattr(own, "stats", None)))
+        return out
 
     @staticmethod
     def _model_noise_scale(model, noise_scale: NoiseScale) -> NoiseScale:
@@ -253,6 +261,8 @@ class ProbeScorer:
             method: "exact" (the lazy W K W^T; conditioning gives an observations backend) or
                 "spectral" (a Fourier basis; faster for many candidates). "grid" is read as "spectral".
         """
+        if grid_size is not None:
+            warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
         if method == "grid":
             method = "spectral"
         if method not in ("exact", "observations", "spectral"):
@@ -429,16 +439,26 @@ class ProbeScorer:
         return v.T.reshape(*S, 2)
 
 
-def force_relative(model, floor: float) -> Callable[[Contacts], Tensor]:
-    """A candidate noise scale proportional to the model's predicted force, sqrt(F^2 + floor^2) (N):
-    the counterpart of fitting with ``noise_scale=(forces**2 + floor**2).sqrt()``."""
+@dataclass
+class _ForceRelative:
+    """sqrt(F^2 + floor^2) of the model's predicted force (a class, not a closure: a scorer pickles)."""
 
-    def scale(c: Contacts) -> Tensor:
+    model: object
+    floor: float
+
+    def __call__(self, c: Contacts) -> Tensor:
         with torch.no_grad():
-            f = model.predict_forces(c).mean
-        return (f.pow(2) + floor**2).sqrt()
+            f = self.model.predict_forces(c).mean
+        return (f.pow(2) + self.floor**2).sqrt()
 
-    return scale
+
+def force_relative(model, floor: float) -> Callable[[Contacts], Tensor]:
+    """A candidate noise scale proportional to the model's predicted force, sqrt(F^2 + floor^2) (N),
+    a function of the candidate's contacts returning (T, 2): the counterpart of fitting with
+    ``noise_scale=(forces**2 + floor**2).sqrt()``."""
+    if not (math.isfinite(floor) and floor > 0):
+        raise ValueError(f"floor must be a positive force in N, got {floor}")
+    return _ForceRelative(model, float(floor))
 
 
 @dataclass

@@ -10,7 +10,7 @@ from gp.dense_reference import W_dense, k_dense
 from gp.test_backends_vs_dense import random_contacts, set_hypers
 
 import irft_torch as irft
-from irft_torch.design import ProbeScorer, Region, greedy_design
+from irft_torch.design import ProbeScorer, Region, force_relative, greedy_design
 from irft_torch.rft import Contacts, FourierStressMap
 
 TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
@@ -289,11 +289,11 @@ def test_spectral_and_exact_scores_agree_on_probes():
     train = Contacts.cat([p.contacts() for p in probes[:2]])
     m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="observations")
     ex = ProbeScorer.from_model(m, method="observations").score(probes[2:])
-    sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:])
+    sp = ProbeScorer.from_model(m, method="spectral", tol=None).score(probes[2:])  # the model's 1e-7
     # IV is a difference (prior minus what the data explain): 1e-6 of its scale, 2 (the prior's IV)
     torch.testing.assert_close(sp, ex, rtol=1e-6, atol=2e-6)
     eig_ex = ProbeScorer.from_model(m, method="observations").score(probes[2:5], "eig")
-    eig_sp = ProbeScorer.from_model(m, method="spectral").score(probes[2:5], "eig")
+    eig_sp = ProbeScorer.from_model(m, method="spectral", tol=None).score(probes[2:5], "eig")
     # EIG sums log(1 + lambda / sigma^2) over many eigenvalues: kernel errors of 1e-7 reach ~3e-6 here
     torch.testing.assert_close(eig_sp, eig_ex, rtol=1e-5, atol=0)
 
@@ -380,3 +380,53 @@ def test_a_spectral_model_is_scored_in_a_coarser_basis_by_default_and_ranked_the
     torch.testing.assert_close(coarse.score(cands), ProbeScorer.from_model(m).score(cands), rtol=1e-10, atol=0)
     with pytest.raises(ValueError, match="tol"):
         ProbeScorer.from_model(m, tol="coarse")
+
+
+def test_a_scorer_follows_its_model_across_backend_switches_whatever_its_recipe(monkeypatch):
+    """Every scorer from ``from_model`` (default, the model's own basis, a coarser or finer tolerance,
+    another backend) scores the model's current data after a refit moves the model spectral ->
+    observations -> spectral and after ``add_data``: the same scores as a scorer made afresh."""
+    import irft_torch.gp.model as gp_model
+
+    toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
+    probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=40, seed=7)
+    train = Contacts.cat([p.contacts() for p in probes[:3]])
+    smap = FourierStressMap.generic(0.45, 0.42)
+    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral")
+    m.auto = True  # let the fit move between backends, with costs we choose
+    recipes = [{}, {"tol": None}, {"tol": 1e-3}, {"tol": 1e-9}, {"method": "pairs"}, {"method": "observations"}]
+    scorers = [ProbeScorer.from_model(m, **r) for r in recipes]
+    for cheapest in ("observations", "spectral"):
+        monkeypatch.setattr(gp_model, "estimated_costs", lambda *a, c=cheapest, **k: {
+            "observations": 1.0 if c == "observations" else 10.0, "pairs": 10.0,
+            "spectral": 1.0 if c == "spectral" else 10.0})
+        m.fit(n_iter=30, lr=0.01, progress=False)
+        assert m.backend.name == cheapest
+    new = probes[3].contacts()
+    m.add_data(new, irft.rft.forces(smap, new))
+    cands = probes[4:]
+    for r, sc in zip(recipes, scorers):
+        assert sc.backend.n_samples == m.backend.n_samples, r
+        torch.testing.assert_close(sc.score(cands), ProbeScorer.from_model(m, **r).score(cands), rtol=1e-9, atol=0)
+    assert scorers[1].backend is m.backend and scorers[0].backend.basis.size < m.backend.basis.size
+
+
+def test_force_relative_scorers_pickle_regions_keep_their_dtype_and_retired_arguments_warn():
+    import pickle
+
+    model = fitted("observations")
+    scorer = ProbeScorer.from_model(model, noise_scale=force_relative(model, floor=0.1))
+    cand = random_contacts(T=8, M=4, seed=22)
+    back = pickle.loads(pickle.dumps(scorer))
+    assert back.information_gain(cand).item() == pytest.approx(scorer.information_gain(cand).item(), rel=1e-12)
+    with pytest.raises(ValueError, match="floor"):
+        force_relative(model, floor=0.0)
+    assert Region.square(4, dtype=torch.float32).beta.dtype == torch.float32
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        assert Region.square(4, dtype=torch.float64).weight.dtype == torch.float64
+    finally:
+        torch.set_default_dtype(old)
+    with pytest.warns(FutureWarning, match="grid_size"):
+        ProbeScorer.prior(grid_size=8)
