@@ -44,7 +44,8 @@ _POSITIVE = ("duration", "rate", "l1", "l2", "kt", "kv", "gear_ratio", "max_cond
              "speed", "lr", "max_current", "max_torque", "max_depth", "scale_x", "scale_z",
              "mit_p_max", "mit_v_max", "mit_t_max", "path_tol")
 _POSITIVE_INT = ("segments", "n_steps", "filter_window", "n_iter", "bitrate", "trials")
-_NONNEG = ("hip_spacing", "current_noise", "friction", "cogging", "penetration", "shear", "extraction")
+_NONNEG = ("hip_spacing", "extension", "arc_noise", "current_noise", "friction", "cogging", "penetration", "shear",
+           "extraction")
 
 
 def _validate(a) -> None:
@@ -62,6 +63,9 @@ def _validate(a) -> None:
         v = ns.get(dest)
         if v is not None and not (math.isfinite(v) and v >= 0):
             raise UsageError(_opt(dest), f"must be >= 0, got {v:g}")
+    if ns.get("filter_window") is not None and a.filter_window % 2 == 0:
+        raise UsageError("--filter-window", f"must be odd (an even moving average shifts the force by half a sample), "
+                                            f"got {a.filter_window}")
     if ns.get("max_samples") is not None and a.max_samples < 0:
         raise UsageError("--max-samples", f"must be >= 0 (0: use every sample), got {a.max_samples}")
     if ns.get("frame_drop") is not None and not 0 <= a.frame_drop < 1:
@@ -366,9 +370,10 @@ def _leg_and_motors(a):
     from .hardware import FiveBarLeg, MotorModel, kt_from_kv
 
     try:
-        leg = FiveBarLeg(a.l1, a.l2, hip_spacing=a.hip_spacing, max_condition=a.max_condition)
+        leg = FiveBarLeg(a.l1, a.l2, hip_spacing=a.hip_spacing, max_condition=a.max_condition,
+                         extension=getattr(a, "extension", 0.0))
     except ValueError as e:
-        raise UsageError("--l1/--l2", str(e)) from None
+        raise UsageError("--extension" if "extension" in str(e) else "--l1/--l2", str(e)) from None
     if a.kt is not None:
         kt = a.kt
     elif a.kv is not None:
@@ -444,7 +449,7 @@ def cmd_ingest(a) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             log = data.resample(tuple(a.nodes), rate=a.rate, max_current=a.max_current, max_torque=a.max_torque)
-            t = forces_from_log(log, leg, motors)
+            t = forces_from_log(log, leg, motors, arc_noise=a.arc_noise)
         for w in caught:
             if "singular" not in str(w.message):
                 print(f"{path}: {w.message}")
@@ -617,6 +622,8 @@ def add_leg_args(p) -> None:
     g.add_argument("--l1", type=float, default=0.15, help="proximal link, m (default 0.15)")
     g.add_argument("--l2", type=float, default=0.30, help="distal link, m (default 0.30)")
     g.add_argument("--hip-spacing", type=float, default=0.0, help="distance between motor axes, m")
+    g.add_argument("--extension", type=float, default=0.0,
+                   help="how far the toe sits beyond the distal joint along the leg axis, m (Traveler: 0.05)")
     g.add_argument("--hip-height", type=float, default=0.25, help="motor axes above the sand surface, m (positive)")
     g.add_argument("--max-condition", type=float, default=50.0, help="mask samples with cond(J) above this")
     g.add_argument("--kt", type=float, default=None,
@@ -692,7 +699,11 @@ def _register_hardware(sub) -> None:
                    help="override: what the 12-bit field carries (current: give --kt as output-side N m per A, "
                         "i.e. gear ratio x k_t, and keep --gear-ratio 1: MIT positions are output-side)")
     p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
-    p.add_argument("--filter-window", type=int, default=5, help="zero-phase moving average, samples (default 5)")
+    p.add_argument("--filter-window", type=int, default=5,
+                   help="zero-phase moving average, samples, odd (default 5)")
+    p.add_argument("--arc-noise", type=float, default=0.0,
+                   help="toe moves below this many m add no arc length when aligning the air run and trials "
+                        "(encoder jitter while standing still; default 0, about 2e-4 for a jittery leg)")
     p.add_argument("--no-statistics", dest="statistics", action="store_false",
                    help="do not save the dataset's spectral sufficient statistics (saved by default: irft fit then "
                         "skips its pass over the data; 2 x F^2 x 8 bytes, F = 289 features: 1.3 MB)")

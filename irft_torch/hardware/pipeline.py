@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import warnings
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,26 +41,75 @@ class ForceTrace:
     force: np.ndarray
     valid: np.ndarray
     why_masked: dict = field(default_factory=dict)
+    arc_noise: float = 0.0
 
     @property
     def arc_length(self) -> np.ndarray:
-        """Distance travelled by the toe, m (T,)."""
-        step = np.linalg.norm(np.diff(self.toe, axis=0), axis=1)
-        step[~np.isfinite(step)] = 0.0  # unreachable samples (masked) add no distance
-        return np.concatenate([[0.0], np.cumsum(step)])
+        """Distance travelled by the toe along its path, m (T,), ignoring toe moves below
+        ``arc_noise`` m (encoder jitter while standing still; see ``progress``): the coordinate
+        trials and the air run are aligned by."""
+        return progress(self.toe, self.time, self.arc_noise)
 
     def masked(self, keep: np.ndarray) -> ForceTrace:
         return ForceTrace(self.time[keep], self.q[keep], self.toe[keep], self.tau[keep], self.force[keep],
-                          self.valid[keep], dict(self.why_masked))
+                          self.valid[keep], dict(self.why_masked), self.arc_noise)
 
 
-def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel, MotorModel]) -> ForceTrace:
+def progress(toe: np.ndarray, time: np.ndarray, noise: float = 0.0) -> np.ndarray:
+    """Distance travelled along a toe path, m (T,), for aligning runs by place rather than time.
+
+    With ``noise`` > 0 a move counts once the toe is more than ``noise`` m from where the last
+    counted move ended, so encoder jitter while the toe stands still adds nothing (summing every
+    1 ms step of the Traveler leg's log gives 0.25 m for a 0.17 m stroke, 5 cm of it over a 3 s
+    pause; 0.19 m with noise = 2e-4). Between two counted moves the distance is spread in proportion
+    to the raw step lengths (a pause about linearly in time: two runs pausing at one place line up by
+    how much of the pause has passed). The distance between counted moves is their chord, so a
+    corner is cut by up to ~noise / 3: keep noise at the jitter's size (0 for noise-free positions,
+    where this is the plain path length). A creep of 1 nm/s makes the coordinate strictly increasing
+    (never a visible distance), so runs that stand still line up by time instead of picking one
+    sample of a repeated distance. Unreachable samples (NaN toe) add nothing.
+
+    Args:
+        toe: (T, 2) toe positions, m. time: (T,) increasing sample times, s.
+        noise: the jitter to ignore, m (0: every step counts, the plain path length).
+    """
+    toe, time = np.asarray(toe, dtype=float), np.asarray(time, dtype=float)
+    T = len(time)
+    ok = np.nonzero(np.isfinite(toe).all(1))[0]
+    if T == 0 or len(ok) == 0:
+        return np.zeros(T)
+    step = np.linalg.norm(np.diff(toe, axis=0), axis=1)
+    raw = np.concatenate([[0.0], np.cumsum(np.where(np.isfinite(step), step, 0.0))])
+    at, dist = [int(ok[0])], [0.0]
+    anchor = toe[ok[0]]
+    for i in ok[1:]:
+        d = float(np.hypot(*(toe[i] - anchor)))
+        if d > noise:
+            at.append(int(i))
+            dist.append(dist[-1] + d)
+            anchor = toe[i]
+    at, dist = np.array(at), np.array(dist)
+    k = np.clip(np.searchsorted(at, np.arange(T), side="right") - 1, 0, len(at) - 1)  # last counted move <= i
+    s = dist[k].copy()
+    inside = k < len(at) - 1
+    kk = k[inside]
+    span = raw[at[kk + 1]] - raw[at[kk]]
+    frac = np.where(span > 0, (raw[inside] - raw[at[kk]]) / np.where(span > 0, span, 1.0), 0.0)
+    s[inside] += (dist[kk + 1] - dist[kk]) * np.clip(frac, 0.0, 1.0)
+    return s + 1e-9 * (time - time[0])
+
+
+def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel, MotorModel],
+                    arc_noise: float = 0.0) -> ForceTrace:
     """tau = k_t I per motor (or, when the log carries torques, direction x gear_ratio x the reported
     torque: ODrive Get_Torques is motor-side; MIT-mode replies are output-side, so use gear_ratio 1
     there, as for their output-side positions), q from the encoders, F = -J^-T tau (singular
     samples masked).
     Samples whose joint angles the leg cannot reach (wrong link lengths, offsets) are masked and
-    counted; if none is reachable this raises ValueError naming the leg options."""
+    counted; if none is reachable this raises ValueError naming the leg options. ``arc_noise``: see
+    ``ForceTrace`` (m)."""
+    if not (np.isfinite(arc_noise) and 0 <= arc_noise < 0.01):
+        raise ValueError(f"arc_noise must be a toe-position jitter in m in [0, 0.01), got {arc_noise}")
     q = torch.stack([motors[i].joint_angle(torch.as_tensor(log.position[:, i])) for i in range(2)], -1)
     if log.iq is not None:
         tau = torch.stack([motors[i].torque(torch.as_tensor(log.iq[:, i])) for i in range(2)], -1)
@@ -95,18 +144,27 @@ def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel
     valid = np.asarray(log.valid) & ok
     force = force.numpy().copy()
     force[~valid] = np.nan
-    return ForceTrace(np.asarray(log.time), q.numpy(), toe.numpy(), tau.numpy(), force, valid, masked)
+    return ForceTrace(np.asarray(log.time), q.numpy(), toe.numpy(), tau.numpy(), force, valid, masked, float(arc_noise))
 
 
-def _interp_valid(x_new: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Interpolate y (n, 2) at x_new over valid samples; NaN outside their span."""
-    xv, yv = x[valid], y[valid]
+def _interp_valid(x_new: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray,
+                  bridge: bool = False) -> np.ndarray:
+    """Interpolate y (n, k) at x_new over the valid samples; NaN outside their span and, unless
+    ``bridge``, inside a masked stretch (between two valid samples with masked ones between them:
+    a masked sample is never filled in and returned as data)."""
+    idx = np.nonzero(valid)[0]
+    xv, yv = x[idx], y[idx]
     if len(xv) < 2:
         return np.full((len(x_new), y.shape[1]), np.nan)
     order = np.argsort(xv, kind="stable")
-    xv, yv = xv[order], yv[order]
+    xv, yv, idx = xv[order], yv[order], idx[order]
     out = np.stack([np.interp(x_new, xv, yv[:, k]) for k in range(y.shape[1])], -1)
     out[(x_new < xv[0]) | (x_new > xv[-1])] = np.nan
+    if not bridge:
+        gap = np.abs(np.diff(idx)) > 1  # (n_valid - 1,): masked samples between these two neighbours
+        if gap.any():
+            j = np.clip(np.searchsorted(xv, x_new, side="left"), 1, len(xv) - 1)  # xv[j-1] < x_new <= xv[j]
+            out[gap[j - 1] & (x_new > xv[j - 1]) & (x_new < xv[j])] = np.nan
     return out
 
 
@@ -116,9 +174,9 @@ def _path_mismatch(ref: ForceTrace, other: ForceTrace, n: int = 200) -> tuple[fl
     span = min(ref.arc_length[-1], other.arc_length[-1])
     s = np.linspace(0.0, span, n)
     ones_r, ones_o = np.isfinite(ref.toe).all(1), np.isfinite(other.toe).all(1)
-    a = _interp_valid(s, ref.arc_length, ref.toe, ones_r)
-    b = _interp_valid(s, other.arc_length, other.toe, ones_o)
-    b_rev = _interp_valid(other.arc_length[-1] - s, other.arc_length, other.toe, ones_o)
+    a = _interp_valid(s, ref.arc_length, ref.toe, ones_r, bridge=True)
+    b = _interp_valid(s, other.arc_length, other.toe, ones_o, bridge=True)
+    b_rev = _interp_valid(other.arc_length[-1] - s, other.arc_length, other.toe, ones_o, bridge=True)
     rms = float(np.sqrt(np.nanmean(((a - b) ** 2).sum(1))))
     rms_rev = float(np.sqrt(np.nanmean(((a - b_rev) ** 2).sum(1))))
     return rms, rms_rev, float(span)
@@ -151,22 +209,24 @@ def subtract_air(trial: ForceTrace, air: ForceTrace, path_tol: float | None = No
     masked = dict(trial.why_masked)
     if beyond.any():
         masked["no air-run force at this arc length (the air run is shorter or masked there)"] = int(beyond.sum())
-    return ForceTrace(trial.time, trial.q, trial.toe, trial.tau, force, valid, masked)
+    return replace(trial, force=force, valid=valid, why_masked=masked)
 
 
 def zero_phase_filter(trace: ForceTrace, window: int = 5) -> ForceTrace:
-    """Centred moving average of ``window`` samples (no lag); masked samples are bridged by linear
-    interpolation for the filter and stay masked."""
-    if int(window) != window or window < 1:
-        raise ValueError(f"window must be a positive integer (samples), got {window}")
-    if window == 1:
+    """Centred moving average of ``window`` samples (odd: no lag); masked samples are bridged by
+    linear interpolation for the filter (masked ends hold the nearest valid value) and stay masked."""
+    if int(window) != window or window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be an odd positive integer (samples; an even one shifts the force by half a "
+                         f"sample), got {window}")
+    if window == 1 or trace.valid.sum() < 2:
         return trace
-    idx = np.arange(len(trace.time))
-    filled = _interp_valid(idx.astype(float), idx.astype(float), np.nan_to_num(trace.force), trace.valid)
-    filled = np.where(np.isnan(filled), 0.0, filled)
+    idx = np.arange(len(trace.time)).astype(float)
+    filled = _interp_valid(idx, idx, np.nan_to_num(trace.force), trace.valid, bridge=True)  # finite first..last
+    first, last = np.nonzero(trace.valid)[0][[0, -1]]
+    filled[:first], filled[last + 1:] = filled[first], filled[last]
     smooth = uniform_filter1d(filled, size=int(window), axis=0, mode="nearest")
     smooth[~trace.valid] = np.nan
-    return ForceTrace(trace.time, trace.q, trace.toe, trace.tau, smooth, trace.valid, dict(trace.why_masked))
+    return replace(trace, force=smooth, why_masked=dict(trace.why_masked))
 
 
 def average_trials(trials: list[ForceTrace], n_points: int | None = None, coverage: str = "error",
@@ -219,7 +279,7 @@ def average_trials(trials: list[ForceTrace], n_points: int | None = None, covera
     masked = {}
     if (~valid).any():
         masked["masked in every trial at this arc length"] = int((~valid).sum())
-    return ForceTrace(time, q, toe, tau, force, valid, masked)
+    return ForceTrace(time, q, toe, tau, force, valid, masked, ref.arc_noise)
 
 
 @dataclass

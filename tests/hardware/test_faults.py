@@ -127,6 +127,92 @@ def test_air_run_in_the_other_direction_is_an_error():
     torch.manual_seed(0)
 
 
+def _stroke(T=200, pause=(80, 120), jitter=0.0, seed=0, valid=None, air=False):
+    """A toe going down 4 cm at constant speed with a pause (samples ``pause``), force (0, 10 N x
+    depth fraction), or with ``air`` (0, 1 N + depth fraction); optional Gaussian toe jitter (m)."""
+    moving = np.ones(T, bool)
+    moving[pause[0]:pause[1]] = False
+    frac = np.cumsum(moving) / moving.sum()
+    toe = np.stack([np.zeros(T), -0.28 - 0.04 * frac], -1)
+    if jitter:
+        toe = toe + jitter * np.random.default_rng(seed).standard_normal(toe.shape)
+    f = np.stack([np.zeros(T), (1 + frac) if air else 10 * frac], -1)
+    v = np.ones(T, bool) if valid is None else valid
+    f[~v] = np.nan
+    q = np.zeros((T, 2))
+    return ForceTrace(np.arange(T) * 0.001, q, toe, q, f, v)
+
+
+def test_masked_stretches_are_never_filled_in_by_averaging_or_air_subtraction():
+    """A stretch masked in every trial stays masked in their average (and is counted); a stretch
+    masked in the air run masks the trial there: no linear bridge comes back as data."""
+    from irft_torch.hardware import average_trials
+
+    v = np.ones(200, bool)
+    v[140:160] = False  # a frame gap in the moving part
+    avg = average_trials([_stroke(valid=v), _stroke(valid=v)], n_points=200)
+    s = avg.arc_length
+    gap_s = _stroke().arc_length[[139, 160]]
+    inside = (s > gap_s[0] + 1e-9) & (s < gap_s[1] - 1e-9)
+    assert inside.sum() >= 15 and not avg.valid[inside].any() and np.isnan(avg.force[inside]).all()
+    assert sum(avg.why_masked.values()) == int((~avg.valid).sum()) >= 15
+    # one trial masked there, the other not: the average is the valid one's (10 N x depth), not a blend
+    one = average_trials([_stroke(valid=v), _stroke()], n_points=200)
+    ok = one.valid & inside
+    assert ok.sum() >= 15
+    np.testing.assert_allclose(one.force[ok, 1], 10 * (-0.28 - one.toe[ok, 1]) / 0.04, atol=1e-6)
+    out = subtract_air(_stroke(), _stroke(air=True, valid=v))
+    assert not out.valid[141:159].any() and out.valid[:140].all() and out.valid[160:].all()
+    assert list(out.why_masked.values()) == [int((~out.valid).sum())]
+    frac = _stroke().force[:, 1] / 10
+    np.testing.assert_allclose(out.force[out.valid, 1], (10 * frac - (1 + frac))[out.valid], atol=1e-9)
+
+
+def test_filter_keeps_edges_and_odd_windows_only():
+    from irft_torch.hardware import zero_phase_filter
+
+    v = np.ones(12, bool)
+    v[:3] = v[-2:] = False
+    t = ForceTrace(np.arange(12) * 0.001, np.zeros((12, 2)), np.zeros((12, 2)), np.zeros((12, 2)),
+                   np.where(v[:, None], 10.0, np.nan) * np.ones((12, 2)), v)
+    out = zero_phase_filter(t, window=5)
+    np.testing.assert_allclose(out.force[v], 10.0)  # a constant stays constant up to the masked ends
+    assert np.isnan(out.force[~v]).all()
+    impulse = np.zeros((13, 2))
+    impulse[6] = 1.0
+    t = ForceTrace(np.arange(13) * 0.001, impulse * 0, impulse * 0, impulse * 0, impulse, np.ones(13, bool))
+    out = zero_phase_filter(t, window=5)
+    assert np.nonzero(out.force[:, 0])[0].tolist() == [4, 5, 6, 7, 8]  # centred on the impulse: no lag
+    with pytest.raises(ValueError, match="odd"):
+        zero_phase_filter(t, window=4)
+
+
+def test_encoder_jitter_does_not_misalign_runs_with_arc_noise():
+    """Toe jitter of 20 um while standing still adds centimetres of 'arc length' (5 cm on the
+    Traveler's log); with arc_noise the air run of a jittery leg lines up with the trial (its pause
+    later and longer) and the subtraction leaves the trial's ground force."""
+    from irft_torch.hardware.pipeline import progress
+
+    kw = dict(T=1000, jitter=2e-5)
+    trial, air = _stroke(pause=(300, 700), seed=1, **kw), _stroke(pause=(350, 800), seed=2, air=True, **kw)
+    truth = _stroke(pause=(300, 700), T=1000).force[:, 1]  # the ground force: 10 N x depth fraction
+    trial.force[:, 1] += 1 + truth / 10  # plus the air run's force at the same place
+    assert trial.arc_length[-1] > 0.055  # a 4 cm stroke read as more than 5.5 cm
+    s = progress(trial.toe, trial.time, 2e-4)
+    assert abs(s[-1] - 0.04) < 2e-3 and (np.diff(s) > 0).all()
+    clean = _stroke(pause=(300, 700), T=1000)
+    depth = abs(clean.toe[-1, 1] - clean.toe[0, 1])
+    np.testing.assert_allclose(progress(clean.toe, clean.time, 0.0)[-1], depth, atol=1e-6)  # the plain path length
+    errs = {}
+    for noise in (0.0, 2e-4):
+        trial.arc_noise = air.arc_noise = noise
+        out = subtract_air(trial, air)
+        errs[noise] = np.abs(out.force[out.valid, 1] - truth[out.valid])
+        assert out.valid.mean() > 0.95
+    assert np.median(errs[2e-4]) < 0.01 and errs[2e-4].max() < 0.1  # lined up by place
+    assert errs[0.0].max() > 5 * errs[2e-4].max()  # by jitter-inflated distance they are not
+
+
 def test_fault_table_rows_each_name_an_existing_test():
     text = (ROOT / "docs" / "faults.md").read_text()
     rows = [r for r in text.splitlines() if re.match(r"^\| F\d+ ", r)]
