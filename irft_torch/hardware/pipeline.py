@@ -263,6 +263,10 @@ def average_trials(trials: list[ForceTrace], n_points: int | None = None, covera
     if len(short):
         warnings.warn(f"cropping every trial to {span:.3f} m, the distance all covered; "
                       f"{longest - span:.3f} m of the longest trial is dropped", stacklevel=2)
+    elif longest - span > 0.01 * longest:  # within min_coverage, but data are dropped: say so
+        warnings.warn(f"the average covers {span:.3f} m, the distance every trial covered; the last "
+                      f"{longest - span:.3f} m of the longest trial ({100 * (longest - span) / longest:.1f} %) is not "
+                      "in it", stacklevel=2)
     n = n_points or int(np.median([len(t.time) for t in trials]))
     s = np.linspace(0.0, span, n)
     ref = trials[0]

@@ -227,3 +227,19 @@ def test_fault_table_rows_each_name_an_existing_test():
             assert re.search(rf"^def {name}\(", src, re.M), f"{path}::{name} does not exist ({row[:40]})"
             if case:
                 assert case in src, f"{path}::{name}[{case}]: case not found"
+
+
+def test_averaging_says_what_a_longer_trial_loses():
+    """Trials within min_coverage of each other are averaged over the distance all covered; what the
+    longer ones ran beyond it is named in a warning (data are never dropped silently)."""
+    from irft_torch.hardware import average_trials
+
+    long, short = _stroke(T=200), _stroke(T=200)
+    short = short.masked(np.arange(200) < 194)  # 3 % shorter
+    # by hand: 159 and 153 of the 160 moving 0.25 mm steps: 3.975 and 3.825 cm, 1.5 mm = 3.8 % beyond
+    with pytest.warns(UserWarning, match=r"covers 0\.038 m.* the last 0\.00[12] m of the longest trial \(3\.8 %\)"):
+        avg = average_trials([long, short])
+    assert avg.arc_length[-1] <= short.arc_length[-1] + 1e-9
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        average_trials([long, _stroke(T=200)])  # equal trials: nothing to say
