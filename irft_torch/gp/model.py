@@ -254,8 +254,7 @@ class InverseRFT(nn.Module):
             self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
         if priors == "physical":
-            centres = prior_centres(c, f, map_scale, prior_mean == "physics")
-            register_physical_priors(self.hypers, centres, prior_mean == "physics", self.surface is not None)
+            centres = self._register_priors(c, f)
             with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
                 self.hypers.outputscale = centres["outputscale"].to(dtype)
         self.auto = method == "auto"
@@ -301,6 +300,18 @@ class InverseRFT(nn.Module):
     @property
     def n_segments(self) -> int:
         return self.train_contacts.n_segments
+
+    def _register_priors(self, c: Contacts, f: Tensor) -> dict:
+        """Register the physical hyperparameter priors centred on the data (c, f) (whitened): at
+        construction, and again whenever ``add_data`` changes the data, so that a model grown by
+        streaming has the objective of a model built on all its data (and of the one ``load`` builds)."""
+        y = f.T
+        s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])
+        map_scale = y.pow(2).mean(-1).sqrt().clamp_min(1e-300) / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+        physics = self.prior_mean_kind == "physics"
+        centres = prior_centres(c, f, map_scale, physics)
+        register_physical_priors(self.hypers, centres, physics, self.surface is not None)
+        return centres
 
     def _join(self) -> tuple[Contacts, Tensor, Tensor]:
         if self._joined is None:
@@ -474,7 +485,9 @@ class InverseRFT(nn.Module):
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
         exactly that of a batch fit on all the data at these hyperparameters. ``noise_scale``: as in
-        the constructor, for the new samples."""
+        the constructor, for the new samples. The physical priors' centres are recomputed from all the
+        data, so a later ``fit`` (and a saved and loaded model) has the objective of a model built on
+        all of it."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
         if self.surface is not None:
@@ -492,6 +505,8 @@ class InverseRFT(nn.Module):
         self._parts.append((c, f, scale))
         self._joined = None
         self._digest_stale = True
+        if self.priors == "physical":  # the priors' centres follow the data (the posterior does not use them)
+            self._register_priors(*self._join()[:2])
         return self
 
     # ---- prediction ----------------------------------------------------------------------------

@@ -112,10 +112,18 @@ def envelope_profile(profile: Toe) -> Toe:
     return _from_vertices(torch.cat([v, v[:1]]), profile.width)
 
 
+def _float_dtype(*xs) -> torch.dtype:
+    """The dtype of the widest floating tensor among ``xs``, else torch's default (Python numbers)."""
+    fl = [x.dtype for x in xs if isinstance(x, Tensor) and x.dtype.is_floating_point]
+    return torch.promote_types(*fl) if len(fl) > 1 else (fl[0] if fl else torch.get_default_dtype())
+
+
 def slip_ratio(v, omega, radius: float) -> Tensor:
-    """Slip of a wheel moving at ``v`` [m/s] with spin ``omega`` [rad/s] (see the module doc)."""
-    v = torch.as_tensor(v, dtype=torch.get_default_dtype())
-    rim = torch.as_tensor(omega, dtype=v.dtype) * radius
+    """Slip of a wheel moving at ``v`` [m/s] with spin ``omega`` [rad/s] (see the module doc); in
+    the inputs' floating dtype (torch's default for numbers)."""
+    dtype = _float_dtype(v, omega)
+    v = torch.as_tensor(v, dtype=dtype)
+    rim = torch.as_tensor(omega, dtype=dtype) * radius
     if (v.abs() + rim.abs() == 0).any():
         raise ValueError("slip is undefined for a wheel at rest (v = omega = 0)")
     driving = rim.abs() >= v.abs()
@@ -124,8 +132,9 @@ def slip_ratio(v, omega, radius: float) -> Tensor:
 
 
 def wheel_speeds(slip, radius: float, v: float | None = None, rim_speed: float | None = None) -> tuple[Tensor, Tensor]:
-    """(v, omega) for a slip in [-1, 1) given either the travel speed ``v`` or the ``rim_speed``."""
-    s = torch.as_tensor(slip, dtype=torch.get_default_dtype())
+    """(v, omega) for a slip in [-1, 1) given either the travel speed ``v`` or the ``rim_speed``; in
+    the slip's floating dtype (torch's default for numbers)."""
+    s = torch.as_tensor(slip, dtype=_float_dtype(slip))
     if (v is None) == (rim_speed is None):
         raise ValueError("give exactly one of v and rim_speed")
     if ((s < -1) | (s >= 1)).any():

@@ -93,3 +93,23 @@ def test_priors_carry_no_state_and_files_keep_them(tmp_path):
     torch.testing.assert_close(back.loss(), a.loss())
     with pytest.raises(ValueError, match="priors must be"):
         irft.InverseRFT(c, f, priors="flat")
+
+
+@pytest.mark.parametrize("prior_mean", ["zero", "physics"])
+def test_a_model_grown_by_add_data_has_the_objective_of_one_built_on_all_its_data(tmp_path, prior_mean):
+    """The priors' centres follow the data: after add_data the loss (likelihood and log prior) at
+    the same hyperparameters is the batch model's, and a saved and loaded model's."""
+    toe = irft.rft.CToe(0.02, 0.008, opening="left")
+    c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=70))
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(0.45, 0.42), c)
+    scale = 1.0 + 0.5 * torch.rand(70, generator=torch.Generator().manual_seed(0))
+    batch = irft.InverseRFT(c, f, prior_mean=prior_mean, noise_scale=scale)
+    grown = irft.InverseRFT(c[:40], f[:40], prior_mean=prior_mean, noise_scale=scale[:40])
+    grown.add_data(c[40:], f[40:], noise_scale=scale[40:])
+    grown.load_state_dict(batch.state_dict())  # the same hyperparameters
+    with torch.no_grad():
+        assert grown.backend.log_prior().item() == pytest.approx(batch.backend.log_prior().item(), rel=1e-12)
+        assert grown.loss().item() == pytest.approx(batch.loss().item(), rel=1e-10)
+        grown.save(tmp_path / "g.pt")
+        back = irft.InverseRFT.load(tmp_path / "g.pt")
+        assert back.loss().item() == pytest.approx(grown.loss().item(), rel=1e-10)

@@ -40,6 +40,18 @@ def test_slip_ratio_and_speeds():
         assert slip_ratio(v, om, R).item() == pytest.approx(s)
     with pytest.raises(ValueError, match="at rest"):
         slip_ratio(0.0, 0.0, R)
+    # float64 inputs stay float64 whatever the default dtype: pure rolling is slip 0, not 1e-7
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        d = torch.tensor([0.01], dtype=torch.float64)
+        s0 = slip_ratio(d, d / R, R)
+        assert s0.dtype == torch.float64 and abs(s0.item()) < 1e-15
+        v, om = wheel_speeds(torch.tensor([0.3], dtype=torch.float64), R, v=0.01)
+        assert v.dtype == om.dtype == torch.float64
+        assert slip_ratio(0.01, 0.01 / R, R).dtype == torch.float32  # numbers: the default dtype
+    finally:
+        torch.set_default_dtype(old)
 
 
 def test_pure_rolling_contact_point_is_at_rest():
