@@ -535,6 +535,10 @@ class InverseRFT(nn.Module):
                        noise_scale=None) -> Posterior:
         """Posterior of the forces (F_x, F_z) for contacts of shape (..., T, M).
 
+        The contacts are used as given: on a model that learned the surface offset
+        (``surface_offset=True``), contacts built at the stated surface predict forces there; to
+        predict at the learned surface, pass ``contacts.with_surface_offset(model.surface_offset.mean)``.
+
         Args:
             variance: "exact" (w^T Sigma w, segments correlated) or "independent" (the paper's
                 sum_m w_m^2 sigma^2(theta_m)).
