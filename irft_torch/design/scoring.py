@@ -43,7 +43,6 @@ from ..gp.backends import RFTBackend, make_backend
 from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
-from ..gp.backends.spectral import SpectralBackend
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from ..rft.stress_maps import mirror_to_canonical
@@ -160,13 +159,15 @@ class ProbeScorer:
         backend changes (``add_data``, a refit that grows the basis or moves to another backend) the
         scorer's is derived again from it in the same way (the model's own; cut from its spectral
         statistics; or rebuilt on its data). The hyperparameters are shared with the model."""
-        if self._recipe is not None:
-            own = self._recipe[0].backend
-            key = (id(own), own.n_samples, id(getattr(own, "stats", None)))
-            if key != self._derived_from:
-                self._backend = self._derive(*self._recipe)
-                self._derived_from = key
+        if self._recipe is not None and self._state_of(self._recipe[0].backend) != self._derived_from:
+            self._backend = self._derive(*self._recipe)
+            self._derived_from = self._state_of(self._recipe[0].backend)
         return self._backend
+
+    @staticmethod
+    def _state_of(backend: RFTBackend) -> tuple:
+        """What a derived belief depends on: which backend object, its sample count and statistics."""
+        return id(backend), backend.n_samples, id(getattr(backend, "stats", None))
 
     @staticmethod
     def _derive(model, method: str | None, tol) -> RFTBackend:
@@ -174,13 +175,15 @@ class ProbeScorer:
         own = model.backend
         own_tol = own.tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
         target = "spectral" if isinstance(tol, float) else ALIASES.get(method or own.name, method or own.name)
-        t = {"auto": max(own_tol, SCORING_TOL), None: own_tol}.get(tol, tol) if not isinstance(tol, float) else tol
-        if target == own.name and (target != "spectral" or t == own.tol):
+        if tol == "auto":
+            tol = max(own_tol, SCORING_TOL)
+        elif tol is None:
+            tol = own_tol
+        if target == own.name and (target != "spectral" or tol == own.tol):
             return own
-        if target == "spectral" and own.name == "spectral" and own.stats is not None and t >= own.tol:
-            # the model's statistics cover any coarser basis: cut from them, no pass over the data
-            return SpectralBackend(model.hypers, model.train_contacts, model.train_forces, tol=t, statistics=own.stats)
-        return make_backend(target, model.hypers, model.train_contacts, model.train_forces, tol=t)
+        # a spectral model's statistics serve any basis they cover (a coarser one: no pass over the data)
+        stats = own.stats if own.name == "spectral" else None
+        return make_backend(target, model.hypers, model.train_contacts, model.train_forces, tol=tol, statistics=stats)
 
     @property
     def method(self) -> str:
@@ -238,8 +241,7 @@ class ProbeScorer:
                 raise ValueError(f"tol= sizes a spectral basis: method must be None or 'spectral', got {method!r}")
             tol = float(tol)
         out = cls(cls._derive(model, method, tol), cls._model_noise_scale(model, noise_scale))
-        own = model.backend
-        out._recipe, out._derived_from = (model, method, tol), (id(own), own.n_samples, id(getattr(own, "stats", None)))
+        out._recipe, out._derived_from = (model, method, tol), cls._state_of(model.backend)
         return out
 
     @staticmethod
