@@ -118,6 +118,14 @@ def _check_dtype(dtype) -> None:
         raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
 
 
+def _data_scales(c: Contacts, f: Tensor) -> tuple[Tensor, Tensor]:
+    """The data's force scale (2,) N (rms force per axis) and stress-per-depth scale (2,) N/cm^3
+    (that over the rms summed weight)."""
+    s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
+    force_scale = f.T.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+    return force_scale, force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+
+
 class InverseRFT(nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
@@ -237,8 +245,7 @@ class InverseRFT(nn.Module):
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
         # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
-        force_scale = power.sqrt().clamp_min(1e-300)
-        map_scale = force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+        force_scale, map_scale = _data_scales(c, f)
         self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
                                          map_scale.cpu()).to(device=device, dtype=dtype)
         with torch.no_grad():
@@ -305,11 +312,8 @@ class InverseRFT(nn.Module):
         """Register the physical hyperparameter priors centred on the data (c, f) (whitened): at
         construction, and again whenever ``add_data`` changes the data, so that a model grown by
         streaming has the objective of a model built on all its data (and of the one ``load`` builds)."""
-        y = f.T
-        s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])
-        map_scale = y.pow(2).mean(-1).sqrt().clamp_min(1e-300) / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
         physics = self.prior_mean_kind == "physics"
-        centres = prior_centres(c, f, map_scale, physics)
+        centres = prior_centres(c, f, _data_scales(c, f)[1], physics)
         register_physical_priors(self.hypers, centres, physics, self.surface is not None)
         return centres
 
