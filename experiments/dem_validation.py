@@ -51,6 +51,7 @@ import irft_torch as irft
 from irft_torch import dem_data, metrics
 from irft_torch.gp.backends.pairs import PairsBackend
 from irft_torch.rft import Contacts, FourierStressMap
+from irft_torch.workers import worker_context
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -312,18 +313,6 @@ def _init_worker(a, data: list[RunData]) -> None:
     _WORKER["a"] = a
 
 
-def _worker_context():
-    """Workers forked from a server that has imported the library and torch's compiler package (which
-    the first optimizer step imports: 0.8 s per worker otherwise), where the platform has forkserver."""
-    from multiprocessing import get_all_start_methods, get_context
-
-    if "forkserver" not in get_all_start_methods():
-        return get_context("spawn")
-    ctx = get_context("forkserver")
-    ctx.set_forkserver_preload(["irft_torch", "torch._dynamo"])
-    return ctx
-
-
 def _fold_task(split: str, idx: list[int], keep_models: bool):
     """One fold in a worker: run_fold on its data; the fitted models only where the figures need them."""
     data, a = _WORKER["data"], _WORKER["a"]
@@ -359,7 +348,7 @@ def main(argv=None) -> dict:
     if jobs > 1:  # folds are independent: one per worker process, the data read once per worker
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(jobs, mp_context=_worker_context(), initializer=_init_worker,
+        with ProcessPoolExecutor(jobs, mp_context=worker_context(), initializer=_init_worker,
                                  initargs=(a, data)) as pool:
             futures = {(split, v): pool.submit(_fold_task, split, idx, (split, v) == figure_fold)
                        for split in splits for v, idx in all_folds[split]}

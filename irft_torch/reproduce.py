@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from . import metrics
 from .gp.model import InverseRFT
 from .rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
+from .workers import worker_context
 
 __all__ = ["StudySettings", "PAPER_TABLE1", "PAPER_TABLE2", "CONFIGS", "configuration", "run_study"]
 
@@ -370,25 +371,12 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
         if workers > 1:
             from concurrent.futures import ProcessPoolExecutor
 
-            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=_worker_context()))
+            ctx = worker_context(["irft_torch.reproduce"])
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=ctx))
         t0 = time.perf_counter()
         results = _run_fits(jobs, s, progress, pool, workers)
         elapsed = time.perf_counter() - t0
         return _write_study(out, s, results, elapsed, figures, pool)
-
-
-def _worker_context():
-    """Worker processes forked from a server that has imported the study once ("forkserver", where the
-    platform has it: one import instead of one per worker, and no fork of a process whose thread
-    pools are running), else spawned. The server also imports ``torch._dynamo``, which the first
-    optimizer step of each process would import (0.8 s)."""
-    from multiprocessing import get_all_start_methods, get_context
-
-    if "forkserver" not in get_all_start_methods():
-        return get_context("spawn")
-    ctx = get_context("forkserver")
-    ctx.set_forkserver_preload(["irft_torch.reproduce", "torch._dynamo"])  # the first Adam step imports the latter
-    return ctx
 
 
 def _write_study(out: Path, s: StudySettings, results: list[FitResult], elapsed: float, figures: bool,
