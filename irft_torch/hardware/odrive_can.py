@@ -89,8 +89,18 @@ def split_id(arb_id: int) -> tuple[int, int]:
     return arb_id >> 5, arb_id & 0x1F
 
 
+_INT_RANGE = {"I": (0, 2**32 - 1), "B": (0, 255), "h": (-(2**15), 2**15 - 1)}
+_F32_MAX = 3.4028234663852886e38
+
+
 def encode(command: str, node: int, firmware: str = "0.5", timestamp: float = 0.0, **values) -> can.Message:
-    """A data frame for ``command`` with the given field values (all fields required)."""
+    """A data frame for ``command`` with the given field values (all fields required).
+
+    Raises ValueError naming the field when a value does not fit its slot: non-finite, beyond
+    float32, or outside an integer field's range (e.g. ``vel_ff`` / ``torque_ff`` of Set_Input_Pos,
+    int16 x 0.001: -32.768 .. 32.767 rev/s, N m); unscaled integer fields (states, flags, error
+    bits) must be whole numbers. Nothing is clipped, wrapped or rounded silently (scaled fields are
+    rounded to their resolution)."""
     fw = _firmware(firmware)
     if command not in COMMANDS[fw]:
         raise ValueError(f"unknown command {command!r} for firmware {fw}.x; known: {sorted(COMMANDS[fw])}")
@@ -104,11 +114,22 @@ def encode(command: str, node: int, firmware: str = "0.5", timestamp: float = 0.
             raise ValueError(f"{command} takes fields {names}; missing {sorted(missing)}, unexpected {sorted(extra)}")
         raw = []
         for name, scale, code in zip(names, scales, fmt.replace("<", "").replace("x", "")):
-            v = values[name]
-            if code in "f":
-                raw.append(float(v))
-            else:
-                raw.append(int(round(float(v) / scale)))
+            v = float(values[name])
+            if not math.isfinite(v):
+                raise ValueError(f"{command}: {name} = {v} is not a finite number")
+            if code == "f":
+                if abs(v) > _F32_MAX:
+                    raise ValueError(f"{command}: {name} = {v:g} does not fit a float32 (|x| <= {_F32_MAX:.4g})")
+                raw.append(v)
+                continue
+            lo, hi = _INT_RANGE[code]
+            if scale == 1 and v != int(v):
+                raise ValueError(f"{command}: {name} = {v:g} must be an integer ({lo} to {hi})")
+            r = int(round(v / scale))
+            if not lo <= r <= hi:
+                span = f"{lo} to {hi}" if scale == 1 else f"{lo * scale:g} to {hi * scale:g}"
+                raise ValueError(f"{command}: {name} = {v:g} is outside what the frame carries ({span})")
+            raw.append(r)
         data = struct.pack(fmt, *raw)
     return can.Message(arbitration_id=arbitration_id(node, cmd), data=data, is_extended_id=False,
                        timestamp=timestamp)

@@ -105,3 +105,29 @@ def test_float_roundtrip(node, a, b):
                                                                      ("pos_estimate", "vel_estimate"))):
         f = decode(encode(cmd, node, **dict(zip(names, (a, b)))))
         assert (f.node, f.command) == (node, cmd) and [f.values[n] for n in names] == [a, b]
+
+
+def test_encode_refuses_values_the_frame_cannot_carry():
+    """F52. The official DBC: Vel_FF and Torque_FF are signed 16-bit with factor 0.001, so they carry
+    -32.768 .. 32.767 (rev/s, N m); Axis_Requested_State is an unsigned 32-bit integer; the floats
+    are IEEE float32. A value outside is a ValueError naming the field (was struct.error,
+    OverflowError, or a NaN / rounded value sent silently)."""
+    # the ends of the range are sent exactly: raw 0x7FFF and 0x8000 (little-endian)
+    m = encode("set_input_pos", 1, input_pos=0.0, vel_ff=32.767, torque_ff=-32.768)
+    assert bytes(m.data)[4:] == bytes.fromhex("ff7f0080")
+    for kw, field in ((dict(input_pos=0.0, vel_ff=40.0, torque_ff=0.0), "vel_ff"),
+                      (dict(input_pos=0.0, vel_ff=0.0, torque_ff=-33.0), "torque_ff"),
+                      (dict(input_pos=0.0, vel_ff=math.nan, torque_ff=0.0), "vel_ff"),
+                      (dict(input_pos=math.nan, vel_ff=0.0, torque_ff=0.0), "input_pos"),
+                      (dict(input_pos=1e39, vel_ff=0.0, torque_ff=0.0), "input_pos")):
+        with pytest.raises(ValueError, match=f"set_input_pos: {field} ="):
+            encode("set_input_pos", 1, **kw)
+    with pytest.raises(ValueError, match="set_input_torque: input_torque = inf"):
+        encode("set_input_torque", 1, input_torque=math.inf)
+    with pytest.raises(ValueError, match="axis_requested_state = -1.*0 to 4294967295"):
+        encode("set_axis_state", 1, axis_requested_state=-1)
+    with pytest.raises(ValueError, match="axis_requested_state = 8.7.*an integer"):
+        encode("set_axis_state", 1, axis_requested_state=8.7)
+    with pytest.raises(ValueError, match="axis_state = 300.*0 to 255"):
+        encode("heartbeat", 1, axis_error=0, axis_state=300, motor_error_flag=0, encoder_error_flag=0,
+               controller_flags=0)
