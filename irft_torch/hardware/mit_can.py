@@ -143,15 +143,26 @@ def decode_mit(msg: can.Message, model: str | MitModel = "AK80-9", master_id: in
 def encode_mit_reply(node: int, position: float, velocity: float, torque: float, model: str | MitModel = "AK80-9",
                      master_id: int = 0, temperature: int | None = None, error: int = 0,
                      timestamp: float = 0.0) -> can.Message:
-    """The reply a motor would send (for simulation); values outside the ranges saturate. With
-    ``temperature`` given, the 8-byte form (temperature, error) is built."""
+    """The reply a motor would send (for simulation); finite values outside the ranges saturate.
+    With ``temperature`` given, the 8-byte form (temperature [deg C], error code: one byte each,
+    0..255) is built. Raises ValueError naming the argument for a non-finite position, velocity or
+    torque, a temperature or error code outside 0..255, or an error code without a temperature
+    (the 6-byte form has no place for it)."""
     m = mit_model(model)
     if not 0 <= int(node) < 256:
         raise ValueError(f"driver id must be 0..255, got {node}")
+    for name, x in (("position", position), ("velocity", velocity), ("torque", torque)):
+        if not math.isfinite(float(x)):
+            raise ValueError(f"{name} = {float(x)} is not a finite number")
+    if temperature is None and error:
+        raise ValueError(f"error = {error} needs the 8-byte reply: give a temperature too")
+    for name, x in (("temperature", temperature), ("error", error)):
+        if x is not None and not (int(x) == x and 0 <= x <= 255):
+            raise ValueError(f"{name} = {x} does not fit its reply byte (an integer 0..255)")
     p = _to_uint(position, -m.p_max, m.p_max, 16)
     v = _to_uint(velocity, -m.v_max, m.v_max, 12)
     t = _to_uint(torque, -m.t_max, m.t_max, 12)
     data = bytes([int(node), p >> 8, p & 0xFF, v >> 4, (v & 0xF) << 4 | t >> 8, t & 0xFF])
     if temperature is not None:
-        data += bytes([int(temperature) & 0xFF, int(error) & 0xFF])
+        data += bytes([int(temperature), int(error)])
     return can.Message(arbitration_id=master_id, data=data, is_extended_id=False, timestamp=timestamp)

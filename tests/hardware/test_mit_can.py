@@ -113,3 +113,22 @@ def test_fuzz_10k_frames_never_crash_never_out_of_range():
         assert abs(v["torque"]) <= model.t_max and all(math.isfinite(x) for x in v.values())
         n_ok += 1
     assert n_ok > 1000 and n_err > 1000, (n_ok, n_err)
+
+
+def test_reply_encoder_refuses_what_the_frame_cannot_carry():
+    """F53. Bytes 6 and 7 of the reply (temperature, error code) are single bytes (0..255) in the
+    vendor's layout: 300 deg C was sent as 44, error 256 as 0 (no fault). A NaN field has no code
+    (was a bare 'cannot convert float NaN to integer'). Finite values beyond a range still saturate,
+    as documented."""
+    m = encode_mit_reply(1, 0.0, 0.0, 0.0, temperature=255, error=6)
+    assert bytes(m.data)[6:] == bytes([255, 6])
+    for kw, name in ((dict(temperature=300), "temperature"), (dict(temperature=-5), "temperature"),
+                     (dict(temperature=40, error=256), "error"), (dict(temperature=40, error=-1), "error"),
+                     (dict(error=3), "error")):
+        with pytest.raises(ValueError, match=name):
+            encode_mit_reply(1, 0.0, 0.0, 0.0, **kw)
+    for i, name in enumerate(("position", "velocity", "torque")):
+        args = [0.0, 0.0, 0.0]
+        args[i] = math.nan
+        with pytest.raises(ValueError, match=f"{name} = nan"):
+            encode_mit_reply(1, *args)
