@@ -104,8 +104,14 @@ class FiveBarLeg:
 
     def inverse_kinematics(self, p) -> Tensor:
         """Joint angles (..., 2) [rad] placing the toe at p (..., 2) [m] (knee 1 on the +x side of
-        its hip-to-toe line, knee 2 on the -x side, as forward_kinematics assumes)."""
+        its hip-to-toe line, knee 2 on the -x side, as forward_kinematics assumes).
+
+        Raises ValueError naming the first such p[i] for a toe outside the workspace, and for one
+        these knees reach only with the distal links assembled the other way (with the hips apart,
+        toes beyond where the knees cross past each other): forward_kinematics keeps the toe on one
+        side of the knee line and would put it at the mirror image of p there."""
         p = torch.as_tensor(p, dtype=torch.float64) if not torch.is_tensor(p) else p
+        toe = p
         if self.extension > 0:  # back from the toe to the distal joint, along the leg axis
             r = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
             if (r <= self.extension).any():
@@ -121,7 +127,16 @@ class FiveBarLeg:
                              f"({abs(self.l1 - self.l2):.3f} to {self.l1 + self.l2:.3f} m from each hip)")
         theta = torch.atan2(rel[..., 0], -rel[..., 1])
         g = torch.acos(((self.l1**2 + r**2 - self.l2**2) / (2 * self.l1 * r)).clamp(-1, 1))
-        return theta + torch.stack([g[..., 0], -g[..., 1]], -1)
+        q = theta + torch.stack([g[..., 0], -g[..., 1]], -1)
+        other = torch.linalg.vector_norm(self._distal_joint(q) - p, dim=-1) > 1e-7 * (self.l1 + self.l2)
+        if other.any():
+            i = int(other.reshape(-1).nonzero()[0])
+            knees = [round(v, 4) for v in self._knees(q.reshape(-1, 2)[i])[0].reshape(-1).tolist()]
+            raise ValueError(f"toe position p[{i}] = {toe.reshape(-1, 2)[i].tolist()} m is reached only with the "
+                             f"knees crossed past each other (knees at {knees} m) and the distal links assembled "
+                             "the other way: for those joint angles this leg model (forward_kinematics) puts the toe "
+                             "on the other side of the knee line")
+        return q
 
     def jacobian(self, q) -> Tensor:
         """d toe / d q, (..., 2, 2): rows (x, z), columns (q1, q2)."""

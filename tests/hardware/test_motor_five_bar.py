@@ -95,3 +95,37 @@ def test_singular_configurations_are_masked_not_huge():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         leg.ground_force(q[[0, 2]], torch.ones(2, 2, dtype=torch.float64))
+
+
+def test_ik_refuses_toes_forward_kinematics_puts_elsewhere():
+    """F54. Hips 0.1 m apart, l1 = 0.1, l2 = 0.2, toe p = (-0.08, -0.27) m. By hand (law of cosines,
+    knee 1 on the +x side of its hip-to-toe line, knee 2 on the -x side): q1 = atan2(-0.03, 0.27) +
+    acos((l1^2 + r1^2 - l2^2) / (2 l1 r1)), r1 = |p - hip1|, likewise q2 with a minus. Both knees
+    are then l2 from p, but knee 1 ends up 0.8 mm left of knee 2 (the knees have crossed past each
+    other), so forward_kinematics, which keeps the toe on one side of the knee line, puts the toe
+    at p's mirror image across that line, 0.1 m above the hips. inverse_kinematics returned these
+    angles silently (a simulated leg logged joint angles whose toe was elsewhere)."""
+    l1, l2, s = 0.1, 0.2, 0.1
+    leg = FiveBarLeg(l1, l2, hip_spacing=s)
+    p = np.array([-0.08, -0.27])
+    hips = np.array([[-s / 2, 0.0], [s / 2, 0.0]])
+    q = []
+    for i, sign in ((0, 1), (1, -1)):
+        rel = p - hips[i]
+        r = math.hypot(*rel)
+        q.append(math.atan2(rel[0], -rel[1]) + sign * math.acos((l1**2 + r**2 - l2**2) / (2 * l1 * r)))
+    knees = hips + l1 * np.stack([np.sin(q), -np.cos(q)], -1)
+    np.testing.assert_allclose(np.linalg.norm(p - knees, axis=1), [l2, l2], atol=1e-12)
+    assert knees[0, 0] < knees[1, 0]  # crossed
+    d = knees[1] - knees[0]
+    mid = knees.mean(0)
+    mirror = p - 2 * np.dot(p - mid, [-d[1], d[0]]) / np.dot(d, d) * np.array([-d[1], d[0]])
+    np.testing.assert_allclose(leg.forward_kinematics(torch.tensor(q)).numpy(), mirror, atol=1e-9)
+    assert mirror[1] > 0.09
+    with pytest.raises(ValueError, match=r"p\[1\] = \[-0.08, -0.27\].*knees"):
+        leg.inverse_kinematics(torch.tensor([[0.0, -0.25], p.tolist()], dtype=torch.float64))
+    # toes the leg reaches in its assembly still round-trip (hips apart, and coaxial above the hips)
+    for leg_, pts in ((leg, [[0.0, -0.25], [0.05, -0.2], [-0.1, -0.15]]),
+                      (FiveBarLeg(l1, l2), [[0.0, 0.2], [0.1, -0.2]])):
+        pts = torch.tensor(pts, dtype=torch.float64)
+        torch.testing.assert_close(leg_.forward_kinematics(leg_.inverse_kinematics(pts)), pts)
