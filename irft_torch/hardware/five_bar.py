@@ -81,7 +81,8 @@ class FiveBarLeg:
         return knees, dknees
 
     def forward_kinematics(self, q) -> Tensor:
-        """Toe position (..., 2) [m] from joint angles q (..., 2) [rad]; NaN where unreachable."""
+        """Toe position (..., 2) [m] from joint angles q (..., 2) [rad]; NaN where unreachable, and
+        where the knees coincide (the toe could be anywhere on a circle of radius l2 around them)."""
         q = torch.as_tensor(q, dtype=torch.float64) if not torch.is_tensor(q) else q
         p = self._distal_joint(q)
         if self.extension == 0:
@@ -96,7 +97,7 @@ class FiveBarLeg:
         d = k2 - k1
         D = torch.linalg.vector_norm(d, dim=-1, keepdim=True)
         h = torch.sqrt(torch.clamp(self.l2**2 - (D / 2) ** 2, min=0.0))
-        h = torch.where(D / 2 > self.l2, torch.full_like(h, math.nan), h)
+        h = torch.where((D / 2 > self.l2) | (D < 1e-12), torch.full_like(h, math.nan), h)
         # Knee 1 on the +x side of the toe, knee 2 on the -x side ("knees out"): the toe lies on the
         # side of the knee line given by the fixed rotation of k2 - k1 (straight down at q = (g, -g)).
         n = torch.stack([-d[..., 1], d[..., 0]], -1) / D.clamp_min(1e-12)
@@ -139,9 +140,20 @@ class FiveBarLeg:
         return q
 
     def jacobian(self, q) -> Tensor:
-        """d toe / d q, (..., 2, 2): rows (x, z), columns (q1, q2)."""
+        """d toe / d q, (..., 2, 2): rows (x, z), columns (q1, q2).
+
+        Raises ValueError naming the first q[i] where it is not defined: a singular configuration
+        (the knees coincide, or both distal links lie on one line) or unreachable joint angles."""
+        q = torch.as_tensor(q, dtype=torch.float64) if not torch.is_tensor(q) else q
         A, b = self._statics(q)
-        return torch.linalg.solve(A, torch.diag_embed(b))
+        J, info = torch.linalg.solve_ex(torch.nan_to_num(A), torch.diag_embed(b))
+        bad = (info != 0) | ~torch.isfinite(J).all(-1).all(-1) | ~torch.isfinite(A).all(-1).all(-1)
+        if bad.any():
+            i = int(bad.reshape(-1).nonzero()[0])
+            raise ValueError(f"q[{i}] = {[round(v, 4) for v in q.reshape(-1, 2)[i].tolist()]} rad: the Jacobian is "
+                             "not defined there (a singular leg configuration: the knees coincide or both distal "
+                             "links lie on one line; or joint angles the leg cannot reach)")
+        return J
 
     def _statics(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """A, b with J = A^-1 diag(b)."""

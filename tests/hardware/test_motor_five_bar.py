@@ -129,3 +129,37 @@ def test_ik_refuses_toes_forward_kinematics_puts_elsewhere():
                       (FiveBarLeg(l1, l2), [[0.0, 0.2], [0.1, -0.2]])):
         pts = torch.tensor(pts, dtype=torch.float64)
         torch.testing.assert_close(leg_.forward_kinematics(leg_.inverse_kinematics(pts)), pts)
+
+
+def test_jacobian_at_a_singular_configuration_is_a_clear_error():
+    """F55. Singular configurations by hand. (a) Coaxial leg, q1 = q2 = 0.3: both knees at
+    l1 (sin 0.3, -cos 0.3), so the toe can be anywhere on the circle of radius l2 around them (the
+    forward kinematics is undetermined: NaN, not the knee point 0 m from the knees as before). (b)
+    Hips 2 m apart, l1 = 0.5, l2 = 1.5, q = (-pi/2, pi/2): knees at (-1.5, 0) and (1.5, 0), 2 l2
+    apart, the toe at the origin between them: all four links on the x axis. jacobian and
+    holding_torques raised torch's bare 'linalg.solve: ... the input matrix is singular'; now a
+    ValueError names q[i]. (c) Knees 0.5 m > 2 l2 apart (unreachable): a NaN Jacobian is refused
+    too. ground_force still masks such samples (NaN force, a warning)."""
+    l1, l2 = 0.1, 0.2
+    coax = FiveBarLeg(l1, l2)
+    q = torch.tensor([[0.5, -0.5], [0.3, 0.3]], dtype=torch.float64)
+    knee = l1 * np.array([math.sin(0.3), -math.cos(0.3)])
+    np.testing.assert_allclose(coax._knees(q[1])[0].numpy(), [knee, knee], atol=1e-15)
+    p = coax.forward_kinematics(q)
+    assert torch.isfinite(p[0]).all() and torch.isnan(p[1]).all()
+    with pytest.raises(ValueError, match=r"q\[1\] = \[0.3, 0.3\] rad.*singular"):
+        coax.jacobian(q)
+    with pytest.raises(ValueError, match=r"q\[1\].*singular"):
+        coax.holding_torques(q, torch.zeros(2, 2, dtype=torch.float64))
+    line = FiveBarLeg(0.5, 1.5, hip_spacing=2.0)
+    q = torch.tensor([-math.pi / 2, math.pi / 2], dtype=torch.float64)
+    np.testing.assert_allclose(line._knees(q)[0].numpy(), [[-1.5, 0.0], [1.5, 0.0]], atol=1e-15)
+    np.testing.assert_allclose(line.forward_kinematics(q).numpy(), [0.0, 0.0], atol=1e-15)
+    with pytest.raises(ValueError, match=r"q\[0\] = \[-1.5708, 1.5708\] rad.*singular"):
+        line.holding_torques(q, torch.tensor([0.0, 10.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"q\[0\].*cannot reach"):
+        FiveBarLeg(l1, l2, hip_spacing=0.5).jacobian(torch.zeros(2, dtype=torch.float64))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        force, valid = line.ground_force(q, torch.ones(2, dtype=torch.float64))
+    assert not bool(valid) and torch.isnan(force).all()
