@@ -194,6 +194,7 @@ def test_sampling_statistics_match_the_hand_count():
 
     from irft_torch import reproduce as R
     from irft_torch.rft import contacts
+    from irft_torch.study_report import _pinning_rows
 
     torch.set_default_dtype(torch.float64)
     for M in (6, 10):
@@ -203,7 +204,7 @@ def test_sampling_statistics_match_the_hand_count():
         c = contacts(*R.configuration("I-toe gait 1", s))
         n_total = int((c.weight_z != 0).sum())  # segment samples in contact
         assert st["I-toe gait 1 (1e-3 rad)"] == pytest.approx(1 - 3 / n_total, rel=1e-12)
-    text = "\n".join(R._pinning_rows(R.StudySettings()))
+    text = "\n".join(_pinning_rows(R.StudySettings()))
     assert "| paper | 10.0 | 18.1 | 5.1 | 0.97 | 0.68 | 0.11 |" in text and "| 100 (the study) |" in text
     # the turning hypothesis: the C-toe's heading follows the direction of motion, so its segments' beta
     # move with the path's slope (every segment's beta shifts by the heading's change) and gait 2's
