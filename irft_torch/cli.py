@@ -78,6 +78,11 @@ def _validate(a) -> None:
         v = ns.get(dest)
         if v is not None and not math.isfinite(v):
             raise UsageError(_opt(dest), f"must be finite, got {v}")
+    for dest in ("tilt", "heading"):  # angles in rad: beyond pi they add nothing, and 30 or 90 are degrees
+        v = ns.get(dest)
+        if isinstance(v, float) and abs(v) > math.pi:
+            raise UsageError(_opt(dest), f"is an angle in rad, within [-pi, pi]; got {v:g} (degrees? "
+                                         f"{v:g} deg = {math.radians(v):.4g} rad)")
     if ns.get("zero_offsets") is not None and not all(math.isfinite(v) for v in a.zero_offsets):
         raise UsageError("--zero-offsets", f"must be finite angles (rad), got {a.zero_offsets}")
     if ns.get("directions") is not None and any(d not in (1, -1) for d in a.directions):

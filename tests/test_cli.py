@@ -119,6 +119,11 @@ def test_simulate_c_toe_opening(tmp_path, opening):
     (["ingest", "LOG", "--out", "ADIR"], "argument --out: ADIR.npz is a directory"),
     (["ingest", "MISSING.log", "--out", "OUT"], "argument logs: no log file at"),
     (["ingest", "LOG", "--out", "OUT", "--heading", "north"], "argument --heading"),
+    # angles passed in degrees (rad expected): 90 deg = pi/2 rad, 30 deg = pi/6 rad
+    (["ingest", "LOG", "--out", "OUT", "--heading", "90"], "argument --heading: is an angle in rad"),
+    (["ingest", "LOG", "--out", "OUT", "--heading", "90"], "90 deg = 1.571 rad"),
+    (["simulate", "--toe", "I", "--tilt", "30"], "argument --tilt: is an angle in rad"),
+    (["simulate", "--toe", "I", "--tilt", "-30"], "-30 deg = -0.5236 rad"),
     (["ingest", "LOG", "--out", "OUT", "--protocol", "mit", "--mit-model", "AK99"], "argument --mit-model"),
     (["record", "--out", "r.trc"], "argument --out: the suffix picks the log format"),
     (["record", "--out", "r.log", "--rate", "0"], "argument --rate"),

@@ -161,6 +161,21 @@ def test_quick_start_recovers_the_map(namespace):
     assert torch.isfinite(namespace["pred"].variance).all() and (namespace["pred"].variance >= 0).all()
 
 
+def test_active_probing_block_refines_its_probe(namespace):
+    """The README prints best.initial_score, best.score as "refined: lower": rescored here from the
+    designed probe's own contacts and from the ranking, not read from the optimizer."""
+    if "best" not in namespace:
+        pytest.skip("the active-probing block did not run")
+    import torch
+
+    best, scorer, ranked, region = (namespace[k] for k in ("best", "scorer", "ranked", "region"))
+    with torch.no_grad():
+        again = float(scorer.integrated_variance(best.probe.contacts(), region))
+    assert best.initial_score == pytest.approx(ranked[0][1], rel=1e-6)
+    assert again == pytest.approx(best.score, rel=1e-6)
+    assert again < ranked[0][1]
+
+
 def test_links_point_inside_the_repository():
     docs = sorted((ROOT / "docs").glob("*.md"))
     assert docs, "docs/ is missing"

@@ -391,6 +391,11 @@ def load_dataset(path) -> Dataset:
     if path.is_dir():
         raise ValueError(f"{path} is a directory, not a dataset .npz")
     need = ("beta", "gamma", "weight_x", "weight_z", "forces", "time", "toe_position")
+    with open(path, "rb") as fh:
+        head = fh.read(30)
+    if not head.startswith(b"PK"):  # not a zip: np.load would read it as a .npy or a pickle and say so
+        raise ValueError(f"{path} is damaged or not an irft dataset (.npz from irft ingest): not an .npz (zip) "
+                         f"archive; it starts with {head.decode('latin-1')[:30]!r}")
     try:
         with np.load(path, allow_pickle=False) as d:
             missing = set(need) - set(d.files)

@@ -212,6 +212,16 @@ def test_bad_inputs(tmp_path):
         zero_phase_filter(None, window=0)
 
 
+@pytest.mark.parametrize("content", [b"time_s,x_m,z_m\n0,-0.2,0\n", b"\x80\x04K\x01.", b"\x93NUMPY\x01\x00"])
+def test_load_dataset_of_a_file_that_is_no_npz_says_so(tmp_path, content):
+    # a CSV (irft simulate --csv), a pickle, a .npy renamed .npz: none is a zip archive
+    path = tmp_path / "sim.npz"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"not an irft dataset \(\.npz from irft ingest\): not an \.npz") as e:
+        load_dataset(path)
+    assert "pickle" not in str(e.value)  # numpy's advice to load it unsafely is not shown
+
+
 def test_read_log_nodes_filter_counts_the_rest(tmp_path):
     path = tmp_path / "three.log"
     with can.Logger(str(path)) as log:
