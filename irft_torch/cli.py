@@ -196,8 +196,10 @@ def cmd_simulate(a) -> int:
     c = rft.contacts(toe, path)
     f = rft.forces(smap, c)
     arrays = {k: v.numpy() for k, v in c.as_dict().items()}
-    np.savez(out, time=path.time.numpy(), position=path.position.numpy(), heading=path.heading.numpy(),
-             forces=f.numpy(), **arrays, map=np.array(a.map), scale=np.array([a.scale_x, a.scale_z]))
+    # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields
+    np.savez(out, time=path.time.numpy(), position=path.position.numpy(), toe_position=path.position.numpy(),
+             heading=path.heading.numpy(), forces=f.numpy(), **arrays, map=np.array(a.map),
+             scale=np.array([a.scale_x, a.scale_z]))
     print(f"wrote {out} ({len(path)} samples x {toe.n_segments} segments)")
     if csv_out:
         with open(csv_out, "w", newline="") as fh:
@@ -236,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--map", choices=sorted(MAPS), default="generic", help="stress map (default generic)")
     g.add_argument("--scale-x", type=float, default=1.0, help="multiply alpha_x (default 1)")
     g.add_argument("--scale-z", type=float, default=1.0, help="multiply alpha_z (default 1)")
-    p.add_argument("--out", default="simulation.npz", help="output .npz (default simulation.npz)")
+    p.add_argument("--out", default="simulation.npz",
+                   help="output .npz, a dataset that `irft fit` reads (default simulation.npz)")
     p.add_argument("--csv", help="also write a CSV, one row per time step")
     p.add_argument("--plot", metavar="DIR", help="write PNG figures (map, toe path, coverage, forces)")
     p.set_defaults(func=cmd_simulate)

@@ -36,6 +36,23 @@ def test_simulate_writes_npz_csv_and_pngs(tmp_path):
         assert (tmp_path / "fig" / name).stat().st_size > 1000
 
 
+def test_simulate_output_is_a_dataset_fit_reads(tmp_path):
+    # a newcomer simulates, then fits: irft simulate's .npz is a dataset (load_dataset reads it)
+    from irft_torch.hardware import load_dataset
+
+    out = tmp_path / "sim.npz"
+    assert main(["simulate", "--toe", "I", "--length", "0.02", "--path", "rectangle", "--n-steps", "50",
+                 "--out", str(out)]) == 0
+    d, ds = np.load(out), load_dataset(out)
+    np.testing.assert_array_equal(ds.toe_position.numpy(), d["position"])
+    np.testing.assert_array_equal(ds.forces.numpy(), d["forces"])
+    # independent: the shear samples' weights are the plate's 2 cm x 0.8 cm at 5 cm depth (8 cm^3)
+    shear = (d["position"][:, 1] < -0.0499) & (np.abs(d["position"][:, 0]) < 0.15)
+    np.testing.assert_allclose(ds.contacts.weight_z.numpy()[shear].sum(-1), 8.0, rtol=1e-9)
+    assert main(["fit", str(out), "--out", str(tmp_path / "fit"), "--n-iter", "5", "--no-progress"]) == 0
+    assert (tmp_path / "fit" / "model.pt").exists()
+
+
 def test_simulate_bad_input_is_a_clear_error(tmp_path, capsys):
     rc = main(["simulate", "--path", "spline", "--control-points", "0.1,0;0.0,-0.05",
                "--out", str(tmp_path / "x.npz")])
