@@ -330,7 +330,7 @@ def _blf_intact(raw: bytes, name: str) -> tuple[bytes, str | None]:
     return rebuilt, fault
 
 
-def _text_checks(text: str, suffix: str, notes: list[str]) -> tuple[list[str], str]:
+def _text_checks(text: str, suffix: str, notes: list[str], name: str = "the file") -> tuple[list[str], str]:
     """Structural faults of a text log that python-can's readers pass over silently (a cut last
     line, binary bytes, a damaged frame line, a missing ASC end marker), and the text before the
     first fault (what is read). Event lines that are not CAN frames are added to ``notes``
@@ -345,6 +345,9 @@ def _text_checks(text: str, suffix: str, notes: list[str]) -> tuple[list[str], s
     if "\ufffd" in text:
         faults.append(f"{text.count(chr(0xFFFD))} byte(s) are not text (binary damage)")
     bad, other = _bad_lines(lines, suffix)
+    if bad and len(bad) == sum(1 for ln in lines if ln.strip()):  # not one line is a frame: another kind of file
+        raise _Fault(f"{name} is not a CAN log in python-can's {suffix} format: no line is a CAN frame "
+                     f"(first line: {lines[bad[0]].strip()[:30]!r})")
     if bad:
         keep = min(keep, bad[0])
     if bad:
@@ -420,7 +423,7 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
             text = raw_bytes.decode("utf-8", errors="replace")
             if not text.strip():
                 raise _Fault(f"{path.name} is empty: no frames")
-            faults, readable = _text_checks(text, suffix, data.issues)
+            faults, readable = _text_checks(text, suffix, data.issues, path.name)
             structural += faults
             reader = _TEXT_READERS[suffix](io.StringIO(readable))
     except _Fault as e:

@@ -287,3 +287,12 @@ def test_simulated_leg_writes_blf_whatever_its_channel_name(tmp_path, monkeypatc
     sim.run(irft.rft.rectangle_path(0.02, 0.04, 0.02, start=(-0.02, 0.0)), tmp_path / "s.blf")
     data = read_log(tmp_path / "s.blf")
     assert data.issues == [] and len(data.motors[0].times["iq"]) > 20
+
+
+def test_a_file_with_no_can_frame_says_it_is_not_a_can_log(tmp_path):
+    # e.g. irft simulate's CSV renamed or passed as a log: not a single line is a frame
+    p = tmp_path / "sim.log"
+    p.write_text("time_s,x_m,z_m\n" + "".join(f"{0.01 * i},0.0,-0.01\n" for i in range(20)))
+    with pytest.raises(LogReadError, match=r"sim.log is not a CAN log in python-can's \.log format: no line is a "
+                                           r"CAN frame \(first line: 'time_s,x_m,z_m'\)"):
+        read_log(p)
