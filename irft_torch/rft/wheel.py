@@ -186,10 +186,14 @@ def contact_mask(kin: SegmentKinematics, contact: str = "leading", tol: float = 
     submerged = kin.depth > 0
     if contact == "submerged":
         return submerged
+    return submerged & _moving_into(kin, tol)
+
+
+def _moving_into(kin: SegmentKinematics, tol: float = 1e-9) -> Tensor:
+    """(K, M) bool: which segments move into the sand, n . v >= -tol |v| (whatever their depth)."""
     t, vel = kin.tangent, kin.velocity
     normal = torch.stack([t[..., 1], -t[..., 0]], -1)
-    into = (normal * vel).sum(-1) >= -tol * torch.linalg.vector_norm(vel, dim=-1).clamp_min(1e-300)
-    return submerged & into
+    return (normal * vel).sum(-1) >= -tol * torch.linalg.vector_norm(vel, dim=-1).clamp_min(1e-300)
 
 
 def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage: float, phases=None,
@@ -197,6 +201,10 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     """RFT contacts of a wheel, one row per pose (K, M): canonical angles and weights in cm^3 exactly
     as ``rft.contacts`` computes them for the profile moving with the wheel, with the segments out of
     contact (above the sand, or trailing for ``contact="leading"``) given weight 0.
+
+    The signed depths (cm) and areas (cm^2) are kept as ``rft.contacts`` keeps them, a trailing
+    segment's areas 0 (it never touches, at any surface height), so ``with_surface_offset(delta)`` is
+    the wheel ``delta`` m deeper (the leading part of the rim does not depend on the sinkage).
 
     Args:
         profile: the rim as a counter-clockwise ``Toe`` centred on the axle.
@@ -213,7 +221,9 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     kin = segment_kinematics(profile, path)
     kin = SegmentKinematics(*(getattr(kin, f)[:K] for f in ("position", "tangent", "velocity", "depth", "area")))
     keep = contact_mask(kin, contact).to(c.weight_z.dtype)
-    return Contacts(beta=c.beta, gamma=c.gamma, weight_x=c.weight_x * keep, weight_z=c.weight_z * keep)
+    into = _moving_into(kin).to(c.weight_z.dtype) if contact == "leading" else torch.ones_like(keep)
+    return Contacts(beta=c.beta, gamma=c.gamma, weight_x=c.weight_x * keep, weight_z=c.weight_z * keep,
+                    depth=c.depth, area_x=c.area_x * into, area_z=c.area_z * into)
 
 
 def average_rows(c: Contacts, drop_zero: bool = True) -> Contacts:
