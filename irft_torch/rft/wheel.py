@@ -196,6 +196,17 @@ def _moving_into(kin: SegmentKinematics, tol: float = 1e-9) -> Tensor:
     return (normal * vel).sum(-1) >= -tol * torch.linalg.vector_norm(vel, dim=-1).clamp_min(1e-300)
 
 
+def _check_counter_clockwise(profile: Toe) -> None:
+    """ValueError unless the profile turns counter-clockwise about the axle: its signed area
+    1/2 sum (x t_z - z t_x) L (m^2, the shoelace formula over the segments) must be positive, or the
+    tangents rotated by -90 degrees point inward and "leading" keeps the trailing arc."""
+    c, t = profile.centres, profile.tangents
+    area = 0.5 * float(((c[:, 0] * t[:, 1] - c[:, 1] * t[:, 0]) * profile.lengths).sum())
+    if not area > 0:
+        raise ValueError(f"profile must be traversed counter-clockwise (outward normal = tangent rotated by -90 "
+                         f"degrees); its signed area is {area:.3g} m^2: reverse its points")
+
+
 def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage: float, phases=None,
                    contact: str = "leading", min_speed: float = 1e-9) -> Contacts:
     """RFT contacts of a wheel, one row per pose (K, M): canonical angles and weights in cm^3 exactly
@@ -207,7 +218,8 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     the wheel ``delta`` m deeper (the leading part of the rim does not depend on the sinkage).
 
     Args:
-        profile: the rim as a counter-clockwise ``Toe`` centred on the axle.
+        profile: the rim as a counter-clockwise ``Toe`` centred on the axle (clockwise: a ValueError for
+            ``contact="leading"``, which finds the outward normals from the order).
         v: travel speed along x, m/s. omega: spin, rad/s, positive rolling forward.
         radius: distance from the axle to the lowest point of the profile, m.
         sinkage: depth of that lowest point below the free surface, m.
@@ -215,6 +227,8 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     """
     if not isinstance(profile, Toe):
         raise TypeError(f"profile must be a Toe, got {type(profile).__name__}")
+    if contact == "leading":
+        _check_counter_clockwise(profile)
     path = wheel_path(v, omega, radius, sinkage, phases, dtype=profile.centres.dtype)
     K = 1 if phases is None else torch.as_tensor(phases).numel()
     c = contacts(profile, path, min_speed=min_speed)[:K]

@@ -226,3 +226,22 @@ def test_wheel_contacts_keep_signed_depths_for_a_surface_offset():
         torch.testing.assert_close(up, want, rtol=1e-4, atol=1e-4)
         torch.testing.assert_close(up, forces(smap, wheel_contacts(prof, v, omega, R, 0.025))[0])
         torch.testing.assert_close(forces(smap, c)[0], _arc_quadrature(v, omega, 0.015), rtol=1e-4, atol=1e-4)
+
+
+def test_clockwise_profile_is_an_error_not_the_trailing_arc():
+    """The leading arc is found from the outward normal, the tangent rotated by -90 degrees, which is
+    outward only for a counter-clockwise profile: the same rim given clockwise would silently keep the
+    trailing half. It is a ValueError; the counter-clockwise polyline gives the arc quadrature."""
+    from irft_torch.rft import PolylineToe
+
+    phi = -math.pi / 2 + 2 * math.pi * torch.arange(2001, dtype=torch.float64) / 2000
+    pts = R * torch.stack([torch.cos(phi), torch.sin(phi)], -1)
+    smap = FourierStressMap.generic()
+    F = forces(smap, wheel_contacts(PolylineToe(pts, W), 0.01, 0.005 / R, R, 0.02))[0]
+    torch.testing.assert_close(F, _arc_quadrature(0.01, 0.005 / R, 0.02), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="counter-clockwise"):
+        wheel_contacts(PolylineToe(pts.flip(0), W), 0.01, 0.005 / R, R, 0.02)
+    # contact="submerged" does not use the normals: either order is the same rim
+    a = forces(smap, wheel_contacts(PolylineToe(pts, W), 0.01, 0.0, R, 0.02, contact="submerged"))
+    b = forces(smap, wheel_contacts(PolylineToe(pts.flip(0), W), 0.01, 0.0, R, 0.02, contact="submerged"))
+    torch.testing.assert_close(a, b)
