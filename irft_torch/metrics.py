@@ -86,9 +86,17 @@ def mae_percent(estimate, truth) -> float:
 
 
 def calibration(mean, stddev, truth, level: float = 0.95) -> float:
-    """Share (0-1) of points whose truth lies in the central ``level`` posterior interval."""
+    """Share (0-1) of points whose truth lies in the central ``level`` posterior interval
+    (mean +- z stddev, z the standard normal quantile of (1 + level) / 2).
+
+    ``level`` is a share in (0, 1) (0.95, not 95) and ``stddev`` >= 0; anything else is a ValueError.
+    """
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be a share in (0, 1), e.g. 0.95 (not a percent), got {level}")
     m, t = _pair(mean, truth)
     s, _ = _pair(stddev, truth)
+    if (s < 0).any():
+        raise ValueError("stddev must be >= 0 (a standard deviation, not a variance or a signed error)")
     z = math.sqrt(2) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
     return float(((m - t).abs() <= z * s).double().mean())
 

@@ -90,3 +90,16 @@ def test_definitions_written_beside_the_tables():
     c = Contacts(b, b.clone(), torch.ones(1, 2), torch.ones(1, 2))
     assert M.coverage_area(c) == pytest.approx(2 / 2500)  # default grid: 50 x 50 cells
     assert M.redundancy(c) == 0.0
+
+
+def test_calibration_bad_level_or_stddev_is_an_error():
+    """A level outside (0, 1) (e.g. 95, a percent, as the module's other metrics report) has no central
+    interval, and a negative stddev none either: both were a silent share of 0.0 (truth 0.1 sd from the
+    mean lies inside any central interval wider than 8 %)."""
+    mean, truth = torch.zeros(3), torch.tensor([0.1, -0.1, 0.05])
+    assert M.calibration(mean, torch.ones(3), truth, 0.95) == 1.0
+    for level in (95.0, 1.5, 0.0, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="level"):
+            M.calibration(mean, torch.ones(3), truth, level)
+    with pytest.raises(ValueError, match="stddev"):
+        M.calibration(mean, -torch.ones(3), truth)

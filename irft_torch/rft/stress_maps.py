@@ -53,11 +53,14 @@ def _table(coeffs: dict[tuple[int, int], float]) -> Tensor:
 
 
 def mirror_to_canonical(beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Map any (beta, gamma) into the canonical square [-pi/2, pi/2)^2 by the mirror identity.
+    """Map any (beta, gamma) into the canonical square by the mirror identity: beta in [-pi/2, pi/2),
+    gamma in [-pi/2, pi/2] (closed: straight down, pi/2, and straight up, -pi/2, are kept).
 
-    For |gamma| > pi/2 (motion with a -x component) returns (-beta, pi - gamma) wrapped, and a
+    Gamma is first wrapped to [-pi, pi) (gamma = pi and -pi are the same direction, straight toward
+    -x). For |gamma| > pi/2 (motion with a -x component) returns (-beta, pi - gamma) wrapped, and a
     sign of -1 for the x map: alpha_x(b, g) = -alpha_x(-b, pi - g), alpha_z(b, g) = alpha_z(-b,
-    pi - g) (exact identities of the Fourier form). Beta is wrapped to [-pi/2, pi/2) (period pi).
+    pi - g) (exact identities of the Fourier form). Beta is wrapped to [-pi/2, pi/2) (period pi;
+    a beta a rounding error below -pi/2 is -pi/2, not pi/2).
 
     Returns:
         (beta_c, gamma_c, sign_x), each of the broadcast shape of the inputs.
@@ -68,6 +71,7 @@ def mirror_to_canonical(beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Te
     gamma_c = torch.where(flip, torch.remainder(math.pi - gamma + math.pi, 2 * math.pi) - math.pi, gamma)
     beta_c = torch.where(flip, -beta, beta)
     beta_c = torch.remainder(beta_c + math.pi / 2, math.pi) - math.pi / 2
+    beta_c = torch.where(beta_c >= math.pi / 2, beta_c - math.pi, beta_c)  # remainder of -1e-17 rounds to pi
     sign_x = torch.where(flip, -torch.ones_like(gamma), torch.ones_like(gamma))
     return beta_c, gamma_c, sign_x
 

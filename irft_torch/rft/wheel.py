@@ -186,10 +186,25 @@ def contact_mask(kin: SegmentKinematics, contact: str = "leading", tol: float = 
     submerged = kin.depth > 0
     if contact == "submerged":
         return submerged
+    return submerged & _moving_into(kin, tol)
+
+
+def _moving_into(kin: SegmentKinematics, tol: float = 1e-9) -> Tensor:
+    """(K, M) bool: which segments move into the sand, n . v >= -tol |v| (whatever their depth)."""
     t, vel = kin.tangent, kin.velocity
     normal = torch.stack([t[..., 1], -t[..., 0]], -1)
-    into = (normal * vel).sum(-1) >= -tol * torch.linalg.vector_norm(vel, dim=-1).clamp_min(1e-300)
-    return submerged & into
+    return (normal * vel).sum(-1) >= -tol * torch.linalg.vector_norm(vel, dim=-1).clamp_min(1e-300)
+
+
+def _check_counter_clockwise(profile: Toe) -> None:
+    """ValueError unless the profile turns counter-clockwise about the axle: its signed area
+    1/2 sum (x t_z - z t_x) L (m^2, the shoelace formula over the segments) must be positive, or the
+    tangents rotated by -90 degrees point inward and "leading" keeps the trailing arc."""
+    c, t = profile.centres, profile.tangents
+    area = 0.5 * float(((c[:, 0] * t[:, 1] - c[:, 1] * t[:, 0]) * profile.lengths).sum())
+    if not area > 0:
+        raise ValueError(f"profile must be traversed counter-clockwise (outward normal = tangent rotated by -90 "
+                         f"degrees); its signed area is {area:.3g} m^2: reverse its points")
 
 
 def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage: float, phases=None,
@@ -198,8 +213,13 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     as ``rft.contacts`` computes them for the profile moving with the wheel, with the segments out of
     contact (above the sand, or trailing for ``contact="leading"``) given weight 0.
 
+    The signed depths (cm) and areas (cm^2) are kept as ``rft.contacts`` keeps them, a trailing
+    segment's areas 0 (it never touches, at any surface height), so ``with_surface_offset(delta)`` is
+    the wheel ``delta`` m deeper (the leading part of the rim does not depend on the sinkage).
+
     Args:
-        profile: the rim as a counter-clockwise ``Toe`` centred on the axle.
+        profile: the rim as a counter-clockwise ``Toe`` centred on the axle (clockwise: a ValueError for
+            ``contact="leading"``, which finds the outward normals from the order).
         v: travel speed along x, m/s. omega: spin, rad/s, positive rolling forward.
         radius: distance from the axle to the lowest point of the profile, m.
         sinkage: depth of that lowest point below the free surface, m.
@@ -207,13 +227,17 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
     """
     if not isinstance(profile, Toe):
         raise TypeError(f"profile must be a Toe, got {type(profile).__name__}")
+    if contact == "leading":
+        _check_counter_clockwise(profile)
     path = wheel_path(v, omega, radius, sinkage, phases, dtype=profile.centres.dtype)
     K = 1 if phases is None else torch.as_tensor(phases).numel()
     c = contacts(profile, path, min_speed=min_speed)[:K]
     kin = segment_kinematics(profile, path)
     kin = SegmentKinematics(*(getattr(kin, f)[:K] for f in ("position", "tangent", "velocity", "depth", "area")))
     keep = contact_mask(kin, contact).to(c.weight_z.dtype)
-    return Contacts(beta=c.beta, gamma=c.gamma, weight_x=c.weight_x * keep, weight_z=c.weight_z * keep)
+    into = _moving_into(kin).to(c.weight_z.dtype) if contact == "leading" else torch.ones_like(keep)
+    return Contacts(beta=c.beta, gamma=c.gamma, weight_x=c.weight_x * keep, weight_z=c.weight_z * keep,
+                    depth=c.depth, area_x=c.area_x * into, area_z=c.area_z * into)
 
 
 def average_rows(c: Contacts, drop_zero: bool = True) -> Contacts:

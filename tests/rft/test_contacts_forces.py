@@ -76,6 +76,20 @@ def test_segment_above_surface_adds_nothing():
     assert (c.weight_z[:, 2:] == 0).all() and (c.weight_z[:, :2] > 0).all()
 
 
+def test_vertical_plate_beta_is_minus_half_pi_whatever_its_rounding():
+    """A vertical plate is beta = -pi/2 (the interval [-pi/2, pi/2) is half-open), also when its tangent
+    comes out of a rotation with a -1e-16 x component (tilt 3 pi/2, or tilt pi/2 at heading pi): same
+    cell of the coverage grid, same angle pair, not +pi/2."""
+    straight_d = straight((0.01, 0.0), n=2)
+    turned = Path(straight_d.time, straight_d.position, torch.full((2,), P), straight_d.velocity,
+                  straight_d.angular_velocity)
+    for toe, path in ((IToe(0.02, 0.008, tilt=3 * P / 2, n_segments=1), straight_d),
+                      (IToe(0.02, 0.008, tilt=P / 2, n_segments=1), turned),
+                      (IToe(0.02, 0.008, tilt=-P / 2, n_segments=1), straight_d)):
+        c = contacts(toe.to(torch.float64), path)
+        torch.testing.assert_close(c.beta, torch.full_like(c.beta, -P / 2), atol=1e-15, rtol=0)
+
+
 def test_ctoe_weights_sum_to_depth_times_area_by_hand():
     R, W, M, d0 = 0.02, 0.008, 2, 0.05
     toe = CToe(R, W, M)  # two chords from (-R, R) to (0, 0) to (R, R)

@@ -83,6 +83,19 @@ def test_period_pi_in_beta_and_mirror_identity(b, g):
     torch.testing.assert_close(smap(bc, gc) * torch.stack([sx, torch.ones(())]), a, atol=1e-12, rtol=0)
 
 
+def test_mirror_to_canonical_interval_ends():
+    """beta lands in [-pi/2, pi/2) even one ulp below -pi/2 (where remainder rounds up to pi); gamma in
+    [-pi/2, pi/2] closed: straight down (pi/2) and straight up (-pi/2) are kept, never wrapped or flipped;
+    gamma = +-pi (moving toward -x) is canonical 0 with the x sign flipped."""
+    below = math.nextafter(-P / 2, -4.0)
+    bc, gc, sx = mirror_to_canonical(torch.tensor([below, P / 2, -P / 2, 0.3, 0.3, 0.3, 0.3], dtype=torch.float64),
+                                     torch.tensor([0.0, 0.0, 0.0, P / 2, -P / 2, P, -P], dtype=torch.float64))
+    assert ((bc >= -P / 2) & (bc < P / 2)).all(), bc.tolist()
+    torch.testing.assert_close(bc, torch.tensor([-P / 2, -P / 2, -P / 2, 0.3, 0.3, -0.3, -0.3], dtype=torch.float64))
+    torch.testing.assert_close(gc, torch.tensor([0.0, 0.0, 0.0, P / 2, -P / 2, 0.0, 0.0], dtype=torch.float64))
+    assert sx.tolist() == [1.0, 1.0, 1.0, 1.0, 1.0, -1.0, -1.0]
+
+
 def test_not_identities_are_not_claimed():
     # rft_facts.md: alpha_z(-b,-g) != alpha_z(b,g) in general; make sure the form is not symmetric.
     smap = FourierStressMap.generic()

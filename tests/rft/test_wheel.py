@@ -187,3 +187,61 @@ def test_envelope_of_a_convex_rim_is_the_rim():
                                    forces(smap, average_rows(wheel_contacts(prof, v, om, R, s))))
     with pytest.raises(TypeError, match="Toe"):
         envelope_profile(prof.centres)
+
+
+def _arc_quadrature(v, omega, sinkage, n=20001):
+    """(F_x, F_z) of the circular rim's leading arc by the trapezoidal rule over phi (the rim point at
+    angle phi from the bottom, toward +x): depth r cos phi - (r - s), tangent (cos phi, sin phi), velocity
+    (v - omega r cos phi, -omega r sin phi); raw angles mirrored by hand for motion toward -x."""
+    phi0 = math.acos(1 - sinkage / R)
+    lo, hi = (0.0, phi0) if v > 0 else (-phi0, 0.0)
+    fx = fz = 0.0
+    dphi = (hi - lo) / (n - 1)
+    for i in range(n):
+        phi = lo + i * dphi
+        depth = (R * math.cos(phi) - (R - sinkage)) * 100
+        vx, vz = v - omega * R * math.cos(phi), -omega * R * math.sin(phi)
+        beta, gamma, sign = phi, math.atan2(-vz, vx), 1.0
+        if vx < 0:
+            beta, gamma, sign = -phi, math.atan2(-vz, -vx), -1.0
+        ax, az = generic_alpha(beta, gamma)
+        dA = (W * 100) * (R * 100) * dphi * (0.5 if i in (0, n - 1) else 1.0)
+        fx += -sign * ax * depth * dA
+        fz += az * depth * dA
+    return torch.tensor([fx, fz], dtype=torch.float64)
+
+
+def test_wheel_contacts_keep_signed_depths_for_a_surface_offset():
+    """The signed depths and areas are kept (as rft.contacts keeps them, trailing segments at area 0), so a
+    surface 1 cm higher than stated is the wheel 1 cm deeper: both equal the arc quadrature at the deeper
+    sinkage, for a locked, a slipping and a skidding wheel and one rolling toward -x."""
+    prof = circle_profile(R, W, 2000)
+    smap = FourierStressMap.generic()
+    for v, omega in ((0.01, 0.0), (0.01, 0.02 / R), (0.01, 0.005 / R), (-0.01, -0.03 / R)):
+        c = wheel_contacts(prof, v, omega, R, 0.015)
+        assert c.has_surface
+        assert (c.depth < 0).any()  # the rim above the sand keeps its (negative) depth
+        up = forces(smap, c.with_surface_offset(0.01))[0]
+        want = _arc_quadrature(v, omega, 0.025)
+        torch.testing.assert_close(up, want, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(up, forces(smap, wheel_contacts(prof, v, omega, R, 0.025))[0])
+        torch.testing.assert_close(forces(smap, c)[0], _arc_quadrature(v, omega, 0.015), rtol=1e-4, atol=1e-4)
+
+
+def test_clockwise_profile_is_an_error_not_the_trailing_arc():
+    """The leading arc is found from the outward normal, the tangent rotated by -90 degrees, which is
+    outward only for a counter-clockwise profile: the same rim given clockwise would silently keep the
+    trailing half. It is a ValueError; the counter-clockwise polyline gives the arc quadrature."""
+    from irft_torch.rft import PolylineToe
+
+    phi = -math.pi / 2 + 2 * math.pi * torch.arange(2001, dtype=torch.float64) / 2000
+    pts = R * torch.stack([torch.cos(phi), torch.sin(phi)], -1)
+    smap = FourierStressMap.generic()
+    F = forces(smap, wheel_contacts(PolylineToe(pts, W), 0.01, 0.005 / R, R, 0.02))[0]
+    torch.testing.assert_close(F, _arc_quadrature(0.01, 0.005 / R, 0.02), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="counter-clockwise"):
+        wheel_contacts(PolylineToe(pts.flip(0), W), 0.01, 0.005 / R, R, 0.02)
+    # contact="submerged" does not use the normals: either order is the same rim
+    a = forces(smap, wheel_contacts(PolylineToe(pts, W), 0.01, 0.0, R, 0.02, contact="submerged"))
+    b = forces(smap, wheel_contacts(PolylineToe(pts.flip(0), W), 0.01, 0.0, R, 0.02, contact="submerged"))
+    torch.testing.assert_close(a, b)
