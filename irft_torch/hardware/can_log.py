@@ -346,8 +346,9 @@ def _text_checks(text: str, suffix: str, notes: list[str], name: str = "the file
         faults.append(f"{text.count(chr(0xFFFD))} byte(s) are not text (binary damage)")
     bad, other = _bad_lines(lines, suffix)
     if bad and len(bad) == sum(1 for ln in lines if ln.strip()):  # not one line is a frame: another kind of file
-        raise _Fault(f"{name} is not a CAN log in python-can's {suffix} format: no line is a CAN frame "
-                     f"(first line: {lines[bad[0]].strip()[:30]!r})")
+        what = (f"{text.count(chr(0xFFFD))} byte(s) are not text" if "\ufffd" in text
+                else f"first line: {lines[bad[0]].strip()[:30]!r}")
+        raise _Fault(f"{name} is not a CAN log in python-can's {suffix} format: no line is a CAN frame ({what})")
     if bad:
         keep = min(keep, bad[0])
     if bad:
