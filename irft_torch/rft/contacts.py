@@ -26,13 +26,13 @@ x area (docs/surface.md).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
 from .paths import Path
+from .stress_maps import wrap_beta
 from .toes import Toe
 
 __all__ = ["Contacts", "SegmentKinematics", "segment_kinematics", "contacts", "M_TO_CM", "SURFACE_FIELDS"]
@@ -290,8 +290,7 @@ def contacts(toe: Toe, path: Path, min_speed: float = 1e-9) -> Contacts:
     toward_minus_x = vx < 0
     beta = torch.atan2(k.tangent[..., 1], k.tangent[..., 0])
     beta = torch.where(toward_minus_x, -beta, beta)
-    beta = torch.remainder(beta + math.pi / 2, math.pi) - math.pi / 2
-    beta = torch.where(beta >= math.pi / 2, beta - math.pi, beta)  # remainder of -1e-17 rounds to pi
+    beta = wrap_beta(beta)
     gamma = torch.where(moving, torch.atan2(-vz, vx.abs()), torch.zeros_like(vx))
     area = (k.area * M_TO_CM**2) * moving
     depth = -k.position[..., 1] * M_TO_CM  # signed: negative above the surface

@@ -52,6 +52,13 @@ def _table(coeffs: dict[tuple[int, int], float]) -> Tensor:
     return out
 
 
+def wrap_beta(beta: Tensor) -> Tensor:
+    """A segment tilt (rad, any shape) wrapped to [-pi/2, pi/2) (period pi); a beta a rounding error
+    below -pi/2 is -pi/2, not pi/2 (``torch.remainder`` of -1e-17 rounds to pi)."""
+    beta = torch.remainder(beta + math.pi / 2, math.pi) - math.pi / 2
+    return torch.where(beta >= math.pi / 2, beta - math.pi, beta)
+
+
 def mirror_to_canonical(beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Map any (beta, gamma) into the canonical square by the mirror identity: beta in [-pi/2, pi/2),
     gamma in [-pi/2, pi/2] (closed: straight down, pi/2, and straight up, -pi/2, are kept).
@@ -70,8 +77,7 @@ def mirror_to_canonical(beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Te
     flip = gamma.abs() > math.pi / 2
     gamma_c = torch.where(flip, torch.remainder(math.pi - gamma + math.pi, 2 * math.pi) - math.pi, gamma)
     beta_c = torch.where(flip, -beta, beta)
-    beta_c = torch.remainder(beta_c + math.pi / 2, math.pi) - math.pi / 2
-    beta_c = torch.where(beta_c >= math.pi / 2, beta_c - math.pi, beta_c)  # remainder of -1e-17 rounds to pi
+    beta_c = wrap_beta(beta_c)
     sign_x = torch.where(flip, -torch.ones_like(gamma), torch.ones_like(gamma))
     return beta_c, gamma_c, sign_x
 
