@@ -125,7 +125,7 @@ LEVELS = (0.5, 0.9, 0.95)  # central posterior intervals whose coverage of the t
 
 
 def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None,
-             priors="settings", pinned=False) -> FitResult:
+             priors="settings", pinned=False, keep_model=False) -> FitResult:
     if pinned:
         s = replace(s, n_steps=PINNED_STEPS)
     toe, path = _toe(config, s), _path(config, s)
@@ -155,7 +155,10 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
     if keep_maps:
         res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
                     "truth": true, "B": B, "G": G, "coverage": metrics.coverage_area(c),
+                    "prior_std": model.hypers.outputscale.detach().sqrt(),  # (2,) N/cm^3, the map prior's sd
                     "redundancy": metrics.redundancy(c)}
+    if keep_model:  # in this process only (a fitted model is not sent back from a worker)
+        res.maps["model"] = model
     return res
 
 

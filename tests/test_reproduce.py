@@ -271,6 +271,62 @@ def test_calibration_prior_draws_have_the_kernels_covariance():
     torch.testing.assert_close(a2[..., 1], a1[..., 1])
 
 
+def _calibration_study():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    spec = importlib.util.spec_from_file_location("calibration_study_split", path)
+    cs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cs)
+    return cs
+
+
+def test_calibration_split_and_prior_ceiling_by_hand():
+    import torch
+
+    from irft_torch import reproduce as R
+
+    cs = _calibration_study()
+    torch.set_default_dtype(torch.float64)
+    # split: 4 points, the first two with variance below half the prior's (1); errors 0.1, 3, 0.1, 3 at std 1
+    maps = {"mean": torch.zeros(4, 2), "std": torch.tensor([[0.5, 1.0], [0.5, 1.0], [1.0, 1.0], [1.0, 1.0]]),
+            "truth": torch.tensor([[0.1, 0.0], [3.0, 0.0], [0.1, 0.0], [3.0, 0.0]]), "prior_std": torch.ones(2)}
+    x = cs.split_coverage(maps, 0)
+    assert x["constrained"] == 0.5 and x["cover95_constrained"] == 0.5 and x["cover95_prior"] == 0.5
+    z = cs.split_coverage(maps, 1)  # nothing constrained: that part is NaN, not a number
+    assert z["constrained"] == 0.0 and z["cover95_constrained"] != z["cover95_constrained"] and z["cover95_prior"] == 1
+
+    # ceiling: X = sign(beta) has |X| = rms everywhere (inside 1.96 rms: 1.0); Z = 10 on the cells with beta > 1.2
+    # (a share f = 0.118 of a 50-cell grid: rms 10 sqrt(f) = 3.4, 10 > 1.96 x 3.4) and 0 elsewhere: 1 - f inside
+    s = R.StudySettings()
+    B, _ = R._grid(s)
+    f = float((B > 1.2).double().mean())
+    assert 0.1 < f < 0.13
+    x, z = cs.prior_ceiling(lambda b, g: torch.stack([torch.sign(b), 10.0 * (b > 1.2)], -1), s)
+    assert x == 1.0 and z == pytest.approx(1 - f)
+
+
+def test_posterior_draws_are_covered_at_the_nominal_rate_on_average():
+    # a map drawn from the fit's joint posterior is inside the marginal 95 % interval at 95 % of the points
+    # on average over draws (for each point P(|N(0, s^2)| <= 1.96 s) = 0.95): a covariance inconsistent with
+    # the variances (a missing or doubled term, a wrong jitter) moves that mean
+    import torch
+
+    from irft_torch import reproduce as R
+    from irft_torch.rft import FourierStressMap
+
+    cs = _calibration_study()
+    torch.set_default_dtype(torch.float64)
+    s = R.StudySettings(n_steps=30, grid=16, n_iter=30)
+    r = R._fit_one("C-toe gait 1", "zero", 0.05, 0, FourierStressMap.generic(*s.truth_scale), "t", s,
+                   keep_maps=True, keep_model=True)
+    cover = cs.posterior_draw_coverage(r.maps["model"], r.maps["B"], r.maps["G"], 4000, 0)
+    assert cover.shape == (2, 4000)
+    torch.testing.assert_close(cover.mean(-1), torch.full((2,), 0.95), atol=0.01, rtol=0)
+    assert float(cover.std(-1).min()) > 0.02  # spatially correlated errors: one draw's coverage scatters
+
+
 def test_pinned_fits_use_the_paper_sampling():
     # Table I under the pinned sampling: PINNED_STEPS samples per path, the C-toe turning on gait 2 only
     import torch
