@@ -152,23 +152,16 @@ def split_coverage(maps: dict, a: int, level: float = 0.95) -> dict:
 
 def posterior_draw_coverage(model, B, G, draws: int, seed: int, level: float = 0.95) -> torch.Tensor:
     """(2, draws): the ``level`` coverage that maps drawn from the fit's own joint posterior over the grid
-    (B, G) get from its marginal intervals. Such a truth is calibrated by construction, so the spread
-    of these coverages is what a perfectly calibrated model shows on one fit (spatially correlated
-    errors make a grid's coverage scatter far more than independent points would)."""
-    from linear_operator.utils.cholesky import psd_safe_cholesky
-
-    from irft_torch.rft import Contacts
-
+    (B, G) (``model.sample_maps``) get from its marginal intervals. Such a truth is calibrated by
+    construction, so the spread of these coverages is what a perfectly calibrated model shows on one
+    fit (spatially correlated errors make a grid's coverage scatter far more than independent points
+    would)."""
     with torch.no_grad():
-        post = model.backend.posterior(Contacts.points(B, G), covariance=True)
-        cov = post.covariance  # (2, N, N)
-        std = post.variance.clamp_min(0).sqrt()  # (2, N)
-        L = psd_safe_cholesky(0.5 * (cov + cov.mT), max_tries=8)
-        g = torch.Generator().manual_seed(10_000 + seed)
-        z = torch.randn(2, cov.shape[-1], draws, generator=g, dtype=cov.dtype)
-        err = L @ z  # (2, N, draws): draw - mean
+        post = model.stress_map(B, G)  # mean, variance (*S, 2)
+        maps = model.sample_maps(B, G, draws, generator=torch.Generator().manual_seed(10_000 + seed))
         q = 2**0.5 * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
-        return (err.abs() <= q * std[..., None]).double().mean(-2)
+        inside = (maps - post.mean).abs() <= q * post.stddev  # (draws, *S, 2)
+        return inside.reshape(draws, -1, 2).double().mean(1).T
 
 
 def calibrated_cells(draw_cover: dict, noises, seeds) -> dict:

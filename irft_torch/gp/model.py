@@ -78,6 +78,21 @@ def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
     return c.scale_weights(1 / s[:, :1], 1 / s[:, 1:]), f / s
 
 
+def _psd_root(cov: Tensor) -> Tensor:
+    """L (..., N, N) with L L^T = cov for a positive semi-definite covariance (a smooth kernel's is
+    rank-deficient on many points): Cholesky with a jitter of 1e-12, then 1e-10, of the largest
+    variance (draws off by at most that), else the exact root from the eigendecomposition."""
+    cov = 0.5 * (cov + cov.mT)
+    top = cov.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(cov.dtype).tiny)[..., None, None]
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    for rel in (1e-12, 1e-10):
+        L, info = torch.linalg.cholesky_ex(cov + rel * top * eye)
+        if not bool(info.any()):
+            return L
+    lam, V = torch.linalg.eigh(cov)
+    return V * lam.clamp_min(0).sqrt()[..., None, :]
+
+
 def _check_units(c: Contacts, f: Tensor) -> None:
     """Warn where the data look off by 1000 or in degrees (the fit itself is unit-free)."""
     fmax = float(f.abs().max())
@@ -526,6 +541,35 @@ class InverseRFT(nn.Module):
         self.eval()
         post = self.backend.posterior(Contacts.points(beta, gamma))
         return Posterior(post.mean.T.reshape(*S, 2), post.variance.T.reshape(*S, 2))
+
+    def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None) -> Tensor:
+        """Maps drawn from the joint posterior at angles of any broadcast shape S (rad): (n, *S, 2) in
+        N/cm^3, axis order (x, z). The points of one draw are jointly distributed (a plausible map, not
+        independent noise per point), so a draw can be pushed through ``rft.forces`` or a design score
+        to carry the map's uncertainty into anything computed from it. Exact for the observations and
+        pairs backends, within the reported truncation for the spectral one (its finite root). The
+        dense backends factor the (N x N) covariance of the N points per axis: above 4096 points
+        without a root, a ValueError says to sample in pieces or use ``method="spectral"``.
+        ``generator``: a ``torch.Generator`` on the model's device, for reproducible draws."""
+        if int(n) != n or n < 1:
+            raise ValueError(f"n must be a positive integer (the number of maps to draw), got {n!r}")
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
+        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        c = Contacts.points(beta, gamma)
+        self.eval()
+        with torch.no_grad():
+            root = self.backend.posterior_root(c)
+            N = c.beta.shape[0]
+            if root is None and N > 4096:
+                raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
+                                 "sample at most 4096 points at a time, or fit with method='spectral'")
+            post = self.backend.posterior(c, variance=False, covariance=root is None)
+            if root is None:
+                root = _psd_root(post.covariance)  # (2, N, N)
+            eps = torch.randn(2, root.shape[-1], int(n), generator=generator, dtype=root.dtype, device=root.device)
+            draws = post.mean[..., None] + root @ eps  # (2, N, n)
+        return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""

@@ -444,3 +444,54 @@ def test_observations_posterior_is_gpytorchs_own_prediction():
         want_mean, want_cov = out.mean, out.covariance_matrix
     torch.testing.assert_close(ours.mean, want_mean, rtol=1e-8, atol=1e-10)
     torch.testing.assert_close(ours.covariance, want_cov, rtol=1e-7, atol=1e-9 * want_cov.abs().max().item())
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_sampled_maps_have_the_dense_posterior_mean_and_covariance(method):
+    # 20000 maps drawn at 5 angle pairs (one outside the canonical square: alpha_x's mirror sign) against
+    # the dense posterior written out here: mean and joint covariance within Monte-Carlo error
+    c, f = data(T=20, M=3, seed=31)
+    model = irft.InverseRFT(c, f, method=method, priors=None)
+    set_hypers(model, seed=5)
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    beta = torch.tensor([[0.0, 0.3, -1.2], [0.9, 1.2, 2.0]])  # (2, 3): 6 points, beta = 2.0 mirrored in
+    gamma = torch.tensor([[0.1, -0.8, 0.5], [1.3, -0.2, 0.4]])
+    n = 20000
+    draws = model.sample_maps(beta, gamma, n, generator=torch.Generator().manual_seed(0))
+    assert draws.shape == (n, 2, 3, 2)
+    q = Contacts.points(beta, gamma)  # the mirror's sign on weight_x, written by the contacts
+    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+    tq = torch.stack([q.beta.reshape(-1), q.gamma.reshape(-1)], -1)
+    for a, key in enumerate(("weight_x", "weight_z")):
+        W, Wq = W_dense(getattr(c, key)), W_dense(getattr(q, key))
+        S = W @ k_dense(th, th, ls[a, 0], os[a]) @ W.T + noise[a] * torch.eye(len(c))
+        kq = Wq @ k_dense(tq, th, ls[a, 0], os[a]) @ W.T
+        mean = kq @ torch.linalg.solve(S, f[:, a])
+        cov = Wq @ k_dense(tq, tq, ls[a, 0], os[a]) @ Wq.T - kq @ torch.linalg.solve(S, kq.T)
+        x = draws[..., a].reshape(n, -1)
+        sd = cov.diagonal().sqrt()
+        assert ((x.mean(0) - mean).abs() < 5 * sd / n**0.5 + 1e-9).all(), (x.mean(0), mean)
+        emp = torch.cov(x.T)
+        # sampling error of a covariance entry: sd_i sd_j sqrt((1 + rho^2) / n) < 1.5 sd_i sd_j / sqrt(n)
+        assert ((emp - cov).abs() < 5 * 1.5 * torch.outer(sd, sd) / n**0.5 + 1e-9).all(), (emp, cov)
+    with pytest.raises(ValueError, match="n must be a positive integer"):
+        model.sample_maps(beta, gamma, 0)
+
+
+def test_psd_root_of_rank_deficient_and_slightly_indefinite_covariances():
+    from irft_torch.gp.model import _psd_root
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(50, 5, generator=g)
+    low = A @ A.T  # rank 5 of 50: Cholesky needs the tiny jitter
+    L = _psd_root(low)
+    torch.testing.assert_close(L @ L.T, low, rtol=0, atol=1e-9 * low.diagonal().max().item())
+    # rounding made it indefinite (eigenvalue -1e-6 of the largest): no jitter tried suffices, the
+    # eigendecomposition's root clamps it; L L^T is then within that eigenvalue of the matrix
+    Q, _ = torch.linalg.qr(torch.randn(50, 50, generator=g))
+    lam = torch.linspace(0, 1, 50)
+    lam[0] = -1e-6
+    bad = Q @ torch.diag(lam) @ Q.T
+    L = _psd_root(bad)
+    assert torch.isfinite(L).all()
+    torch.testing.assert_close(L @ L.T, bad, rtol=0, atol=2e-6)
