@@ -106,8 +106,10 @@ def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):
     if prior_mean == "physics" and stats.meta.get("mean") != "generic shape":
         raise ValueError("statistics lack the generic shape's forces a physics mean needs: compute them with "
                          "gp.statistics.recording_statistics")
-    power = f.pow(2).sum(0).to(stats.yy)
-    if stats.n != len(f) or not torch.allclose(stats.yy, power, rtol=1e-9, atol=1e-300):
+    # float32 on either side (a float32 model given statistics of the float64 data) rounds the power at ~1e-7
+    rtol = 1e-9 if f.dtype == stats.yy.dtype == torch.float64 else 1e-5
+    power = f.double().pow(2).sum(0).to(stats.yy.device)
+    if stats.n != len(f) or not torch.allclose(stats.yy.double(), power, rtol=rtol, atol=1e-300):
         raise ValueError(f"statistics are not of these forces: {stats.n} samples with power {stats.yy.tolist()} "
                          f"vs {len(f)} samples with power {power.tolist()}")
     return stats
