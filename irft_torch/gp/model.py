@@ -348,7 +348,8 @@ class InverseRFT(nn.Module):
     def init_surface(self, offsets) -> Tensor:
         """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
         hyperparameters, one group at a time (the others held): the likelihood in the offset can have
-        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
+        ``stress_map`` and ``predict_forces`` are then at it."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
         grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
@@ -359,6 +360,7 @@ class InverseRFT(nn.Module):
                     self.surface.offset[g] = v
                     losses.append(float(self._surface_loss()))
                 self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
         self.eval()
         return self.surface.offset.detach().clone() / M_TO_CM
 
