@@ -147,7 +147,8 @@ class InverseRFT(nn.Module):
 
     Args:
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
-        forces: (T, 2) measured (F_x, F_z) in N.
+        forces: (T, 2) measured (F_x, F_z) in N, finite; each axis non-zero in some sample (ValueError
+            otherwise: an axis that was not measured cannot be passed as zeros).
         prior_mean: "zero" (the paper) or "physics" (generic Li et al. shape x learned scales).
         tied_noise: one noise variance for both axes (the paper) instead of one per axis.
         dtype: inference dtype (float64 by default; float32 works).
@@ -225,6 +226,10 @@ class InverseRFT(nn.Module):
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+        for axis, name in enumerate(("F_x", "F_z")):
+            if not (f[:, axis] != 0).any():  # each map is learned in its forces' scale (_data_scales): none here
+                raise ValueError(f"forces[:, {axis}] ({name}) is zero in every sample: no scale to learn that map in; "
+                                 f"if {name} was not measured, zeros would claim the map is zero")
         _check_units(c, f)
         self.surface = None
         if surface_offset or surface_groups is not None:
