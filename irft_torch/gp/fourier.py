@@ -132,14 +132,17 @@ class FourierBasis:
         return factor_coefficients(ls[:, 0:2], self.n_beta), factor_coefficients(ls[:, 2:4], self.n_gamma)
 
     def truncation_error(self, lengthscale: Tensor) -> Tensor:
-        """(2,) bound on the relative kernel error, e_beta + e_gamma per map."""
-        ls = lengthscale.detach()[:, 0, :]
-        return factor_truncation_error(ls[:, 0:2], self.n_beta) + factor_truncation_error(ls[:, 2:4], self.n_gamma)
+        """(2,) bound on the relative kernel error, e_beta + e_gamma per map (in ``lengthscale``'s dtype;
+        computed in float64: a float32 evaluation measures its own round-off, ~1e-6, not the truncation)."""
+        ls = lengthscale.detach()[:, 0, :].double()
+        err = factor_truncation_error(ls[:, 0:2], self.n_beta) + factor_truncation_error(ls[:, 2:4], self.n_gamma)
+        return err.to(lengthscale.dtype)
 
     @classmethod
     def for_lengthscale(cls, lengthscale: Tensor, tol: float = 1e-6, n_max: int = MAX_HARMONICS) -> FourierBasis:
-        """The smallest basis whose truncation error is <= tol (each factor gets tol / 2)."""
-        ls = lengthscale.detach()[:, 0, :]
+        """The smallest basis whose truncation error is <= tol (each factor gets tol / 2), whatever the
+        lengthscale's dtype (the errors are computed in float64, so a float32 model gets the same basis)."""
+        ls = lengthscale.detach()[:, 0, :].double()
         nb, _ = harmonics_for(ls[:, 0:2], tol / 2, n_max)
         ng, _ = harmonics_for(ls[:, 2:4], tol / 2, n_max)
         return cls(nb, ng)

@@ -121,8 +121,10 @@ def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):
     if prior_mean == "physics" and stats.meta.get("mean") != "generic shape":
         raise ValueError("statistics lack the generic shape's forces a physics mean needs: compute them with "
                          "gp.statistics.recording_statistics")
-    power = f.pow(2).sum(0).to(stats.yy)
-    if stats.n != len(f) or not torch.allclose(stats.yy, power, rtol=1e-9, atol=1e-300):
+    # float32 on either side (a float32 model given statistics of the float64 data) rounds the power at ~1e-7
+    rtol = 1e-9 if f.dtype == stats.yy.dtype == torch.float64 else 1e-5
+    power = f.double().pow(2).sum(0).to(stats.yy.device)
+    if stats.n != len(f) or not torch.allclose(stats.yy.double(), power, rtol=rtol, atol=1e-300):
         raise ValueError(f"statistics are not of these forces: {stats.n} samples with power {stats.yy.tolist()} "
                          f"vs {len(f)} samples with power {power.tolist()}")
     return stats
@@ -160,7 +162,8 @@ class InverseRFT(nn.Module):
 
     Args:
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
-        forces: (T, 2) measured (F_x, F_z) in N.
+        forces: (T, 2) measured (F_x, F_z) in N, finite; each axis non-zero in some sample (ValueError
+            otherwise: an axis that was not measured cannot be passed as zeros).
         prior_mean: "zero" (the paper) or "physics" (generic Li et al. shape x learned scales).
         tied_noise: one noise variance for both axes (the paper) instead of one per axis.
         dtype: inference dtype (float64 by default; float32 works).
@@ -238,6 +241,10 @@ class InverseRFT(nn.Module):
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
                 raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+        for axis, name in enumerate(("F_x", "F_z")):
+            if not (f[:, axis] != 0).any():  # each map is learned in its forces' scale (_data_scales): none here
+                raise ValueError(f"forces[:, {axis}] ({name}) is zero in every sample: no scale to learn that map in; "
+                                 f"if {name} was not measured, zeros would claim the map is zero")
         _check_units(c, f)
         self.surface = None
         if surface_offset or surface_groups is not None:
@@ -361,7 +368,8 @@ class InverseRFT(nn.Module):
     def init_surface(self, offsets) -> Tensor:
         """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
         hyperparameters, one group at a time (the others held): the likelihood in the offset can have
-        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start."""
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
+        ``stress_map`` and ``predict_forces`` are then at it."""
         if self.surface is None:
             raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
         grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
@@ -372,6 +380,7 @@ class InverseRFT(nn.Module):
                     self.surface.offset[g] = v
                     losses.append(float(self._surface_loss()))
                 self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
         self.eval()
         return self.surface.offset.detach().clone() / M_TO_CM
 

@@ -271,6 +271,29 @@ def test_spectral_within_its_truncation_bound_for_lengthscales_02_to_4(length):
     torch.testing.assert_close(pm.variance, pr.variance, rtol=1e-6, atol=1e-6 * pr.variance.abs().max())
 
 
+def test_float32_spectral_basis_is_sized_by_the_kernel_not_by_float32_round_off():
+    """The Fourier basis is a property of the kernel (lengthscales and tol), not of the storage dtype:
+    a float32 model gets the basis a float64 one gets, reports a truncation error within tol, and its
+    likelihood and map match the dense float64 reference to float32 precision."""
+    c, f = data(T=20, M=3, seed=51)
+    m32 = irft.InverseRFT(c, f, method="spectral", dtype=torch.float32, priors=None)
+    m64 = irft.InverseRFT(c, f, method="spectral", priors=None)
+    for m in (m32, m64):
+        set_hypers(m)
+        m.loss()  # the basis follows the new lengthscales
+    assert (m32.truncation_error() <= 1e-7).all()
+    assert m32.backend.basis == m64.backend.basis
+    c64, f64 = c.to(dtype=torch.float64), f.double()
+    refs = references(m64, c64, f64)
+    assert m32.loss().item() == pytest.approx(-(refs[0][0] + refs[1][0]).item(), rel=1e-4)
+    th = torch.tensor([[0.3, -0.2], [-1.1, 0.9]], dtype=torch.float64)
+    post = m32.stress_map(th[:, 0].float(), th[:, 1].float())
+    for a in range(2):
+        mu, var = refs[a][1](th)
+        torch.testing.assert_close(post.mean[:, a].double(), mu, rtol=1e-4, atol=1e-4 * mu.abs().max())
+        torch.testing.assert_close(post.variance[:, a].double(), var, rtol=1e-3, atol=1e-3 * var.abs().max())
+
+
 def test_spectral_basis_grows_when_a_lengthscale_shrinks():
     c, f = data(T=20, M=3, seed=52)
     model = irft.InverseRFT(c, f, method="spectral", lengthscale=2.0, priors=None)

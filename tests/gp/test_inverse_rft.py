@@ -84,6 +84,22 @@ def test_bad_input_is_a_clear_error(gait1):
         model.stress_map(torch.tensor([float("nan")]), torch.tensor([0.0]))
 
 
+@pytest.mark.parametrize("priors", ["physical", None])
+@pytest.mark.parametrize("axis", [0, 1])
+def test_a_force_axis_that_is_zero_in_every_sample_is_a_clear_error(gait1, axis, priors):
+    """An axis of exact zeros (not measured, e.g. a one-axis load cell) has no scale to learn its map
+    in; it is named (it was a gpytorch 'parameter value out of bounds' RuntimeError). A tiny but
+    non-zero axis still builds."""
+    c, f = gait1
+    zero = f.clone()
+    zero[:, axis] = 0.0
+    name = ("F_x", "F_z")[axis]
+    with pytest.raises(ValueError, match=rf"forces\[:, {axis}\] \({name}\) is zero in every sample"):
+        irft.InverseRFT(c, zero, priors=priors)
+    zero[0, axis] = 1e-12
+    irft.InverseRFT(c, zero, priors=priors)
+
+
 @pytest.mark.parametrize("method", ["observations", "spectral"])
 def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch, method):
     c, f = gait1

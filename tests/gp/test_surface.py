@@ -90,3 +90,30 @@ def test_one_centimetre_error_is_recovered_to_a_millimetre():
     r_ref, r_learned, r_ignored = rmse(ref), rmse(learned), rmse(ignored)
     assert (r_learned <= 2 * r_ref + 1e-3).all(), (r_learned, r_ref)
     assert (r_ignored[1] > 5 * r_learned[1]), (r_ignored, r_learned)
+
+
+def test_predictions_after_init_surface_are_at_the_chosen_offset(tmp_path):
+    """init_surface moves the offset: the map, the force predictions and a saved and loaded copy are then
+    those of the contacts at that offset (the dense reference on ``with_surface_offset(start)``)."""
+    c = plates()
+    f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
+    f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(2))
+    m = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None)
+    start = m.init_surface(torch.linspace(-0.01, 0.01, 5))
+    assert float(start[0]) != 0.0
+    cd = c.with_surface_offset(start)
+    hp = m.hypers
+    ls, os, nz = hp.lengthscale.detach(), hp.outputscale.detach(), hp.noise.detach()
+    th = torch.tensor([[0.2, 1.0], [-0.4, 0.6]])
+    q = cd[10:14]
+    m.save(tmp_path / "m.pt")
+    back = irft.InverseRFT.load(tmp_path / "m.pt")
+    for model in (m, back):
+        post, pred = model.stress_map(th[:, 0], th[:, 1]), model.predict_forces(q)
+        for a, w in enumerate((cd.weight_x, cd.weight_z)):
+            _, map_posterior, force_posterior = axis_reference(cd, f[:, a], w, ls[a, 0], os[a], nz[a])
+            mu, var = map_posterior(th)
+            torch.testing.assert_close(post.mean[:, a], mu, rtol=1e-7, atol=1e-9)
+            torch.testing.assert_close(post.variance[:, a], var, rtol=1e-7, atol=1e-12)
+            mu_f, _ = force_posterior(q, (q.weight_x, q.weight_z)[a])
+            torch.testing.assert_close(pred.mean[:, a], mu_f, rtol=1e-7, atol=1e-9)
