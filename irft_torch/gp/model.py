@@ -72,6 +72,29 @@ def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
     return s.contiguous()
 
 
+def _prediction_noise_scale(noise_scale, lead: tuple, dtype, device) -> Tensor:
+    """``noise_scale`` of a prediction for contacts (*lead, M), lead = (..., T), as a tensor that
+    broadcasts to (*lead, 2): per sample (a shape ending in T, a 0-d scalar) or per sample and axis
+    (ending in (T, 2)); anything else is a ValueError (a (T,) scale must not line up with the axes)."""
+    s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
+    T = lead[-1] if lead else 1
+    if s.ndim >= 2 and s.shape[-2:] == (T, 2):
+        pass  # per sample and axis
+    elif s.ndim == 0 or s.shape[-1] == T:
+        s = s[..., None]  # per sample, both axes
+    else:
+        raise ValueError(f"noise_scale must end in T = {T} (per sample) or in (T, 2) (per sample and axis) for "
+                         f"contacts of shape {tuple(lead)} x M, got shape {tuple(s.shape)}")
+    try:
+        torch.broadcast_shapes(s.shape, (*lead, 2))
+    except RuntimeError:
+        raise ValueError(f"noise_scale of shape {tuple(s.shape)} does not broadcast to the contacts' samples "
+                         f"{tuple(lead)}") from None
+    if not (torch.isfinite(s).all() and (s > 0).all()):
+        raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
+    return s
+
+
 def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
     """Divide each composite observation (its force and its segment weights) by its noise scale:
     F_t / s_t = sum_m (w_tm / s_t) alpha(theta_tm) + eps_t, eps_t ~ N(0, sigma^2), exactly."""
@@ -600,8 +623,9 @@ class InverseRFT(nn.Module):
             variance: "exact" (w^T Sigma w, segments correlated) or "independent" (the paper's
                 sum_m w_m^2 sigma^2(theta_m)).
             include_noise: add the learned observation noise (predict a measurement).
-            noise_scale: with ``include_noise``, the new samples' relative noise scales (..., T) or
-                (..., T, 2), as in the constructor (default 1).
+            noise_scale: with ``include_noise`` (a ValueError without), the new samples' relative noise
+                scales, as in the constructor (default 1): per sample, any shape ending in T that
+                broadcasts to the contacts' (..., T); or per sample and axis, ending in (T, 2).
 
         Returns:
             Posterior with mean and variance (..., T, 2) in N and N^2. Differentiable in the
@@ -636,13 +660,12 @@ class InverseRFT(nn.Module):
             mean = mean.masked_scatter(rows.expand(2, N), post.mean)
             var = var.masked_scatter(rows.expand(2, N), v_sub)
         var = var.T.reshape(*lead, 2)
+        if noise_scale is not None and not include_noise:
+            raise ValueError("noise_scale only applies with include_noise=True (it scales the measurement noise "
+                             "added to the prediction)")
         if include_noise:
             scale = torch.ones((), dtype=var.dtype, device=var.device) if noise_scale is None else \
-                torch.as_tensor(noise_scale, dtype=var.dtype, device=var.device)
-            if scale.ndim == len(lead):
-                scale = scale[..., None]
-            if not (torch.isfinite(scale).all() and (scale > 0).all()):
-                raise ValueError("noise_scale must be positive and finite")
+                _prediction_noise_scale(noise_scale, lead, var.dtype, var.device)
             var = var + self.hypers.noise * scale.pow(2)
         return Posterior(mean.T.reshape(*lead, 2), var)
 

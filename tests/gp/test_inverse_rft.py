@@ -159,6 +159,30 @@ def test_batched_predict_and_model_as_stress_map(gait1):
     torch.testing.assert_close(wide.mean, model.predict_forces(c[40:50]).mean)
 
 
+def test_batched_prediction_noise_scale_lines_up_with_the_samples(gait1):
+    # contacts (B=3, T=2): a (T,) noise_scale is per sample, never per axis (with T = 2 it broadcast onto
+    # the axes); (T, 2) is per sample and axis; anything else, or a scale without include_noise, is refused
+    c, f = gait1
+    model = irft.InverseRFT(c, f)
+    model.fit(n_iter=5, progress=False)
+    batched = Contacts(*(torch.stack([v[10:12], v[30:32], v[50:52]]) for v in c.as_dict().values()))
+    plain = model.predict_forces(batched).variance  # (3, 2, 2)
+    noise = model.hypers.noise.detach()  # (2,) N^2 per axis
+    s = torch.tensor([1.0, 3.0])
+    got = model.predict_forces(batched, include_noise=True, noise_scale=s).variance
+    want = plain + noise * s[None, :, None] ** 2  # sample t: noise * s_t^2 on both axes
+    torch.testing.assert_close(got, want)
+    s2 = torch.tensor([[1.0, 2.0], [3.0, 4.0]])  # (T, 2)
+    got = model.predict_forces(batched, include_noise=True, noise_scale=s2).variance
+    torch.testing.assert_close(got, plain + noise * s2[None] ** 2)
+    with pytest.raises(ValueError, match="noise_scale must end in T = 2"):
+        model.predict_forces(batched, include_noise=True, noise_scale=torch.ones(5))
+    with pytest.raises(ValueError, match="does not broadcast"):
+        model.predict_forces(batched, include_noise=True, noise_scale=torch.ones(4, 2))
+    with pytest.raises(ValueError, match="only applies with include_noise"):
+        model.predict_forces(batched, noise_scale=s)
+
+
 def test_save_load_and_state_dict_roundtrip(gait1, tmp_path):
     c, f = gait1
     model = irft.InverseRFT(c, f, tied_noise=True)
