@@ -260,6 +260,7 @@ class InverseRFT(nn.Module):
         c = contacts.to(dtype=dtype, device=device)
         f = _as_forces(forces, T, dtype, device)
         scale = _as_noise_scale(noise_scale, T, dtype, device)
+        _check_units(c, f)  # as measured (whitened by a small noise_scale they would look too large)
         c, f = _whiten(c, f, scale)
         for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
@@ -268,7 +269,6 @@ class InverseRFT(nn.Module):
             if not (f[:, axis] != 0).any():  # each map is learned in its forces' scale (_data_scales): none here
                 raise ValueError(f"forces[:, {axis}] ({name}) is zero in every sample: no scale to learn that map in; "
                                  f"if {name} was not measured, zeros would claim the map is zero")
-        _check_units(c, f)
         self.surface = None
         if surface_offset or surface_groups is not None:
             from .surface import SurfaceOffset
