@@ -59,6 +59,9 @@ def save_model(model, path) -> None:
                     "priors": model.priors},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
+        # the training data's fingerprint as the model holds it: the loaded copy's data equal these to the last
+        # bit only without a noise_scale (whitening by it and undoing it rounds), so the copy takes this one
+        "data_digest": model.state_dict()["data_digest"].cpu(),
     }
     if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
         payload["options"]["surface_offset"] = True
@@ -101,6 +104,9 @@ def load_model(cls, path, map_location=None):
             model.surface.offset.copy_(payload["surface_offset"].to(model.surface.offset))
         model._rebuild_backend()
     model.loss_history = list(payload.get("loss_history", []))
+    if "data_digest" in payload:  # the saved model's fingerprint (files before it: recomputed from the data)
+        model.data_digest.copy_(payload["data_digest"].to(model.data_digest))
+        model._digest_stale = False
     return model
 
 def _load_v1(cls, d: dict, path):
