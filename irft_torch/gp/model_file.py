@@ -56,7 +56,7 @@ def save_model(model, path) -> None:
         "options": {"prior_mean": model.prior_mean_kind, "tied_noise": model.hypers.tied,
                     "lengthscale": model.init_lengthscale, "method": model.method, "tol": model.tol,
                     "solver": model.solver, "dtype": str(model.dtype).replace("torch.", ""),
-                    "priors": model.priors},
+                    "priors": model.priors, "auto": bool(model.auto)},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
         # the training data's fingerprint as the model holds it: the loaded copy's data equal these to the last
@@ -97,7 +97,9 @@ def load_model(cls, path, map_location=None):
     opts = dict(payload["options"])
     opts["dtype"] = getattr(torch, opts["dtype"])
     opts.setdefault("priors", None)  # files written before the priors were fitted without them
+    auto = bool(opts.pop("auto", False))  # method="auto": the backend it was on, and free to move again in fit
     model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
+    model.auto = auto
     model.hypers.load_state_dict(payload["hypers"])
     if "surface_offset" in payload:
         with torch.no_grad():

@@ -216,6 +216,16 @@ def test_a_loaded_copy_of_a_model_with_noise_scale_takes_the_originals_state(gai
         back.load_state_dict(other.state_dict())
 
 
+def test_a_loaded_model_keeps_method_auto_or_its_fixed_backend(gait1, tmp_path):
+    # method="auto" may move to a cheaper backend during fit; a loaded copy was pinned to the one it was on
+    c, f = gait1
+    for method, auto in (("auto", True), ("pairs", False)):
+        model = irft.InverseRFT(c[:40], f[:40], method=method)
+        model.save(tmp_path / "m.pt")
+        back = irft.InverseRFT.load(tmp_path / "m.pt")
+        assert back.auto is auto and back.method == model.method
+
+
 def test_gpytorch_mll_and_paper_tied_noise(gait1):
     c, f = gait1
     model = irft.InverseRFT(c, f, tied_noise=True, method="observations")
