@@ -150,7 +150,8 @@ def main(argv=None) -> None:
     rest_air = (t > 1.0) & (t < 2.5)
     hold = (z < -0.259) & (t > 4.0) & (t < 5.5)
     lines += ["", f"So toeforce = (F_x, -F_z): its vertical axis is the force of the toe on the ground, its horizontal "
-              f"axis that of the ground on the toe (the controller's x is mirrored against its own toe position). The "
+              f"axis that of the ground on the toe (the controller's own statics give F; it logs the vertical "
+              f"component negated). The "
               f"sign of F is fixed by physics, not by the controller: at rest in air F_z = "
               f"{F[rest_air, 1].mean().item():+.2f} N (the links' weight pulls the toe down), held 3.7 cm below the "
               f"stated surface F_z = {F[hold, 1].mean().item():+.2f} N (the sand pushes up).", ""]
