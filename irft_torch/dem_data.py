@@ -96,9 +96,13 @@ class DEMReadReport:
 
 
 def _blocks(path: Path, width: int, report: DEMReadReport) -> dict[tuple[float, float], np.ndarray]:
-    """Runs of one file keyed by (gamma, beta): rows of ``width`` numbers."""
+    """Runs of one file keyed by (gamma, beta): rows of ``width`` numbers. A header row is two numbers
+    whose beta is the file's (``beta_<B>_...``): a data row cut to two values is a damaged row, not
+    the start of a run."""
     runs: dict[tuple[float, float], list] = {}
     key = None
+    named = re.match(r"beta_(-?\d+(?:\.\d+)?)_", path.name)
+    file_beta = float(named.group(1)) if named else None
     with open(path) as fh:
         for line_no, line in enumerate(fh, 1):
             text = line.strip().rstrip(",").strip()
@@ -108,6 +112,10 @@ def _blocks(path: Path, width: int, report: DEMReadReport) -> dict[tuple[float, 
                 report.skipped_rows.append((path.name, line_no, "not numbers"))
                 continue
             values = [float(v) for v in text.split(",") if v.strip()]
+            if len(values) == 2 and file_beta is not None and values[1] != file_beta:
+                report.skipped_rows.append((path.name, line_no, f"2 values, expected {width} (not a header: beta "
+                                                                f"{values[1]:g} is not the file's {file_beta:g})"))
+                continue
             if len(values) == 2:  # a header row: gamma, beta
                 key = (values[0], values[1])
                 if key in runs:  # a repeated header continues the same run (a split block)

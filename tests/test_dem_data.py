@@ -39,6 +39,17 @@ def test_reader_quirks_on_a_hand_made_file(tmp_path):
         D.read_runs(tmp_path / "nope")
 
 
+def test_a_data_row_cut_to_two_values_is_damage_not_a_new_run(tmp_path):
+    # two numbers are a header only with the file's beta: "0.002,0.2" (a force row cut after x) must not open a
+    # run "gamma 0.002" and take the rows after it from run (90, 30)
+    write(tmp_path / "beta_30_plate_forces.csv", "90,30\n0,0,0,0\n0.001,0.1,0,1\n0.002,0.2\n0.003,0.3,0,3\n")
+    write(tmp_path / "beta_30_plate_positions.csv",
+          "90,30\n0,0,0,15,9\n0.001,0,0,14.9,9\n0.002,0,0,14.8,9\n0.003,0,0,14.7,9\n")
+    runs, rep = D.read_runs(tmp_path)
+    assert [(r.gamma_deg, r.beta_deg, len(r.t)) for r in runs] == [(90.0, 30.0, 3)]  # t = 0, 1, 3 ms
+    assert any(x[1] == 4 and x[2].startswith("2 values, expected 4") for x in rep.skipped_rows), rep.skipped_rows
+
+
 def test_contacts_of_a_tilted_plate_by_hand():
     run = D.DEMRun(30.0, 90.0, np.array([0.0, 0.1]), np.array([[1.0, 0, 2.0], [1.0, 0, 2.0]]),
                    np.array([[0, 0, 5.0], [0, 0, 4.0]]), np.array([9.0, 9.0]))
