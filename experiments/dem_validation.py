@@ -332,7 +332,11 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     runs, report = dem_data.read_runs(a.data)
     print(f"read {len(runs)} runs; {report.summary()}")
-    usable = [r for r in runs if (r.depth > a.min_depth).sum() >= 3]
+    deep_enough = [(r.depth > a.min_depth).sum() >= 3 for r in runs]
+    usable = [r for r, ok in zip(runs, deep_enough) if ok]
+    too_shallow = [f"{r.label} (deepest {r.depth.max():.2f} cm)" for r, ok in zip(runs, deep_enough) if not ok]
+    if too_shallow:
+        print(f"left out, fewer than 3 samples deeper than {a.min_depth:g} cm: {', '.join(too_shallow)}")
     data = [RunData(r, a.min_depth) for r in usable]
     splits = [s.strip() for s in a.splits.split(",") if s.strip()]
     for s in splits:
@@ -381,7 +385,7 @@ def main(argv=None) -> dict:
     elapsed = time.perf_counter() - t0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    lines = write_report(a, data, report, results, fold_info, tau, elapsed)
+    lines = write_report(a, data, report, results, fold_info, tau, elapsed, too_shallow)
     if fig_fold is not None or results:
         lines += figures(a, out, data, results, fig_fold)
     (out / "dem_validation.md").write_text("\n".join(lines) + "\n")
@@ -393,12 +397,14 @@ def _pair(v, fmt="{:.4f}") -> str:
     return "- | -" if v is None else f"{fmt.format(v[0])} | {fmt.format(v[1])}"
 
 
-def write_report(a, data, report, results, fold_info, tau, elapsed) -> list[str]:
+def write_report(a, data, report, results, fold_info, tau, elapsed, too_shallow=()) -> list[str]:
     names = IRFT + BASELINES
     lines = ["# I-RFT on independent DEM plate-intrusion data", "",
              f"`python experiments/dem_validation.py --data DIR{'' if a.stride == 'auto' else f' --stride {a.stride}'}"
              f"{'' if a.offset == '0' else f' --offset {a.offset}'}`: {len(data)} runs (every run with at least 3 "
-             f"samples deeper than {a.min_depth:g} cm), {a.n_iter} Adam steps per I-RFT fit; {elapsed:.0f} s. "
+             f"samples deeper than {a.min_depth:g} cm"
+             f"{'; left out: ' + ', '.join(too_shallow) if too_shallow else ''}), "
+             f"{a.n_iter} Adam steps per I-RFT fit; {elapsed:.0f} s. "
              f"Reader: {report.summary()}.", "",
              f"Targets: **origin** = the data README's per-run stress per depth, F = s x depth through the origin over "
              f"the samples whose centre is deeper than {a.min_depth:g} cm below z_top, over the plate area (the bar); "

@@ -246,6 +246,8 @@ def test_dem_validation_experiment_runs_small(tmp_path, monkeypatch):
     # the generic x LS row is the README's recipe: its leave-one-beta-out figures, to the printed digits
     np.testing.assert_allclose(res["beta"]["generic x LS scales"]["rmse_origin"], [0.0166, 0.0173], atol=6e-5)
     assert res["beta"]["I-RFT"]["pred_origin"].shape == (54, 2)
+    # the 55th run is named where it is left out (the data README: beta 45, gamma 9 stays above 1 cm)
+    assert "left out: beta 45, gamma 9 (deepest 0.61 cm)" in text
     # the learned surface: within a cm of the README's effective surface (1.8 cm below the top grain) after
     # 3 steps on every 1000th sample (a Laplace std may then be inf)
     learned = [float(v) for v in re.findall(r"(-?[0-9.]+) \+- (?:[0-9.]+|inf) cm / 1000 ms", text)]
