@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt
 import torch
 
 __all__ = ["angle_grid", "sampled_angles", "plot_stress_map", "plot_map_comparison", "plot_posterior_map",
-           "plot_toe_path", "plot_coverage", "plot_forces", "plot_reliability", "save"]
+           "plot_toe_path", "plot_coverage", "plot_forces", "plot_reliability", "plot_coverage_cells", "save"]
 
 P = math.pi
 UNIT = "N/cm$^3$"
@@ -252,6 +252,48 @@ def save(fig, path) -> None:
     plt.close(fig)
 
 
+def plot_coverage_cells(observed: dict, calibrated: dict, band=(0.85, 0.99), level: float = 0.95, ax=None,
+                        title: str = "coverage per cell against a calibrated model"):
+    """Each cell's observed coverage of the central ``level`` interval (a dot) against the coverages a
+    perfectly calibrated model gives for that cell (its central 90 % as a bar, median a tick), with
+    ``band`` shaded: whether a cell outside the band is a miscalibration or the scatter a calibrated
+    model shows too.
+
+    Args:
+        observed: {cell label: observed coverage (0-1)}.
+        calibrated: {cell label: (draws,) coverages of truths the model is calibrated for (0-1)}.
+    """
+    import numpy as np
+
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(max(7.0, 0.34 * len(observed) + 2.5) + 3.2, 5.0), constrained_layout=True)
+    ax.axhspan(100 * band[0], 100 * band[1], color="tab:green", alpha=0.12,
+               label=f"band {100 * band[0]:.0f}-{100 * band[1]:.0f} %")
+    ax.axhline(100 * level, color="k", ls="--", lw=0.8, label=f"nominal {100 * level:.0f} %")
+    x = np.arange(len(observed))
+    for i, label in enumerate(observed):
+        c = np.asarray(calibrated[label], dtype=float) * 100
+        lo, mid, hi = np.percentile(c, [5, 50, 95])
+        pit = float(np.mean(c < 100 * observed[label]) + 0.5 * np.mean(c == 100 * observed[label]))
+        ax.plot([i, i], [lo, hi], color="0.6", lw=5, solid_capstyle="butt",
+                label="calibrated model: 5-95 % of its coverages" if i == 0 else None)
+        ax.plot([i - 0.25, i + 0.25], [mid, mid], color="0.3", lw=1.2,
+                label="calibrated model: median" if i == 0 else None)
+        inside = 0.025 <= pit <= 0.975
+        ax.plot(i, 100 * observed[label], "o", ms=6, color="tab:blue" if inside else "tab:red",
+                label=None)
+    ax.plot([], [], "o", color="tab:blue", label="observed, within the calibrated model's central 95 %")
+    ax.plot([], [], "o", color="tab:red", label="observed, outside it")
+    ax.set_xticks(x)
+    ax.set_xticklabels(list(observed), rotation=60, ha="right", fontsize=7)
+    ax.set_xlim(-0.7, len(observed) - 0.3)
+    ax.set_ylabel(f"share of the truth inside the central {100 * level:.0f} % interval (%)")
+    ax.set_title(title)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: the bars fill the axes
+    return ax.figure
+
+
 def plot_reliability(observed: dict, levels, ax=None, title: str = "reliability"):
     """Reliability diagram: for each central posterior interval (nominal level, x) the share of the
     truth inside it (observed, y); the diagonal is perfect calibration, below it overconfident.
@@ -265,9 +307,11 @@ def plot_reliability(observed: dict, levels, ax=None, title: str = "reliability"
     lv = [100 * float(v) for v in levels]
     ax.plot([0, 100], [0, 100], "k--", lw=1, label="calibrated (observed = nominal)")
     many = len(observed) > 10
-    for i, (label, shares) in enumerate(observed.items()):
-        ax.plot(lv, [100 * float(v) for v in shares], "o-", lw=0.8 if many else 1.5, ms=3 if many else 5,
-                alpha=0.6 if many else 1.0, color=f"C{i % 10}", label=label)
+    colors = plt.get_cmap("tab20" if many else "tab10").colors
+    for i, (label, shares) in enumerate(observed.items()):  # beyond the palette: another marker, never a repeat
+        ax.plot(lv, [100 * float(v) for v in shares], "-", marker="os^Dv"[(i // len(colors)) % 5],
+                lw=0.8 if many else 1.5, ms=3.5 if many else 5, alpha=0.75 if many else 1.0,
+                color=colors[i % len(colors)], label=label)
     ax.set_xlim(40, 100)
     ax.set_ylim(0, 101)
     ax.set_xlabel("nominal level of the central posterior interval (%)")

@@ -70,3 +70,20 @@ def test_map_comparison_panels_signed_error_shared_scales_and_points():
         xs = [line.get_xdata() for line in s_ax.get_lines()]
         assert any(np.allclose(x, [0.1, 0.2]) for x in xs)  # sampled points on the std panel
     matplotlib.pyplot.close(fig)
+
+
+def test_coverage_cells_marks_observations_outside_the_calibrated_range():
+    # cell a: calibrated coverages 0.80-0.99 (uniform), observed 0.90: inside; cell b: the same, observed 0.70: below
+    # everything a calibrated model gives, so drawn red; the bars span the 5-95th percentiles computed here
+    cal = torch.linspace(0.80, 0.99, 201, dtype=torch.float64)
+    fig = plotting.plot_coverage_cells({"a": 0.90, "b": 0.70}, {"a": cal, "b": cal})
+    ax = fig.axes[0]
+    dots = [ln for ln in ax.get_lines() if ln.get_marker() == "o" and len(ln.get_xdata())]
+    assert [(float(d.get_xdata()[0]), float(d.get_ydata()[0])) for d in dots] == [(0.0, 90.0), (1.0, 70.0)]
+    assert matplotlib.colors.same_color(dots[0].get_color(), "tab:blue")
+    assert matplotlib.colors.same_color(dots[1].get_color(), "tab:red")
+    bars = [ln for ln in ax.get_lines() if ln.get_linewidth() == 5]
+    lo, hi = np.percentile(cal.numpy() * 100, [5, 95])
+    np.testing.assert_allclose(bars[0].get_ydata(), [lo, hi])
+    labels = ax.get_legend_handles_labels()[1]
+    assert "band 85-99 %" in labels and any("calibrated model" in x for x in labels)
