@@ -327,6 +327,30 @@ def test_posterior_draws_are_covered_at_the_nominal_rate_on_average():
     assert float(cover.std(-1).min()) > 0.02  # spatially correlated errors: one draw's coverage scatters
 
 
+def test_itoe_alpha_x_is_as_covered_as_a_calibrated_model_would_be_with_the_priors_only():
+    # the confidently-wrong case: an I-toe on gait 1 sees beta = 0 only. The share of the generic map
+    # inside alpha_x's 95 % interval, against the shares that maps drawn from the fit's own posterior get (truths
+    # it is calibrated for): within their central 95 % with the default priors (measured percentile 0.17), below
+    # all of them with the paper's plain likelihood (measured 0.000: overconfident)
+    import torch
+
+    from irft_torch import reproduce as R
+    from irft_torch.rft import FourierStressMap
+
+    cs = _calibration_study()
+    torch.set_default_dtype(torch.float64)
+    pits = {}
+    for priors in ("physical", None):
+        s = R.StudySettings(n_steps=60, grid=24, n_iter=100, priors=priors)
+        r = R._fit_one("I-toe gait 1", "zero", 0.2, 0, FourierStressMap.generic(*s.truth_scale), "t", s,
+                       keep_maps=True, keep_model=True)
+        cover = cs.posterior_draw_coverage(r.maps["model"], r.maps["B"], r.maps["G"], 400, 0)[0]
+        obs = r.metrics["X"]["calibration95"]
+        pits[priors] = float((cover < obs).double().mean() + 0.5 * (cover == obs).double().mean())
+    assert 0.025 <= pits["physical"] <= 0.975, pits
+    assert pits[None] < 0.025, pits
+
+
 def test_pinned_fits_use_the_paper_sampling():
     # Table I under the pinned sampling: PINNED_STEPS samples per path, the C-toe turning on gait 2 only
     import torch
