@@ -91,11 +91,14 @@ class RFTHyperparameters(Module):
         """(2,) scales of the generic shape in the physics mean, or None for the zero mean."""
         return None if self.mean is None else self.mean.scales
 
-    def mean_of(self, contacts) -> Tensor | None:
-        """Prior mean of the weighted sums of ``contacts`` (N, M): (2, N) in N, or None (zero mean)."""
+    def mean_of(self, contacts, detach: bool = False) -> Tensor | None:
+        """Prior mean of the weighted sums of ``contacts`` (N, M): (2, N) in N, or None (zero mean).
+        ``detach``: the scales as constants (a prediction: differentiable in the contacts only, like
+        the rest of the posterior, whose hyperparameters are fixed)."""
         if self.mean is None:
             return None
-        return self.mean.scales[:, None] * self.mean.shape_forces(contacts)
+        scales = self.mean.scales.detach() if detach else self.mean.scales
+        return scales[:, None] * self.mean.shape_forces(contacts)
 
     def as_dict(self) -> dict[str, list]:
         out = {"lengthscale_x": self.lengthscale[0, 0].tolist(), "lengthscale_z": self.lengthscale[1, 0].tolist(),

@@ -117,10 +117,16 @@ def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch, met
         model.fit(n_iter=2, progress=False)
 
 
-def test_predict_forces_gradients_match_finite_differences(gait1):
+@pytest.mark.parametrize("prior_mean", ["zero", "physics"])
+def test_predict_forces_gradients_match_finite_differences(gait1, prior_mean):
+    # differentiable in the contacts (the physics mean's shape forces too), never in the fitted hyperparameters:
+    # with the physics mean the maps came back requiring grad (post.mean.numpy() refused)
     c, f = gait1
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean)
     model.fit(n_iter=30, progress=False)
+    b0 = torch.linspace(-1, 1, 5)
+    assert not model.stress_map(b0, b0).mean.requires_grad and not model(b0, b0).requires_grad
+    model.stress_map(b0, b0).mean.numpy()
     g = torch.Generator().manual_seed(0)
     beta = ((torch.rand(4, 3, generator=g) - 0.5) * 2).requires_grad_(True)
     gamma = ((torch.rand(4, 3, generator=g) - 0.5) * 2).requires_grad_(True)

@@ -151,7 +151,7 @@ class ObservationsBackend(RFTBackend):
         _, _, alpha = self._factor()
         side, Ktq, A = self._query(contacts)
         mean = (Ktq.mT @ alpha[..., None])[..., 0]
-        prior = self.hypers.mean_of(contacts)
+        prior = self.hypers.mean_of(contacts, detach=True)
         if prior is not None:
             mean = mean + prior
         out = FunctionalPosterior(mean)
@@ -203,7 +203,7 @@ class PriorBackend(RFTBackend):
         return composite_covariance(self.hypers.kernel, c1, c2)
 
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
-        mean = self.hypers.mean_of(contacts)
+        mean = self.hypers.mean_of(contacts, detach=True)
         if mean is None:
             mean = contacts.beta.new_zeros(2, len(contacts))
         out = FunctionalPosterior(mean)

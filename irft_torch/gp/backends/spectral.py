@@ -267,7 +267,7 @@ class SpectralBackend(WeightSpaceBackend):
         m, _ = self._u_posterior()
         Phi = self._features_of(contacts)
         mean = (Phi @ m[..., None])[..., 0]
-        prior = self.hypers.mean_of(contacts)
+        prior = self.hypers.mean_of(contacts, detach=True)
         if prior is not None:
             mean = mean + prior
         out = FunctionalPosterior(mean)

@@ -296,7 +296,7 @@ class WeightSpaceBackend(RFTBackend):
         _, v = self._posterior_terms()
         C, G = self._query(contacts)
         mean = (C @ v[..., None])[..., 0]
-        prior = self.hypers.mean_of(contacts)
+        prior = self.hypers.mean_of(contacts, detach=True)
         if prior is not None:
             mean = mean + prior
         out = FunctionalPosterior(mean)
