@@ -59,37 +59,31 @@ def _as_forces(forces, T: int, dtype, device) -> Tensor:
 
 
 def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
-    """(T, 2) relative noise standard deviations; ones when ``noise_scale`` is None."""
+    """(T, 2) relative noise standard deviations of T training samples; ones when ``noise_scale`` is None."""
     if noise_scale is None:
         return torch.ones(T, 2, dtype=dtype, device=device)
-    s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
-    if s.ndim == 1 and s.shape[0] == T:
-        s = s[:, None].expand(T, 2)
-    if s.shape != (T, 2):
-        raise ValueError(f"noise_scale must be (T,) or (T, 2) with T = {T}, got shape {tuple(s.shape)}")
-    if not (torch.isfinite(s).all() and (s > 0).all()):
-        raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
-    return s.contiguous()
+    return _noise_scale(noise_scale, (T,), dtype, device).expand(T, 2).contiguous()
 
 
-def _prediction_noise_scale(noise_scale, lead: tuple, dtype, device) -> Tensor:
-    """``noise_scale`` of a prediction for contacts (*lead, M), lead = (..., T), as a tensor that
-    broadcasts to (*lead, 2): per sample (a shape ending in T, a 0-d scalar) or per sample and axis
-    (ending in (T, 2)); anything else is a ValueError (a (T,) scale must not line up with the axes)."""
+def _noise_scale(noise_scale, lead: tuple, dtype, device) -> Tensor:
+    """``noise_scale`` of samples (*lead) = (..., T) as a tensor that broadcasts to exactly (*lead, 2):
+    per sample (a shape ending in T, or a 0-d scalar) or per sample and axis (ending in (T, 2)); anything
+    else is a ValueError (a (T,) scale must never line up with the two force axes)."""
     s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
-    T = lead[-1] if lead else 1
+    given, T = tuple(s.shape), (lead[-1] if lead else 1)
     if s.ndim >= 2 and s.shape[-2:] == (T, 2):
         pass  # per sample and axis
     elif s.ndim == 0 or s.shape[-1] == T:
         s = s[..., None]  # per sample, both axes
     else:
         raise ValueError(f"noise_scale must end in T = {T} (per sample) or in (T, 2) (per sample and axis) for "
-                         f"contacts of shape {tuple(lead)} x M, got shape {tuple(s.shape)}")
+                         f"samples of shape {tuple(lead)}, got shape {given}")
     try:
-        torch.broadcast_shapes(s.shape, (*lead, 2))
+        fits = torch.broadcast_shapes(s.shape, (*lead, 2)) == (*lead, 2)
     except RuntimeError:
-        raise ValueError(f"noise_scale of shape {tuple(s.shape)} does not broadcast to the contacts' samples "
-                         f"{tuple(lead)}") from None
+        fits = False
+    if not fits:
+        raise ValueError(f"noise_scale of shape {given} does not broadcast to the samples {tuple(lead)}")
     if not (torch.isfinite(s).all() and (s > 0).all()):
         raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
     return s
@@ -665,7 +659,7 @@ class InverseRFT(nn.Module):
                              "added to the prediction)")
         if include_noise:
             scale = torch.ones((), dtype=var.dtype, device=var.device) if noise_scale is None else \
-                _prediction_noise_scale(noise_scale, lead, var.dtype, var.device)
+                _noise_scale(noise_scale, lead, var.dtype, var.device)
             var = var + self.hypers.noise * scale.pow(2)
         return Posterior(mean.T.reshape(*lead, 2), var)
 
