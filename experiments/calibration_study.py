@@ -41,6 +41,7 @@ from pathlib import Path
 
 import torch
 
+from irft_torch import metrics
 from irft_torch.gp.fourier import FourierBasis
 from irft_torch.gp.priors import GENERIC_RMS, LENGTHSCALE_CENTRE
 from irft_torch.reproduce import CONFIGS, LEVELS, StudySettings, _fit_one
@@ -141,8 +142,6 @@ def split_coverage(maps: dict, a: int, level: float = 0.95) -> dict:
     ``model.diagnostics()`` splits the square: constrained where the posterior variance is below half
     the prior's. Returns {"constrained": share of the grid constrained, "cover95_constrained",
     "cover95_prior": coverage in each part (NaN where a part is empty)}."""
-    from irft_torch import metrics
-
     mean, std, true = maps["mean"][..., a], maps["std"][..., a], maps["truth"][..., a]
     on = std.pow(2) < 0.5 * maps["prior_std"][a].pow(2)
     out = {"constrained": float(on.double().mean())}
@@ -158,10 +157,9 @@ def posterior_draw_coverage(model, B, G, draws: int, seed: int, level: float = 0
     fit (spatially correlated errors make a grid's coverage scatter far more than independent points
     would)."""
     with torch.no_grad():
-        post = model.stress_map(B, G)  # mean, variance (*S, 2)
+        lo, hi = model.stress_map(B, G).interval(level)  # (*S, 2) each
         maps = model.sample_maps(B, G, draws, generator=torch.Generator().manual_seed(10_000 + seed))
-        q = 2**0.5 * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
-        inside = (maps - post.mean).abs() <= q * post.stddev  # (draws, *S, 2)
+        inside = (maps >= lo) & (maps <= hi)  # (draws, *S, 2)
         return inside.reshape(draws, -1, 2).double().mean(1).T
 
 
@@ -185,7 +183,6 @@ def prior_ceiling(truth_map, s: StudySettings, level: float = 0.95) -> tuple[flo
     interval that is the prior's, perfectly scaled, gets where the data say nothing. A single smooth
     map has lighter tails than a Gaussian field, so this is above ``level`` (what over-covering cells
     approach)."""
-    from irft_torch import metrics
     from irft_torch.reproduce import _grid
 
     B, G = _grid(s)
@@ -204,6 +201,16 @@ def verdict(cells: dict) -> tuple[bool, bool, float]:
     return all(LOW <= c <= HIGH for c in c95), MEDIAN_LOW <= med <= MEDIAN_HIGH, med
 
 
+def _cell_table(noises, text) -> list[str]:
+    """A markdown table, one row per (configuration, axis), one column per noise level: ``text(config, axis,
+    noise)`` in each cell."""
+    lines = ["| config | axis | " + " | ".join(f"noise {n}" for n in noises) + " |", "|---|---|" + "---|" * len(noises)]
+    for config in CONFIGS:
+        for axis in "XZ":
+            lines.append(f"| {config} | {axis} | " + " | ".join(text(config, axis, n) for n in noises) + " |")
+    return lines
+
+
 def _report(out, cells, noises, seeds, elapsed, quick, priors, truth="generic", ceiling=None) -> None:
     every, median_ok, med = verdict(cells)
     c95 = [v[0.95] for v in cells.values()]
@@ -216,13 +223,8 @@ def _report(out, cells, noises, seeds, elapsed, quick, priors, truth="generic", 
              + ("maps drawn from the GP prior the physical priors are centred on (one per configuration and seed)"
                 if truth == "prior" else "the generic map at the paper's scale") + ".", "",
              "Each cell: the share of the evaluation grid whose truth lies inside the central 50 % / 90 % / 95 % "
-             "posterior interval (mean over seeds). Calibrated: 0.50 / 0.90 / 0.95.", "",
-             "| config | axis | " + " | ".join(f"noise {n}" for n in noises) + " |",
-             "|---|---|" + "---|" * len(noises)]
-    for config in CONFIGS:
-        for axis in "XZ":
-            cellstr = [" / ".join(f"{cells[(config, axis, n)][lv]:.2f}" for lv in LEVELS) for n in noises]
-            lines.append(f"| {config} | {axis} | " + " | ".join(cellstr) + " |")
+             "posterior interval (mean over seeds). Calibrated: 0.50 / 0.90 / 0.95.", ""]
+    lines += _cell_table(noises, lambda c, a, n: " / ".join(f"{cells[(c, a, n)][lv]:.2f}" for lv in LEVELS))
     lines += ["", f"95 % coverage: min {min(c95):.3f}, median {med:.3f}, max {max(c95):.3f}. "
               f"Every cell within {LOW:.2f}-{HIGH:.2f}: {'yes' if every else 'no'}; median within "
               f"{MEDIAN_LOW:.2f}-{MEDIAN_HIGH:.2f}: {'yes' if median_ok else 'no'}."]
@@ -233,19 +235,16 @@ def _report(out, cells, noises, seeds, elapsed, quick, priors, truth="generic", 
               "The same 95 % coverage split as `model.diagnostics()` splits the square: *constrained* where the "
               "posterior variance is below half the prior's, *prior* elsewhere. Each cell: share of the square "
               "constrained; coverage there / coverage in the prior's part (mean over seeds; - where a part is "
-              "empty).", "",
-              "| config | axis | " + " | ".join(f"noise {n}" for n in noises) + " |",
-              "|---|---|" + "---|" * len(noises)]
+              "empty).", ""]
 
     def fmt(x):
         return "-" if x != x else f"{x:.2f}"
 
-    for config in CONFIGS:
-        for axis in "XZ":
-            vs = [cells[(config, axis, n)] for n in noises]
-            cellstr = [f"{v['constrained']:.2f}: {fmt(v['cover95_constrained'])} / {fmt(v['cover95_prior'])}"
-                       for v in vs]
-            lines.append(f"| {config} | {axis} | " + " | ".join(cellstr) + " |")
+    def split(c, a, n):
+        v = cells[(c, a, n)]
+        return f"{v['constrained']:.2f}: {fmt(v['cover95_constrained'])} / {fmt(v['cover95_prior'])}"
+
+    lines += _cell_table(noises, split)
     con = [v["cover95_constrained"] for v in cells.values() if v["cover95_constrained"] == v["cover95_constrained"]]
     pri = [v["cover95_prior"] for v in cells.values() if v["cover95_prior"] == v["cover95_prior"]]
     lines.append("")
@@ -265,9 +264,7 @@ def _report(out, cells, noises, seeds, elapsed, quick, priors, truth="generic", 
         p = {k: float(inside[i].double().mean()) for i, k in enumerate(cells)}
         # where the observed coverage falls among the calibrated model's (its percentile, ties counted half):
         # uniform over cells if the model is calibrated for this truth; near 1 over-covers, near 0 under-covers
-        obs = torch.tensor([v[0.95] for v in cells.values()], dtype=sim.dtype)[:, None]
-        pit = ((sim < obs).double().mean(-1) + 0.5 * (sim == obs).double().mean(-1)).tolist()
-        pit = dict(zip(cells, pit))
+        pit = dict(zip(cells, metrics.percentile_among([v[0.95] for v in cells.values()], sim).tolist()))
         med = sim.quantile(0.5, dim=0)  # the median cell per draw (the mean of the middle two, as in verdict)
         lines += ["", "## What a perfectly calibrated model would show", "",
                   "Each fit's own joint posterior over the grid, sampled: a map drawn from it is a truth the model "
@@ -275,13 +272,8 @@ def _report(out, cells, noises, seeds, elapsed, quick, priors, truth="generic", 
                   f"averaged as above) put the 95 % coverage inside {LOW:.2f}-{HIGH:.2f} (errors over the square "
                   "are correlated, so one map's coverage scatters widely even when the model is right); in brackets, "
                   "the percentile of the observed coverage among those truths' (near 1: more covered than a "
-                  "calibrated model would be, near 0: less).", "",
-                  "| config | axis | " + " | ".join(f"noise {n}" for n in noises) + " |",
-                  "|---|---|" + "---|" * len(noises)]
-        for config in CONFIGS:
-            for axis in "XZ":
-                ks = [(config, axis, n) for n in noises]
-                lines.append(f"| {config} | {axis} | " + " | ".join(f"{p[k]:.2f} ({pit[k]:.2f})" for k in ks) + " |")
+                  "calibrated model would be, near 0: less).", ""]
+        lines += _cell_table(noises, lambda c, a, n: f"{p[(c, a, n)]:.2f} ({pit[(c, a, n)]:.2f})")
         counts = inside.sum(0).double()
         n_in = float(counts.mean())
         lo, hi = (float(x) for x in counts.quantile(torch.tensor([0.05, 0.95], dtype=counts.dtype)))

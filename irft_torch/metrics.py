@@ -15,7 +15,7 @@ from .rft.contacts import Contacts
 
 __all__ = [
     "rmse", "mae", "r2", "pearson", "acr_percent", "rmse_percent", "mae_percent", "calibration",
-    "coverage_area", "redundancy", "map_metrics", "integrated_autocorrelation_time",
+    "percentile_among", "coverage_area", "redundancy", "map_metrics", "integrated_autocorrelation_time",
 ]
 
 
@@ -99,6 +99,15 @@ def calibration(mean, stddev, truth, level: float = 0.95) -> float:
         raise ValueError("stddev must be >= 0 (a standard deviation, not a variance or a signed error)")
     z = math.sqrt(2) * float(torch.special.erfinv(torch.tensor(level, dtype=torch.float64)))
     return float(((m - t).abs() <= z * s).double().mean())
+
+
+def percentile_among(observed, samples) -> Tensor:
+    """Where ``observed`` (...) falls among ``samples`` (..., n) of what it should be distributed as: the
+    share of samples below it, ties counted half (0-1). Uniform over repeated checks when observed is
+    such a draw; near 0 or 1, it is not (e.g. a coverage against a calibrated model's coverages)."""
+    obs = torch.as_tensor(observed, dtype=torch.float64)[..., None]
+    smp = torch.as_tensor(samples, dtype=torch.float64)
+    return (smp < obs).double().mean(-1) + 0.5 * (smp == obs).double().mean(-1)
 
 
 def _cells(contacts: Contacts, n_cells: int) -> Tensor:

@@ -265,6 +265,8 @@ def plot_coverage_cells(observed: dict, calibrated: dict, band=(0.85, 0.99), lev
     """
     import numpy as np
 
+    from . import metrics
+
     if ax is None:
         fig, ax = plt.subplots(figsize=(max(7.0, 0.34 * len(observed) + 2.5) + 3.2, 5.0), constrained_layout=True)
     ax.axhspan(100 * band[0], 100 * band[1], color="tab:green", alpha=0.12,
@@ -274,7 +276,7 @@ def plot_coverage_cells(observed: dict, calibrated: dict, band=(0.85, 0.99), lev
     for i, label in enumerate(observed):
         c = np.asarray(calibrated[label], dtype=float) * 100
         lo, mid, hi = np.percentile(c, [5, 50, 95])
-        pit = float(np.mean(c < 100 * observed[label]) + 0.5 * np.mean(c == 100 * observed[label]))
+        pit = float(metrics.percentile_among(observed[label], calibrated[label]))
         ax.plot([i, i], [lo, hi], color="0.6", lw=5, solid_capstyle="butt",
                 label="calibrated model: 5-95 % of its coverages" if i == 0 else None)
         ax.plot([i - 0.25, i + 0.25], [mid, mid], color="0.3", lw=1.2,

@@ -103,3 +103,11 @@ def test_calibration_bad_level_or_stddev_is_an_error():
             M.calibration(mean, torch.ones(3), truth, level)
     with pytest.raises(ValueError, match="stddev"):
         M.calibration(mean, -torch.ones(3), truth)
+
+
+def test_percentile_among_counts_ties_half():
+    # among 1, 2, 2, 3: 2 has one sample below and two equal -> (1 + 0.5 x 2) / 4 = 0.5; 0 -> 0; 4 -> 1
+    s = torch.tensor([1.0, 2.0, 2.0, 3.0])
+    assert M.percentile_among(2.0, s).item() == 0.5
+    torch.testing.assert_close(M.percentile_among(torch.tensor([0.0, 4.0]), s.expand(2, 4)),
+                               torch.tensor([0.0, 1.0], dtype=torch.float64))
