@@ -45,12 +45,15 @@ def axis_reference(contacts, y, weight, lengthscale, outputscale, noise, mean=No
         var = outputscale - (ks * torch.cholesky_solve(ks.T, L).T).sum(-1)
         return mu, var
 
-    def force_posterior(c_star, w_star, mean_star=None):
+    def force_posterior(c_star, w_star, mean_star=None, full=False):
+        """Mean and variance (or, with ``full``, the joint covariance) of the weighted sums of c_star."""
         th_s = torch.stack([c_star.beta.reshape(-1), c_star.gamma.reshape(-1)], -1)
         Ws = W_dense(w_star)
         Kss = Ws @ k_dense(th_s, th_s, lengthscale, outputscale) @ Ws.T
         Ksx = Ws @ k_dense(th_s, th, lengthscale, outputscale) @ W.T
         mu = Ksx @ alpha + (0 if mean_star is None else mean_star)
+        if full:
+            return mu, Kss - Ksx @ torch.cholesky_solve(Ksx.T, L)
         var = torch.diagonal(Kss) - (Ksx * torch.cholesky_solve(Ksx.T, L).T).sum(-1)
         return mu, var
 

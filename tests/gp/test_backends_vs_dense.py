@@ -476,21 +476,14 @@ def test_sampled_maps_have_the_dense_posterior_mean_and_covariance(method):
     c, f = data(T=20, M=3, seed=31)
     model = irft.InverseRFT(c, f, method=method, priors=None)
     set_hypers(model, seed=5)
-    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
     beta = torch.tensor([[0.0, 0.3, -1.2], [0.9, 1.2, 2.0]])  # (2, 3): 6 points, beta = 2.0 mirrored in
     gamma = torch.tensor([[0.1, -0.8, 0.5], [1.3, -0.2, 0.4]])
     n = 20000
     draws = model.sample_maps(beta, gamma, n, generator=torch.Generator().manual_seed(0))
     assert draws.shape == (n, 2, 3, 2)
     q = Contacts.points(beta, gamma)  # the mirror's sign on weight_x, written by the contacts
-    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
-    tq = torch.stack([q.beta.reshape(-1), q.gamma.reshape(-1)], -1)
-    for a, key in enumerate(("weight_x", "weight_z")):
-        W, Wq = W_dense(getattr(c, key)), W_dense(getattr(q, key))
-        S = W @ k_dense(th, th, ls[a, 0], os[a]) @ W.T + noise[a] * torch.eye(len(c))
-        kq = Wq @ k_dense(tq, th, ls[a, 0], os[a]) @ W.T
-        mean = kq @ torch.linalg.solve(S, f[:, a])
-        cov = Wq @ k_dense(tq, tq, ls[a, 0], os[a]) @ Wq.T - kq @ torch.linalg.solve(S, kq.T)
+    for a, (ref, key) in enumerate(zip(references(model, c, f), ("weight_x", "weight_z"))):
+        mean, cov = ref[2](q, getattr(q, key), full=True)
         x = draws[..., a].reshape(n, -1)
         sd = cov.diagonal().sqrt()
         assert ((x.mean(0) - mean).abs() < 5 * sd / n**0.5 + 1e-9).all(), (x.mean(0), mean)
