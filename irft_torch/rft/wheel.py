@@ -43,7 +43,7 @@ import math
 import torch
 from torch import Tensor
 
-from .contacts import Contacts, SegmentKinematics, contacts, segment_kinematics
+from .contacts import SURFACE_FIELDS, Contacts, SegmentKinematics, contacts, segment_kinematics
 from .paths import Path
 from .toes import Toe, _from_vertices, _n_segments, _positive
 
@@ -242,14 +242,22 @@ def wheel_contacts(profile: Toe, v: float, omega: float, radius: float, sinkage:
 
 def average_rows(c: Contacts, drop_zero: bool = True) -> Contacts:
     """One observation of the mean force over the rows (poses) of ``c`` (K, M): shape (1, K*M') with
-    every weight divided by K; ``drop_zero`` removes segments with zero weight in both axes."""
+    every weight divided by K. Contacts with depths and areas keep them (areas divided by K, depths as
+    they are), so ``with_surface_offset`` of the average is the average of ``with_surface_offset``.
+    ``drop_zero`` removes segments that carry nothing: zero weight in both axes or, with depths and
+    areas, zero area in both axes (a segment above the sand but facing it is kept: a higher surface
+    brings it into contact)."""
     K = len(c)
-    flat = [getattr(c, f).reshape(1, -1) for f in ("beta", "gamma", "weight_x", "weight_z")]
-    beta, gamma, wx, wz = flat
+    names = ("beta", "gamma", "weight_x", "weight_z", *(SURFACE_FIELDS if c.has_surface else ()))
+    flat = {n: getattr(c, n).reshape(1, -1) for n in names}
     if drop_zero:
-        keep = ((wx != 0) | (wz != 0))[0]
+        carried = ("area_x", "area_z") if c.has_surface else ("weight_x", "weight_z")
+        keep = ((flat[carried[0]] != 0) | (flat[carried[1]] != 0))[0]
         if not keep.any():
             keep = keep.clone()
             keep[0] = True  # keep one (zero) segment so the shape stays (1, >= 1)
-        beta, gamma, wx, wz = (t[:, keep] for t in (beta, gamma, wx, wz))
-    return Contacts(beta=beta, gamma=gamma, weight_x=wx / K, weight_z=wz / K)
+        flat = {n: t[:, keep] for n, t in flat.items()}
+    for n in ("weight_x", "weight_z", "area_x", "area_z"):
+        if n in flat:
+            flat[n] = flat[n] / K
+    return Contacts(**flat)

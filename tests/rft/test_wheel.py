@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from irft_torch.rft import FourierStressMap, forces
+from irft_torch.rft import Contacts, FourierStressMap, forces
 from irft_torch.rft.wheel import (
     average_rows,
     circle_profile,
@@ -127,6 +127,27 @@ def test_phases_and_average_rows():
     per_pose = forces(smap, c)
     mean = forces(smap, average_rows(c))[0]
     torch.testing.assert_close(mean, per_pose.mean(0))
+
+
+def test_average_rows_keeps_the_surface():
+    """The average keeps depths and areas: moving the surface of the average (1 cm up, 1 cm down) gives the
+    mean force of the poses moved by as much, segments above the sand that a higher surface reaches
+    included (the unaveraged poses, forces summed by hand, are the reference)."""
+    prof = circle_profile(R, W, 120)
+    phases = torch.linspace(0, 2 * math.pi / 120, 4)[:-1]
+    c = wheel_contacts(prof, 0.01, 0.2, R, 0.02, phases=phases)
+    avg = average_rows(c)
+    assert avg.has_surface and avg.shape[0] == 1
+    assert int((avg.weight_z == 0).sum()) > 0  # zero-weight segments that face the sand are kept
+    smap = FourierStressMap.generic()
+    for delta in (0.01, -0.01):
+        moved = c.with_surface_offset(delta)
+        a = smap(moved.beta, moved.gamma)
+        by_hand = torch.stack([(moved.weight_x * a[..., 0]).sum(-1), (moved.weight_z * a[..., 1]).sum(-1)], -1).mean(0)
+        torch.testing.assert_close(forces(smap, avg.with_surface_offset(delta))[0], by_hand)
+    assert forces(smap, c.with_surface_offset(0.01)).abs().sum() > 1.2 * forces(smap, c).abs().sum()  # it matters
+    bare = average_rows(Contacts(c.beta, c.gamma, c.weight_x, c.weight_z))
+    assert not bare.has_surface and int((bare.weight_z == 0).sum()) == 0  # without areas: zero weights dropped
 
 
 def test_profile_from_elements_matches_the_circle():
