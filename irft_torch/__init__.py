@@ -4,10 +4,35 @@
     smap = irft.rft.FourierStressMap.generic()
     contacts = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path())
     forces = irft.rft.forces(smap, contacts)
+
+The subpackages load on first use (PEP 562), so ``import irft_torch`` and the ``irft`` command's
+parsing do not import torch before they need it (``irft reproduce`` starts its worker processes'
+imports first, beside its own).
 """
 
-from . import gp, hardware, metrics, rft
-from .gp import InverseRFT, Posterior
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 __all__ = ["rft", "gp", "hardware", "metrics", "InverseRFT", "Posterior", "__version__"]
+
+_SUBMODULES = ("rft", "gp", "hardware", "metrics")
+_FROM_GP = ("InverseRFT", "Posterior")
+
+if TYPE_CHECKING:  # what static tools and IDEs see
+    from . import gp, hardware, metrics, rft
+    from .gp import InverseRFT, Posterior
+
+
+def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return importlib.import_module(f".{name}", __name__)
+    if name in _FROM_GP:
+        return getattr(importlib.import_module(".gp", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

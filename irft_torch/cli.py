@@ -8,17 +8,25 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
+if TYPE_CHECKING:
+    from . import rft
 
-from . import rft
+# torch (and so rft, gp, hardware) is imported where a command needs it, not here: parsing, --help and
+# the start of ``irft reproduce``'s worker processes come first (see ``main``).
 
 MAPS = {
-    "generic": lambda sx, sz: rft.FourierStressMap.generic(sx, sz),
-    "poppy-loose": lambda sx, sz: rft.FourierStressMap.poppy_seeds_loose().scaled(sx, sz),
-    "poppy-close": lambda sx, sz: rft.FourierStressMap.poppy_seeds_close().scaled(sx, sz),
+    "generic": lambda sx, sz: _rft().FourierStressMap.generic(sx, sz),
+    "poppy-loose": lambda sx, sz: _rft().FourierStressMap.poppy_seeds_loose().scaled(sx, sz),
+    "poppy-close": lambda sx, sz: _rft().FourierStressMap.poppy_seeds_close().scaled(sx, sz),
 }
+
+
+def _rft():
+    from . import rft
+
+    return rft
 
 
 class _Parser(argparse.ArgumentParser):
@@ -174,12 +182,16 @@ def add_path_args(p: argparse.ArgumentParser) -> None:
 
 
 def make_toe(a) -> rft.Toe:
+    from . import rft
+
     if a.toe == "I":
         return rft.IToe(a.length, a.width, tilt=a.tilt, n_segments=a.segments)
     return rft.CToe(a.radius, a.width, n_segments=a.segments, opening=a.opening)
 
 
 def make_path(a) -> rft.Path:
+    from . import rft
+
     if a.path == "rectangle":
         start = (-a.shear / 2, 0.0)
         return rft.rectangle_path(a.penetration, a.shear, a.extraction, start=start,
@@ -188,6 +200,10 @@ def make_path(a) -> rft.Path:
 
 
 def cmd_simulate(a) -> int:
+    import numpy as np
+
+    from . import rft
+
     out = _out_file(a.out, "--out", ".npz")
     csv_out = _out_file(a.csv, "--csv") if a.csv else None
     plot_dir = _out_dir(a.plot, "--plot") if a.plot else None
@@ -247,6 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     for register in _EXTRA_COMMANDS:
         register(sub)
     return parser
+
+
+REPRODUCE_PRELOAD = ("irft_torch.reproduce",)  # what the study's worker processes import (reproduce.run_study)
 
 
 def cmd_reproduce(a) -> int:
@@ -509,6 +528,8 @@ def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> di
     """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma): cut from those saved in
     the file when they are its own and cover the basis, else one pass (a worker of ``irft fit``).
     Returns the statistics' state and whether they came from the file."""
+    import torch
+
     from .gp.backends.spectral import restrict_statistics
     from .gp.fourier import FourierBasis
     from .gp.statistics import recording_statistics, statistics_from_arrays
@@ -534,6 +555,8 @@ def _spectral_start(contacts, method: str):
     """The Fourier basis the model will start in if ``method`` gives the spectral backend on these
     contacts (a default ``InverseRFT``: lengthscale 1, tol 1e-7), else None."""
     from types import SimpleNamespace
+
+    import torch
 
     from .gp.backends.select import choose_method
     from .gp.statistics import initial_basis
@@ -578,6 +601,8 @@ def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 
 
 
 def cmd_fit(a) -> int:
+    import torch
+
     from . import plotting
     from .gp import InverseRFT
     from .hardware import load_dataset
@@ -762,9 +787,15 @@ _EXTRA_COMMANDS: list = [_register_reproduce, _register_hardware]
 def main(argv: list[str] | None = None) -> int:
     """Run the ``irft`` command. A user error (bad value, missing or damaged file, no device) prints one
     line naming the argument or file and returns non-zero, never a traceback (IRFT_DEBUG=1 shows one)."""
-    torch.set_default_dtype(torch.float64)
     parser = build_parser()
     a = parser.parse_args(argv)
+    if a.command == "reproduce" and a.jobs != 1:  # the workers' imports run beside this process's
+        from .workers import start_worker_server
+
+        start_worker_server(REPRODUCE_PRELOAD)
+    import torch
+
+    torch.set_default_dtype(torch.float64)
     debug = os.environ.get("IRFT_DEBUG") == "1"
     try:
         _validate(a)

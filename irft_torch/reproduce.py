@@ -278,7 +278,7 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
         if workers > 1:
             from concurrent.futures import ProcessPoolExecutor
 
-            ctx = worker_context(["irft_torch.reproduce"])
+            ctx = worker_context(["irft_torch.reproduce"])  # as cli.REPRODUCE_PRELOAD: a server it started is used
             pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=ctx))
         t0 = time.perf_counter()
         results = _run_fits(jobs, s, progress, pool, workers)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["worker_context"]
+__all__ = ["worker_context", "start_worker_server"]
 
 
 def worker_context(preload: Sequence[str] = ("irft_torch",)):
@@ -23,3 +23,14 @@ def worker_context(preload: Sequence[str] = ("irft_torch",)):
     ctx = get_context("forkserver")
     ctx.set_forkserver_preload([*preload, "torch._dynamo"])
     return ctx
+
+
+def start_worker_server(preload: Sequence[str] = ("irft_torch",)) -> None:
+    """Start the server of ``worker_context(preload)`` now, so that its imports (torch, gpytorch: seconds)
+    run while this process imports its own; a pool made later with the same context uses it. Call it
+    before this process imports torch. Nothing to do where the platform has no forkserver."""
+    from multiprocessing import forkserver, get_all_start_methods
+
+    if "forkserver" in get_all_start_methods():
+        worker_context(preload)
+        forkserver.ensure_running()

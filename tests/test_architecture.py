@@ -75,3 +75,21 @@ def test_layers_import_one_way():
     assert not bad, bad
     # the 0.1 cycle: kernels and operators imported each other
     assert "irft_torch.gp.kernels" not in graph["irft_torch.gp.operators"]
+
+
+def test_package_and_command_parsing_do_not_import_torch():
+    """``import irft_torch`` and parsing an ``irft`` command stay light (the subpackages load on first
+    use), so ``irft --help`` answers at once and ``irft reproduce`` starts its workers' imports first."""
+    import subprocess
+    import sys
+
+    code = ("import sys, irft_torch, irft_torch.cli as cli\n"
+            "cli.build_parser().parse_args(['reproduce', '--quick'])\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n"
+            "assert irft_torch.InverseRFT.__name__ == 'InverseRFT' and 'torch' in sys.modules\n"
+            "from irft_torch import Posterior, rft\n"
+            "assert rft.FourierStressMap.generic() is not None\n"
+            "try:\n    irft_torch.no_such_name\nexcept AttributeError as e:\n    assert 'no_such_name' in str(e)\n"
+            "else:\n    raise SystemExit('no AttributeError')\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr[-2000:]
