@@ -323,8 +323,10 @@ def _record_simulated(a, out: Path) -> int:
     sim.seed = a.seed
     sim.run(path, air, in_air=True)
     print(f"wrote {air} (the same path in air)")
-    print(f"next: irft ingest {' '.join(map(str, outs))} --air {air} --out dataset.npz --toe {a.toe}"
-          + (f" --radius {a.radius}" if a.toe == "C" else f" --length {a.length}"))
+    toe_args = (f" --radius {a.radius} --opening {a.opening}" if a.toe == "C"
+                else f" --length {a.length} --tilt {a.tilt}")
+    print(f"next: irft ingest {' '.join(map(str, outs))} --air {air} --out dataset.npz --toe {a.toe}{toe_args}"
+          f" --width {a.width} --segments {a.segments} --nodes {' '.join(map(str, a.nodes))} --firmware {a.firmware}")
     return 0
 
 
