@@ -152,7 +152,11 @@ def integrated_autocorrelation_time(x, window: float = 5.0) -> float:
     The sum stops at the first lag k >= ``window`` x tau(k) (Sokal's automatic window).
     For an AR(1) series with coefficient phi, tau = (1 + phi) / (1 - phi).
     """
-    v = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
+    v = torch.as_tensor(x, dtype=torch.float64)
+    if v.ndim != 1:  # flattening (T, 2) residuals would interleave the two axes into one series
+        raise ValueError(f"x must be one series (n,), got shape {tuple(v.shape)} (pass one column at a time)")
+    if not (math.isfinite(window) and window > 0):
+        raise ValueError(f"window must be a positive number (Sokal's c, e.g. 5), got {window}")
     if v.numel() < 4:
         raise ValueError(f"need at least 4 samples, got {v.numel()}")
     if not torch.isfinite(v).all():

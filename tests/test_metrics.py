@@ -77,6 +77,14 @@ def test_integrated_autocorrelation_time_of_ar1():
         M.integrated_autocorrelation_time([1.0, 2.0])
     with pytest.raises(ValueError, match="NaN"):
         M.integrated_autocorrelation_time([1.0, float("nan"), 2.0, 3.0, 4.0])
+    # (T, 2) residuals are two series: flattened they interleaved x and z into one (a silent number);
+    # a window <= 0 or NaN stopped the sum at lag 1 or never (tau 1): both are errors now
+    two = np.stack([x, rng.standard_normal(len(x))], -1)
+    with pytest.raises(ValueError, match="one series"):
+        M.integrated_autocorrelation_time(two)
+    for window in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="window"):
+            M.integrated_autocorrelation_time(x, window=window)
 
 
 def test_definitions_written_beside_the_tables():
