@@ -68,7 +68,12 @@ def pearson(estimate, truth) -> float:
 
 
 def acr_percent(estimate, truth, tolerance: float = 0.05) -> float:
-    """Accurate-coverage ratio: % of points whose |error| <= tolerance x range(truth) (paper's ACR%)."""
+    """Accurate-coverage ratio: % of points whose |error| <= tolerance x range(truth) (paper's ACR%).
+
+    ``tolerance`` is a share in (0, 1) of the range (0.05, not 5); anything else is a ValueError.
+    """
+    if not 0.0 < float(tolerance) < 1.0:
+        raise ValueError(f"tolerance must be a share of the range, in (0, 1) (0.05, not 5), got {tolerance}")
     e, t = _pair(estimate, truth)
     return 100.0 * float(((e - t).abs() <= tolerance * _range(t)).double().mean())
 

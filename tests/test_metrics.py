@@ -113,6 +113,17 @@ def test_calibration_bad_level_or_stddev_is_an_error():
         M.calibration(mean, -torch.ones(3), truth)
 
 
+def test_acr_bad_tolerance_is_an_error():
+    """ACR%'s tolerance is a share of the truth's range: 5 (a percent, as the metric reports) covered 500 % of
+    the range and every point counted (100 %, silently); a negative or NaN one counted none (0 %)."""
+    t = torch.tensor([0.0, 5.0, 10.0])
+    e = torch.tensor([0.0, 3.0, 10.0])  # errors 0, 2, 0 of range 10: 2/3 within 5 %, all within 20 %
+    assert M.acr_percent(e, t, 0.05) == pytest.approx(100 * 2 / 3) and M.acr_percent(e, t, 0.2) == 100.0
+    for tol in (5.0, 1.0, 0.0, -0.05, float("nan")):
+        with pytest.raises(ValueError, match="tolerance"):
+            M.acr_percent(e, t, tol)
+
+
 def test_percentile_among_counts_ties_half():
     # among 1, 2, 2, 3: 2 has one sample below and two equal -> (1 + 0.5 x 2) / 4 = 0.5; 0 -> 0; 4 -> 1
     s = torch.tensor([1.0, 2.0, 2.0, 3.0])
