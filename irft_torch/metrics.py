@@ -117,6 +117,9 @@ def percentile_among(observed, samples) -> Tensor:
 
 def _cells(contacts: Contacts, n_cells: int) -> Tensor:
     """Flat indices of the (beta, gamma) cells of every segment in contact."""
+    if isinstance(n_cells, bool) or int(n_cells) != n_cells or n_cells < 1:
+        raise ValueError(f"n_cells must be a positive integer (cells per side of the grid), got {n_cells}")
+    n_cells = int(n_cells)
     on = (contacts.weight_z != 0) | (contacts.weight_x != 0)
     b, g = contacts.beta[on].double(), contacts.gamma[on].double()
     ib = ((b + math.pi / 2) / math.pi * n_cells).floor().clamp(0, n_cells - 1).long()

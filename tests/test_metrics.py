@@ -87,6 +87,18 @@ def test_integrated_autocorrelation_time_of_ar1():
             M.integrated_autocorrelation_time(x, window=window)
 
 
+def test_bad_cell_count_is_an_error():
+    """n_cells is the grid's cells per side: -2 gave coverage 0.25 and 2.5 gave 0.16 (by hand: one segment
+    in a 2.5 x 2.5 "grid"), silently; 0 was a ZeroDivisionError naming nothing."""
+    b = torch.tensor([[0.0, 0.5]])
+    c = Contacts(b, b.clone(), torch.ones(1, 2), torch.ones(1, 2))
+    assert M.coverage_area(c, 2) == pytest.approx(1 / 4)  # (0, 0) and (0.5, 0.5) share the cell [0, pi/2)^2
+    for n in (-2, 0, 2.5):
+        for f in (M.coverage_area, M.redundancy):
+            with pytest.raises(ValueError, match="n_cells"):
+                f(c, n)
+
+
 def test_definitions_written_beside_the_tables():
     """The report and docs/metrics.md define ACR% as |e| <= 5 % of the truth's range (inclusive),
     calibration with mean +- 1.96 std, coverage over 50 x 50 cells; check those exact edges by hand."""
