@@ -112,6 +112,11 @@ def percentile_among(observed, samples) -> Tensor:
     such a draw; near 0 or 1, it is not (e.g. a coverage against a calibrated model's coverages)."""
     obs = torch.as_tensor(observed, dtype=torch.float64)[..., None]
     smp = torch.as_tensor(samples, dtype=torch.float64)
+    for name, v in (("observed", obs), ("samples", smp)):
+        if torch.isnan(v).any():  # NaN compares false: it would count as a share of 0 (observed) or as above
+            raise ValueError(f"{name} contains NaN")
+    if smp.ndim == 0 or smp.shape[-1] == 0:
+        raise ValueError(f"samples must be (..., n) with n >= 1, got shape {tuple(smp.shape)}")
     return (smp < obs).double().mean(-1) + 0.5 * (smp == obs).double().mean(-1)
 
 

@@ -142,3 +142,11 @@ def test_percentile_among_counts_ties_half():
     assert M.percentile_among(2.0, s).item() == 0.5
     torch.testing.assert_close(M.percentile_among(torch.tensor([0.0, 4.0]), s.expand(2, 4)),
                                torch.tensor([0.0, 1.0], dtype=torch.float64))
+    # NaN compares false: a NaN observed was at the 0th percentile and a NaN sample counted as above
+    # everything (2.5 among 1, NaN, 3 gave 1/3); no sample gave NaN. All errors now
+    with pytest.raises(ValueError, match="observed"):
+        M.percentile_among(float("nan"), s)
+    with pytest.raises(ValueError, match="samples"):
+        M.percentile_among(2.5, torch.tensor([1.0, float("nan"), 3.0]))
+    with pytest.raises(ValueError, match="samples"):
+        M.percentile_among(2.5, torch.zeros(0))
