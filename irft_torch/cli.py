@@ -342,8 +342,10 @@ def _record_simulated(a, out: Path) -> int:
     sim.seed = a.seed
     sim.run(path, air, in_air=True)
     print(f"wrote {air} (the same path in air)")
-    print(f"next: irft ingest {' '.join(map(str, outs))} --air {air} --out dataset.npz --toe {a.toe}"
-          + (f" --radius {a.radius}" if a.toe == "C" else f" --length {a.length}"))
+    toe_args = (f" --radius {a.radius} --opening {a.opening}" if a.toe == "C"
+                else f" --length {a.length} --tilt {a.tilt}")
+    print(f"next: irft ingest {' '.join(map(str, outs))} --air {air} --out dataset.npz --toe {a.toe}{toe_args}"
+          f" --width {a.width} --segments {a.segments} --nodes {' '.join(map(str, a.nodes))} --firmware {a.firmware}")
     return 0
 
 
@@ -486,7 +488,12 @@ def cmd_ingest(a) -> int:
 
     air_traces = [trace(p) for p in a.air]
     try:
-        air = average_trials(air_traces, path_tol=a.path_tol) if air_traces else None
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            air = average_trials(air_traces, coverage="crop" if a.crop_trials else "error",
+                                 path_tol=a.path_tol) if air_traces else None
+        for w in caught:
+            print(f"irft ingest: air runs: {w.message}")
     except ValueError as e:
         raise ValueError(_name_trials(str(e), a.air, "air run")) from None
     trials = []
@@ -752,7 +759,7 @@ def _register_hardware(sub) -> None:
                    help="trials and air runs must follow the same path within this RMS distance, m "
                         "(default max(1 cm, 5 %% of the path))")
     g.add_argument("--crop-trials", action="store_true",
-                   help="a trial shorter than the others: crop all to the shortest (default: an error)")
+                   help="a trial (or air run) shorter than the others: crop all to the shortest (default: an error)")
     g.add_argument("--heading", type=_heading, default=0.0,
                    help="toe heading: fixed angle, rad (default 0), or link1/link2 (toe fixed to that link)")
     add_leg_args(p)

@@ -68,7 +68,12 @@ def pearson(estimate, truth) -> float:
 
 
 def acr_percent(estimate, truth, tolerance: float = 0.05) -> float:
-    """Accurate-coverage ratio: % of points whose |error| <= tolerance x range(truth) (paper's ACR%)."""
+    """Accurate-coverage ratio: % of points whose |error| <= tolerance x range(truth) (paper's ACR%).
+
+    ``tolerance`` is a share in (0, 1) of the range (0.05, not 5); anything else is a ValueError.
+    """
+    if not 0.0 < float(tolerance) < 1.0:
+        raise ValueError(f"tolerance must be a share of the range, in (0, 1) (0.05, not 5), got {tolerance}")
     e, t = _pair(estimate, truth)
     return 100.0 * float(((e - t).abs() <= tolerance * _range(t)).double().mean())
 
@@ -107,11 +112,19 @@ def percentile_among(observed, samples) -> Tensor:
     such a draw; near 0 or 1, it is not (e.g. a coverage against a calibrated model's coverages)."""
     obs = torch.as_tensor(observed, dtype=torch.float64)[..., None]
     smp = torch.as_tensor(samples, dtype=torch.float64)
+    for name, v in (("observed", obs), ("samples", smp)):
+        if torch.isnan(v).any():  # NaN compares false: it would count as a share of 0 (observed) or as above
+            raise ValueError(f"{name} contains NaN")
+    if smp.ndim == 0 or smp.shape[-1] == 0:
+        raise ValueError(f"samples must be (..., n) with n >= 1, got shape {tuple(smp.shape)}")
     return (smp < obs).double().mean(-1) + 0.5 * (smp == obs).double().mean(-1)
 
 
 def _cells(contacts: Contacts, n_cells: int) -> Tensor:
     """Flat indices of the (beta, gamma) cells of every segment in contact."""
+    if isinstance(n_cells, bool) or int(n_cells) != n_cells or n_cells < 1:
+        raise ValueError(f"n_cells must be a positive integer (cells per side of the grid), got {n_cells}")
+    n_cells = int(n_cells)
     on = (contacts.weight_z != 0) | (contacts.weight_x != 0)
     b, g = contacts.beta[on].double(), contacts.gamma[on].double()
     ib = ((b + math.pi / 2) / math.pi * n_cells).floor().clamp(0, n_cells - 1).long()
@@ -152,7 +165,11 @@ def integrated_autocorrelation_time(x, window: float = 5.0) -> float:
     The sum stops at the first lag k >= ``window`` x tau(k) (Sokal's automatic window).
     For an AR(1) series with coefficient phi, tau = (1 + phi) / (1 - phi).
     """
-    v = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
+    v = torch.as_tensor(x, dtype=torch.float64)
+    if v.ndim != 1:  # flattening (T, 2) residuals would interleave the two axes into one series
+        raise ValueError(f"x must be one series (n,), got shape {tuple(v.shape)} (pass one column at a time)")
+    if not (math.isfinite(window) and window > 0):
+        raise ValueError(f"window must be a positive number (Sokal's c, e.g. 5), got {window}")
     if v.numel() < 4:
         raise ValueError(f"need at least 4 samples, got {v.numel()}")
     if not torch.isfinite(v).all():

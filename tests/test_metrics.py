@@ -77,6 +77,26 @@ def test_integrated_autocorrelation_time_of_ar1():
         M.integrated_autocorrelation_time([1.0, 2.0])
     with pytest.raises(ValueError, match="NaN"):
         M.integrated_autocorrelation_time([1.0, float("nan"), 2.0, 3.0, 4.0])
+    # (T, 2) residuals are two series: flattened they interleaved x and z into one (a silent number);
+    # a window <= 0 or NaN stopped the sum at lag 1 or never (tau 1): both are errors now
+    two = np.stack([x, rng.standard_normal(len(x))], -1)
+    with pytest.raises(ValueError, match="one series"):
+        M.integrated_autocorrelation_time(two)
+    for window in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="window"):
+            M.integrated_autocorrelation_time(x, window=window)
+
+
+def test_bad_cell_count_is_an_error():
+    """n_cells is the grid's cells per side: -2 gave coverage 0.25 and 2.5 gave 0.16 (by hand: one segment
+    in a 2.5 x 2.5 "grid"), silently; 0 was a ZeroDivisionError naming nothing."""
+    b = torch.tensor([[0.0, 0.5]])
+    c = Contacts(b, b.clone(), torch.ones(1, 2), torch.ones(1, 2))
+    assert M.coverage_area(c, 2) == pytest.approx(1 / 4)  # (0, 0) and (0.5, 0.5) share the cell [0, pi/2)^2
+    for n in (-2, 0, 2.5):
+        for f in (M.coverage_area, M.redundancy):
+            with pytest.raises(ValueError, match="n_cells"):
+                f(c, n)
 
 
 def test_definitions_written_beside_the_tables():
@@ -105,9 +125,28 @@ def test_calibration_bad_level_or_stddev_is_an_error():
         M.calibration(mean, -torch.ones(3), truth)
 
 
+def test_acr_bad_tolerance_is_an_error():
+    """ACR%'s tolerance is a share of the truth's range: 5 (a percent, as the metric reports) covered 500 % of
+    the range and every point counted (100 %, silently); a negative or NaN one counted none (0 %)."""
+    t = torch.tensor([0.0, 5.0, 10.0])
+    e = torch.tensor([0.0, 3.0, 10.0])  # errors 0, 2, 0 of range 10: 2/3 within 5 %, all within 20 %
+    assert M.acr_percent(e, t, 0.05) == pytest.approx(100 * 2 / 3) and M.acr_percent(e, t, 0.2) == 100.0
+    for tol in (5.0, 1.0, 0.0, -0.05, float("nan")):
+        with pytest.raises(ValueError, match="tolerance"):
+            M.acr_percent(e, t, tol)
+
+
 def test_percentile_among_counts_ties_half():
     # among 1, 2, 2, 3: 2 has one sample below and two equal -> (1 + 0.5 x 2) / 4 = 0.5; 0 -> 0; 4 -> 1
     s = torch.tensor([1.0, 2.0, 2.0, 3.0])
     assert M.percentile_among(2.0, s).item() == 0.5
     torch.testing.assert_close(M.percentile_among(torch.tensor([0.0, 4.0]), s.expand(2, 4)),
                                torch.tensor([0.0, 1.0], dtype=torch.float64))
+    # NaN compares false: a NaN observed was at the 0th percentile and a NaN sample counted as above
+    # everything (2.5 among 1, NaN, 3 gave 1/3); no sample gave NaN. All errors now
+    with pytest.raises(ValueError, match="observed"):
+        M.percentile_among(float("nan"), s)
+    with pytest.raises(ValueError, match="samples"):
+        M.percentile_among(2.5, torch.tensor([1.0, float("nan"), 3.0]))
+    with pytest.raises(ValueError, match="samples"):
+        M.percentile_among(2.5, torch.zeros(0))

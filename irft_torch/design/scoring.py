@@ -310,15 +310,19 @@ class ProbeScorer:
         return eig if per_axis else eig.sum()
 
     def _belief_key(self) -> tuple:
-        """What the cached region values depend on: the backend's data (its sample count grows with
-        ``add_data``) and the hyperparameters (a refit moves them; they are shared with the model)."""
+        """What the cached region values depend on: the backend itself (a scorer following its model gets
+        a new one when the model's is rebuilt, e.g. at a moved surface, with the same data count and
+        hyperparameters), its data (its sample count grows with ``add_data``) and the hyperparameters (a
+        refit moves them; they are shared with the model)."""
+        backend = self.backend
         with torch.no_grad():
-            return self.backend.n_samples, torch.cat([p.detach().reshape(-1) for p in self.backend.hypers.parameters()])
+            return backend, backend.n_samples, torch.cat([p.detach().reshape(-1) for p in backend.hypers.parameters()])
 
     def _region(self, region: Region | None) -> tuple[Region, Contacts, Tensor]:
         key = self._belief_key()
         old = self.__dict__.get("_cache_key")
-        if old is None or old[0] != key[0] or not torch.equal(old[1], key[1]):  # the model moved: forget
+        if (old is None or old[0] is not key[0] or old[1] != key[1]
+                or not torch.equal(old[2], key[2])):  # the model moved: forget
             self._regions.clear()
             self.__dict__.pop("_omega", None)
             self._cache_key = key

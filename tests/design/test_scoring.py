@@ -211,6 +211,26 @@ def test_a_scorer_follows_its_model_after_add_data_and_a_refit(method):
     torch.testing.assert_close(scorer.score([long, short], "variance", region), want, rtol=1e-9, atol=0)
 
 
+def test_a_scorer_forgets_its_region_values_when_the_model_rebuilds_at_a_moved_surface():
+    """``init_surface`` rebuilds the model's backend at the new offset with the same sample count and
+    hyperparameters: the scorer follows the new backend, and its region values (the current variance
+    the expected variance is computed from) must be the new belief's, as in a dense computation on the
+    model's training contacts at the moved surface (the bug: the cached values of the old surface stayed)."""
+    toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
+    probes = irft.rft.random_probes(toes, 2, 0.2, n_steps=15, seed=3)
+    train = Contacts.cat([p.contacts() for p in probes[:2]])
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(), train), method="observations",
+                        surface_offset=True)
+    scorer, region, cand = ProbeScorer.from_model(m), Region.sign_change(6), probes[2].contacts()
+    scorer.score([cand], "variance", region)  # fills the region cache at the stated surface
+    m.init_surface([0.01])
+    ls, os, noise = hypers(m)
+    now, after = iv_dense(dense_cov(ls, os, noise, m.train_contacts, [region.contacts(), cand]), noise, os, region,
+                          len(cand))
+    assert scorer.integrated_variance(region=region).item() == pytest.approx(now.item(), rel=1e-8)
+    assert scorer.score([cand], "variance", region).item() == pytest.approx(after.item(), rel=1e-8)
+
+
 def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
     """A candidate sample t with noise scale s_t has noise variance sigma^2 s_t^2: the scores equal a
     dense computation with S + sigma^2 diag(s^2) (the bug: candidates were scored with unit noise)."""

@@ -215,3 +215,20 @@ def test_record_simulate_several_trials_then_ingest(tmp_path, capsys):
     # the plate at 2 cm: F_z = 0.375 x 2 x 3.2 = 2.4 N while dragged (two noisy trials averaged)
     deep = ((ds.toe_position[:, 1] + 0.02).abs() < 1e-4).numpy()
     assert deep.sum() > 10 and abs(float(ds.forces[deep, 1].mean()) - 2.4) < 0.1
+
+
+def test_record_simulate_prints_an_ingest_command_that_matches_the_simulation(tmp_path, capsys, monkeypatch):
+    """The 'next: irft ingest ...' line of record --simulate, run as printed, builds the dataset of
+    the toe and nodes that were simulated. It used to leave out --width, --segments, --nodes (a
+    2 cm wide plate ingested as the default 0.8 cm one: every contact area 2.5 times too small).
+    By hand: a 4 cm x 2 cm plate 5 cm deep has depth x area = 5 x 4 x 2 = 40 cm^3 in its 6 segments."""
+    monkeypatch.chdir(tmp_path)
+    rc = main(["record", "--simulate", "--out", "t.log", "--toe", "I", "--length", "0.04", "--width", "0.02",
+               "--segments", "6", "--nodes", "3", "5", "--path", "rectangle", "--shear", "0.1", "--rate", "50"])
+    assert rc == 0
+    hint = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("next: irft ingest "))
+    assert main(hint.split()[2:] + ["--no-statistics"]) == 0, capsys.readouterr().err
+    ds = load_dataset(tmp_path / "dataset.npz")
+    deep = ((ds.toe_position[:, 1] + 0.05).abs() < 1e-6).numpy()
+    assert deep.sum() > 10 and ds.contacts.n_segments == 6
+    np.testing.assert_allclose(ds.contacts.weight_z[deep].sum(1).numpy(), 40.0, rtol=1e-6)

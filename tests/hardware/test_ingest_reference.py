@@ -229,3 +229,25 @@ def test_short_trial_is_an_error_or_cropped(tmp_path, capsys):
     assert rc == 0 and "cropping every trial to 0.120 m" in capsys.readouterr().out
     ds = load_dataset(out)
     assert ds.toe_position[:, 0].max() == pytest.approx(0.02, abs=1e-3)  # -0.10 + 0.12
+
+
+def test_short_air_run_is_cropped_with_crop_trials(tmp_path, capsys):
+    """An air run shorter than the other air runs: the error names it and points to --crop-trials,
+    and --crop-trials then crops the air runs too (it used to give the same error again). The trials
+    (the same prescribed force as the air runs, so 0 N after subtraction) keep only the 0.12 m the
+    short air run covers: x from -0.10 to -0.10 + 0.12 = 0.02 m, the rest masked and counted."""
+    for name in ("a.log", "air1.log"):
+        write_log(tmp_path / name)
+    write_log(tmp_path / "air2.log", t_end=1.2)
+    args = ["--air", str(tmp_path / "air1.log"), str(tmp_path / "air2.log")]
+    rc, out = ingest(tmp_path, [tmp_path / "a.log"], *args)
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists() and "air run 1" in err and "air2.log" in err and "--crop-trials" in err
+    rc, out = ingest(tmp_path, [tmp_path / "a.log"], *args, "--crop-trials")
+    text = capsys.readouterr()
+    assert rc == 0, text.err
+    assert "air runs: cropping every trial to 0.120 m" in text.out and "no air-run force at this arc length" in text.out
+    ds = load_dataset(out)
+    x = ds.toe_position[:, 0]
+    assert x.min() == pytest.approx(-0.10, abs=1e-6) and x.max() == pytest.approx(0.02, abs=1.5e-3)  # 1 mm a sample
+    np.testing.assert_allclose(ds.forces.numpy(), 0.0, atol=5e-4)
