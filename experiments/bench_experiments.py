@@ -2,6 +2,7 @@
 "dem_validation.py and irft reproduce at least 3x faster with the same tables".
 
     python experiments/bench_experiments.py --data ../shared/data/dem_plate_intrusion [--reference 25da515]
+    python experiments/bench_experiments.py --only reproduce    # irft reproduce only (no data needed)
 
 The reference commit (default 25da515: the engine when issue #12 was filed) is checked out into a
 temporary git worktree (this needs the repository's history: a git clone, not an sdist). Each command
@@ -93,11 +94,16 @@ def compare(a: Path, b: Path) -> str:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="bench_experiments.py", description=__doc__, formatter_class=_HelpFormatter)
-    ap.add_argument("--data", required=True, help="the DEM plate-intrusion folder (read, never copied)")
+    ap.add_argument("--data", help="the DEM plate-intrusion folder (read, never copied; not needed with "
+                                   "--only reproduce)")
     ap.add_argument("--reference", default="25da515", help="the commit whose engine is the reference")
     ap.add_argument("--skip-current-dem", action="store_true", help="do not time today's full DEM experiment")
+    ap.add_argument("--only", choices=["all", "dem", "reproduce"], default="all",
+                    help="time only the DEM experiments or only irft reproduce")
     a = ap.parse_args(argv)
-    data = str(Path(a.data).resolve())
+    if a.data is None and a.only != "reproduce":
+        ap.error("--data is needed (the DEM plate-intrusion folder) unless --only reproduce")
+    data = str(Path(a.data).resolve()) if a.data else ""
     py = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -108,48 +114,52 @@ def main(argv=None) -> None:
             raise SystemExit(f"cannot check out {a.reference} (needs the git history): {p.stderr.strip()}")
         try:
             rows = []
-            # DEM: the reference's script, on its engine and on this one (method: the library default)
-            old_script = (wt / "experiments" / "dem_validation.py").read_text()
-            # this engine's default backend choice; the reference's model: no hyperparameter priors
-            new_script = old_script.replace(', method="exact")', ", priors=None)")
-            if new_script.count("priors=None") != 2:
-                raise SystemExit("the reference's dem_validation.py does not fit as expected: compare by hand")
-            (tmp / "dem_ref_on_this.py").write_text(new_script)
-            t_old = run([py, "experiments/dem_validation.py", "--data", data, "--out", str(tmp / "dem_old")], wt, wt)
-            t_new = run([py, str(tmp / "dem_ref_on_this.py"), "--data", data, "--out", str(tmp / "dem_new")],
-                        ROOT, tmp)
-            rows.append((f"DEM, the reference's experiment (its tables): {a.reference} engine vs this one", t_old,
-                         t_new, compare(tmp / "dem_old" / "dem_validation.md", tmp / "dem_new" / "dem_validation.md")))
-            print(rows[-1], flush=True)
-            # irft reproduce: the reference's, this one's, and the reference's driver on this engine
-            t_old = run([py, "-m", "irft_torch.cli", "reproduce", "--out", str(tmp / "rep_old"), "--no-progress"],
-                        wt, wt)
-            t_new = run([py, "-m", "irft_torch.cli", "reproduce", "--out", str(tmp / "rep_new"), "--no-progress"],
-                        ROOT, tmp)
-            tables = "; ".join(f"{t}: " + compare(tmp / "rep_old" / t, tmp / "rep_new" / t)
-                               for t in ("table1.csv", "table2.csv"))
-            rows.append((f"irft reproduce: {a.reference} (40 fits, serial) vs this one (52 fits, workers)", t_old,
-                         t_new, tables))
-            print(rows[-1], flush=True)
-            driver = (wt / "irft_torch" / "reproduce.py").read_text()
-            # the package-relative imports made absolute: this engine's modules
-            driver = re.sub(r"^(\s*)from \.([\w.]*) import",
-                            lambda m: f"{m.group(1)}from irft_torch{'.' if m.group(2) else ''}{m.group(2)} import",
-                            driver, flags=re.M)
-            if driver.count("model = InverseRFT(c, f, ") != 1:
-                raise SystemExit("the reference's reproduce.py does not fit as expected: compare by hand")
-            driver = driver.replace("model = InverseRFT(c, f, ", "model = InverseRFT(c, f, priors=None, ")
-            (tmp / "ref_reproduce.py").write_text(driver)
-            (tmp / "ref_driver.py").write_text(
-                "import sys, torch\nsys.path.insert(0, sys.argv[2])\ntorch.set_default_dtype(torch.float64)\n"
-                "import ref_reproduce as r\nr.run_study(sys.argv[1], r.StudySettings(), progress=False)\n")
-            t_drv = run([py, str(tmp / "ref_driver.py"), str(tmp / "rep_drv"), str(tmp)], ROOT, tmp)
-            tables = "; ".join(f"{t}: " + compare(tmp / "rep_old" / t, tmp / "rep_drv" / t)
-                               for t in ("table1.csv", "table2.csv"))
-            rows.append((f"the reference's reproduce driver (40 fits, serial): {a.reference} engine vs this one",
-                         t_old, t_drv, tables))
-            print(rows[-1], flush=True)
-            if not a.skip_current_dem:
+            if a.only in ("all", "dem"):
+                # DEM: the reference's script, on its engine and on this one (method: the library default)
+                old_script = (wt / "experiments" / "dem_validation.py").read_text()
+                # this engine's default backend choice; the reference's model: no hyperparameter priors
+                new_script = old_script.replace(', method="exact")', ", priors=None)")
+                if new_script.count("priors=None") != 2:
+                    raise SystemExit("the reference's dem_validation.py does not fit as expected: compare by hand")
+                (tmp / "dem_ref_on_this.py").write_text(new_script)
+                t_old = run([py, "experiments/dem_validation.py", "--data", data, "--out", str(tmp / "dem_old")],
+                            wt, wt)
+                t_new = run([py, str(tmp / "dem_ref_on_this.py"), "--data", data, "--out", str(tmp / "dem_new")],
+                            ROOT, tmp)
+                rows.append((f"DEM, the reference's experiment (its tables): {a.reference} engine vs this one",
+                             t_old, t_new, compare(tmp / "dem_old" / "dem_validation.md",
+                                                   tmp / "dem_new" / "dem_validation.md")))
+                print(rows[-1], flush=True)
+            if a.only in ("all", "reproduce"):
+                # irft reproduce: the reference's, this one's, and the reference's driver on this engine
+                t_old = run([py, "-m", "irft_torch.cli", "reproduce", "--out", str(tmp / "rep_old"), "--no-progress"],
+                            wt, wt)
+                t_new = run([py, "-m", "irft_torch.cli", "reproduce", "--out", str(tmp / "rep_new"), "--no-progress"],
+                            ROOT, tmp)
+                tables = "; ".join(f"{t}: " + compare(tmp / "rep_old" / t, tmp / "rep_new" / t)
+                                   for t in ("table1.csv", "table2.csv"))
+                rows.append((f"irft reproduce: {a.reference} (40 fits, serial) vs this one (52 fits, workers)", t_old,
+                             t_new, tables))
+                print(rows[-1], flush=True)
+                driver = (wt / "irft_torch" / "reproduce.py").read_text()
+                # the package-relative imports made absolute: this engine's modules
+                driver = re.sub(r"^(\s*)from \.([\w.]*) import",
+                                lambda m: f"{m.group(1)}from irft_torch{'.' if m.group(2) else ''}{m.group(2)} import",
+                                driver, flags=re.M)
+                if driver.count("model = InverseRFT(c, f, ") != 1:
+                    raise SystemExit("the reference's reproduce.py does not fit as expected: compare by hand")
+                driver = driver.replace("model = InverseRFT(c, f, ", "model = InverseRFT(c, f, priors=None, ")
+                (tmp / "ref_reproduce.py").write_text(driver)
+                (tmp / "ref_driver.py").write_text(
+                    "import sys, torch\nsys.path.insert(0, sys.argv[2])\ntorch.set_default_dtype(torch.float64)\n"
+                    "import ref_reproduce as r\nr.run_study(sys.argv[1], r.StudySettings(), progress=False)\n")
+                t_drv = run([py, str(tmp / "ref_driver.py"), str(tmp / "rep_drv"), str(tmp)], ROOT, tmp)
+                tables = "; ".join(f"{t}: " + compare(tmp / "rep_old" / t, tmp / "rep_drv" / t)
+                                   for t in ("table1.csv", "table2.csv"))
+                rows.append((f"the reference's reproduce driver (40 fits, serial): {a.reference} engine vs this one",
+                             t_old, t_drv, tables))
+                print(rows[-1], flush=True)
+            if not a.skip_current_dem and a.only in ("all", "dem"):
                 t_cur = run([py, "experiments/dem_validation.py", "--data", data, "--out", str(tmp / "dem_cur")],
                             ROOT, ROOT)
                 rows.append(("today's dem_validation.py (17 folds, 6 models) on this engine", None, t_cur, ""))
