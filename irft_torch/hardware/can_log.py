@@ -34,6 +34,15 @@ _FIELDS = {
     "get_iq": ("iq", ("iq_setpoint", "iq_measured")),
     "get_torques": ("torque", ("torque_target", "torque_estimate")),
 }
+CLOSED_LOOP_CONTROL = 8  # ODrive AxisState: the only state in which the motor holds the torque it is asked for
+
+
+def _heartbeat_status(values: dict) -> tuple[float, float]:
+    """(fault, axis_state) of an ODrive heartbeat: fault 1 when the axis error or (firmware 0.5) the
+    motor, encoder or controller error flag is set, else 0."""
+    fault = values["axis_error"] != 0 or any(values.get(k, 0) & 1 for k in
+                                              ("motor_error_flag", "encoder_error_flag", "controller_flags"))
+    return float(fault), float(values["axis_state"])
 
 
 class LogReadError(ValueError):
@@ -83,7 +92,9 @@ class LogData:
                 motor can carry): dropped before interpolation and counted in ``masked``.
             max_torque: the same for torque series [N m] (MIT-mode replies, ODrive Get_Torques).
         Returns:
-            ResampledLog over the span all series share, with a ``valid`` mask. It carries ``iq``
+            ResampledLog over the span all series share, with a ``valid`` mask: False inside gaps and
+            wherever a motor's heartbeats (ODrive) say it was not in closed-loop control or had an
+            error, from its last good heartbeat to its next (counted in ``masked``). It carries ``iq``
             (T, 2) when both motors sent currents, else ``torque`` (T, 2) N m when they sent torques.
         """
         nodes = tuple(nodes)
@@ -140,6 +151,12 @@ class LogData:
             span = t[j] - t[j - 1]
             valid &= (span <= gap) | (near <= 1e-3 * gap)  # at a measured sample (to clock resolution)
             out[(node, group)] = np.stack([np.interp(tb, t, v[:, k]) for k in range(2)], -1)
+        for node in nodes:
+            bad, why = _not_controlling(self.motors[node], tb)
+            if bad.any():
+                masked[f"node {node}: motor not in closed-loop control or reporting an error ({why})"] = \
+                    int((bad & valid).sum())
+                valid &= ~bad
         third = np.stack([out[(n_, load)][:, 1] for n_ in nodes], -1)
         return ResampledLog(
             time=tb,
@@ -152,12 +169,34 @@ class LogData:
         )
 
 
+def _not_controlling(m: MotorSeries, tb: np.ndarray) -> tuple[np.ndarray, str]:
+    """(T,) True where the motor's heartbeats say it was not holding its torque (an error, or a state
+    other than closed-loop control) and what they said. A sample counts as such when the heartbeat
+    before it or the one after it says so: the state changed somewhere between two heartbeats, so the
+    stretch up to the first one that reports it is masked too. No heartbeats: nothing is known, nothing
+    masked (a log with none is read as before)."""
+    t, v = m.arrays("heartbeat")
+    if len(t) == 0:
+        return np.zeros(len(tb), dtype=bool), ""
+    off = (v[:, 0] != 0) | (v[:, 1] != CLOSED_LOOP_CONTROL)
+    before = np.searchsorted(t, tb, side="right") - 1  # the last heartbeat at or before each sample
+    after = np.searchsorted(t, tb, side="left")  # the first at or after it
+    bad = np.where(before >= 0, off[np.clip(before, 0, None)], False) | \
+        np.where(after < len(t), off[np.clip(after, None, len(t) - 1)], False)
+    states = sorted({int(s) for s in v[off, 1]})
+    errors = int(v[off, 0].sum())
+    why = (f"heartbeat axis_state {', '.join(map(str, states))} (closed loop is {CLOSED_LOOP_CONTROL})"
+           + (f", {errors} heartbeat(s) with an error set" if errors else ""))
+    return bad, why
+
+
 @dataclass
 class ResampledLog:
     """Two motors on one time base: time (T,) s; position (T, 2) motor turns; velocity (T, 2)
     turns/s; iq (T, 2) measured q-axis current, A (None when the motors reported torque); valid
-    (T,) False inside gaps; torque (T, 2) N m at the output shaft when the motors reported torque
-    instead of current (MIT mode); masked: raw samples dropped as outliers, reason -> count."""
+    (T,) False inside gaps and while a motor was not controlling (its heartbeats); torque (T, 2) N m
+    at the output shaft when the motors reported torque instead of current (MIT mode); masked: raw
+    samples dropped as outliers and samples masked, reason -> count."""
 
     time: np.ndarray
     position: np.ndarray
@@ -382,9 +421,9 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
             id that replies are sent to (``protocol="mit"``).
     Returns:
         LogData. Series groups: "encoder" (position [motor turns], velocity [turns/s]), "iq" (setpoint,
-        measured [A]), "torque" (target, estimate [N m]). For MIT replies the encoder values are at
-        the output shaft (rad / 2 pi) and the third field goes to "torque" (both columns the reply)
-        or "iq" per the model's ``quantity``.
+        measured [A]), "torque" (target, estimate [N m]), "heartbeat" (fault 0/1, ODrive axis state).
+        For MIT replies the encoder values are at the output shaft (rad / 2 pi) and the third field
+        goes to "torque" (both columns the reply) or "iq" per the model's ``quantity``.
 
     Every fault is reported, never passed over: malformed frames are skipped and counted in
     ``issues``; exact duplicates (same time, id and data) are dropped and counted; a file that is
@@ -490,10 +529,13 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
             third = "torque" if mit_model.quantity == "torque" else "iq"
             group_values.append((third, (v[mit_model.quantity],) * 2))
         else:
-            if frame.command not in _FIELDS:
-                continue  # heartbeats etc.: decoded and valid, not part of the force series
-            group, names = _FIELDS[frame.command]
-            group_values = [(group, tuple(frame.values[n] for n in names))]
+            if frame.command == "heartbeat":  # the motor's state: samples while it is not controlling are masked
+                group_values = [("heartbeat", _heartbeat_status(frame.values))]
+            elif frame.command not in _FIELDS:
+                continue  # other replies: decoded and valid, not part of the force series
+            else:
+                group, names = _FIELDS[frame.command]
+                group_values = [(group, tuple(frame.values[n] for n in names))]
         if msg.timestamp < last_t:
             disorder += 1
         last_t = max(last_t, msg.timestamp)

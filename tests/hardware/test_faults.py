@@ -243,3 +243,49 @@ def test_averaging_says_what_a_longer_trial_loses():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         average_trials([long, _stroke(T=200)])  # equal trials: nothing to say
+
+
+def _log_with_heartbeats(path, states, rate=200.0, duration=1.0, firmware="0.5"):
+    """A hand-written CANSimple log: both nodes' encoder estimates and currents at ``rate`` Hz, and
+    heartbeats every 0.1 s whose (axis_error, axis_state, motor_error_flag) for node 0 come from
+    ``states(t)`` (node 1 always healthy, closed loop)."""
+    from irft_torch.hardware import encode
+
+    writer = can.CanutilsLogWriter(str(path))
+    n = int(round(duration * rate)) + 1
+    for k in range(n):
+        t = k / rate
+        for node in (0, 1):
+            writer.on_message_received(encode("get_encoder_estimates", node, firmware, timestamp=t + 1e-4,
+                                              pos_estimate=0.01 * t, vel_estimate=0.01))
+            writer.on_message_received(encode("get_iq", node, firmware, timestamp=t + 2e-4,
+                                              iq_setpoint=1.0, iq_measured=1.0))
+    for k in range(int(round(duration * 10)) + 1):
+        t = k / 10
+        for node in (0, 1):
+            err, state, flag = states(t) if node == 0 else (0, 8, 0)
+            writer.on_message_received(encode("heartbeat", node, firmware, timestamp=t + 3e-4, axis_error=err,
+                                              axis_state=state, motor_error_flag=flag, encoder_error_flag=0,
+                                              controller_flags=0))
+    writer.stop()
+
+
+@pytest.mark.parametrize("bad", [(0, 1, 0), (0x40, 8, 0), (0, 8, 1)], ids=["idle", "axis-error", "motor-flag"])
+def test_a_motor_that_stops_controlling_is_masked_from_the_last_good_heartbeat(tmp_path, bad):
+    """Node 0's heartbeats at 0.5 and 0.6 s report it idle, an axis error, or (0.5 firmware) a motor
+    error flag: every sample after the last good heartbeat (0.4 s) and before the next good one
+    (0.7 s) is masked and counted under a reason that names the node and what the heartbeats said;
+    the rest stays valid (counted by hand from the time base)."""
+    from irft_torch.hardware import read_log
+
+    path = tmp_path / "fault.log"
+    _log_with_heartbeats(path, lambda t: bad if 0.45 < t < 0.65 else (0, 8, 0))
+    log = read_log(path).resample()
+    t = log.time - 3e-4  # the heartbeats' clock (they were written 0.3 ms after each 0.1 s mark)
+    expect = (t > 0.4 + 1e-9) & (t < 0.7 - 1e-9)
+    np.testing.assert_array_equal(~log.valid, expect)
+    (reason, count), = log.masked.items()
+    assert reason.startswith("node 0: motor not in closed-loop control or reporting an error") and count == expect.sum()
+    assert ("axis_state 1" in reason) if bad[1] == 1 else ("with an error set" in reason)
+    healthy = read_log(_log_with_heartbeats(tmp_path / "ok.log", lambda t: (0, 8, 0)) or tmp_path / "ok.log")
+    assert healthy.resample().valid.all()
