@@ -77,6 +77,7 @@ class LogData:
     issues: list = field(default_factory=list)
     skipped: dict = field(default_factory=lambda: defaultdict(int))
     duplicates: int = 0
+    other_ids: dict = field(default_factory=lambda: defaultdict(int))  # MIT: frames not sent to the master id, by id
 
     def resample(self, nodes=(0, 1), rate: float | None = None, max_gap: float | None = None,
                  max_current: float | None = None, max_torque: float | None = None) -> ResampledLog:
@@ -106,7 +107,12 @@ class LogData:
             raise ValueError(f"max_gap must be positive seconds, got {max_gap}")
         for node in nodes:
             if node not in self.motors:
-                raise ValueError(f"node {node} sent no frames (nodes seen: {sorted(self.motors)})")
+                hint = ""
+                if self.other_ids:  # MIT mode: every frame not addressed to the master id was taken for a command
+                    ids = ", ".join(f"0x{i:03x} ({n})" for i, n in sorted(self.other_ids.items())[:8])
+                    hint = (f"; the log also holds frames on other ids, read as the host's commands to the motors: "
+                            f"{ids}: if the motors reply on one of these, pass it as the master id (--mit-master-id)")
+                raise ValueError(f"node {node} sent no frames (nodes seen: {sorted(self.motors)}){hint}")
         have = [set(g for g in self.motors[n].times if len(self.motors[n].times[g])) for n in nodes]
         load = "iq" if all("iq" in h for h in have) else "torque" if all("torque" in h for h in have) else None
         if load is None:
@@ -513,7 +519,8 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
                 frame = decode_mit(msg, mit_model, master_id)
         except FrameError as e:
             if e.reason == "command frame":
-                continue  # the host's commands to the motors: not measurements
+                data.other_ids[msg.arbitration_id] += 1  # the host's commands to the motors (or replies elsewhere)
+                continue
             key_ = first_of_kind.setdefault(e.reason, f"{e.reason} (first at frame {index}: {e})")
             data.skipped[key_] += 1
             continue

@@ -132,3 +132,22 @@ def test_reply_encoder_refuses_what_the_frame_cannot_carry():
         args[i] = math.nan
         with pytest.raises(ValueError, match=f"{name} = nan"):
             encode_mit_reply(1, *args)
+
+
+def test_replies_on_another_id_are_named_when_a_node_has_no_frames(tmp_path):
+    """Motors that reply on id 0x005 while the host's id is given as 0: every reply is taken for a
+    command to a motor; the error then names the ids seen and the option that fixes it, and with the
+    right master id the same log reads (was: only 'node 1 sent no frames')."""
+    from irft_torch.hardware import read_log
+
+    path = tmp_path / "mit.log"
+    writer = can.CanutilsLogWriter(str(path))
+    for k in range(20):
+        for node in (1, 2):
+            writer.on_message_received(encode_mit_reply(node, 0.01 * k, 0.0, 0.5, "AK80-9", master_id=5,
+                                                        timestamp=k / 100 + node * 1e-4))
+    writer.stop()
+    with pytest.raises(ValueError, match=r"node 1 sent no frames.*0x005 \(40\).*--mit-master-id"):
+        read_log(path, protocol="mit", mit_model="AK80-9", master_id=0).resample(nodes=(1, 2))
+    ok = read_log(path, protocol="mit", mit_model="AK80-9", master_id=5).resample(nodes=(1, 2))
+    assert ok.valid.all() and np.allclose(ok.torque, 0.5, atol=0.01)
