@@ -93,7 +93,8 @@ def test_real_trial_statics_and_sign():
     rms = (F - log.controller_ground_force()).pow(2).mean(0).sqrt()
     assert (rms < 1e-5).all()  # the controller's toeforce is (F_x, -F_z): float32 round-off apart
     z = log.toe_position()[:, 1]
-    at_rest_in_air = (log.time > 1.0) & (log.time < 2.5)
-    deep_hold = (z < -0.259) & (log.time > 4.0) & (log.time < 5.5)
+    time = torch.as_tensor(log.time)  # one kind of mask: a torch bool tensor
+    at_rest_in_air = (time > 1.0) & (time < 2.5)
+    deep_hold = (z < -0.259) & (time > 4.0) & (time < 5.5)
     assert F[at_rest_in_air, 1].mean() < 0  # the links' weight pulls the toe down
     assert F[deep_hold, 1].mean() > F[at_rest_in_air, 1].mean() + 3  # the sand pushes it up
