@@ -1,7 +1,8 @@
 """Map and force metrics, sampling coverage and redundancy, calibration.
 
 All functions take tensors of equal shape (an estimate and the ground truth over an evaluation
-grid or a time series) and return Python floats. Percentages are in percent (0-100).
+grid or a time series) and return Python floats (``percentile_among``: a tensor of percentiles).
+Percentages are in percent (0-100).
 """
 
 from __future__ import annotations

@@ -87,6 +87,9 @@ def optimize_probe(scorer: ProbeScorer, toe: Toe | None = None, init: Probe | No
     """
     if criterion not in ("variance", "eig"):
         raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
+    if criterion == "eig" and region is not None:
+        raise ValueError("region applies to criterion 'variance' (the variance integrated over it); 'eig' is the "
+                         "information about the probe's own forces: pass region=None")
     if int(n_iter) != n_iter or n_iter < 0 or not (math.isfinite(lr) and lr > 0):
         raise ValueError(f"need n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
     bounds = bounds or ProbeBounds()

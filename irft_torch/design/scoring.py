@@ -353,6 +353,9 @@ class ProbeScorer:
         better) or its information gain ("eig", nats, higher is better)."""
         if criterion not in ("variance", "eig"):
             raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
+        if criterion == "eig" and region is not None:
+            raise ValueError("region applies to criterion 'variance' (the variance integrated over it); 'eig' is the "
+                             "information about the forces of the probe itself: pass region=None")
         cands = [self._cast(c) for c in candidates]
         if not cands:
             return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
@@ -484,10 +487,14 @@ def greedy_design(scorer: ProbeScorer, candidates: Sequence, budget: int, criter
     scorer nor any model is changed.
 
     With criterion "eig", the scores add up to the information of the whole sequence (chain rule).
+    With fewer candidates than ``budget``, every candidate is picked (a warning says so).
     """
     if int(budget) != budget or budget < 0:
         raise ValueError(f"budget must be an integer >= 0, got {budget}")
     cands = [_as_contacts(c) for c in candidates]
+    if budget > len(cands):
+        warnings.warn(f"budget {budget} is more than the {len(cands)} candidate(s): the design has {len(cands)} "
+                      f"step(s)", stacklevel=2)
     left = list(range(len(cands)))
     steps: list[DesignStep] = []
     current = scorer

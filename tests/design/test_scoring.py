@@ -450,3 +450,23 @@ def test_force_relative_scorers_pickle_regions_keep_their_dtype_and_retired_argu
         torch.set_default_dtype(old)
     with pytest.warns(FutureWarning, match="grid_size"):
         ProbeScorer.prior(grid_size=8)
+
+
+def test_a_region_with_eig_and_a_budget_beyond_the_candidates_are_said():
+    """'eig' has no region (it was ignored silently): a ValueError naming region, in score, rank, greedy_design and
+    optimize_probe; a budget larger than the candidates picks them all and warns."""
+    from irft_torch.design.optimize import optimize_probe
+    from irft_torch.rft import IToe, contacts, rectangle_path
+
+    scorer = ProbeScorer.prior()
+    toe = IToe(0.02, 0.008, n_segments=4)
+    cands = [contacts(toe, rectangle_path(0.02, 0.05, 0.02, n_steps=8))]
+    region = Region.square(6)
+    for call in (lambda: scorer.score(cands, "eig", region), lambda: scorer.rank(cands, "eig", region),
+                 lambda: greedy_design(scorer, cands, 1, "eig", region),
+                 lambda: optimize_probe(scorer, toe, length=0.1, n_iter=1, criterion="eig", region=region)):
+        with pytest.raises(ValueError, match="region applies to criterion 'variance'"):
+            call()
+    with pytest.warns(UserWarning, match="budget 3 is more than the 1 candidate"):
+        steps = greedy_design(scorer, cands, 3)
+    assert len(steps) == 1
