@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import warnings
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -159,15 +160,39 @@ class ProbeScorer:
         backend changes (``add_data``, a refit that grows the basis or moves to another backend) the
         scorer's is derived again from it in the same way (the model's own; cut from its spectral
         statistics; or rebuilt on its data). The hyperparameters are shared with the model."""
-        if self._recipe is not None and self._state_of(self._recipe[0].backend) != self._derived_from:
+        if self._recipe is not None and not self._same_state(self._recipe[0].backend, self._derived_from):
             self._backend = self._derive(*self._recipe)
             self._derived_from = self._state_of(self._recipe[0].backend)
         return self._backend
 
     @staticmethod
     def _state_of(backend: RFTBackend) -> tuple:
-        """What a derived belief depends on: which backend object, its sample count and statistics."""
-        return id(backend), backend.n_samples, id(getattr(backend, "stats", None))
+        """What a derived belief depends on: which backend object, its sample count and statistics, the
+        objects held by weak references (an id could be reused by a later object once one is freed; a
+        weak reference to a freed object answers None)."""
+        stats = getattr(backend, "stats", None)
+        return weakref.ref(backend), backend.n_samples, None if stats is None else weakref.ref(stats)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if state.get("_derived_from") is not None:  # weak references do not pickle; the model comes along
+            current = self._same_state(self._recipe[0].backend, self._derived_from)
+            state["_derived_from"] = ("current",) if current else None  # None: derived again on first use
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._derived_from == ("current",):
+            self._derived_from = self._state_of(self._recipe[0].backend)
+
+    @staticmethod
+    def _same_state(backend: RFTBackend, state: tuple | None) -> bool:
+        """Whether ``backend`` is still the one (with the same sample count and statistics) of ``state``."""
+        if state is None:
+            return False
+        stats = getattr(backend, "stats", None)
+        return (state[0]() is backend and state[1] == backend.n_samples
+                and (stats is None if state[2] is None else state[2]() is stats))
 
     @staticmethod
     def _derive(model, method: str | None, tol) -> RFTBackend:

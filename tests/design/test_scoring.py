@@ -470,3 +470,27 @@ def test_a_region_with_eig_and_a_budget_beyond_the_candidates_are_said():
     with pytest.warns(UserWarning, match="budget 3 is more than the 1 candidate"):
         steps = greedy_design(scorer, cands, 3)
     assert len(steps) == 1
+
+
+def test_a_derived_scorer_tells_a_new_backend_from_a_freed_one():
+    """The belief a derived scorer uses is tied to its model's backend object by a weak reference, not
+    its id: when the model's backend is replaced, the scorer derives again (an id can be reused by a
+    new object once the old one is freed); a pickled copy keeps following its own model."""
+    import gc
+    import pickle
+
+    toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
+    probes = irft.rft.random_probes(toes, 3, 0.2, n_steps=15, seed=3)
+    train, cand = Contacts.cat([p.contacts() for p in probes[:2]]), probes[2].contacts()
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(), train), method="observations")
+    s = ProbeScorer.from_model(m, method="pairs")
+    first = s.backend
+    assert s.backend is first  # unchanged model: the same derived belief
+    state = s._derived_from
+    m.backend = type(m.backend)(m.hypers, m.train_contacts, m.train_forces)  # rebuilt; the old one freed
+    gc.collect()
+    assert state[0]() is None  # the old backend is gone: its id may be reused, the weak reference says so
+    assert s.backend is not first
+    copy = pickle.loads(pickle.dumps(s))
+    assert copy._same_state(copy._recipe[0].backend, copy._derived_from)  # follows its own model, no rebuild
+    torch.testing.assert_close(copy.score([cand]), s.score([cand]))
