@@ -87,8 +87,9 @@ class LogData:
             nodes: the two controllers' node ids, in joint order (motor 1, motor 2); distinct.
             rate: samples per second of the common time base (default: the median rate of the
                 sparsest current series).
-            max_gap: a sample further than this [s] from a measured one on either side is masked
-                (default 3 sampling intervals of the source).
+            max_gap: a sample between two measured ones further apart than this [s] is masked, however
+                near it is to either (interpolating across the gap would invent data; default 3 sampling
+                intervals of the source). A sample at a measured one's time is kept.
             max_current: measured currents with |I| above this [A] are outliers (beyond what the
                 motor can carry): dropped before interpolation and counted in ``masked``.
             max_torque: the same for torque series [N m] (MIT-mode replies, ODrive Get_Torques).
