@@ -269,7 +269,8 @@ REPRODUCE_PRELOAD = ("irft_torch.reproduce",)  # what the study's worker process
 
 
 def cmd_reproduce(a) -> int:
-    from .reproduce import StudySettings, default_workers, run_study
+    from .reproduce import StudySettings, run_study
+    from .workers import default_workers
 
     _out_dir(a.out, "--out")  # before the study: a bad --out fails now
     settings = StudySettings.quick_settings() if a.quick else StudySettings()
@@ -798,10 +799,11 @@ def main(argv: list[str] | None = None) -> int:
     line naming the argument or file and returns non-zero, never a traceback (IRFT_DEBUG=1 shows one)."""
     parser = build_parser()
     a = parser.parse_args(argv)
-    if a.command == "reproduce" and a.jobs != 1:  # the workers' imports run beside this process's
-        from .workers import start_worker_server
+    if a.command == "reproduce":  # with worker processes, their imports run beside this process's
+        from .workers import default_workers, start_worker_server
 
-        start_worker_server(REPRODUCE_PRELOAD)
+        if (a.jobs or default_workers()) > 1:
+            start_worker_server(REPRODUCE_PRELOAD)
     import torch
 
     torch.set_default_dtype(torch.float64)

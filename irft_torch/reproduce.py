@@ -238,12 +238,6 @@ def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: 
         bar.close()
 
 
-def default_workers() -> int:
-    """Worker processes for the study's fits: one per CPU (at most 8); the fits are small, so one
-    thread each uses the cores better than threads inside one fit."""
-    return max(1, min(8, os.cpu_count() or 1))
-
-
 def run_study(out_dir: str | Path = "experiments/results", settings: StudySettings | None = None,
               progress: bool = True, figures: bool = True, workers: int = 1) -> dict:
     """Run Table I (zero and physics prior means, the paper's scale and the unscaled generic map)

@@ -10,7 +10,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["worker_context", "start_worker_server"]
+__all__ = ["worker_context", "start_worker_server", "default_workers"]
+
+
+def default_workers() -> int:
+    """Worker processes for many small fits (``irft reproduce``): one per CPU (at most 8); the fits are
+    small, so one thread each uses the cores better than threads inside one fit."""
+    import os
+
+    return max(1, min(8, os.cpu_count() or 1))
 
 
 def worker_context(preload: Sequence[str] = ("irft_torch",)):
