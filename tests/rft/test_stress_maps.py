@@ -124,3 +124,13 @@ def test_bad_coefficient_index():
     with pytest.raises(ValueError, match="m=2"):
         FourierStressMap({(2, 0): 1.0}, {}, {}, {})
     assert set(GENERIC) == {"A", "B", "C", "D"}
+
+
+def test_non_finite_scales_and_coefficients_are_errors():
+    # the constructor rejects a NaN scale; scaled() and the coefficient tables must too (a NaN map is no map)
+    with pytest.raises(ValueError, match="scale_x"):
+        FourierStressMap.generic().scaled(float("nan"), 1.0)
+    with pytest.raises(ValueError, match="scale_z"):
+        FourierStressMap.generic().scaled(1.0, float("inf"))
+    with pytest.raises(ValueError, match=r"m=0, n=0"):
+        FourierStressMap({(0, 0): float("nan")}, {}, {}, {})
