@@ -99,8 +99,10 @@ class FourierStressMap(nn.Module):
 
     Example:
         >>> smap = FourierStressMap.generic()
-        >>> smap(torch.tensor(0.0), torch.tensor(math.pi / 2))   # horizontal plate pushed down
-        tensor([0., 1.], dtype=torch.float64)
+        >>> smap(torch.tensor(0.0, dtype=torch.float64), torch.tensor(math.pi / 2, dtype=torch.float64))[1]
+        tensor(1., dtype=torch.float64)
+        >>> smap(torch.tensor(0.0), torch.tensor(0.0))   # float32 in, float32 out: a plate dragged toward +x
+        tensor([0.1360, 0.3750])
     """
 
     def __init__(
