@@ -26,6 +26,7 @@ x area (docs/surface.md).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import torch
@@ -284,6 +285,8 @@ def contacts(toe: Toe, path: Path, min_speed: float = 1e-9) -> Contacts:
         raise TypeError(f"toe must be a Toe (IToe, CToe, PolylineToe), got {type(toe).__name__}")
     if not isinstance(path, Path):
         raise TypeError(f"path must be a Path, got {type(path).__name__}")
+    if not (math.isfinite(float(min_speed)) and float(min_speed) >= 0):
+        raise ValueError(f"min_speed must be a finite speed >= 0 in m/s, got {min_speed}")
     k = segment_kinematics(toe, path)
     vx, vz = k.velocity[..., 0], k.velocity[..., 1]
     moving = torch.hypot(vx, vz) > min_speed

@@ -48,6 +48,8 @@ def _table(coeffs: dict[tuple[int, int], float]) -> Tensor:
     for (m, n), v in coeffs.items():
         if m not in _MS or n not in _NS:
             raise ValueError(f"coefficient index (m={m}, n={n}) outside m in -1..1, n in 0..1")
+        if not math.isfinite(float(v)):
+            raise ValueError(f"coefficient (m={m}, n={n}) must be finite, got {v}")
         out[m + 1, n] = float(v)
     return out
 
@@ -97,8 +99,10 @@ class FourierStressMap(nn.Module):
 
     Example:
         >>> smap = FourierStressMap.generic()
-        >>> smap(torch.tensor(0.0), torch.tensor(math.pi / 2))   # horizontal plate pushed down
-        tensor([0., 1.], dtype=torch.float64)
+        >>> smap(torch.tensor(0.0, dtype=torch.float64), torch.tensor(math.pi / 2, dtype=torch.float64))[1]
+        tensor(1., dtype=torch.float64)
+        >>> smap(torch.tensor(0.0), torch.tensor(0.0))   # float32 in, float32 out: a plate dragged toward +x
+        tensor([0.1360, 0.3750])
     """
 
     def __init__(
@@ -143,6 +147,9 @@ class FourierStressMap(nn.Module):
 
     def scaled(self, scale_x: float = 1.0, scale_z: float = 1.0) -> FourierStressMap:
         """A copy with alpha_x times ``scale_x`` and alpha_z times ``scale_z``."""
+        for arg, val in (("scale_x", scale_x), ("scale_z", scale_z)):
+            if not math.isfinite(float(val)):
+                raise ValueError(f"{arg} must be finite, got {val}")
         new = FourierStressMap({}, {}, {}, {}, name=f"{self.name} (scaled)")
         new.A.copy_(self.A * scale_z)
         new.B.copy_(self.B * scale_z)

@@ -129,6 +129,11 @@ def test_contacts_validation():
         Contacts(z, z, z, -torch.ones(3, 2))
     with pytest.raises(TypeError, match="toe must be a Toe"):
         contacts("C", rectangle_path())
+    # a NaN min_speed made every segment "not moving": all forces silently 0; a negative one gave
+    # segments at rest a direction (gamma 0) and a force
+    for bad in (float("nan"), -1e-3):
+        with pytest.raises(ValueError, match="min_speed"):
+            contacts(IToe(0.02, 0.008), rectangle_path(), min_speed=bad)
 
 
 def test_contacts_helpers():

@@ -124,3 +124,33 @@ def test_bad_coefficient_index():
     with pytest.raises(ValueError, match="m=2"):
         FourierStressMap({(2, 0): 1.0}, {}, {}, {})
     assert set(GENERIC) == {"A", "B", "C", "D"}
+
+
+def test_non_finite_scales_and_coefficients_are_errors():
+    # the constructor rejects a NaN scale; scaled() and the coefficient tables must too (a NaN map is no map)
+    with pytest.raises(ValueError, match="scale_x"):
+        FourierStressMap.generic().scaled(float("nan"), 1.0)
+    with pytest.raises(ValueError, match="scale_z"):
+        FourierStressMap.generic().scaled(1.0, float("inf"))
+    with pytest.raises(ValueError, match=r"m=0, n=0"):
+        FourierStressMap({(0, 0): float("nan")}, {}, {}, {})
+
+
+
+def test_docstring_example_runs_as_written():
+    """The class docstring's example, run under torch's own default dtype (float32, what a user sees); it
+    showed float64 output for float32 inputs (the map follows the inputs' dtype)."""
+    import doctest
+
+    import irft_torch.rft.stress_maps as mod
+
+    (test,) = [t for t in doctest.DocTestFinder().find(mod.FourierStressMap, module=mod)
+               if t.name == "FourierStressMap"]
+    report = []
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        result = doctest.DocTestRunner(optionflags=doctest.NORMALIZE_WHITESPACE).run(test, out=report.append)
+    finally:
+        torch.set_default_dtype(old)
+    assert result.failed == 0 and result.attempted >= 3, "".join(report)
