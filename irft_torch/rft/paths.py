@@ -296,7 +296,8 @@ def rotating_leg_path(
 
 
 def _rate(values: Tensor, time: Tensor) -> Tensor:
-    """d values / d time by second-order finite differences (non-uniform steps allowed)."""
+    """d values / d time by finite differences: second order inside (non-uniform steps allowed), first order
+    (one-sided) at the first and last sample."""
     if values.ndim == 1:
         return _rate(values[:, None], time)[:, 0]
     T = time.shape[0]
@@ -317,7 +318,8 @@ def _rate(values: Tensor, time: Tensor) -> Tensor:
 def pose_path(time, x, z, heading=None, dtype=torch.float64) -> Path:
     """A path from sampled poses, e.g. a leg's forward kinematics over a joint log.
 
-    Velocities and the angular velocity come from second-order finite differences in time;
+    Velocities and the angular velocity come from finite differences in time (second order inside, one-sided
+    first order at the ends);
     headings are unwrapped first.
 
     Args:
