@@ -487,16 +487,21 @@ def cmd_ingest(a) -> int:
             print(f"{path}: masked " + "; ".join(f"{v} {k}" for k, v in t.why_masked.items()))
         return t
 
-    air_traces = [trace(p) for p in a.air]
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            air = average_trials(air_traces, coverage="crop" if a.crop_trials else "error",
-                                 path_tol=a.path_tol) if air_traces else None
+    def average(traces, paths, word: str, label: str = ""):
+        """``average_trials`` of the runs (cropped with --crop-trials), its warnings printed, its errors
+        naming the runs' files."""
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                out = average_trials(traces, coverage="crop" if a.crop_trials else "error", path_tol=a.path_tol)
+        except ValueError as e:
+            raise ValueError(_name_trials(str(e), paths, word)) from None
         for w in caught:
-            print(f"irft ingest: air runs: {w.message}")
-    except ValueError as e:
-        raise ValueError(_name_trials(str(e), a.air, "air run")) from None
+            print(f"irft ingest: {label}{w.message}")
+        return out
+
+    air_traces = [trace(p) for p in a.air]
+    air = average(air_traces, a.air, "air run", "air runs: ") if air_traces else None
     trials = []
     for p in a.logs:
         t = trace(p)
@@ -506,14 +511,7 @@ def cmd_ingest(a) -> int:
             except ValueError as e:
                 raise ValueError(f"{p}: {e}") from None
         trials.append(zero_phase_filter(t, a.filter_window))
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            avg = average_trials(trials, coverage="crop" if a.crop_trials else "error", path_tol=a.path_tol)
-        for w in caught:
-            print(f"irft ingest: {w.message}")
-    except ValueError as e:
-        raise ValueError(_name_trials(str(e), a.logs, "trial")) from None
+    avg = average(trials, a.logs, "trial")
     ds = build_dataset(avg, leg, toe, a.hip_height, heading=a.heading, max_depth=a.max_depth)
     if a.statistics:
         from .gp.statistics import recording_statistics, statistics_arrays
