@@ -469,6 +469,29 @@ def test_observations_posterior_is_gpytorchs_own_prediction():
     torch.testing.assert_close(ours.covariance, want_cov, rtol=1e-7, atol=1e-9 * want_cov.abs().max().item())
 
 
+@pytest.mark.parametrize("prior", ["zero", "physics"])
+def test_observations_likelihood_is_gpytorchs_exact_marginal_likelihood(prior):
+    """The observations backend's training loss (one Cholesky of the kernel's own lazy W K W^T) equals
+    gpytorch's ExactMarginalLogLikelihood of its ExactGP, value and every gradient, tied noise too."""
+    import gpytorch
+
+    c, f = data(T=20, M=3, seed=93, repeated=True)
+    for tied in (False, True):
+        model = irft.InverseRFT(c, f, method="observations", prior_mean=prior, priors=None, tied_noise=tied)
+        set_hypers(model, seed=11)
+        params = [p for p in model.hypers.parameters() if p.requires_grad]
+        ours = model.backend.negative_log_likelihood()
+        g_ours = torch.autograd.grad(ours.sum(), params)
+        model.gp.train()
+        mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.hypers.likelihood, model.gp)
+        with gpytorch.settings.max_cholesky_size(2**31):
+            theirs = -mll(model.gp(*model.gp.train_inputs), model.gp.train_targets)
+        g_theirs = torch.autograd.grad(theirs.sum(), params)
+        torch.testing.assert_close(ours, theirs, rtol=1e-10, atol=1e-12)
+        for a, b in zip(g_ours, g_theirs):
+            torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+
+
 @pytest.mark.parametrize("method", BACKENDS)
 def test_sampled_maps_have_the_dense_posterior_mean_and_covariance(method):
     # 20000 maps drawn at 5 angle pairs (one outside the canonical square: alpha_x's mirror sign) against
