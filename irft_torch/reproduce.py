@@ -17,6 +17,7 @@ import torch
 from tqdm.auto import tqdm
 
 from . import metrics
+from .gp.batch_fit import fit_together
 from .gp.model import InverseRFT
 from .rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
 from .workers import worker_context
@@ -124,8 +125,8 @@ def _grid(s: StudySettings) -> tuple[torch.Tensor, torch.Tensor]:
 LEVELS = (0.5, 0.9, 0.95)  # central posterior intervals whose coverage of the truth is reported
 
 
-def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None,
-             priors="settings", pinned=False, keep_model=False) -> FitResult:
+def _build(config, prior_mean, noise, seed, truth_map, s, lengthscale=None, priors="settings", pinned=False):
+    """The model of one fit of the study, not yet fitted, with its toe, path and contacts."""
     if pinned:
         s = replace(s, n_steps=PINNED_STEPS)
     toe, path = _toe(config, s), _path(config, s)
@@ -140,12 +141,17 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
     ls = s.lengthscale if lengthscale is None else lengthscale
     priors = s.priors if priors == "settings" else priors
     model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors)
-    model.fit(n_iter=s.n_iter, lr=s.lr, progress=False)
+    return model, toe, path, c
+
+
+def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, truth_name, s, lengthscale, priors,
+              keep_maps=False, pinned=False, keep_model=False) -> FitResult:
+    """The fitted model's map against the truth on the study's grid (Table I / II metrics, calibration)."""
     B, G = _grid(s)
     with torch.no_grad():
         post = model.stress_map(B, G)
         true = truth_map(B, G)
-    res = FitResult(config, prior_mean, noise, seed, truth_name, ls, priors, pinned)
+    res = FitResult(config, prior_mean, noise, seed, truth_name, lengthscale, priors, pinned)
     for a, axis in enumerate("XZ"):
         m = metrics.map_metrics(post.mean[..., a], true[..., a])
         for level in LEVELS:
@@ -160,6 +166,31 @@ def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_map
     if keep_model:  # in this process only (a fitted model is not sent back from a worker)
         res.maps["model"] = model
     return res
+
+
+def _fit_group(specs: list, s: StudySettings, keep_model: bool = False) -> list[FitResult]:
+    """Several fits of the study on the same contacts, fitted as one batch (``gp.fit_together``: the
+    same result as fitting each, in a fraction of the time; fits it cannot batch are fitted one by one).
+    ``specs``: (config, prior_mean, noise, seed, truth_map, truth_name, keep_maps, lengthscale, priors,
+    pinned), the last three optional."""
+    built = []
+    for spec in specs:
+        config, prior_mean, noise, seed, truth_map, truth_name, keep_maps, *rest = spec
+        ls, priors, pinned = (rest + [None, "settings", False][len(rest):])[:3]
+        model, toe, path, c = _build(config, prior_mean, noise, seed, truth_map, s, ls, priors, pinned)
+        ls = s.lengthscale if ls is None else ls
+        priors = s.priors if priors == "settings" else priors
+        built.append((model, toe, path, c, spec, ls, priors, keep_maps, pinned))
+    fit_together([b[0] for b in built], n_iter=s.n_iter, lr=s.lr)
+    return [_evaluate(model, toe, path, c, *spec[:6], s, ls, priors, keep_maps=keep_maps, pinned=pinned,
+                      keep_model=keep_model) for model, toe, path, c, spec, ls, priors, keep_maps, pinned in built]
+
+
+def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None,
+             priors="settings", pinned=False, keep_model=False) -> FitResult:
+    """One fit of the study and its metrics."""
+    spec = (config, prior_mean, noise, seed, truth_map, truth_name, keep_maps, lengthscale, priors, pinned)
+    return _fit_group([spec], s, keep_model=keep_model)[0]
 
 
 # The paper's sampling statistics (Section V-A): C-toe / I-toe (beta, gamma) area on gait 1 and 2,
@@ -203,36 +234,80 @@ def sampling_statistics(s: StudySettings, n_cells: int = 50, c_turns_on_gait_2: 
     return out
 
 
-def _fit_job(job, s: StudySettings, threads: int = 0) -> FitResult:
-    """One fit of the study (a worker process's task; ``threads``: torch threads there, 0 = keep)."""
+def _fit_job(job: list, s: StudySettings, threads: int = 0, figure_dir: Path | None = None) -> list[FitResult]:
+    """One group of fits of the study (a worker process's task; ``threads``: torch threads there, 0 = keep).
+    ``figure_dir``: draw Fig. 5 of the fits that keep their maps right here (a second or more each, side by
+    side with the other worker's fits instead of after them), and mark them drawn."""
     if threads:
         torch.set_num_threads(threads)
     torch.set_default_dtype(torch.float64)
-    return _fit_one(*job[:6], s, keep_maps=job[6], lengthscale=job[7] if len(job) > 7 else None,
-                    priors=job[8] if len(job) > 8 else "settings", pinned=job[9] if len(job) > 9 else False)
+    results = _fit_group(job, s)
+    if figure_dir is not None:
+        from .study_report import _figures
+
+        for r in results:
+            if r.maps:
+                _figures(figure_dir, [r])
+                r.maps["figure_drawn"] = True
+    return results
 
 
-def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: int = 1) -> list[FitResult]:
-    """Every fit, in order; in ``pool`` (a process pool of ``workers``) when given (each fit is seeded on
-    its own, so the results do not depend on where or in which order it runs). Large fits first."""
+def _groups(jobs: list, s: StudySettings) -> list[list[int]]:
+    """The fits that share contacts, zero mean and priors (noise levels, seeds, the unscaled truth, starting
+    lengthscales) as one group each where their backend fits them as one batch (``gp.fit_together``);
+    every other fit alone."""
+    keys: dict = {}
+    batchable: dict = {}
+    out: list[list[int]] = []
+    for i, job in enumerate(jobs):
+        config, prior_mean, *_ = job
+        priors = job[8] if len(job) > 8 else "settings"
+        pinned = job[9] if len(job) > 9 else False
+        if prior_mean != "zero":
+            out.append([i])
+            continue
+        where = (config, pinned)
+        if where not in batchable:  # the backend "auto" picks for these contacts
+            model = _build(config, "zero", 0.0, 0, FourierStressMap.generic(), s, pinned=pinned)[0]
+            batchable[where] = model.method == "pairs"
+        if not batchable[where]:
+            out.append([i])
+            continue
+        key = (config, priors, pinned)
+        if key not in keys:
+            keys[key] = len(out)
+            out.append([])
+        out[keys[key]].append(i)
+    return out
+
+
+def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: int = 1,
+              figure_dir: Path | None = None) -> list[FitResult]:
+    """Every fit, in order, fitted in groups (``_groups``); in ``pool`` (a process pool of ``workers``) when
+    given (each fit is seeded on its own, so the results do not depend on where or in which order it
+    runs). Large groups first. ``figure_dir``: the pool's workers draw Fig. 5 as its fit ends."""
+    groups = _groups(jobs, s)
     bar = tqdm(total=len(jobs), desc="irft reproduce", disable=not progress)
+    out: list = [None] * len(jobs)
     try:
         if pool is None:
-            out = []
-            for job in jobs:
-                out.append(_fit_job(job, s))
-                bar.update()
+            for g in groups:
+                for i, r in zip(g, _fit_job([jobs[i] for i in g], s)):
+                    out[i] = r
+                bar.update(len(g))
             return out
         from concurrent.futures import as_completed
 
-        cost = {c: (4 if c.startswith("C") and c.endswith("2") else 1) for c in CONFIGS}  # C-toe gait 2 the dearest
-        order = sorted(range(len(jobs)), key=lambda i: -cost.get(jobs[i][0], 1))
+        # C-toe gait 2 the dearest fit (observations backend); a batch of B costs about 1 + B / 4 fits
+        cost = {c: (4 if c.startswith("C") and c.endswith("2") else 1) for c in CONFIGS}
+        order = sorted(groups, key=lambda g: -cost.get(jobs[g[0]][0], 1) * (1 + (len(g) - 1) / 4))
         threads = max(1, (os.cpu_count() or 1) // workers)
-        out: list = [None] * len(jobs)
-        futures = {pool.submit(_fit_job, jobs[i], s, threads): i for i in order}
+        futures = {pool.submit(_fit_job, [jobs[i] for i in g], s, threads, figure_dir): g for g in order}
         for fut in as_completed(futures):
-            out[futures[fut]] = fut.result()
-            bar.update()
+            g = futures[fut]
+            for i, r in zip(g, fut.result()):
+                out[i] = r
+            bar.update(len(g))
         return out
     finally:
         bar.close()
@@ -275,7 +350,7 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
             ctx = worker_context(["irft_torch.reproduce"])  # as cli.REPRODUCE_PRELOAD: a server it started is used
             pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=ctx))
         t0 = time.perf_counter()
-        results = _run_fits(jobs, s, progress, pool, workers)
+        results = _run_fits(jobs, s, progress, pool, workers, figure_dir=out if figures else None)
         elapsed = time.perf_counter() - t0
         from .study_report import write_study  # the report reads this module's tables and settings
 

@@ -180,8 +180,9 @@ def write_study(out: Path, s: StudySettings, results: list[FitResult], elapsed: 
         if pool is None:
             _figures(out, [pick(c)[0] for c in CONFIGS])
             _reliability_figure(out, calibration)
-        else:  # about a second each: drawn in the workers, side by side
-            tasks = [pool.submit(_figures, out, [pick(c)[0]]) for c in CONFIGS]
+        else:  # a few seconds each: drawn in the workers, side by side (Fig. 5 as its fit ended: ``_fit_job``)
+            todo = [pick(c)[0] for c in CONFIGS]
+            tasks = [pool.submit(_figures, out, [r]) for r in todo if not r.maps.get("figure_drawn")]
             tasks.append(pool.submit(_reliability_figure, out, calibration))
             for t in tasks:
                 t.result()

@@ -10,6 +10,7 @@ from .backends import (
                        SpectralBackend,
                        make_backend,
 )
+from .batch_fit import fit_together, shares_fit
 from .embedding import embed_angles, rbf
 from .encoding import decode_rows, encode_contacts, encode_points, encode_rows
 from .fourier import FourierBasis
@@ -27,5 +28,5 @@ __all__ = [
     "memory_budget", "unique_pairs", "GenericShapeMean", "RFTHyperparameters", "FourierBasis", "RFTBackend",
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
-    "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
+    "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays", "fit_together", "shares_fit",
 ]

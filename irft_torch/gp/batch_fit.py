@@ -1,0 +1,189 @@
+"""Fitting several models that share their contacts in one batched Adam loop.
+
+A noise study, seeds, bootstrap resamples of the forces, the same recording with other starting
+lengthscales: models that differ only in their forces and hyperparameters. In the "pairs" backend
+the data enter the likelihood through R (r x F, fixed by the contacts alone: shared) and c, rho
+(per model; see ``backends.weight_space``), so the steps of B models are one step of the same
+algebra with 2B map axes instead of 2, and the per-step cost of autograd, the priors and Adam,
+which is most of a small fit's time, is paid once instead of B times.
+
+Each model still follows its own fit: the batched loss is the sum of the models' losses, so each
+model's gradient is that of its own loss, and Adam is elementwise. The result equals fitting each
+model on its own (``InverseRFT.fit``) to rounding; ``tests/test_batch_fit.py`` checks it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from collections.abc import Sequence
+
+import torch
+from gpytorch.constraints import GreaterThan
+from gpytorch.likelihoods import GaussianLikelihood
+from gpytorch.module import Module
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from .backends.pairs import PairsBackend
+from .backends.weight_space import WeightSpaceBackend, _DataFactor
+from .constraints import ScaledGreaterThan
+from .hyperparameters import RFTHyperparameters
+from .kernels import AngleKernel
+
+__all__ = ["fit_together", "shares_fit"]
+
+
+class _StackedHyperparameters(RFTHyperparameters):
+    """The hyperparameters of B models as one batch of 2B map axes (model b: axes 2b, 2b + 1)."""
+
+    def __init__(self, models: Sequence) -> None:
+        Module.__init__(self)
+        hs = [m.hypers for m in models]
+        self.n_models = B = len(hs)
+        self._tied = hs[0].tied
+        k0 = hs[0].kernel
+        os_scale = torch.cat([h.kernel.raw_outputscale_constraint.scale.expand(2) for h in hs])
+        ls_lower = float(k0.base_kernel.raw_lengthscale_constraint.lower_bound)
+        self.kernel = AngleKernel(torch.Size([2 * B]), lengthscale_constraint=GreaterThan(ls_lower),
+                                  outputscale_constraint=ScaledGreaterThan(0.0, os_scale))
+        per = 1 if self._tied else 2  # noise entries per model
+        cons = [h.likelihood.noise_covar.raw_noise_constraint for h in hs]
+        floor = torch.cat([c.lower_bound.expand(per) for c in cons])[:, None]  # per model: data-scaled
+        scale = torch.cat([c.scale.reshape(-1).expand(per) for c in cons])[:, None]
+        self.likelihood = GaussianLikelihood(batch_shape=torch.Size([per * B]),
+                                             noise_constraint=ScaledGreaterThan(floor, scale))
+        self.mean = None
+        with torch.no_grad():
+            self.kernel.raw_outputscale.copy_(torch.cat([h.kernel.raw_outputscale for h in hs]))
+            self.kernel.base_kernel.raw_lengthscale.copy_(torch.cat([h.kernel.base_kernel.raw_lengthscale for h in hs]))
+            raw = torch.cat([h.likelihood.noise_covar.raw_noise.reshape(-1) for h in hs])
+            self.likelihood.noise_covar.raw_noise.copy_(raw.reshape(self.likelihood.noise_covar.raw_noise.shape))
+        self._stack_priors(hs)
+
+    @property
+    def tied(self) -> bool:
+        return self._tied
+
+    @property
+    def noise(self) -> Tensor:
+        """(2B,) force noise variances, N^2 (model b: entries 2b, 2b + 1)."""
+        n = self.likelihood.noise.reshape(-1)
+        return n.repeat_interleave(2) if self._tied else n
+
+    def _stack_priors(self, hs) -> None:
+        """Register each prior of the models once, with their centres side by side (the priors of
+        ``gp.priors``: the same density on log(value) minus a per-model centre)."""
+        places = {"outputscale_prior": (lambda h: h.kernel, self.kernel),
+                  "lengthscale_prior": (lambda h: h.kernel.base_kernel, self.kernel.base_kernel),
+                  "noise_prior": (lambda h: h.likelihood.noise_covar, self.likelihood.noise_covar)}
+        for name, (owner, target) in places.items():
+            entries = [owner(h)._priors.get(name) for h in hs]
+            if entries[0] is None:
+                continue
+            prior, closure, _ = entries[0]
+            centres = [e[1].keywords["c"] for e in entries]
+            c = torch.cat([torch.as_tensor(v).reshape(-1) for v in centres]) if torch.is_tensor(centres[0]) \
+                else torch.tensor(centres, dtype=self.kernel.raw_outputscale.dtype)
+            if name == "lengthscale_prior":  # one centre per model for (1, 4) lengthscales of 2 axes
+                c = c.repeat_interleave(2)[:, None, None] if c.numel() == len(hs) else c
+            target.register_prior(name, prior, functools.partial(closure.func, c=c))
+
+
+def shares_fit(models: Sequence) -> str | None:
+    """Why these models cannot be fitted as one batch (None when they can): the same contacts in
+    the "pairs" space, no physics mean, no learned surface, the same priors and noise tying."""
+    if len(models) < 2:
+        return "fewer than two models"
+    m0 = models[0]
+    for m in models:
+        if type(m.backend) is not PairsBackend:
+            return f"backend {m.method!r} (only 'pairs' is batched)"
+        if m.surface is not None or m.hypers.mean is not None:
+            return "a learned surface or a physics mean"
+        if m.priors != m0.priors or m.hypers.tied != m0.hypers.tied:
+            return "different priors or noise tying"
+        for name in ("outputscale_prior", "lengthscale_prior", "noise_prior"):
+            pa, pb = _prior(m, name), _prior(m0, name)
+            if (pa is None) != (pb is None) or (pa is not None and not (
+                    torch.equal(pa.loc, pb.loc) and torch.equal(pa.scale, pb.scale))):
+                return f"different {name}"
+        if m.backend.table.shape != m0.backend.table.shape or not torch.equal(m.backend.table, m0.backend.table):
+            return "different contacts (angle pairs)"
+        if not torch.equal(m.backend._factor().R, m0.backend._factor().R):
+            return "different contacts (weights)"
+    return None
+
+
+def _prior(model, name):
+    h = model.hypers
+    owner = {"outputscale_prior": h.kernel, "lengthscale_prior": h.kernel.base_kernel,
+             "noise_prior": h.likelihood.noise_covar}[name]
+    e = owner._priors.get(name)
+    return None if e is None else e[0]
+
+
+def _stacked_backend(models, hypers: _StackedHyperparameters) -> PairsBackend:
+    """A pairs backend over the models' shared angle pairs holding every model's data factor."""
+    proto = models[0].backend
+    b = PairsBackend.__new__(PairsBackend)
+    WeightSpaceBackend.__init__(b, hypers, models[0].train_contacts[:0], proto.stats.b.new_zeros(0, 2))
+    b.table = proto.table
+    b.stats = proto.stats
+    b.n_samples = proto.n_samples
+    fs = [m.backend._factor() for m in models]
+    b._data_factor = _DataFactor(*(torch.cat([getattr(f, k) for f in fs]) for k in ("R", "c_y", "c_g", "rho", "rank")))
+    return b
+
+
+def fit_together(models: Sequence, n_iter: int = 300, lr: float = 0.05, progress: bool = False) -> list[list[float]]:
+    """Fit B models (``InverseRFT``) that share their contacts at once: Adam on the sum of their
+    losses, each model's hyperparameters its own (a noise study, seeds, bootstrap resamples of the
+    forces). Returns each model's loss per step, as ``InverseRFT.fit`` does, and leaves each model
+    fitted. Models that cannot share a batch (``shares_fit`` says why: another backend than "pairs",
+    a physics mean, a learned surface, other contacts or priors) are fitted one after the other with
+    ``InverseRFT.fit``, with the same result. The backend chosen at construction is kept (no switch
+    of space during the fit)."""
+    models = list(models)
+    if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
+        raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
+    if shares_fit(models) is not None:
+        return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
+    B = len(models)
+    hypers = _StackedHyperparameters(models)
+    backend = _stacked_backend(models, hypers)
+    T = max(backend.n_samples, 1)
+    opt = torch.optim.Adam(list(hypers.parameters()), lr=lr)
+    histories: list[list[float]] = [[] for _ in range(B)]
+    bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit x {B} (pairs)", disable=not progress, leave=False)
+    try:
+        for step in bar:
+            opt.zero_grad(set_to_none=True)
+            per_model = backend.negative_log_likelihood().reshape(B, 2).sum(-1)
+            for _, module, prior, closure, _ in hypers.named_priors():
+                per_model = per_model - prior.log_prob(closure(module)).reshape(B, -1).sum(-1) / T
+            per_model.sum().backward()
+            opt.step()
+            for h, v in zip(histories, per_model.tolist()):
+                h.append(v)
+    except KeyboardInterrupt:
+        warnings.warn(f"fit interrupted after {len(histories[0])} steps; the models keep those steps", stacklevel=2)
+    except (NotPSDError, torch.linalg.LinAlgError) as e:
+        raise NotPSDError(f"the force covariance of one of the {B} models is not positive definite (step {step}); "
+                          "fit them one by one (InverseRFT.fit) to see which, or use a lower lr") from e
+    finally:
+        bar.close()
+        with torch.no_grad():
+            for i, m in enumerate(models):
+                h = m.hypers
+                h.kernel.raw_outputscale.copy_(hypers.kernel.raw_outputscale[2 * i:2 * i + 2])
+                h.kernel.base_kernel.raw_lengthscale.copy_(hypers.kernel.base_kernel.raw_lengthscale[2 * i:2 * i + 2])
+                raw, k = hypers.likelihood.noise_covar.raw_noise, 1 if hypers.tied else 2
+                own = h.likelihood.noise_covar.raw_noise
+                own.copy_(raw[k * i:k * i + k].reshape(own.shape))
+    for m, h in zip(models, histories):
+        m.loss_history.extend(h)
+        m.eval()
+    return histories
