@@ -16,7 +16,9 @@ runs in a fresh process, one after the other (nothing else should run on the mac
     cell by cell;
   * ``irft reproduce``, the reference's (40 fits, one process) against this one's (52 fits, in one
     worker process per CPU: the same tables and more, with this engine's default priors, so other
-    numbers); and the reference's study driver (``reproduce.py`` of that commit, serial, its fits given
+    numbers), and against this one's ``--priors none`` (the reference's model, the plain marginal
+    likelihood: the same tables, compared cell by cell); and the reference's study driver
+    (``reproduce.py`` of that commit, serial, its fits given
     ``priors=None``: the same model) on this engine, which isolates the engine;
   * the current ``experiments/dem_validation.py`` (17 folds, 6 models), for the record.
 
@@ -140,6 +142,14 @@ def main(argv=None) -> None:
                                    for t in ("table1.csv", "table2.csv"))
                 rows.append((f"irft reproduce: {a.reference} (40 fits, serial) vs this one (52 fits, workers)", t_old,
                              t_new, tables))
+                print(rows[-1], flush=True)
+                # the same model as the reference's: the plain marginal likelihood for every fit
+                t_plain = run([py, "-m", "irft_torch.cli", "reproduce", "--priors", "none", "--out",
+                               str(tmp / "rep_plain"), "--no-progress"], ROOT, tmp)
+                tables = "; ".join(f"{t}: " + compare(tmp / "rep_old" / t, tmp / "rep_plain" / t)
+                                   for t in ("table1.csv", "table2.csv"))
+                rows.append((f"irft reproduce: {a.reference} vs this one with --priors none (the reference's model; "
+                             "44 fits, workers)", t_old, t_plain, tables))
                 print(rows[-1], flush=True)
                 driver = (wt / "irft_torch" / "reproduce.py").read_text()
                 # the package-relative imports made absolute: this engine's modules

@@ -392,3 +392,16 @@ def test_bench_experiments_help_and_its_table_comparison(tmp_path, capsys):
     m2.write_text("text\n| model | x | z |\n|---|---|---|\n| A | 0.0110 | 2 % |\n| B | 1 | 0.5 |\n")
     assert mod.table_cells(m1) == {("A", 1): 0.01, ("A", 2): 2.0, ("B", 2): 0.5}
     assert mod.compare(m1, m2).startswith("3 common cells, median relative difference 0.0%, largest 10.0% (A, 1")
+
+
+def test_reproduce_priors_none_runs_every_fit_on_the_plain_likelihood(tmp_path, monkeypatch):
+    """`irft reproduce --priors none`: the settings the study runs with have no priors (the paper's model);
+    the default keeps the library's physical priors."""
+    import irft_torch.reproduce as R
+
+    seen = []
+    monkeypatch.setattr(R, "run_study", lambda out, s, **kw: seen.append(s) or {"out_dir": str(out), "elapsed_s": 0})
+    assert main(["reproduce", "--priors", "none", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert main(["reproduce", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert seen[0].priors is None and seen[0].n_iter == R.StudySettings().n_iter
+    assert seen[1].priors == "physical" and seen[1].quick

@@ -28,5 +28,6 @@ __all__ = [
     "memory_budget", "unique_pairs", "GenericShapeMean", "RFTHyperparameters", "FourierBasis", "RFTBackend",
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
-    "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays", "fit_together", "shares_fit",
+    "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
+    "fit_together", "shares_fit",
 ]
