@@ -14,7 +14,8 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
   5. streaming: add_data in batches of 100 samples to a T = 10^4 model, ms per sample;
   6. a fleet: 4 datasets of 250,000 samples x M = 10 reduced to their spectral statistics (what
      ``irft fit a.npz b.npz ...`` does first) in 2 worker processes, and from statistics saved with
-     the datasets (``irft ingest`` saves them), vs one process making every pass.
+     the datasets (``irft ingest`` saves them), vs one process making every pass;
+  7. 8 models on the same contacts (a noise study, C-toe gait 1): ``gp.fit_together`` vs fitting each.
 Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
 GPU, the references too; case 6 is CPU work and is skipped there).
 """
@@ -162,6 +163,37 @@ def big_child(T: int, n_iter: int) -> None:
                       "gpu_peak_gb": torch.cuda.max_memory_allocated() / 2**30 if gpu else 0.0}))
 
 
+def fit_together_case(q: bool, row) -> None:
+    """Case 7: several models on the same contacts (a noise study): gp.fit_together vs one by one."""
+    from irft_torch.reproduce import configuration
+
+    toe, path = configuration("C-toe gait 1")
+    c7 = irft.rft.contacts(toe, path)
+    f7 = irft.rft.forces(TRUTH, c7)
+    B7, n7 = (4, 40) if q else (8, 150)
+    g7 = torch.Generator().manual_seed(7)
+    sets = [f7 * (1 + 0.3 * i / B7 * torch.randn(f7.shape, generator=g7, dtype=f7.dtype)) for i in range(B7)]
+    c7, sets = on_device(c7, torch.stack(sets))
+    alone = [irft.InverseRFT(c7, fs, tied_noise=True) for fs in sets]
+    together = [irft.InverseRFT(c7, fs, tied_noise=True) for fs in sets]
+    sync()
+    t0 = time.perf_counter()
+    for m in alone:
+        m.fit(n_iter=n7, lr=0.1, progress=False)
+    sync()
+    t_alone = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    irft.gp.fit_together(together, n_iter=n7, lr=0.1)
+    sync()
+    t_together = time.perf_counter() - t0
+    diff = max(float(((x.hypers.outputscale - y.hypers.outputscale) / x.hypers.outputscale).abs().max().detach())
+               for x, y in zip(alone, together))
+    assert diff < 1e-6, diff
+    row(f"7. {B7} models on the same contacts (C-toe gait 1, T = {len(c7)}, {n7} steps, {together[0].method}): "
+        f"gp.fit_together", f"{t_together:.2f} s (outputscales equal to {diff:.0e})",
+        f"InverseRFT.fit one by one {t_alone:.2f} s", ratio(t_alone / t_together), "-")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (seconds; for tests)")
@@ -262,6 +294,7 @@ def main(argv=None) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     report = out_dir / ("benchmarks.md" if DEVICE.type == "cpu" else f"benchmarks_{DEVICE.type}.md")
     if DEVICE.type != "cpu":  # case 6 reduces files in CPU worker processes
+        fit_together_case(q, row)
         report.write_text("\n".join(lines) + "\n")
         print(f"wrote {report}")
         return
@@ -291,6 +324,7 @@ def main(argv=None) -> None:
         f"2 worker processes {times['2 workers']:.1f} s; saved with the datasets {times['saved']:.1f} s",
         f"one process, every pass {times['one process']:.1f} s",
         f"{times['one process'] / times['2 workers']:.1f}x; {times['one process'] / times['saved']:.1f}x", "-")
+    fit_together_case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 
