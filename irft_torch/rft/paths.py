@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .toes import radians
+
 __all__ = ["Path", "rectangle_path", "spline_path", "course_path", "rotating_leg_path", "pose_path"]
 
 
@@ -287,6 +289,8 @@ def rotating_leg_path(
         if not math.isfinite(float(v)) or float(v) <= 0:
             raise ValueError(f"{name} must be positive and finite, got {v}")
     n_steps = _check_count("n_steps", n_steps)
+    start_angle = radians("start_angle", start_angle)
+    sweep = radians("sweep", sweep, limit=8 * math.pi)  # a few turns are a leg's many strides; 180 is degrees
     sign = -1.0 if direction == "cw" else 1.0
     time = torch.linspace(0, sweep / angular_speed, n_steps, dtype=dtype)
     heading = start_angle + sign * angular_speed * time

@@ -19,6 +19,18 @@ __all__ = ["Toe", "IToe", "CToe", "PolylineToe"]
 _LARGE_TOE_M = 1.0  # a toe larger than this is almost surely millimetres passed as metres
 
 
+def radians(name: str, value: float, limit: float = 2 * math.pi) -> float:
+    """``value`` as a finite angle in rad; a ``UserWarning`` above ``limit`` in magnitude (default one turn),
+    where the number was almost surely given in degrees."""
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite angle in rad, got {value}")
+    if abs(value) > limit:
+        warnings.warn(f"{name}={value} rad is more than {limit / (2 * math.pi):g} turn(s): angles are in radians "
+                      f"(did you pass degrees? {value} deg = {math.radians(value):.4g} rad)", UserWarning, stacklevel=3)
+    return value
+
+
 def _positive(name: str, value: float) -> float:
     value = float(value)
     if not math.isfinite(value) or value <= 0:
@@ -112,6 +124,7 @@ def IToe(
         n_segments: M.
     """
     length, width = _positive("length", length), _positive("width", width)
+    tilt = radians("tilt", tilt)
     M = _n_segments(n_segments)
     s = (torch.arange(M + 1, dtype=dtype) / M - 0.5) * length
     direction = torch.tensor([math.cos(tilt), math.sin(tilt)], dtype=dtype)

@@ -133,3 +133,18 @@ def test_course_path_heading_rate_and_gradient():
         course_path([0.0], 40.0)
     with pytest.raises(ValueError, match="course contains NaN"):
         course_path([0.0, float("nan")], 0.2)
+
+
+def test_rotating_leg_angles_in_degrees_warn():
+    with pytest.warns(UserWarning, match="start_angle=90.0 rad"):
+        rotating_leg_path(start_angle=90.0)
+    with pytest.warns(UserWarning, match="sweep=180.0 rad"):
+        rotating_leg_path(sweep=180.0)
+    with pytest.raises(ValueError, match="start_angle must be a finite angle"):
+        rotating_leg_path(start_angle=float("inf"))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = rotating_leg_path(start_angle=-math.pi / 2, sweep=6 * math.pi, n_steps=50)  # three turns: a leg's strides
+    assert p.heading[-1].item() == pytest.approx(-math.pi / 2 - 6 * math.pi)

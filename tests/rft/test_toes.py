@@ -58,3 +58,17 @@ def test_bad_toes():
         PolylineToe([(0, 0)], 0.01)
     with pytest.warns(UserWarning, match="millimetres"):
         CToe(radius=20.0, width=0.008)
+
+
+def test_tilt_in_degrees_warns_and_nan_is_an_error():
+    """IToe(tilt=30) is 30 rad, almost surely 30 degrees meant: a warning that says so; NaN: an error."""
+    with pytest.warns(UserWarning, match=r"tilt=30.0 rad .*degrees\? 30.0 deg = 0.5236 rad"):
+        IToe(0.02, 0.008, tilt=30)
+    with pytest.raises(ValueError, match="tilt must be a finite angle"):
+        IToe(0.02, 0.008, tilt=float("nan"))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        toe = IToe(0.02, 0.008, tilt=-math.pi / 3)  # radians: silent
+    assert toe.tangents[0].tolist() == pytest.approx([0.5, -math.sqrt(3) / 2])
