@@ -62,6 +62,7 @@ class _StackedHyperparameters(RFTHyperparameters):
             raw = torch.cat([h.likelihood.noise_covar.raw_noise.reshape(-1) for h in hs])
             self.likelihood.noise_covar.raw_noise.copy_(raw.reshape(self.likelihood.noise_covar.raw_noise.shape))
         self._stack_priors(hs)
+        self.to(dtype=k0.raw_outputscale.dtype, device=k0.raw_outputscale.device)  # the models' (float32, a GPU)
 
     @property
     def tied(self) -> bool:
@@ -94,7 +95,8 @@ class _StackedHyperparameters(RFTHyperparameters):
 
 def shares_fit(models: Sequence) -> str | None:
     """Why these models cannot be fitted as one batch (None when they can): the same contacts in
-    the "pairs" space, no physics mean, no learned surface, the same priors and noise tying."""
+    the "pairs" space, no physics mean, no learned surface, the same priors (``gp.priors``' own, or
+    none) and noise tying, one dtype and device."""
     if len(models) < 2:
         return "fewer than two models"
     m0 = models[0]
@@ -105,6 +107,14 @@ def shares_fit(models: Sequence) -> str | None:
             return "a learned surface or a physics mean"
         if m.priors != m0.priors or m.hypers.tied != m0.hypers.tied:
             return "different priors or noise tying"
+        p0, p = m0.hypers.kernel.raw_outputscale, m.hypers.kernel.raw_outputscale
+        if p.dtype != p0.dtype or p.device != p0.device:
+            return "different dtypes or devices"
+        known = {"kernel.outputscale_prior", "kernel.base_kernel.lengthscale_prior",
+                 "likelihood.noise_covar.noise_prior"}
+        for name, _, _, closure, _ in m.hypers.named_priors():  # only gp.priors' own (a user's is not stacked)
+            if name not in known or not (isinstance(closure, functools.partial) and "c" in closure.keywords):
+                return f"a prior this batching does not know ({name})"
         for name in ("outputscale_prior", "lengthscale_prior", "noise_prior"):
             pa, pb = _prior(m, name), _prior(m0, name)
             if (pa is None) != (pb is None) or (pa is not None and not (

@@ -68,11 +68,21 @@ def test_models_that_cannot_share_a_batch_are_fitted_one_by_one():
                          irft.InverseRFT(c, f2, method="pairs", prior_mean="physics")],
         "priors": [irft.InverseRFT(c, f1, method="pairs"), irft.InverseRFT(c, f2, method="pairs", priors=None)],
     }
+    from gpytorch.priors import NormalPrior
+
+    extra = [irft.InverseRFT(c, f, method="pairs") for f in (f1, f2)]
+    for m in extra:  # a user's own prior: not one this batching stacks
+        m.hypers.kernel.register_prior("my_prior", NormalPrior(0.0, 1.0), lambda k: k.outputscale)
+    cases["prior this batching does not know"] = extra
     for why, models in cases.items():
         reason = shares_fit(models)
         assert reason is not None and why.split()[-1] in reason, (why, reason)
         twins = [irft.InverseRFT(m.train_contacts, m.train_forces, method=m.method, priors=m.priors,
                                  prior_mean=m.prior_mean_kind) for m in models]
+        for m, t in zip(models, twins):
+            for name, module, prior, closure, _ in m.hypers.named_priors():
+                if "my_prior" in name:
+                    t.hypers.kernel.register_prior("my_prior", prior, closure)
         fit_together(models, n_iter=10, lr=0.1)
         for m, t in zip(models, twins):
             t.fit(n_iter=10, lr=0.1, progress=False)
@@ -85,3 +95,18 @@ def test_fit_together_checks_its_arguments():
     for bad in (dict(n_iter=-1), dict(n_iter=2.5), dict(lr=0.0), dict(lr=math.nan)):
         with pytest.raises(ValueError, match="n_iter"):
             fit_together(models, **{"n_iter": 5, "lr": 0.1, **bad})
+
+
+def test_float32_models_batch_in_float32():
+    c = random_contacts(T=30, M=4, seed=9, repeated=True)
+    forces = [f.float() for f in noisy_forces(c, 2)]
+    c32 = c.to(dtype=torch.float32)
+    alone = build(c32, forces, method="pairs", dtype=torch.float32)
+    together = build(c32, forces, method="pairs", dtype=torch.float32)
+    assert shares_fit(together) is None
+    for m in alone:
+        m.fit(n_iter=15, lr=0.1, progress=False)
+    fit_together(together, n_iter=15, lr=0.1)
+    for a, b in zip(alone, together):
+        assert b.hypers.outputscale.dtype == torch.float32
+        torch.testing.assert_close(b.hypers.outputscale, a.hypers.outputscale, rtol=1e-4, atol=0)
