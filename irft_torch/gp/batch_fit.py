@@ -110,6 +110,8 @@ def shares_fit(models: Sequence) -> str | None:
         p0, p = m0.hypers.kernel.raw_outputscale, m.hypers.kernel.raw_outputscale
         if p.dtype != p0.dtype or p.device != p0.device:
             return "different dtypes or devices"
+        if not all(q.requires_grad for q in m.hypers.parameters()):
+            return "a hyperparameter held fixed (requires_grad=False)"
         known = {"kernel.outputscale_prior", "kernel.base_kernel.lengthscale_prior",
                  "likelihood.noise_covar.noise_prior"}
         for name, _, _, closure, _ in m.hypers.named_priors():  # only gp.priors' own (a user's is not stacked)

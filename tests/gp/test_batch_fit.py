@@ -74,6 +74,9 @@ def test_models_that_cannot_share_a_batch_are_fitted_one_by_one():
     for m in extra:  # a user's own prior: not one this batching stacks
         m.hypers.kernel.register_prior("my_prior", NormalPrior(0.0, 1.0), lambda k: k.outputscale)
     cases["prior this batching does not know"] = extra
+    frozen = [irft.InverseRFT(c, f, method="pairs") for f in (f1, f2)]
+    frozen[1].hypers.kernel.raw_outputscale.requires_grad_(False)
+    cases["held fixed"] = frozen
     for why, models in cases.items():
         reason = shares_fit(models)
         assert reason is not None and why.split()[-1] in reason, (why, reason)
@@ -83,6 +86,8 @@ def test_models_that_cannot_share_a_batch_are_fitted_one_by_one():
             for name, module, prior, closure, _ in m.hypers.named_priors():
                 if "my_prior" in name:
                     t.hypers.kernel.register_prior("my_prior", prior, closure)
+            for q, r in zip(m.hypers.parameters(), t.hypers.parameters()):
+                r.requires_grad_(q.requires_grad)
         fit_together(models, n_iter=10, lr=0.1)
         for m, t in zip(models, twins):
             t.fit(n_iter=10, lr=0.1, progress=False)
