@@ -405,3 +405,40 @@ def test_reproduce_priors_none_runs_every_fit_on_the_plain_likelihood(tmp_path, 
     assert main(["reproduce", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
     assert seen[0].priors is None and seen[0].n_iter == R.StudySettings().n_iter
     assert seen[1].priors == "physical" and seen[1].quick
+
+
+def test_the_study_groups_only_fits_that_batch_and_batches_every_noise_study(tmp_path, monkeypatch):
+    """irft reproduce's grouping (``_groups``) against the batching's own rule (``gp.shares_fit``): every
+    group of two or more is one that ``fit_together`` fits as one batch (none falls back, which would be
+    slower, not wrong), and the noise levels x seeds of each configuration share one group."""
+    import irft_torch.reproduce as R
+    from irft_torch.gp.batch_fit import shares_fit
+
+    class Captured(Exception):
+        pass
+
+    seen = {}
+
+    def capture(jobs, s, *args, **kwargs):
+        seen["jobs"], seen["s"] = jobs, s
+        raise Captured
+
+    monkeypatch.setattr(R, "_run_fits", capture)
+    with pytest.raises(Captured):
+        R.run_study(tmp_path, R.StudySettings(), progress=False, figures=False)
+    jobs, s = seen["jobs"], seen["s"]
+    groups = R._groups(jobs, s)
+    assert sorted(i for g in groups for i in g) == list(range(len(jobs)))
+    batched = [g for g in groups if len(g) > 1]
+    assert batched
+    for g in batched:
+        models = []
+        for i in g:
+            config, prior_mean, noise, seed, truth_map, _, _, *rest = jobs[i]
+            ls, priors, pinned = (rest + [None, "settings", False][len(rest):])[:3]
+            models.append(R._build(config, prior_mean, noise, seed, truth_map, s, ls, priors, pinned)[0])
+        assert shares_fit(models) is None, [jobs[i][:4] for i in g]
+    for config in R.CONFIGS:  # where "auto" picks the pairs space, the noise study is one batch
+        noisy = [i for i, j in enumerate(jobs) if j[0] == config and j[2] > 0]
+        pairs = R._build(config, "zero", 0.0, 0, jobs[0][4], s)[0].method == "pairs"
+        assert len(noisy) > 1 and any(set(noisy) <= set(g) for g in groups) == pairs, config

@@ -9,13 +9,15 @@ which is most of a small fit's time, is paid once instead of B times.
 
 Each model still follows its own fit: the batched loss is the sum of the models' losses, so each
 model's gradient is that of its own loss, and Adam is elementwise. The result equals fitting each
-model on its own (``InverseRFT.fit``) to rounding; ``tests/test_batch_fit.py`` checks it.
+model on its own (``InverseRFT.fit``) to rounding; ``tests/gp/test_batch_fit.py`` checks it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
+import types
 import warnings
 from collections.abc import Sequence
 
@@ -95,10 +97,13 @@ class _StackedHyperparameters(RFTHyperparameters):
 
 def shares_fit(models: Sequence) -> str | None:
     """Why these models cannot be fitted as one batch (None when they can): the same contacts in
-    the "pairs" space, no physics mean, no learned surface, the same priors (``gp.priors``' own, or
-    none) and noise tying, one dtype and device."""
+    the "pairs" space (and, with ``method="auto"``, no other space that could become 2x cheaper as the
+    lengthscales move, so that each model's own fit would stay there too), no physics mean, no learned
+    surface, the same priors (``gp.priors``' own, or none) and noise tying, one dtype and device."""
     if len(models) < 2:
         return "fewer than two models"
+    if len({id(m) for m in models}) < len(models):
+        return "the same model twice (a batch fits each once)"
     m0 = models[0]
     for m in models:
         if type(m.backend) is not PairsBackend:
@@ -122,11 +127,33 @@ def shares_fit(models: Sequence) -> str | None:
             if (pa is None) != (pb is None) or (pa is not None and not (
                     torch.equal(pa.loc, pb.loc) and torch.equal(pa.scale, pb.scale))):
                 return f"different {name}"
+        if _auto_may_switch(m):
+            return "method='auto' may move it to another space during the fit (another space could become 2x cheaper)"
         if m.backend.table.shape != m0.backend.table.shape or not torch.equal(m.backend.table, m0.backend.table):
             return "different contacts (angle pairs)"
         if not torch.equal(m.backend._factor().R, m0.backend._factor().R):
             return "different contacts (weights)"
+        if m.backend.n_samples != m0.backend.n_samples or m.backend.stats.n != m0.backend.stats.n:
+            return "different numbers of force samples (rows out of contact count in the likelihood)"
     return None
+
+
+def _auto_may_switch(model) -> bool:
+    """Whether ``InverseRFT.fit`` could move this model out of the pairs space mid-fit: with
+    ``method="auto"`` it moves every 30 steps when another space's estimated cost (``select``) is below
+    half the current one. The observations and pairs costs do not depend on the hyperparameters; the
+    spectral cost falls as the lengthscales grow, to its cost for the smallest basis (lengthscales
+    without bound), which is what is checked: if even that is not 2x cheaper, the fit stays in pairs
+    whatever the lengthscales do, and the batch follows each model's own fit exactly."""
+    if not model.auto:
+        return False
+    from .backends.select import estimate_pairs, estimated_costs
+
+    n_pairs = getattr(model, "_n_pairs", None)
+    n_pairs = estimate_pairs(model.train_contacts) if n_pairs is None else n_pairs
+    widest = types.SimpleNamespace(lengthscale=torch.full_like(model.hypers.lengthscale.detach(), 1e6))
+    costs = estimated_costs(model.train_contacts, widest, model.tol, n_pairs)
+    return min(v for k, v in costs.items() if k != "pairs") < 0.5 * costs["pairs"]
 
 
 def _prior(model, name):
@@ -150,25 +177,41 @@ def _stacked_backend(models, hypers: _StackedHyperparameters) -> PairsBackend:
     return b
 
 
+@contextlib.contextmanager
+def _default_dtype(dtype: torch.dtype):
+    """torch's default dtype set to the models' while the stacked modules are built (gpytorch's
+    constraints and priors make their buffers in the default dtype)."""
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(before)
+
+
 def fit_together(models: Sequence, n_iter: int = 300, lr: float = 0.05, progress: bool = False) -> list[list[float]]:
     """Fit B models (``InverseRFT``) that share their contacts at once: Adam on the sum of their
     losses, each model's hyperparameters its own (a noise study, seeds, bootstrap resamples of the
     forces). Returns each model's loss per step, as ``InverseRFT.fit`` does, and leaves each model
     fitted. Models that cannot share a batch (``shares_fit`` says why: another backend than "pairs",
-    a physics mean, a learned surface, other contacts or priors) are fitted one after the other with
-    ``InverseRFT.fit``, with the same result. The backend chosen at construction is kept (no switch
-    of space during the fit)."""
+    a physics mean, a learned surface, other contacts or priors, ``method="auto"`` where another space
+    could become cheaper during the fit) are fitted one after the other with ``InverseRFT.fit``, with
+    the same result; so are all of them when one model's covariance breaks down during the batch (each
+    back at its start first), so that the one that breaks raises its own error."""
     models = list(models)
     if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
         raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
     if shares_fit(models) is not None:
         return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
     B = len(models)
-    hypers = _StackedHyperparameters(models)
+    start = [[p.detach().clone() for p in m.hypers.parameters()] for m in models]
+    with _default_dtype(models[0].hypers.kernel.raw_outputscale.dtype):  # no rounding through float32
+        hypers = _StackedHyperparameters(models)
     backend = _stacked_backend(models, hypers)
     T = max(backend.n_samples, 1)
     opt = torch.optim.Adam(list(hypers.parameters()), lr=lr)
     histories: list[list[float]] = [[] for _ in range(B)]
+    failed = False
     bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit x {B} (pairs)", disable=not progress, leave=False)
     try:
         for step in bar:
@@ -182,19 +225,25 @@ def fit_together(models: Sequence, n_iter: int = 300, lr: float = 0.05, progress
                 h.append(v)
     except KeyboardInterrupt:
         warnings.warn(f"fit interrupted after {len(histories[0])} steps; the models keep those steps", stacklevel=2)
-    except (NotPSDError, torch.linalg.LinAlgError) as e:
-        raise NotPSDError(f"the force covariance of one of the {B} models is not positive definite (step {step}); "
-                          "fit them one by one (InverseRFT.fit) to see which, or use a lower lr") from e
+    except (NotPSDError, torch.linalg.LinAlgError):
+        failed = True  # one model's covariance broke down: back to the start, and each fit on its own below
     finally:
         bar.close()
         with torch.no_grad():
             for i, m in enumerate(models):
+                if failed:
+                    for p, p0 in zip(m.hypers.parameters(), start[i]):
+                        p.copy_(p0)
+                    continue
                 h = m.hypers
                 h.kernel.raw_outputscale.copy_(hypers.kernel.raw_outputscale[2 * i:2 * i + 2])
                 h.kernel.base_kernel.raw_lengthscale.copy_(hypers.kernel.base_kernel.raw_lengthscale[2 * i:2 * i + 2])
                 raw, k = hypers.likelihood.noise_covar.raw_noise, 1 if hypers.tied else 2
                 own = h.likelihood.noise_covar.raw_noise
                 own.copy_(raw[k * i:k * i + k].reshape(own.shape))
+    if failed:  # each model's own fit: the one that breaks down raises its own NotPSDError (naming its
+        # hyperparameters), the ones before it end fitted, as in a loop of InverseRFT.fit
+        return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
     for m, h in zip(models, histories):
         m.loss_history.extend(h)
         m.eval()

@@ -115,3 +115,110 @@ def test_float32_models_batch_in_float32():
     for a, b in zip(alone, together):
         assert b.hypers.outputscale.dtype == torch.float32
         torch.testing.assert_close(b.hypers.outputscale, a.hypers.outputscale, rtol=1e-4, atol=0)
+
+
+def test_auto_models_that_could_leave_the_pairs_space_are_fitted_one_by_one():
+    """With method="auto", InverseRFT.fit moves to a space that became 2x cheaper (every 30 steps). 300
+    distinct pairs in 600 samples: pairs at construction (lengthscale 1), but with long lengthscales the
+    spectral basis is small enough to win. A batch cannot follow that move, so these models go one by
+    one, and end where their own fits end, in the spectral space; the same models pinned to "pairs" batch."""
+    g = torch.Generator().manual_seed(3)
+    U, T = 300, 600
+    pb, pg = torch.rand(U, generator=g) * 3 - 1.5, torch.rand(U, generator=g) * 3 - 1.5
+    idx = torch.randint(0, U, (T,), generator=g)
+    c = irft.rft.Contacts(pb[idx, None], pg[idx, None], torch.ones(T, 1), torch.ones(T, 1))
+    forces = noisy_forces(c, 2)
+    alone, together = build(c, forces), build(c, forces)
+    assert all(m.method == "pairs" for m in alone + together)
+    for m in alone + together:  # then set long (a user's starting values, or a refit of a fitted model)
+        m.hypers.lengthscale = 10.0
+    why = shares_fit(together)
+    assert why is not None and "auto" in why
+    histories = [m.fit(n_iter=30, lr=0.01, progress=False) for m in alone]
+    assert all(m.method == "spectral" for m in alone)  # the move the batch could not have made
+    batch = fit_together(together, n_iter=30, lr=0.01)
+    for a, b, ha, hb in zip(alone, together, histories, batch):
+        assert b.method == a.method == "spectral"
+        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-8, atol=1e-12)
+    assert shares_fit(build(c, forces, method="pairs")) is None
+
+
+def test_rows_out_of_contact_count_so_a_longer_recording_is_not_batched():
+    """Rows with no segment in contact leave the angle pairs and weights as they are but count as force
+    samples in the likelihood (T): a recording with them and one without must each end as their own fit."""
+    c = random_contacts(T=30, M=4, seed=9, repeated=True)
+    f1, f2 = noisy_forces(c, 2)
+    idle = irft.rft.Contacts(torch.zeros(5, 4), torch.zeros(5, 4), torch.zeros(5, 4), torch.zeros(5, 4))
+    c_long, f2_long = irft.rft.Contacts.cat([c, idle]), torch.cat([f2, torch.zeros(5, 2)])
+    make = lambda: [irft.InverseRFT(c, f1, method="pairs"), irft.InverseRFT(c_long, f2_long, method="pairs")]  # noqa: E731
+    together, alone = make(), make()
+    assert "samples" in shares_fit(together)
+    fit_together(together, n_iter=20, lr=0.1)
+    for a, b in zip(alone, together):
+        a.fit(n_iter=20, lr=0.1, progress=False)
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
+
+
+def test_the_same_model_twice_is_fitted_twice_in_a_row():
+    c = random_contacts(T=20, M=3, seed=10, repeated=True)
+    f = noisy_forces(c, 1)[0]
+    m, ref = irft.InverseRFT(c, f, method="pairs"), irft.InverseRFT(c, f, method="pairs")
+    assert "twice" in shares_fit([m, m])
+    fit_together([m, m], n_iter=10, lr=0.1)
+    ref.fit(n_iter=10, lr=0.1, progress=False)
+    ref.fit(n_iter=10, lr=0.1, progress=False)
+    torch.testing.assert_close(hyper_vector(m), hyper_vector(ref), rtol=1e-10, atol=0)
+    assert len(m.loss_history) == 20
+
+
+@pytest.mark.parametrize("built_under", [torch.float32, torch.float64])
+def test_float64_models_batch_exactly_under_torchs_float32_default(built_under):
+    """torch's default dtype is float32 outside this test suite: the stacked hyperparameters of float64
+    models (their constraints' floors and scales, the priors' centres) must not pass through it."""
+    c = random_contacts(T=30, M=4, seed=11, repeated=True)
+    forces = noisy_forces(c, 3)
+    try:
+        torch.set_default_dtype(built_under)
+        together, alone = build(c, forces, method="pairs"), build(c, forces, method="pairs")
+        torch.set_default_dtype(torch.float32)
+        assert shares_fit(together) is None
+        fit_together(together, n_iter=30, lr=0.1)
+        for m in alone:
+            m.fit(n_iter=30, lr=0.1, progress=False)
+    finally:
+        torch.set_default_dtype(torch.float64)
+    for a, b in zip(alone, together):
+        assert b.hypers.kernel.raw_outputscale.dtype == torch.float64
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
+
+
+def test_a_batch_that_breaks_down_leaves_each_model_to_its_own_fit(monkeypatch):
+    """One model's covariance breaking down mid-batch must not move the others to that step: each model
+    goes back to its start and is fitted on its own (the breaking one would raise its own error)."""
+    from linear_operator.utils.errors import NotPSDError
+
+    from irft_torch.gp.backends.pairs import PairsBackend
+    from irft_torch.gp.batch_fit import _StackedHyperparameters
+
+    c = random_contacts(T=30, M=4, seed=12, repeated=True)
+    forces = noisy_forces(c, 3)
+    together, alone = build(c, forces, method="pairs"), build(c, forces, method="pairs")
+    calls = {"n": 0}
+    nll = PairsBackend.negative_log_likelihood
+
+    def breaks_in_the_batch(self, *args, **kwargs):
+        if isinstance(self.hypers, _StackedHyperparameters):
+            calls["n"] += 1
+            if calls["n"] == 7:
+                raise NotPSDError("simulated breakdown of one model in the batch")
+        return nll(self, *args, **kwargs)
+
+    monkeypatch.setattr(PairsBackend, "negative_log_likelihood", breaks_in_the_batch)
+    batch = fit_together(together, n_iter=20, lr=0.1)
+    assert calls["n"] == 7
+    for a, b, hb in zip(alone, together, batch):
+        ha = a.fit(n_iter=20, lr=0.1, progress=False)
+        assert len(hb) == 20 and b.loss_history == hb
+        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-10, atol=0)
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
