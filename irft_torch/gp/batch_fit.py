@@ -192,17 +192,45 @@ def _default_dtype(dtype: torch.dtype):
 def fit_together(models: Sequence, n_iter: int = 300, lr: float = 0.05, progress: bool = False) -> list[list[float]]:
     """Fit B models (``InverseRFT``) that share their contacts at once: Adam on the sum of their
     losses, each model's hyperparameters its own (a noise study, seeds, bootstrap resamples of the
-    forces). Returns each model's loss per step, as ``InverseRFT.fit`` does, and leaves each model
-    fitted. Models that cannot share a batch (``shares_fit`` says why: another backend than "pairs",
-    a physics mean, a learned surface, other contacts or priors, ``method="auto"`` where another space
-    could become cheaper during the fit) are fitted one after the other with ``InverseRFT.fit``, with
-    the same result; so are all of them when one model's covariance breaks down during the batch (each
-    back at its start first), so that the one that breaks raises its own error."""
+    forces). Returns each model's loss per step (in the order given), as ``InverseRFT.fit`` does, and
+    leaves each model fitted, as its own fit would. The models are split into groups that can share a
+    batch (``shares_fit`` says why two cannot: another backend than "pairs", a physics mean, a learned
+    surface, other contacts or priors, ``method="auto"`` where another space could become cheaper
+    during the fit); a model alone in its group is fitted with ``InverseRFT.fit``. When one model's
+    covariance breaks down during a batch, every model of that batch goes back to its start and is
+    fitted on its own, so that the one that breaks raises its own error."""
     models = list(models)
     if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
         raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
-    if shares_fit(models) is not None:
-        return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
+    histories: list = [None] * len(models)
+    for group in _batches(models):
+        batch = [models[i] for i in group]
+        done = _fit_batch(batch, n_iter, lr, progress) if len(batch) > 1 else \
+            [batch[0].fit(n_iter=n_iter, lr=lr, progress=progress)]
+        for i, h in zip(group, done):
+            histories[i] = h
+    return histories
+
+
+def _batches(models: list) -> list[list[int]]:
+    """The models' indices in groups that can share a batch, in order of first appearance: each group
+    those that ``shares_fit`` pairs with its first model (its checks compare with the first model, so
+    the group shares them all), a model given twice in separate groups (fitted twice, in order)."""
+    left = list(range(len(models)))
+    groups = []
+    while left:
+        first, group, ids = left[0], [left[0]], {id(models[left[0]])}
+        for j in left[1:]:
+            if id(models[j]) not in ids and shares_fit([models[first], models[j]]) is None:
+                group.append(j)
+                ids.add(id(models[j]))
+        groups.append(group)
+        left = [j for j in left if j not in group]
+    return groups
+
+
+def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[list[float]]:
+    """``fit_together`` of models that ``shares_fit`` accepts: one batched Adam loop."""
     B = len(models)
     start = [[p.detach().clone() for p in m.hypers.parameters()] for m in models]
     with _default_dtype(models[0].hypers.kernel.raw_outputscale.dtype):  # no rounding through float32

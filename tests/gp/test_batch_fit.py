@@ -222,3 +222,28 @@ def test_a_batch_that_breaks_down_leaves_each_model_to_its_own_fit(monkeypatch):
         assert len(hb) == 20 and b.loss_history == hb
         torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-10, atol=0)
         torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
+
+
+def test_a_mixed_list_is_batched_in_the_groups_that_can_share_and_each_ends_as_its_own_fit(monkeypatch):
+    """Models on two sets of contacts and one in another space, interleaved: the two pairs-space groups are
+    each one batch, the other model is fitted alone, and every model ends where its own fit ends."""
+    import irft_torch.gp.batch_fit as bf
+
+    c, other = random_contacts(T=30, M=4, seed=13, repeated=True), random_contacts(T=30, M=4, seed=14, repeated=True)
+    fc, fo = noisy_forces(c, 3), noisy_forces(other, 2, seed=1)
+
+    def make():
+        return [irft.InverseRFT(c, fc[0], method="pairs"), irft.InverseRFT(other, fo[0], method="pairs"),
+                irft.InverseRFT(c, fc[1], method="observations"), irft.InverseRFT(c, fc[2], method="pairs"),
+                irft.InverseRFT(other, fo[1], method="pairs"), irft.InverseRFT(c, fc[1], method="pairs")]
+
+    together, alone = make(), make()
+    sizes = []
+    batch_fit = bf._fit_batch
+    monkeypatch.setattr(bf, "_fit_batch", lambda ms, *a: sizes.append(len(ms)) or batch_fit(ms, *a))
+    histories = fit_together(together, n_iter=20, lr=0.1)
+    assert sorted(sizes) == [2, 3]  # (0, 3, 5) on c and (1, 4) on the other contacts; model 2 alone
+    for a, b, hb in zip(alone, together, histories):
+        ha = a.fit(n_iter=20, lr=0.1, progress=False)
+        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-8, atol=1e-12)
