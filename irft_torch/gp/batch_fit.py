@@ -30,6 +30,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .backends.pairs import PairsBackend
+from .backends.select import cheaper_space, estimated_costs
 from .backends.weight_space import WeightSpaceBackend, _DataFactor
 from .constraints import ScaledGreaterThan
 from .hyperparameters import RFTHyperparameters
@@ -140,20 +141,16 @@ def shares_fit(models: Sequence) -> str | None:
 
 def _auto_may_switch(model) -> bool:
     """Whether ``InverseRFT.fit`` could move this model out of the pairs space mid-fit: with
-    ``method="auto"`` it moves every 30 steps when another space's estimated cost (``select``) is below
-    half the current one. The observations and pairs costs do not depend on the hyperparameters; the
+    ``method="auto"`` it moves every 30 steps to ``select.cheaper_space`` (another space estimated at
+    under half the current one's cost). The observations and pairs costs do not depend on the hyperparameters; the
     spectral cost falls as the lengthscales grow, to its cost for the smallest basis (lengthscales
     without bound), which is what is checked: if even that is not 2x cheaper, the fit stays in pairs
     whatever the lengthscales do, and the batch follows each model's own fit exactly."""
     if not model.auto:
         return False
-    from .backends.select import estimate_pairs, estimated_costs
-
-    n_pairs = getattr(model, "_n_pairs", None)
-    n_pairs = estimate_pairs(model.train_contacts) if n_pairs is None else n_pairs
     widest = types.SimpleNamespace(lengthscale=torch.full_like(model.hypers.lengthscale.detach(), 1e6))
-    costs = estimated_costs(model.train_contacts, widest, model.tol, n_pairs)
-    return min(v for k, v in costs.items() if k != "pairs") < 0.5 * costs["pairs"]
+    return cheaper_space(estimated_costs(model.train_contacts, widest, model.tol, model._pair_count()), "pairs") \
+        is not None
 
 
 def _prior(model, name):

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 from ..rft.contacts import M_TO_CM, Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.select import estimated_costs
+from .backends.select import cheaper_space, estimate_pairs, estimated_costs
 from .hyperparameters import RFTHyperparameters
 from .model_file import ModelFileError, digest, load_model, save_model
 from .priors import PRIORS, prior_centres, register_physical_priors
@@ -514,18 +514,21 @@ class InverseRFT(nn.Module):
         hyperparameters are shared, nothing is lost; a lengthscale that dips below what the spectral
         basis can hold and recovers brings the fit back to spectral); else refresh."""
         if self.auto:
-            if getattr(self, "_n_pairs", None) is None:
-                from .backends.select import estimate_pairs
-
-                self._n_pairs = estimate_pairs(self.train_contacts)
-            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._n_pairs)
-            best = min(costs, key=costs.get)
-            if best != self.method and costs[best] < 0.5 * costs[self.method]:
+            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
+            best = cheaper_space(costs, self.method)
+            if best is not None:
                 self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
                                             solver=self.solver, tol=self.tol, statistics=self._statistics)
                 self.backend.in_fit = True
                 return
         self.backend.refresh()
+
+    def _pair_count(self) -> int:
+        """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until
+        ``add_data`` changes the data."""
+        if getattr(self, "_n_pairs", None) is None:
+            self._n_pairs = estimate_pairs(self.train_contacts)
+        return self._n_pairs
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is

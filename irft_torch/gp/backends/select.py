@@ -28,6 +28,7 @@ KERNEL_FLOPS = 120.0
 # Each backend's floor per step, whatever the size (Python, autograd and gpytorch's bookkeeping), in
 # the same units (about 3 Mflop per ms): measured on the paper's four configurations (T = 100, one
 # thread) at 2.4 ms (observations), 1.0 ms (pairs) and 3.5 ms (spectral) per likelihood + gradient step.
+SWITCH_FACTOR = 0.5  # a fit moves to another space when it is estimated this much cheaper (cheaper_space)
 STEP_OVERHEAD = {"observations": 7e6, "pairs": 3e6, "spectral": 10e6}
 
 
@@ -76,6 +77,13 @@ def estimate_pairs(c: Contacts, sample: int = 50_000) -> int:
         if u > sample // 2:
             return int(u * n / sample)
     return distinct_pairs(c)[0].shape[0]
+
+
+def cheaper_space(costs: dict[str, float], current: str) -> str | None:
+    """The space a fit with ``method="auto"`` moves to from ``current`` (the cheapest, when it costs
+    less than half of ``current``: moving rebuilds the backend, so small gains are not worth it), or None."""
+    best = min(costs, key=costs.get)
+    return best if best != current and costs[best] < SWITCH_FACTOR * costs[current] else None
 
 
 def choose_method(contacts: Contacts, hypers, tol: float = 1e-7) -> str:
