@@ -32,6 +32,16 @@ def hyper_vector(model):
     return torch.tensor(d["lengthscale_x"] + d["lengthscale_z"] + d["outputscale"] + d["noise"], dtype=torch.float64)
 
 
+def assert_each_ends_as_its_own_fit(together, alone, n_iter, lr, histories=None, rtol=1e-10, atol=0.0):
+    """Fit each of ``alone`` (twins of ``together``, unfitted) on its own with InverseRFT.fit and compare
+    the hyperparameters ``together`` ended at (and, given, the batch's loss histories) with them."""
+    for i, (a, b) in enumerate(zip(alone, together)):
+        ha = a.fit(n_iter=n_iter, lr=lr, progress=False)
+        if histories is not None:
+            torch.testing.assert_close(torch.tensor(histories[i]), torch.tensor(ha), rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=rtol, atol=atol)
+
+
 @pytest.mark.parametrize("tied", [True, False])
 @pytest.mark.parametrize("priors", ["physical", None])
 def test_a_batch_ends_where_each_fit_ends(tied, priors):
@@ -155,9 +165,7 @@ def test_rows_out_of_contact_count_so_a_longer_recording_is_not_batched():
     together, alone = make(), make()
     assert "samples" in shares_fit(together)
     fit_together(together, n_iter=20, lr=0.1)
-    for a, b in zip(alone, together):
-        a.fit(n_iter=20, lr=0.1, progress=False)
-        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
+    assert_each_ends_as_its_own_fit(together, alone, n_iter=20, lr=0.1)
 
 
 def test_the_same_model_twice_is_fitted_twice_in_a_row():
@@ -184,13 +192,10 @@ def test_float64_models_batch_exactly_under_torchs_float32_default(built_under):
         torch.set_default_dtype(torch.float32)
         assert shares_fit(together) is None
         fit_together(together, n_iter=30, lr=0.1)
-        for m in alone:
-            m.fit(n_iter=30, lr=0.1, progress=False)
+        assert_each_ends_as_its_own_fit(together, alone, n_iter=30, lr=0.1)  # under the float32 default too
     finally:
         torch.set_default_dtype(torch.float64)
-    for a, b in zip(alone, together):
-        assert b.hypers.kernel.raw_outputscale.dtype == torch.float64
-        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-10, atol=0)
+    assert all(b.hypers.kernel.raw_outputscale.dtype == torch.float64 for b in together)
 
 
 def test_a_batch_that_breaks_down_leaves_each_model_to_its_own_fit(monkeypatch):
@@ -243,7 +248,4 @@ def test_a_mixed_list_is_batched_in_the_groups_that_can_share_and_each_ends_as_i
     monkeypatch.setattr(bf, "_fit_batch", lambda ms, *a: sizes.append(len(ms)) or batch_fit(ms, *a))
     histories = fit_together(together, n_iter=20, lr=0.1)
     assert sorted(sizes) == [2, 3]  # (0, 3, 5) on c and (1, 4) on the other contacts; model 2 alone
-    for a, b, hb in zip(alone, together, histories):
-        ha = a.fit(n_iter=20, lr=0.1, progress=False)
-        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
-        torch.testing.assert_close(hyper_vector(b), hyper_vector(a), rtol=1e-8, atol=1e-12)
+    assert_each_ends_as_its_own_fit(together, alone, n_iter=20, lr=0.1, histories=histories, rtol=1e-8, atol=1e-12)
