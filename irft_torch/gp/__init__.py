@@ -11,6 +11,7 @@ from .backends import (
                        make_backend,
 )
 from .batch_fit import fit_together, shares_fit
+from .cross_validation import GroupPredictions, cross_validate
 from .embedding import embed_angles, rbf
 from .encoding import decode_rows, encode_contacts, encode_points, encode_rows
 from .fourier import FourierBasis
@@ -29,5 +30,5 @@ __all__ = [
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
-    "fit_together", "shares_fit",
+    "fit_together", "shares_fit", "cross_validate", "GroupPredictions",
 ]

@@ -666,6 +666,15 @@ class InverseRFT(nn.Module):
             var = var + self.hypers.noise * scale.pow(2)
         return Posterior(mean.T.reshape(*lead, 2), var)
 
+    def cross_validate(self, groups, include_noise: bool = False):
+        """Each group of training samples (a run, a trial, a tilt) predicted from the other groups at the
+        fitted hyperparameters, without refitting (``gp.cross_validation``): compare models on the
+        training data alone. ``groups``: (T,) one label per training sample. Returns
+        ``GroupPredictions``: ``.mean``, ``.variance`` (T, 2) in N and N^2, ``.rmse()`` (2,) N."""
+        from .cross_validation import cross_validate
+
+        return cross_validate(self, groups, include_noise=include_noise)
+
     # ---- persistence -----------------------------------------------------------------------------
     def _measured(self) -> tuple[Contacts, Tensor]:
         """The training data as measured (the whitening undone)."""

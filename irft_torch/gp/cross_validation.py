@@ -1,0 +1,111 @@
+"""Leave-one-group-out predictions of a fitted model's own training forces, without refitting.
+
+Each group of training samples (a run, a trial, one tilt of the plate, one commanded slip) is predicted
+from the other groups, with the hyperparameters the model learned on all of them (Rasmussen & Williams
+2006, section 5.4.2, with groups in place of single samples: the samples of one run share its errors,
+so leaving out one sample at a time would flatter the model). What it is for: choosing between fitted
+models (a prior mean, a contact model, hyperparameter priors) on the training data alone, where the
+marginal likelihood is known to mislead when every candidate is misspecified.
+
+    cv = model.cross_validate(groups)        # groups: (T,) label per training sample
+    cv.rmse()                                # (2,) N, per axis (x, z)
+
+Cost: one backend per group (``make_backend`` on the other groups' samples, same method), then one
+posterior per held-out group.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .backends import make_backend
+from .backends.base import touching
+
+__all__ = ["GroupPredictions", "cross_validate"]
+
+
+@dataclass
+class GroupPredictions:
+    """Every training sample predicted from the groups it does not belong to.
+
+    Attributes:
+        mean: (T, 2) predicted (F_x, F_z) in N, as measured (``noise_scale`` undone).
+        variance: (T, 2) its variance in N^2 (the maps' posterior; plus the sample's own noise where
+            the predictions were made with ``include_noise``).
+        forces: (T, 2) the measured training forces in N.
+        groups: (T,) int64 index of each sample's group into ``labels``.
+        labels: the distinct group labels, in the order of their index.
+    """
+
+    mean: Tensor
+    variance: Tensor
+    forces: Tensor
+    groups: Tensor
+    labels: list
+
+    @property
+    def residual(self) -> Tensor:
+        """(T, 2) predicted minus measured, N."""
+        return self.mean - self.forces
+
+    def rmse(self) -> Tensor:
+        """(2,) root mean square of the held-out residuals over all samples, N, per axis."""
+        return self.residual.pow(2).mean(0).sqrt()
+
+    def log_predictive_density(self) -> Tensor:
+        """(2,) mean over samples of log N(F | mean, variance), per axis (marginal per sample; make the
+        predictions with ``include_noise=True`` for a density of the measurements)."""
+        v = self.variance.clamp_min(1e-300)
+        return (-0.5 * (self.residual.pow(2) / v + v.log() + math.log(2 * math.pi))).mean(0)
+
+
+def _group_index(groups, T: int, device) -> tuple[Tensor, list]:
+    if isinstance(groups, Tensor):
+        g = groups.detach().cpu().numpy()
+    else:
+        g = np.asarray(groups)
+    if g.shape != (T,):
+        raise ValueError(f"groups must have one label per training sample, shape ({T},), got {g.shape}")
+    if g.dtype.kind == "f" and not np.isfinite(g).all():
+        raise ValueError("groups has NaN or inf labels")
+    labels, index = np.unique(g, return_inverse=True)
+    if len(labels) < 2:
+        raise ValueError(f"groups needs at least 2 distinct labels to leave one out, got {len(labels)}")
+    return torch.as_tensor(index.reshape(-1), dtype=torch.long, device=device), labels.tolist()
+
+
+def cross_validate(model, groups, include_noise: bool = False) -> GroupPredictions:
+    """Leave-one-group-out predictions of ``model``'s training forces at its current hyperparameters.
+
+    Args:
+        model: a (fitted) ``InverseRFT``; nothing in it changes.
+        groups: (T,) one label per training sample (any sortable values: run numbers, tilts in rad), in
+            the order of the training data (``model.train_forces``; after ``add_data``, the parts in order).
+        include_noise: add each held-out sample's own noise variance (predict a measurement).
+
+    Returns:
+        GroupPredictions, in measured units (N, N^2).
+    """
+    c, f, s = model._join()
+    if model.surface is not None:
+        c = model.train_contacts  # at the learned offset
+    index, labels = _group_index(groups, len(f), f.device)
+    mean, var = torch.zeros_like(f), torch.zeros_like(f)
+    rows = touching(c)
+    with torch.no_grad():
+        for g in range(len(labels)):
+            held = index == g
+            keep = ~held
+            backend = make_backend(model.method, model.hypers, c[keep], f[keep], solver=model.solver, tol=model.tol)
+            ask = held & rows  # samples with no segment in contact have force exactly 0, variance 0
+            if ask.any():
+                post = backend.posterior(c[ask], variance=True)
+                mean[ask], var[ask] = post.mean.T, post.variance.T
+        if include_noise:
+            var = var + model.hypers.noise.detach()
+    return GroupPredictions(mean * s, var * s.pow(2), f * s, index, labels)

@@ -1,0 +1,91 @@
+"""Leave-one-group-out predictions (gp.cross_validation) against the closed form on the dense
+reference: with S = W K W^T + noise the full covariance of the training forces and a = S^-1 (y - m),
+the samples I held out are predicted with mean y_I - (S^-1)_II^-1 a_I and covariance (S^-1)_II^-1
+(Rasmussen & Williams 2006, eq. 5.12, for blocks). Independent of the backends: explicit W and K."""
+
+import pytest
+import torch
+
+import irft_torch as irft
+from irft_torch.rft import FourierStressMap
+
+from .dense_reference import W_dense, k_dense
+from .test_backends_vs_dense import BACKENDS, TOL, data, set_hypers
+
+
+def dense_loo(model, c, f, groups, noise_scale=None):
+    """Closed-form leave-one-group-out mean and variance (T, 2), measurement noise included."""
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
+    mean, var = torch.zeros_like(f), torch.zeros_like(f)
+    for a, w in enumerate((c.weight_x, c.weight_z)):
+        W = W_dense(w)
+        scale2 = torch.ones(len(f)) if noise_scale is None else noise_scale[:, a] ** 2
+        S = W @ k_dense(th, th, ls[a, 0], os[a]) @ W.T + noise[a] * torch.diag(scale2)
+        m = torch.zeros(len(f))
+        if model.prior_mean_kind == "physics":
+            m = model.hypers.mean_scales.detach()[a] * (w * FourierStressMap.generic()(c.beta, c.gamma)[..., a]).sum(-1)
+        Sinv = torch.linalg.inv(S)
+        alpha = Sinv @ (f[:, a] - m)
+        for g in groups.unique():
+            idx = (groups == g).nonzero()[:, 0]
+            C = torch.linalg.inv(Sinv[idx][:, idx])
+            mean[idx, a] = f[idx, a] - C @ alpha[idx]
+            var[idx, a] = torch.diagonal(C)
+    return mean, var
+
+
+@pytest.mark.parametrize("prior", ["zero", "physics"])
+@pytest.mark.parametrize("method", BACKENDS)
+def test_leave_one_out_matches_the_closed_form(method, prior):
+    c, f = data(T=20, repeated=True)
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None)
+    set_hypers(model)
+    groups = torch.arange(len(f))
+    ours = model.cross_validate(groups, include_noise=True)
+    mean, var = dense_loo(model, c, f, groups)
+    tol = TOL[method]
+    torch.testing.assert_close(ours.mean, mean, rtol=tol * 10, atol=tol * 10)
+    torch.testing.assert_close(ours.variance, var, rtol=tol * 10, atol=tol * 10)
+    torch.testing.assert_close(ours.forces, f)
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_leave_one_group_out_matches_the_closed_form_with_noise_scales(method):
+    c, f = data(T=24, repeated=True)
+    scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(4))
+    model = irft.InverseRFT(c, f, method=method, priors=None, noise_scale=scale)
+    set_hypers(model)
+    groups = torch.arange(len(f)) % 5  # interleaved groups of 4-5 samples
+    ours = model.cross_validate(groups.numpy() * 0.5, include_noise=True)  # any labels: floats here
+    mean, var = dense_loo(model, c, f, groups, noise_scale=scale)
+    tol = TOL[method] * 10
+    torch.testing.assert_close(ours.mean, mean, rtol=tol, atol=tol)
+    torch.testing.assert_close(ours.variance, var, rtol=tol, atol=tol)
+    assert ours.labels == [0.0, 0.5, 1.0, 1.5, 2.0]
+    torch.testing.assert_close(ours.groups, groups)
+    # without the noise: the variance of the predicted force alone, smaller by the sample's noise
+    bare = model.cross_validate(groups)
+    torch.testing.assert_close(bare.variance + model.hypers.noise.detach() * scale**2, ours.variance)
+    rmse = (mean - f).pow(2).mean(0).sqrt()
+    torch.testing.assert_close(ours.rmse(), rmse, rtol=tol, atol=tol)
+    lpd = torch.distributions.Normal(mean, var.sqrt()).log_prob(f).mean(0)
+    torch.testing.assert_close(ours.log_predictive_density(), lpd, rtol=1e-6, atol=1e-6)
+
+
+def test_the_model_is_unchanged_and_bad_groups_are_refused():
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+    set_hypers(model)
+    before = model.predict_forces(c).mean.clone()
+    hyp = {k: v.detach().clone() for k, v in model.hypers.state_dict().items()}
+    model.cross_validate(torch.arange(20) // 4)
+    torch.testing.assert_close(model.predict_forces(c).mean, before)
+    for k, v in model.hypers.state_dict().items():
+        torch.testing.assert_close(v, hyp[k])
+    with pytest.raises(ValueError, match="groups must have one label per training sample"):
+        model.cross_validate(torch.arange(19))
+    with pytest.raises(ValueError, match="at least 2 distinct labels"):
+        model.cross_validate(torch.zeros(20))
+    with pytest.raises(ValueError, match="NaN"):
+        model.cross_validate(torch.full((20,), float("nan")))
