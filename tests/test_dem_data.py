@@ -246,6 +246,11 @@ def test_dem_validation_experiment_runs_small(tmp_path, monkeypatch):
     # the generic x LS row is the README's recipe: its leave-one-beta-out figures, to the printed digits
     np.testing.assert_allclose(res["beta"]["generic x LS scales"]["rmse_origin"], [0.0166, 0.0173], atol=6e-5)
     assert res["beta"]["I-RFT"]["pred_origin"].shape == (54, 2)
+    # the row whose mean is chosen per axis by grouped cross-validation: each axis is one of the two fits'
+    for split in res:
+        r = res[split]
+        cv, zero, phys = (r[n]["pred_origin"] for n in (mod.CV, "I-RFT", "I-RFT + physics mean"))
+        assert np.all((cv == zero) | (cv == phys)), split
     # the 55th run is named where it is left out (the data README: beta 45, gamma 9 stays above 1 cm)
     assert "left out: beta 45, gamma 9 (deepest 0.61 cm)" in text
     # the learned surface: within a cm of the README's effective surface (1.8 cm below the top grain) after
