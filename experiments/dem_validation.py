@@ -25,7 +25,10 @@ direction (LOGO, 9 folds), everything is fitted on the other runs only:
   * I-RFT, learned surface: zero mean, the free surface learned with the maps (``gp.surface``: one
     offset for the bed per fold, started at the best of a grid), on every tau-th sample, tau the
     training runs' median force-residual autocorrelation time; its prediction of a held-out run
-    uses the recipe on the forces it predicts at its learned surface.
+    uses the recipe on the forces it predicts at its learned surface;
+  * I-RFT, mean per axis by grouped CV: per axis, the zero-mean or the physics-mean fit, whichever
+    predicts the training runs' stresses better with each training tilt (LOBO) or direction (LOGO)
+    left out in turn (``model.cross_validate``, no refit): the choice made on the training runs alone.
 
 The force noise of I-RFT is white; the DEM's is not (force chains: slow, run-long fluctuations), so
 the sampling stride sets how much one run's stress is trusted. ``--stride auto`` (default) picks it per

@@ -26,6 +26,10 @@ are predicted by:
                  default physical hyperparameter priors, MAP; a second row with the paper's plain
                  likelihood, priors=None; zero prior mean,
                  the paper's; ``--physics-mean`` adds the generic-shape mean as a second row)
+  I-RFT, priors per axis by grouped CV
+                 per axis, the physical-priors or the plain fit, whichever predicts the training runs
+                 better with each training slip level left out in turn (``model.cross_validate``,
+                 no refit; 2026-11-25: smooth 1.60 / 1.65 N, meets the bar; grouser 2.10 / 2.72 N)
   generic x LS   the generic Li et al. map with one least-squares scale per axis (fit on training)
   others' RFT    the data authors' RFT prediction for that run (from the files; nothing fitted)
   trivial        the training runs' mean force

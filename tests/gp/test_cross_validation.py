@@ -43,7 +43,7 @@ def test_leave_one_out_matches_the_closed_form(method, prior):
     set_hypers(model)
     groups = torch.arange(len(f))
     ours = model.cross_validate(groups, include_noise=True)
-    mean, var = dense_loo(model, c, f, groups)
+    mean, var = dense_loo(model, c.with_surface_offset(torch.tensor(-0.004)), f, groups)
     tol = TOL[method]
     torch.testing.assert_close(ours.mean, mean, rtol=tol * 10, atol=tol * 10)
     torch.testing.assert_close(ours.variance, var, rtol=tol * 10, atol=tol * 10)
@@ -89,3 +89,19 @@ def test_the_model_is_unchanged_and_bad_groups_are_refused():
         model.cross_validate(torch.zeros(20))
     with pytest.raises(ValueError, match="NaN"):
         model.cross_validate(torch.full((20,), float("nan")))
+
+
+def test_a_learned_surface_is_cross_validated_at_its_offset():
+    from .test_surface import TRUTH, plates
+
+    c = plates()
+    f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
+    model = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None)
+    set_hypers(model)
+    with torch.no_grad():
+        model.surface.offset.fill_(-0.4)  # cm
+    groups = torch.arange(len(f)) // 60  # the three plates
+    ours = model.cross_validate(groups, include_noise=True)
+    mean, var = dense_loo(model, c.with_surface_offset(torch.tensor(-0.004)), f, groups)
+    torch.testing.assert_close(ours.mean, mean, rtol=1e-7, atol=1e-7)
+    torch.testing.assert_close(ours.variance, var, rtol=1e-7, atol=1e-7)
