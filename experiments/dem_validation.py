@@ -255,9 +255,9 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
     scaled = {t: generic.scaled(*generic_scales(shape, np.array([d.target[t] for d in train])).tolist())
               for t in TARGETS}
     if a.run_effect:  # the run effect lives in the backend class; cross-validation would drop it
-        choice, cv_rmse, cv_lpd = np.zeros(2, dtype=int), None, None
+        choice, cv_rmse, cv_force = np.zeros(2, dtype=int), None, None
     else:
-        choice, cv_rmse, cv_lpd = mean_by_cross_validation(models, train, parts, split)
+        choice, cv_rmse, cv_force = mean_by_cross_validation(models, train, parts, split)
     for d in test:
         b, gm = torch.tensor([d.angles[0]]), torch.tensor([d.angles[1]])
         c_eval, f_eval = d.contacts(off, a.eval_stride)
@@ -294,7 +294,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
                       for rz, rp in zip(out[IRFT[0]][t], out[IRFT[1]][t])]
     forces[CV] = [np.where(choice == 1, p, z) for z, p in zip(forces[IRFT[0]], forces[IRFT[1]])]
     return out, {"offset": off, "learned": (offs[LEARNED], off_std[LEARNED], stride_l), "stride": stride,
-                 "models": models, "forces": forces, "cv": (choice, cv_rmse, cv_lpd)}
+                 "models": models, "forces": forces, "cv": (choice, cv_rmse, cv_force)}
 
 
 def score(data: list[RunData], folds: list[tuple[float, list[int]]], preds: dict, force_err: dict) -> dict:

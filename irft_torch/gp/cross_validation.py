@@ -12,6 +12,12 @@ marginal likelihood is known to mislead when every candidate is misspecified.
 
 Cost: one backend per group (``make_backend`` on the other groups' samples, same method), then one
 posterior per held-out group.
+
+The hyperparameters were fitted with every group, the held-out one included, so the estimate is
+optimistic, and more so for a model whose hyperparameters are free to follow the data (the plain
+likelihood, ``priors=None``) than for one held by priors: when the choice between such models is
+close, refit each model without the group before trusting it (docs/experiments.md shows both on
+measured data).
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ class GroupPredictions:
         forces: (T, 2) the measured training forces in N.
         groups: (T,) int64 index of each sample's group into ``labels``.
         labels: the distinct group labels, in the order of their index.
+        noise: (T, 2) each sample's own noise variance in N^2 (the learned noise x its ``noise_scale``^2).
+        include_noise: whether ``variance`` already holds ``noise``.
     """
 
     mean: Tensor
@@ -47,6 +55,8 @@ class GroupPredictions:
     forces: Tensor
     groups: Tensor
     labels: list
+    noise: Tensor
+    include_noise: bool
 
     @property
     def residual(self) -> Tensor:
@@ -58,9 +68,11 @@ class GroupPredictions:
         return self.residual.pow(2).mean(0).sqrt()
 
     def log_predictive_density(self) -> Tensor:
-        """(2,) mean over samples of log N(F | mean, variance), per axis (marginal per sample; make the
-        predictions with ``include_noise=True`` for a density of the measurements)."""
-        v = self.variance.clamp_min(1e-300)
+        """(2,) mean over samples of the log density of each measured force under its held-out
+        prediction, per axis: log N(F | mean, variance + noise), noise included whether or not
+        ``variance`` holds it (a measurement is scored, not the noise-free force). Marginal per sample."""
+        v = self.variance if self.include_noise else self.variance + self.noise
+        v = v.clamp_min(torch.finfo(v.dtype).tiny)
         return (-0.5 * (self.residual.pow(2) / v + v.log() + math.log(2 * math.pi))).mean(0)
 
 
@@ -102,10 +114,14 @@ def cross_validate(model, groups, include_noise: bool = False) -> GroupPredictio
             held = index == g
             keep = ~held
             backend = make_backend(model.method, model.hypers, c[keep], f[keep], solver=model.solver, tol=model.tol)
+            if type(backend) is not type(model.backend):
+                raise TypeError(f"cross_validate rebuilds the backend by its name ({model.method!r}); the model's "
+                                f"{type(model.backend).__name__} is not that class and would be replaced")
             ask = held & rows  # samples with no segment in contact have force exactly 0, variance 0
             if ask.any():
                 post = backend.posterior(c[ask], variance=True)
                 mean[ask], var[ask] = post.mean.T, post.variance.T
-        if include_noise:
-            var = var + model.hypers.noise.detach()
-    return GroupPredictions(mean * s, var * s.pow(2), f * s, index, labels)
+        noise = model.hypers.noise.detach() * s.pow(2)  # (T, 2) N^2, measured units
+    var = var * s.pow(2)
+    return GroupPredictions(mean * s, var + noise if include_noise else var, f * s, index, labels, noise,
+                            include_noise)

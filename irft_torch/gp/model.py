@@ -669,8 +669,9 @@ class InverseRFT(nn.Module):
     def cross_validate(self, groups, include_noise: bool = False):
         """Each group of training samples (a run, a trial, a tilt) predicted from the other groups at the
         fitted hyperparameters, without refitting (``gp.cross_validation``): compare models on the
-        training data alone. ``groups``: (T,) one label per training sample. Returns
-        ``GroupPredictions``: ``.mean``, ``.variance`` (T, 2) in N and N^2, ``.rmse()`` (2,) N."""
+        training data alone. ``groups``: (T,) one label per training sample; ``include_noise``: add each
+        sample's own noise to ``.variance`` (predict a measurement). Returns ``GroupPredictions``:
+        ``.mean``, ``.variance`` (T, 2) in N and N^2, ``.rmse()`` (2,) N, ``.log_predictive_density()``."""
         from .cross_validation import cross_validate
 
         return cross_validate(self, groups, include_noise=include_noise)

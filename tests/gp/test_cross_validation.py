@@ -71,18 +71,59 @@ def test_leave_one_group_out_matches_the_closed_form_with_noise_scales(method):
     torch.testing.assert_close(ours.rmse(), rmse, rtol=tol, atol=tol)
     lpd = torch.distributions.Normal(mean, var.sqrt()).log_prob(f).mean(0)
     torch.testing.assert_close(ours.log_predictive_density(), lpd, rtol=1e-6, atol=1e-6)
+    # a measurement is scored with its noise either way (sample 0 touches nothing: variance 0 without it)
+    assert (bare.variance[0] == 0).all()
+    torch.testing.assert_close(bare.log_predictive_density(), lpd, rtol=1e-6, atol=1e-6)
 
 
-def test_the_model_is_unchanged_and_bad_groups_are_refused():
+@pytest.mark.parametrize("method", BACKENDS)
+def test_tied_noise_float32_and_data_added_in_parts(method):
+    c, f = data(T=24, repeated=True)
+    scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(5))
+    model = irft.InverseRFT(c[:10], f[:10], method=method, priors=None, tied_noise=True, prior_mean="physics",
+                            noise_scale=scale[:10])
+    model.add_data(c[10:17], f[10:17], noise_scale=scale[10:17])
+    model.add_data(c[17:], f[17:], noise_scale=scale[17:])
+    set_hypers(model)
+    model.hypers.noise = torch.tensor([0.05, 0.05])
+    groups = torch.arange(len(f)) // 6  # groups spanning the parts
+    mean, var = dense_loo(model, c, f, groups, noise_scale=scale)
+    ours = model.cross_validate(groups, include_noise=True)
+    tol = TOL[method] * 10
+    torch.testing.assert_close(ours.mean, mean, rtol=tol, atol=tol)
+    torch.testing.assert_close(ours.variance, var, rtol=tol, atol=tol)
+    single = irft.InverseRFT(c.to(dtype=torch.float32), f.float(), method=method, priors=None, dtype=torch.float32)
+    set_hypers(single)
+    mean, var = dense_loo(single, c, f, groups)
+    ours = single.cross_validate(groups, include_noise=True)
+    assert ours.mean.dtype == torch.float32
+    torch.testing.assert_close(ours.mean.double(), mean, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(ours.variance.double(), var, rtol=1e-3, atol=1e-4)
+    assert torch.isfinite(single.cross_validate(groups).log_predictive_density()).all()
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_the_model_is_unchanged(method):
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method=method, priors=None)
+    model.fit(n_iter=5, progress=False)
+    backend = model.backend
+    before = model.predict_forces(c)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    modes = [m.training for m in model.modules()]
+    model.cross_validate(torch.arange(20) // 4)
+    assert model.backend is backend
+    assert [m.training for m in model.modules()] == modes
+    after = model.predict_forces(c)
+    torch.testing.assert_close(after.mean, before.mean, rtol=0, atol=0)
+    torch.testing.assert_close(after.variance, before.variance, rtol=0, atol=0)
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(v, state[k], rtol=0, atol=0)
+
+
+def test_bad_groups_are_refused():
     c, f = data(T=20)
     model = irft.InverseRFT(c, f, method="pairs", priors=None)
-    set_hypers(model)
-    before = model.predict_forces(c).mean.clone()
-    hyp = {k: v.detach().clone() for k, v in model.hypers.state_dict().items()}
-    model.cross_validate(torch.arange(20) // 4)
-    torch.testing.assert_close(model.predict_forces(c).mean, before)
-    for k, v in model.hypers.state_dict().items():
-        torch.testing.assert_close(v, hyp[k])
     with pytest.raises(ValueError, match="groups must have one label per training sample"):
         model.cross_validate(torch.arange(19))
     with pytest.raises(ValueError, match="at least 2 distinct labels"):
@@ -105,3 +146,15 @@ def test_a_learned_surface_is_cross_validated_at_its_offset():
     mean, var = dense_loo(model, c.with_surface_offset(torch.tensor(-0.004)), f, groups)
     torch.testing.assert_close(ours.mean, mean, rtol=1e-7, atol=1e-7)
     torch.testing.assert_close(ours.variance, var, rtol=1e-7, atol=1e-7)
+
+
+def test_a_custom_backend_class_is_not_silently_replaced():
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+
+    class Mine(type(model.backend)):
+        pass
+
+    model.backend.__class__ = Mine
+    with pytest.raises(TypeError, match="Mine"):
+        model.cross_validate(torch.arange(20) // 4)
