@@ -39,13 +39,15 @@ RMSE [N] over all held-out runs, per axis (longitudinal F_x, vertical F_z). Then
 question: with the map learned without that slip, the sinkage at which the wheel carries the
 measured load (F_z(s) = measured F_z), and the drawbar F_x there, against the measured ones.
 
-Measured (default settings, ~15 s; 2026-11-23): RMSE F_x / F_z [N], smooth wheel: I-RFT (default
-physical priors) 1.45 / 2.23, plain likelihood 1.65 / 1.66, generic x LS 5.16 / 14.99, others' RFT
-4.84 / 10.75, trivial 15.22 / 2.18; grousered wheel: I-RFT 2.29 / 2.61, plain 2.10 / 2.74, generic x LS
-4.81 / 11.13, others' RFT 6.11 / 11.26, trivial 16.28 / 2.46, grouser faces as plates 1.28 / 3.94. The
-issue's bar (I-RFT below all three baselines in both axes, both wheels) is met for the smooth wheel by
-the plain likelihood only; the vertical force of the grousered wheel (and of the smooth one with the
-default priors) stays behind the trivial mean (the rig holds the load near 18-28 N) by 0.05-0.28 N.
+Measured (default settings; 2026-11-23, ~15 s before the nested-CV row, ~110 s with it): RMSE F_x / F_z
+[N], smooth wheel: I-RFT (default physical priors) 1.45 / 2.23, plain likelihood 1.65 / 1.66, generic x
+LS 5.16 / 14.99, others' RFT 4.84 / 10.75, trivial 15.22 / 2.18; grousered wheel: I-RFT 2.29 / 2.61,
+plain 2.10 / 2.74, generic x LS 4.81 / 11.13, others' RFT 6.11 / 11.26, trivial 16.28 / 2.46, grouser
+faces as plates 1.28 / 3.94. The issue's bar (I-RFT below all three baselines in both axes, both wheels)
+is met for the smooth wheel by the plain likelihood, and by the priors chosen per axis by nested cross-
+validation on the training runs (2026-11-25: 1.60 / 1.88; grouser 2.33 / 2.67); the vertical force of the
+grousered wheel (and of the smooth one with the default priors) stays behind the trivial mean (the rig
+holds the load near 18-28 N) by 0.05-0.28 N.
 What is left is held-out slip +0.90 (sinkage 42 mm, beyond every training run at positive slip:
 slip-sinkage by excavation, which no quasi-static map at the measured sinkage has; the others' RFT is
 11 N high there too) and -0.20. Checked and not the cause: Adam steps (300: worse, the type-II
