@@ -160,21 +160,6 @@ def load_sinkage(smap, profile, run, K: int, s_grid: np.ndarray) -> tuple[float,
     return s_star, float(force_vs_sinkage(smap, profile, run, K, [s_star])[0, 0]), *peak
 
 
-def inner_refit_rmse(c_all: list, F: torch.Tensor, group: np.ndarray, train: np.ndarray, args) -> np.ndarray:
-    """(2, 2) RMSE [N] per candidate (physical priors, plain likelihood) and axis of the training runs, each
-    training slip level predicted by that candidate refitted on the other training levels."""
-    err = np.zeros((2, len(train), 2))
-    for h in np.unique(group[train]):
-        inner = train[group[train] != h]
-        out = np.nonzero(group[train] == h)[0]
-        c_in, c_out = Contacts.cat([c_all[i] for i in inner]), Contacts.cat([c_all[train[i]] for i in out])
-        for k, priors in enumerate(("physical", None)):
-            m = fit_irft(c_in, F[inner], "zero", args, priors)
-            with torch.no_grad():
-                err[k, out] = (m.predict_forces(c_out).mean - F[train[out]]).numpy()
-    return np.sqrt((err**2).mean(1))
-
-
 def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     runs = wd.read_wheel_runs(data, wheel)
     profile, K = contact_profile(data, wheel, args.contact_surface)
@@ -233,7 +218,8 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         # likelihood, whose hyperparameters follow the left-out runs. The two maps are independent GPs (noise
         # not tied), so each axis's prediction comes from the chosen fit.
         rmse_fixed = np.stack([fitted[k].cross_validate(group[train]).rmse().numpy() for k in ("zero", "plain")])
-        rmse_cv = inner_refit_rmse(c_all, F, group, train, args)
+        rmse_cv = np.stack([fitted[k].cross_validate(group[train], refit=True, n_iter=args.n_iter, lr=args.lr)
+                            .rmse().numpy() for k in ("zero", "plain")])
         choice = rmse_cv.argmin(0)
         cv_choice.append((choice, rmse_cv, rmse_fixed.argmin(0)))
         for a in range(2):

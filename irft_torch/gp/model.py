@@ -666,15 +666,18 @@ class InverseRFT(nn.Module):
             var = var + self.hypers.noise * scale.pow(2)
         return Posterior(mean.T.reshape(*lead, 2), var)
 
-    def cross_validate(self, groups, include_noise: bool = False):
+    def cross_validate(self, groups, include_noise: bool = False, refit: bool = False, n_iter: int = 300,
+                       lr: float = 0.05):
         """Each group of training samples (a run, a trial, a tilt) predicted from the other groups at the
         fitted hyperparameters, without refitting (``gp.cross_validation``): compare models on the
         training data alone. ``groups``: (T,) one label per training sample; ``include_noise``: add each
-        sample's own noise to ``.variance`` (predict a measurement). Returns ``GroupPredictions``:
-        ``.mean``, ``.variance`` (T, 2) in N and N^2, ``.rmse()`` (2,) N, ``.log_predictive_density()``."""
+        sample's own noise to ``.variance`` (predict a measurement); ``refit``: fit a model like this one on
+        the other groups for each group instead (``n_iter``, ``lr``: as this model's fit), unbiased, G fits.
+        Returns ``GroupPredictions``: ``.mean``, ``.variance`` (T, 2) in N and N^2, ``.rmse()`` (2,) N,
+        ``.log_predictive_density()``."""
         from .cross_validation import cross_validate
 
-        return cross_validate(self, groups, include_noise=include_noise)
+        return cross_validate(self, groups, include_noise=include_noise, refit=refit, n_iter=n_iter, lr=lr)
 
     # ---- persistence -----------------------------------------------------------------------------
     def _measured(self) -> tuple[Contacts, Tensor]:

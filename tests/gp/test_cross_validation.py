@@ -158,3 +158,34 @@ def test_a_custom_backend_class_is_not_silently_replaced():
     model.backend.__class__ = Mine
     with pytest.raises(TypeError, match="Mine"):
         model.cross_validate(torch.arange(20) // 4)
+
+
+@pytest.mark.parametrize("method", ["pairs", "spectral"])
+def test_refit_is_a_model_fitted_without_each_group(method):
+    c, f = data(T=24, repeated=True)
+    scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(6))
+    kw = dict(prior_mean="physics", method=method, noise_scale=scale, lengthscale=0.8)
+    model = irft.InverseRFT(c, f, **kw)
+    model.fit(n_iter=20, lr=0.1, progress=False)
+    groups = torch.arange(len(f)) // 8
+    ours = model.cross_validate(groups, refit=True, n_iter=20, lr=0.1)
+    for g in range(3):
+        held = groups == g
+        alone = irft.InverseRFT(c[~held], f[~held], **{**kw, "noise_scale": scale[~held]})
+        alone.fit(n_iter=20, lr=0.1, progress=False)
+        post = alone.predict_forces(c[held])
+        torch.testing.assert_close(ours.mean[held], post.mean, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(ours.variance[held], post.variance, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(ours.noise[held], alone.hypers.noise.detach() * scale[held] ** 2)
+    # the hyperparameters differ from the model's: refit is not the fixed-hyperparameter answer
+    fixed = model.cross_validate(groups)
+    assert (fixed.mean - ours.mean).abs().max() > 1e-6
+
+
+def test_refit_with_a_learned_surface_is_refused():
+    from .test_surface import TRUTH, plates
+
+    c = plates()
+    model = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs")
+    with pytest.raises(NotImplementedError, match="learned surface"):
+        model.cross_validate(torch.arange(len(c)) // 60, refit=True)
