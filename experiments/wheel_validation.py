@@ -279,6 +279,9 @@ def plot_forces(res: dict, wheel: str, out: Path) -> None:
             hi.append((m[k] + 2 * s[k]).mean())
         ax.fill_between(xs, lo, hi, color="tab:blue", alpha=0.25, label="I-RFT held out, +- 2 sd (incl. noise)")
         ax.plot(xs, mid, color="tab:blue", lw=2, label="I-RFT held out (mean)")
+        p = res["pred"][CV].numpy()[:, a]  # the training-only choice of priors per axis
+        ax.plot(xs, [p[lev == v].mean() for v in sorted(set(lev))], color="tab:cyan", lw=1.5, ls="--",
+                label="I-RFT held out, priors per axis by nested CV (mean)")
         if RIM_ROW in res["pred"]:  # the ablation: grouser faces as plates
             p = res["pred"][RIM_ROW].numpy()[:, a]
             ax.plot(slip[order], p[order], color="tab:purple", marker="d", ls="--", ms=4, lw=1,
