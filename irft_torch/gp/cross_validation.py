@@ -147,9 +147,7 @@ def _refit(model, groups, include_noise: bool, n_iter: int, lr: float) -> GroupP
     for g in range(len(labels)):
         held = index == g
         keep = ~held
-        m = type(model)(c[keep], f[keep], prior_mean=model.prior_mean_kind, tied_noise=model.hypers.tied,
-                        dtype=model.dtype, solver=model.solver, lengthscale=model.init_lengthscale,
-                        method=model._method_arg, tol=model.tol, noise_scale=s[keep], priors=model.priors)
+        m = type(model)(c[keep], f[keep], method=model._method_arg, noise_scale=s[keep], **model._options())
         m.fit(n_iter=n_iter, lr=lr, progress=False)
         with torch.no_grad():
             post = m.predict_forces(c[held])

@@ -680,6 +680,13 @@ class InverseRFT(nn.Module):
         return cross_validate(self, groups, include_noise=include_noise, refit=refit, n_iter=n_iter, lr=lr)
 
     # ---- persistence -----------------------------------------------------------------------------
+    def _options(self) -> dict:
+        """The constructor options that shape the model, beyond its data, backend and surface: what a
+        model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
+        return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
+                "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
+                "priors": self.priors}
+
     def _measured(self) -> tuple[Contacts, Tensor]:
         """The training data as measured (the whitening undone)."""
         c, f, s = self._join()

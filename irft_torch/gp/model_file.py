@@ -53,10 +53,8 @@ def save_model(model, path) -> None:
         "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
         "forces": forces.detach().cpu(),
         "noise_scale": model.noise_scale.cpu(),
-        "options": {"prior_mean": model.prior_mean_kind, "tied_noise": model.hypers.tied,
-                    "lengthscale": model.init_lengthscale, "method": model.method, "tol": model.tol,
-                    "solver": model.solver, "dtype": str(model.dtype).replace("torch.", ""),
-                    "priors": model.priors, "auto": bool(model.auto)},
+        "options": {**model._options(), "method": model.method, "dtype": str(model.dtype).replace("torch.", ""),
+                    "auto": bool(model.auto)},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
         # the training data's fingerprint as the model holds it: the loaded copy's data equal these to the last
