@@ -64,7 +64,8 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefa
 TARGETS = {"origin": "through the origin (README)", "intercept": "slope with an intercept"}
 LEARNED = "I-RFT, learned surface"
 CV = "I-RFT, mean per axis by grouped CV"
-IRFT = ("I-RFT", "I-RFT + physics mean", LEARNED, CV)
+FITTED = ("I-RFT", "I-RFT + physics mean", LEARNED)  # each its own fit; the CV row takes each axis from one of
+IRFT = FITTED + (CV,)                                # the first two
 DEFAULT = "I-RFT"
 BASELINES = ("generic x LS scales", "generic x LS scales, fit to forces", "plain GP on run stresses")
 SPLITS = {"beta": "leave-one-beta-out", "gamma": "leave-one-gamma-out"}
@@ -267,7 +268,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
         w_top = torch.stack([c_top.weight_x.sum(-1), c_top.weight_z.sum(-1)], -1)
         for t in TARGETS:
             with torch.no_grad():
-                for n in IRFT[:3]:
+                for n in FITTED:
                     m = models[n]
                     fn = d.functional(t, offs[n])  # the recipe on forces predicted at the model's surface
                     p = m.predict_forces(fn)
@@ -283,7 +284,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
                 out[BASELINES[2]][t].append((post.mean[0].detach().numpy(),
                                              (post.variance[0] + plains[t].hypers.noise).detach().numpy()))
         with torch.no_grad():
-            for n in IRFT[:3]:
+            for n in FITTED:
                 c_n, f_n = d.contacts(offs[n], a.eval_stride) if offs[n] != off else (c_eval, f_eval)
                 forces[n].append((models[n].predict_forces(c_n).mean - f_n).numpy())
             forces[BASELINES[0]].append((irft.rft.forces(scaled["origin"], c_top) - f_eval).numpy())
