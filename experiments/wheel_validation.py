@@ -39,7 +39,7 @@ RMSE [N] over all held-out runs, per axis (longitudinal F_x, vertical F_z). Then
 question: with the map learned without that slip, the sinkage at which the wheel carries the
 measured load (F_z(s) = measured F_z), and the drawbar F_x there, against the measured ones.
 
-Measured (default settings; 2026-11-23, ~15 s before the nested-CV row, ~110 s with it): RMSE F_x / F_z
+Measured (default settings; 2026-11-23, ~15 s before the nested-CV row, ~110-125 s with it): RMSE F_x / F_z
 [N], smooth wheel: I-RFT (default physical priors) 1.45 / 2.23, plain likelihood 1.65 / 1.66, generic x
 LS 5.16 / 14.99, others' RFT 4.84 / 10.75, trivial 15.22 / 2.18; grousered wheel: I-RFT 2.29 / 2.61,
 plain 2.10 / 2.74, generic x LS 4.81 / 11.13, others' RFT 6.11 / 11.26, trivial 16.28 / 2.46, grouser
@@ -50,7 +50,9 @@ grousered wheel (and of the smooth one with the default priors) stays behind the
 holds the load near 18-28 N) by 0.05-0.28 N.
 What is left is held-out slip +0.90 (sinkage 42 mm, beyond every training run at positive slip:
 slip-sinkage by excavation, which no quasi-static map at the measured sinkage has; the others' RFT is
-11 N high there too) and -0.20. Checked and not the cause: Adam steps (300: worse, the type-II
+11 N high there too) and -0.20. The report's section "Within reach of a quasi-static map?" puts numbers
+on it: slip +0.90's contacts lie within 3 degrees (beta, gamma) of slip +0.75's, yet 10 mm deeper it
+carries 0.88x the load, where the generic map (lift >= 0 at every leading segment) gives 1.36x. Checked and not the cause: Adam steps (300: worse, the type-II
 likelihood overfits 24 runs), lr, the spectral tolerance (1e-8: unchanged), 12 or 24 poses, each
 default prior widened in turn (outputscale sd a factor 10: grouser F_z 2.71, smooth 1.80; lengthscale
 sd 10: 2.67 / 2.18; noise sd 10: 2.62 / 2.21), the physics mean, contact "submerged" (worse, and the
@@ -160,6 +162,64 @@ def load_sinkage(smap, profile, run, K: int, s_grid: np.ndarray) -> tuple[float,
     return s_star, float(force_vs_sinkage(smap, profile, run, K, [s_star])[0, 0]), *peak
 
 
+def _wrapped(a: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(torch.sin(a), torch.cos(a))
+
+
+def angle_gap(c_all, group: np.ndarray) -> list[float]:
+    """Per group g (0..G-1), the weight_z-weighted mean distance [deg] in (beta, gamma), both wrapped to
+    (-180, 180], from each segment of the group's runs to the nearest segment of the other groups' runs:
+    how far a fit without that group must carry its maps. ``c_all``: one Contacts per run."""
+    flat = [(c.beta.reshape(-1), c.gamma.reshape(-1), c.weight_z.reshape(-1)) for c in c_all]
+    gaps = []
+    for g in range(int(group.max()) + 1):
+        bt, gt, wt = (torch.cat([flat[i][j] for i in np.nonzero(group == g)[0]]) for j in range(3))
+        br, gr = (torch.cat([flat[i][j] for i in np.nonzero(group != g)[0]]) for j in range(2))
+        d = torch.hypot(_wrapped(bt[:, None] - br), _wrapped(gt[:, None] - gr)).min(1).values
+        gaps.append(math.degrees(float((d * wt).sum() / wt.sum())))
+    return gaps
+
+
+def depth_law_check(runs, c_all, F, group, levels, args) -> dict:
+    """Can any quasi-static map reach the highest slip level's load from the next level's? Three numbers.
+
+    - ``dist`` (L,) deg: per slip level, the |weight_z|-weighted mean distance in (beta, gamma) from its
+      segments to the nearest segment of the other levels: how far leaving that level out extrapolates in
+      the maps' inputs.
+    - the highest slip level against the next one down: measured sinkage [m] and mean lift [N] of each, and
+      the generic map's lift at unit scale at each run's contacts (``generic_ratio``: top / next). Its lift is
+      non-negative at every leading segment, so at nearly the same angles a deeper wheel carries more.
+    - I-RFT (default settings) fitted on every run, held-out nothing: its lift error at the top level [N] and
+      the lift there from segments where its posterior mean alpha_z < 0 (``negative_lift``, N, of ``lift``).
+    """
+    slip = np.array([r.slip for r in runs])
+    sink = np.array([r.sinkage for r in runs])
+    dist = angle_gap(c_all, group)
+    mean_slip = np.array([slip[group == g].mean() for g in range(len(levels))])
+    top, nxt = np.argsort(mean_slip)[-1], np.argsort(mean_slip)[-2]
+    generic = FourierStressMap.generic()
+    lift = {g: float(torch.stack([irft.rft.forces(generic, c_all[i])[0, 1] for i in np.nonzero(group == g)[0]])
+                     .mean()) for g in (top, nxt)}
+    model = fit_irft(Contacts.cat(c_all), F, "zero", args)
+    k = np.nonzero(group == top)[0]
+    with torch.no_grad():
+        err = float((model.predict_forces(Contacts.cat([c_all[i] for i in k])).mean[:, 1] - F[k, 1]).mean())
+        neg, tot = [], []
+        for i in k:
+            c = c_all[i]
+            a = model.stress_map(c.beta.reshape(-1), c.gamma.reshape(-1)).mean[..., 1]
+            f = c.weight_z.reshape(-1) * a
+            neg.append(float(f[a < 0].sum()))
+            tot.append(float(f.sum()))
+    info = {}
+    for name, g in (("top", top), ("next", nxt)):
+        m = group == g
+        info[name] = dict(slip=float(mean_slip[g]), sinkage=float(sink[m].mean()), lift=float(F[m, 1].mean()))
+    return dict(dist=dist, slip=mean_slip.tolist(), generic_ratio=lift[top] / lift[nxt],
+                measured_ratio=info["top"]["lift"] / info["next"]["lift"], levels=info, in_sample_error=err,
+                negative_lift=float(np.mean(neg)), lift=float(np.mean(tot)))
+
+
 def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     runs = wd.read_wheel_runs(data, wheel)
     profile, K = contact_profile(data, wheel, args.contact_surface)
@@ -242,6 +302,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         pred["trivial (training mean)"][test] = F[train].mean(0)
         print(f"  {wheel}: held-out slip level {g + 1}/{len(levels)} done", flush=True)
     pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
+    depth_law = depth_law_check(runs, c_all, F, group, levels, args)
     rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
     inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
     inside_plain = ((pred[PLAIN] - F).abs() <= 1.96 * std[PLAIN]).double().mean(0).tolist()
@@ -250,6 +311,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     return dict(runs=runs, F=F, pred=pred, std=std, rmse=rmse, coverage=inside, coverage_plain=inside_plain,
                 coverages=coverage, nll={k: float(np.mean(v)) for k, v in nll.items()}, levels=levels, group=group,
                 cv_choice=cv_choice,
+                depth_law=depth_law,
                 surface="convex hull" if args.contact_surface == "envelope" else "rim as meshed",
                 sink=sink, drawbar=drawbar,
                 peak=peak, s_max=float(s_grid[-1]),
@@ -421,6 +483,20 @@ def report(results: dict, args, elapsed: float) -> str:
                          f"at a median {1000 * np.median(pk[:, 0]):.0f} mm and {np.median(pk[:, 1]):.1f} N")
     lines += ["", "Lift vs sinkage under each held-out map (a quasi-static map's lift should grow with sinkage): "
               + "; ".join(peaks) + "."]
+    lines += ["", "## Within reach of a quasi-static map? (the highest slip level against the next)", ""]
+    for w, r in results.items():
+        d = r["depth_law"]
+        t, n = d["levels"]["top"], d["levels"]["next"]
+        lines.append(
+            f"- {w}: held out, each level's segments lie on average "
+            + ", ".join(f"{sl:+.2f}: {x:.1f}" for sl, x in zip(d["slip"], d["dist"]))
+            + " deg (beta, gamma) from the nearest training segment. "
+            f"Slip {t['slip']:+.2f} against {n['slip']:+.2f}: sinkage {1000 * t['sinkage']:.0f} vs "
+            f"{1000 * n['sinkage']:.0f} mm, measured lift {t['lift']:.1f} vs {n['lift']:.1f} N (ratio "
+            f"{d['measured_ratio']:.2f}); the generic map, whose lift is >= 0 at every leading segment, gives a "
+            f"ratio of {d['generic_ratio']:.2f} at the same contacts. I-RFT fitted on every run (nothing held out) "
+            f"misses slip {t['slip']:+.2f}'s lift by {d['in_sample_error']:+.2f} N, with {d['negative_lift']:+.1f} N "
+            f"of its {d['lift']:.1f} N from segments where its alpha_z < 0 (sand pulling the wheel down).")
     lines += ["", "Per slip level (I-RFT; mean over trials): slip, measured sinkage, predicted sinkage [mm], "
               "measured and "
               "predicted drawbar [N]:", ""]

@@ -72,3 +72,24 @@ def test_traveler_validation_runs(tmp_path):
     text = (tmp_path / "traveler_validation.md").read_text()
     assert "| (F_x, -F_z) |" in text and "| down (gamma +pi/2) |" in text and "| up (gamma -pi/2) |" in text
     assert (tmp_path / "traveler_forces.png").exists()
+
+
+def test_angle_gap_by_hand_wraps_and_weights():
+    """Two groups of hand-made contacts: distances known by hand, across the +-180 degree seam."""
+    from irft_torch.rft import Contacts
+
+    gap = _script("wheel_validation").angle_gap
+    d = math.radians
+
+    def run(betas, gammas, weights):
+        b, g, w = (torch.tensor([x], dtype=torch.float64) for x in (betas, gammas, weights))
+        return Contacts(b, g, -w, w)
+
+    c = [run([d(179.0), d(0.0)], [d(10.0), d(0.0)], [1.0, 3.0]),  # group 0
+         run([d(-179.0)], [d(10.0)], [2.0]),  # group 1: 2 deg from the first segment across the seam
+         run([d(3.0)], [d(4.0)], [5.0])]  # group 1: 5 deg from (0, 0)
+    got = gap(c, np.array([0, 1, 1]))
+    # group 0: segment (179, 10) is 2 deg from (-179, 10); (0, 0) is 5 deg from (3, 4); weights 1 and 3
+    assert got[0] == pytest.approx((1 * 2.0 + 3 * 5.0) / 4)
+    # group 1: (-179, 10) -> (179, 10) 2 deg (weight 2); (3, 4) -> (0, 0) 5 deg (weight 5)
+    assert got[1] == pytest.approx((2 * 2.0 + 5 * 5.0) / 7)
