@@ -51,8 +51,9 @@ holds the load near 18-28 N) by 0.05-0.28 N.
 What is left is held-out slip +0.90 (sinkage 42 mm, beyond every training run at positive slip:
 slip-sinkage by excavation, which no quasi-static map at the measured sinkage has; the others' RFT is
 11 N high there too) and -0.20. The report's section "Within reach of a quasi-static map?" puts numbers
-on it: slip +0.90's contacts lie within 3 degrees (beta, gamma) of slip +0.75's, yet 10 mm deeper it
-carries 0.88x the load, where the generic map (lift >= 0 at every leading segment) gives 1.36x. Checked and not the cause: Adam steps (300: worse, the type-II
+on it: slip +0.90's contacts lie on average 3 degrees (beta, gamma) from the training runs', yet 10 mm
+deeper than slip +0.75 it carries 0.88x its load, where the generic map (lift >= 0 at every leading
+segment) gives 1.36x. Checked and not the cause: Adam steps (300: worse, the type-II
 likelihood overfits 24 runs), lr, the spectral tolerance (1e-8: unchanged), 12 or 24 poses, each
 default prior widened in turn (outputscale sd a factor 10: grouser F_z 2.71, smooth 1.80; lengthscale
 sd 10: 2.67 / 2.18; noise sd 10: 2.62 / 2.21), the physics mean, contact "submerged" (worse, and the
