@@ -316,7 +316,8 @@ def score(data: list[RunData], folds: list[tuple[float, list[int]]], preds: dict
             else:
                 r[f"cover_{t}"] = None
             r[f"pred_{t}"], r[f"var_{t}"] = P, (None if flat[0][1] is None else V)
-        fe = np.concatenate([e for fold in force_err[n] for e in fold])
+        r["force_runs"] = [e for fold in force_err[n] for e in fold]  # per held-out run (T_i, 2) N
+        fe = np.concatenate(r["force_runs"])
         r["force"] = np.sqrt((fe**2).mean(0))
         res[n] = r
     return res
@@ -516,6 +517,19 @@ def paired_bootstrap(err_a: np.ndarray, err_b: np.ndarray, n: int = 2000, seed: 
     return np.quantile(d, [0.025, 0.975], axis=0)
 
 
+def paired_bootstrap_runs(runs_a: list, runs_b: list, n: int = 2000, seed: int = 0) -> np.ndarray:
+    """95 % interval (2, 2) of the pooled force RMSE(a) - RMSE(b) per axis, [N]: held-out runs resampled
+    with replacement, each with all its samples (``runs_a[i]``, ``runs_b[i]``: the same run's (T_i, 2)
+    errors under each model), so the samples of one run move together."""
+    ss = lambda runs: np.stack([(e**2).sum(0) for e in runs])  # noqa: E731 (R, 2)
+    count = np.array([len(e) for e in runs_a], dtype=float)
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(runs_a), (n, len(runs_a)))
+    tot = count[idx].sum(1)[:, None]
+    d = np.sqrt(ss(runs_a)[idx].sum(1) / tot) - np.sqrt(ss(runs_b)[idx].sum(1) / tot)  # (n, 2)
+    return np.quantile(d, [0.025, 0.975], axis=0)
+
+
 def bars(res: dict, target: np.ndarray, model: str = DEFAULT) -> list[str]:
     """Issue #14's bars for an I-RFT row (the default), in words; ``target`` (N, 2) the held-out runs' origin
     stresses."""
@@ -530,10 +544,12 @@ def bars(res: dict, target: np.ndarray, model: str = DEFAULT) -> list[str]:
               for k, ax in enumerate(stress)]
         ok = (r["rmse_origin"] < b["rmse_origin"]).all() and (r["force"] < b["force"]).all()
         ci = paired_bootstrap(r["pred_origin"] - target, b["pred_origin"] - target)
+        cf = paired_bootstrap_runs(r["force_runs"], b["force_runs"])
         out.append(f"- {model} vs {n}: origin stresses {', '.join(wins)}; forces {', '.join(fw)} N: "
                    f"**{'beats it' if ok else 'does not beat it everywhere'}**. RMSE difference, 95 % paired "
                    f"bootstrap over the held-out runs: x [{ci[0, 0]:+.4f}, {ci[1, 0]:+.4f}], "
-                   f"z [{ci[0, 1]:+.4f}, {ci[1, 1]:+.4f}] N/cm^3.")
+                   f"z [{ci[0, 1]:+.4f}, {ci[1, 1]:+.4f}] N/cm^3; forces (runs resampled whole) x "
+                   f"[{cf[0, 0]:+.3f}, {cf[1, 0]:+.3f}], z [{cf[0, 1]:+.3f}, {cf[1, 1]:+.3f}] N.")
     c = r["cover_origin"]
     ok = ((c >= 0.85) & (c <= 0.99)).all()
     out.append(f"- {model}: 95 % coverage of held-out runs (origin target): {100 * c[0]:.0f} % (x), "

@@ -309,3 +309,21 @@ def test_run_contacts_keep_signed_depths_so_the_surface_can_move():
     torch.testing.assert_close(moved.weight_x, c1.weight_x, rtol=1e-12, atol=1e-12)
     # the weights are relu(depth) x area of the plate's 10 strips (3.81 / 10 x 2.54 cm^2)
     torch.testing.assert_close(c0.area_z, torch.full_like(c0.area_z, 3.81 / 10 * 2.54))
+
+
+def test_force_bootstrap_resamples_whole_runs_by_hand():
+    """Two held-out runs, errors 1 N (1 sample) and 3 N (3 samples), against a perfect model: a resample is
+    (1, 1) -> 1 N, (3, 3) -> 3 N, or mixed -> sqrt((1 + 27) / 4) N pooled, with chances 1/4, 1/4, 1/2; the 95 %
+    interval of RMSE(perfect) - RMSE(b) is then [-3, -1] N. Resampling samples one by one would not give it."""
+    import importlib.util
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "dem_validation.py"
+    spec = importlib.util.spec_from_file_location("dem_validation_bs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    b = [np.ones((1, 2)), 3 * np.ones((3, 2))]
+    a = [np.zeros((1, 2)), np.zeros((3, 2))]
+    ci = mod.paired_bootstrap_runs(a, b, n=4000)
+    np.testing.assert_allclose(ci, [[-3.0, -3.0], [-1.0, -1.0]])
+    same = mod.paired_bootstrap_runs(b, b)
+    np.testing.assert_allclose(same, 0.0)
