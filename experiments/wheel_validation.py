@@ -80,6 +80,7 @@ import torch
 import irft_torch as irft
 from irft_torch import wheel_data as wd
 from irft_torch.rft import Contacts, FourierStressMap
+from irft_torch.rft.stress_maps import wrap_beta
 from irft_torch.rft.wheel import average_rows, envelope_profile, wheel_contacts, wheel_kinematics
 
 PREDICTORS = ("I-RFT", "generic x LS scale", "others' RFT (files)", "trivial (training mean)")
@@ -163,32 +164,32 @@ def load_sinkage(smap, profile, run, K: int, s_grid: np.ndarray) -> tuple[float,
     return s_star, float(force_vs_sinkage(smap, profile, run, K, [s_star])[0, 0]), *peak
 
 
-def _wrapped(a: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(a), torch.cos(a))
-
-
 def angle_gap(c_all, group: np.ndarray) -> list[float]:
-    """Per group g (0..G-1), the weight_z-weighted mean distance [deg] in (beta, gamma), both wrapped to
-    (-180, 180], from each segment of the group's runs to the nearest segment of the other groups' runs:
-    how far a fit without that group must carry its maps. ``c_all``: one Contacts per run."""
+    """Per group g (0..G-1), the weight_z-weighted mean distance [deg] in (beta, gamma) from each segment
+    of the group's runs to the nearest segment of the other groups' runs: how far a fit without that group
+    must carry its maps. Distances in the maps' own angle space: beta with period pi (``wrap_beta``: a
+    segment turned by pi is the same segment, as in the kernel's embedding), gamma with period 2 pi.
+    ``c_all``: one Contacts per run."""
     flat = [(c.beta.reshape(-1), c.gamma.reshape(-1), c.weight_z.reshape(-1)) for c in c_all]
     gaps = []
     for g in range(int(group.max()) + 1):
         bt, gt, wt = (torch.cat([flat[i][j] for i in np.nonzero(group == g)[0]]) for j in range(3))
         br, gr = (torch.cat([flat[i][j] for i in np.nonzero(group != g)[0]]) for j in range(2))
-        d = torch.hypot(_wrapped(bt[:, None] - br), _wrapped(gt[:, None] - gr)).min(1).values
+        dg = torch.remainder(gt[:, None] - gr + math.pi, 2 * math.pi) - math.pi
+        d = torch.hypot(wrap_beta(bt[:, None] - br), dg).min(1).values
         gaps.append(math.degrees(float((d * wt).sum() / wt.sum())))
     return gaps
 
 
-def depth_law_check(runs, c_all, F, group, levels, args) -> dict:
+def depth_law_check(runs, c_all, F, G, group, args) -> dict:
     """Can any quasi-static map reach the highest slip level's load from the next level's? Three numbers.
 
     - ``dist`` (L,) deg: per slip level, the |weight_z|-weighted mean distance in (beta, gamma) from its
       segments to the nearest segment of the other levels: how far leaving that level out extrapolates in
       the maps' inputs.
     - the highest slip level against the next one down: measured sinkage [m] and mean lift [N] of each, and
-      the generic map's lift at unit scale at each run's contacts (``generic_ratio``: top / next). Its lift is
+      the generic map's lift at unit scale at each run's contacts (``G`` (n, 2) N, one row per run;
+      ``generic_ratio``: top / next). Its lift is
       non-negative at every leading segment, so at nearly the same angles a deeper wheel carries more.
     - I-RFT (default settings) fitted on every run, held-out nothing: its lift error at the top level [N] and
       the lift there from segments where its posterior mean alpha_z < 0 (``negative_lift``, N, of ``lift``).
@@ -196,11 +197,9 @@ def depth_law_check(runs, c_all, F, group, levels, args) -> dict:
     slip = np.array([r.slip for r in runs])
     sink = np.array([r.sinkage for r in runs])
     dist = angle_gap(c_all, group)
-    mean_slip = np.array([slip[group == g].mean() for g in range(len(levels))])
+    mean_slip = np.array([slip[group == g].mean() for g in range(int(group.max()) + 1)])
     top, nxt = np.argsort(mean_slip)[-1], np.argsort(mean_slip)[-2]
-    generic = FourierStressMap.generic()
-    lift = {g: float(torch.stack([irft.rft.forces(generic, c_all[i])[0, 1] for i in np.nonzero(group == g)[0]])
-                     .mean()) for g in (top, nxt)}
+    lift = {g: float(G[group == g, 1].mean()) for g in (top, nxt)}
     model = fit_irft(Contacts.cat(c_all), F, "zero", args)
     k = np.nonzero(group == top)[0]
     with torch.no_grad():
@@ -303,7 +302,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         pred["trivial (training mean)"][test] = F[train].mean(0)
         print(f"  {wheel}: held-out slip level {g + 1}/{len(levels)} done", flush=True)
     pred["others' RFT (files)"] = torch.tensor([r.rft_force for r in runs], dtype=torch.float64)
-    depth_law = depth_law_check(runs, c_all, F, group, levels, args)
+    depth_law = depth_law_check(runs, c_all, F, G, group, args)
     rmse = {k: (v - F).pow(2).mean(0).sqrt().tolist() for k, v in pred.items()}
     inside = ((pred["I-RFT"] - F).abs() <= 1.96 * std["I-RFT"]).double().mean(0).tolist()
     inside_plain = ((pred[PLAIN] - F).abs() <= 1.96 * std[PLAIN]).double().mean(0).tolist()

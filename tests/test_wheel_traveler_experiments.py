@@ -93,3 +93,6 @@ def test_angle_gap_by_hand_wraps_and_weights():
     assert got[0] == pytest.approx((1 * 2.0 + 3 * 5.0) / 4)
     # group 1: (-179, 10) -> (179, 10) 2 deg (weight 2); (3, 4) -> (0, 0) 5 deg (weight 5)
     assert got[1] == pytest.approx((2 * 2.0 + 5 * 5.0) / 7)
+    # beta has period pi (a segment turned by pi is the same segment): 89 and -89 deg are 2 deg apart
+    got = gap([run([d(89.0)], [d(0.0)], [1.0]), run([d(-89.0)], [d(0.0)], [1.0])], np.array([0, 1]))
+    assert got == pytest.approx([2.0, 2.0])
