@@ -508,21 +508,13 @@ def cv_choices(split: str, info: list, refit: bool = False) -> str:
             + "; ".join(words) + ".")
 
 
-def paired_bootstrap(err_a: np.ndarray, err_b: np.ndarray, n: int = 2000, seed: int = 0) -> np.ndarray:
-    """95 % interval (2, 2) of RMSE(a) - RMSE(b) per axis, held-out runs resampled with replacement
-    (errors (N, 2) of the same runs): how much of a difference the choice of runs alone could make."""
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(err_a), (n, len(err_a)))
-    d = np.sqrt((err_a[idx] ** 2).mean(1)) - np.sqrt((err_b[idx] ** 2).mean(1))  # (n, 2)
-    return np.quantile(d, [0.025, 0.975], axis=0)
-
-
-def paired_bootstrap_runs(runs_a: list, runs_b: list, n: int = 2000, seed: int = 0) -> np.ndarray:
-    """95 % interval (2, 2) of the pooled force RMSE(a) - RMSE(b) per axis, [N]: held-out runs resampled
-    with replacement, each with all its samples (``runs_a[i]``, ``runs_b[i]``: the same run's (T_i, 2)
-    errors under each model), so the samples of one run move together."""
-    ss = lambda runs: np.stack([(e**2).sum(0) for e in runs])  # noqa: E731 (R, 2)
-    count = np.array([len(e) for e in runs_a], dtype=float)
+def paired_bootstrap(runs_a, runs_b, n: int = 2000, seed: int = 0) -> np.ndarray:
+    """95 % interval (2, 2) of RMSE(a) - RMSE(b) per axis, the held-out runs resampled with replacement:
+    how much of a difference the choice of runs alone could make. ``runs_a[i]``, ``runs_b[i]``: the same
+    run's errors under each model, (2,) (one value per run: its stress) or (T_i, 2) (its force samples,
+    which move together: the RMSE pools the samples of the runs drawn)."""
+    ss = lambda runs: np.stack([(np.atleast_2d(e) ** 2).sum(0) for e in runs])  # noqa: E731 (R, 2)
+    count = np.array([len(np.atleast_2d(e)) for e in runs_a], dtype=float)
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(runs_a), (n, len(runs_a)))
     tot = count[idx].sum(1)[:, None]
@@ -544,7 +536,7 @@ def bars(res: dict, target: np.ndarray, model: str = DEFAULT) -> list[str]:
               for k, ax in enumerate(stress)]
         ok = (r["rmse_origin"] < b["rmse_origin"]).all() and (r["force"] < b["force"]).all()
         ci = paired_bootstrap(r["pred_origin"] - target, b["pred_origin"] - target)
-        cf = paired_bootstrap_runs(r["force_runs"], b["force_runs"])
+        cf = paired_bootstrap(r["force_runs"], b["force_runs"])
         out.append(f"- {model} vs {n}: origin stresses {', '.join(wins)}; forces {', '.join(fw)} N: "
                    f"**{'beats it' if ok else 'does not beat it everywhere'}**. RMSE difference, 95 % paired "
                    f"bootstrap over the held-out runs: x [{ci[0, 0]:+.4f}, {ci[1, 0]:+.4f}], "

@@ -323,7 +323,7 @@ def test_force_bootstrap_resamples_whole_runs_by_hand():
     spec.loader.exec_module(mod)
     b = [np.ones((1, 2)), 3 * np.ones((3, 2))]
     a = [np.zeros((1, 2)), np.zeros((3, 2))]
-    ci = mod.paired_bootstrap_runs(a, b, n=4000)
+    ci = mod.paired_bootstrap(a, b, n=4000)
     np.testing.assert_allclose(ci, [[-3.0, -3.0], [-1.0, -1.0]])
-    same = mod.paired_bootstrap_runs(b, b)
+    same = mod.paired_bootstrap(b, b)
     np.testing.assert_allclose(same, 0.0)
