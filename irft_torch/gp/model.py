@@ -21,17 +21,25 @@ from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
 from .hyperparameters import RFTHyperparameters
+from .mixture import mixture_moments, mixture_quantile
 from .model_file import ModelFileError, digest, load_model, save_model
+from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .priors import PRIORS, prior_centres, register_physical_priors
 
 __all__ = ["Posterior", "InverseRFT"]
 
 @dataclass
 class Posterior:
-    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z)."""
+    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z).
+
+    Averaged over hyperparameter draws (``InverseRFT(..., hyper_posterior="laplace")``) each marginal is a
+    Gaussian mixture: ``mean`` and ``variance`` are its mean and total variance, ``components`` holds the
+    draws' own means and variances (S, ..., 2) and their weights (S,), and ``interval`` inverts the mixture's
+    CDF (``gp.mixture``)."""
 
     mean: Tensor
     variance: Tensor
+    components: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def stddev(self) -> Tensor:
@@ -41,8 +49,21 @@ class Posterior:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
         if not 0 < level < 1:
             raise ValueError(f"level must be in (0, 1), got {level}")
+        if self.components is not None:
+            means, variances, weights = self.components
+            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
+                    mixture_quantile(0.5 + level / 2, means, variances, weights))
         z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
         return self.mean - z * self.stddev, self.mean + z * self.stddev
+
+    @classmethod
+    def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
+        """The mixture over draws: ``means``, ``variances`` (S, ..., 2), ``weights`` (S,); one draw is a
+        plain Gaussian posterior (the same numbers, no components)."""
+        if means.shape[0] == 1:
+            return cls(means[0], variances[0])
+        mean, var = mixture_moments(means, variances, weights)
+        return cls(mean, var, (means, variances, weights))
 
 
 def _as_forces(forces, T: int, dtype, device) -> Tensor:
@@ -108,6 +129,30 @@ def _psd_root(cov: Tensor) -> Tensor:
             return L
     lam, V = torch.linalg.eigh(cov)
     return V * lam.clamp_min(0).sqrt()[..., None, :]
+
+
+def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance: str) -> tuple[Tensor, Tensor]:
+    """Mean and variance (2, N) of the forces of contacts (N, M) from one backend; rows with no segment
+    in contact (``rows`` False) have force exactly 0, mean and variance."""
+    N = flat.shape[0]
+    mean = flat.beta.new_zeros(2, N)
+    var = flat.beta.new_zeros(2, N)
+    if rows.any():
+        sub = flat[rows]
+        post = backend.posterior(sub, variance=(variance == "exact"))
+        v_sub = post.variance
+        if variance == "independent":
+            act = (sub.weight_x != 0) | (sub.weight_z != 0)
+            b, g = sub.beta[act], sub.gamma[act]
+            ones = torch.ones_like(b)[:, None]
+            seg_var = backend.posterior(Contacts(b[:, None], g[:, None], ones, ones)).variance
+            w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
+            per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
+            per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
+            v_sub = per_seg.sum(-1)
+        mean = mean.masked_scatter(rows.expand(2, N), post.mean)
+        var = var.masked_scatter(rows.expand(2, N), v_sub)
+    return mean, var
 
 
 def _check_units(c: Contacts, f: Tensor) -> None:
@@ -210,6 +255,11 @@ class InverseRFT(nn.Module):
             the map's variance from the medium's scale, lengthscales that keep what the data cannot
             see at a documented extrapolation, noise from the force spread), fitted by MAP; None: the
             paper's plain marginal likelihood (``irft reproduce`` reports both).
+        hyper_posterior: "map" (predict at the fitted hyperparameters, a plug-in) or "laplace" /
+            "nuts": after ``fit``, a posterior over the hyperparameters (``gp.hyper_posterior``: Laplace
+            at the mode with importance reweighting, or pyro's NUTS), and every prediction
+            (``stress_map``, ``predict_forces``, ``sample_maps``, the mean map) is the mixture over its
+            draws; ``model.hyper_posterior`` holds the draws, weights, ESS and Pareto k-hat.
 
     Example:
         >>> model = InverseRFT(contacts, forces)
@@ -222,7 +272,7 @@ class InverseRFT(nn.Module):
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None, priors: str | None = "physical") -> None:
+                 surface_groups=None, priors: str | None = "physical", hyper_posterior: str = "laplace") -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -241,6 +291,11 @@ class InverseRFT(nn.Module):
                              f"got {method!r}")
         if priors not in PRIORS:
             raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
+        if hyper_posterior not in HYPER_POSTERIORS:
+            raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
+        if hyper_posterior != "map" and (surface_offset or surface_groups is not None):
+            raise NotImplementedError("hyper_posterior with a learned surface offset: the offset has its own Laplace "
+                                      "std (model.surface_offset); use hyper_posterior='map' with surface_offset")
         if solver not in ("cholesky", "gpytorch"):
             raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
         if grid_size is not None or exact_max_segments is not None:
@@ -271,6 +326,9 @@ class InverseRFT(nn.Module):
         self._method_arg = method
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
         self.priors = priors
+        self.hyper_method = hyper_posterior
+        self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
+        self._draw_backends: list[RFTBackend] | None = None
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
@@ -505,7 +563,69 @@ class InverseRFT(nn.Module):
             bar.close()
             self.eval()
         self.loss_history.extend(history)
+        if self.hyper_method != "map":
+            self.fit_hyper_posterior()
+        else:
+            self._set_hyper_posterior(None)
         return history
+
+    def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
+                            generator: torch.Generator | None = None, **options) -> HyperPosterior | None:
+        """Fit the posterior over the hyperparameters at the current (fitted) ones; ``fit`` calls it when the
+        model was built with ``hyper_posterior`` "laplace" or "nuts". Predictions are then mixtures over its
+        draws.
+
+        Args:
+            method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
+            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
+            n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
+                plug-in's); None keeps every weighted proposal.
+            generator: a ``torch.Generator`` for reproducible draws.
+            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``newton_steps``, ``df``) or
+                ``nuts`` (``n_samples``, ``warmup``, ``num_chains``, ``seed``).
+        Returns:
+            the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map".
+        """
+        method = self.hyper_method if method is None else method
+        if method not in HYPER_POSTERIORS:
+            raise ValueError(f"method must be one of {HYPER_POSTERIORS}, got {method!r}")
+        if self.surface is not None and method != "map":
+            raise NotImplementedError("a hyperparameter posterior with a learned surface offset is not supported")
+        if method == "map":
+            self._set_hyper_posterior(None)
+            return None
+        self.train()
+        try:
+            if method == "laplace":
+                hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
+            else:
+                hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+        finally:
+            self.eval()
+        self._set_hyper_posterior(hp)
+        return hp
+
+    def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
+        """Keep ``hp`` and build one backend per draw (sharing nothing with ``self.backend`` but the data)."""
+        self.hyper_posterior = hp
+        if hp is None:
+            self._draw_backends = None
+            return
+        spec = hyper_spec(self.hypers)
+        if list(hp.labels) != spec.labels:
+            raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
+        self._draw_backends = [
+            make_backend(self.method, draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)),
+                         self.train_contacts, self.train_forces, solver=self.solver, tol=self.tol,
+                         statistics=self._statistics) for th in hp.theta]
+        for b in self._draw_backends:
+            b.eval()
+
+    def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
+        """The backends predictions average over and their weights (None: the one plug-in backend)."""
+        if self._draw_backends is None:
+            return [self.backend], None
+        return self._draw_backends, self.hyper_posterior.weights.to(self._device, self.dtype)
 
     def _adapt(self) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
@@ -548,6 +668,21 @@ class InverseRFT(nn.Module):
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
         self.backend.add_data(c, f)
+        if self._draw_backends is not None:
+            # each draw's weight times the new samples' likelihood given the old ones at that draw,
+            # p(F_new | F_old, theta_s) = p(F_all | theta_s) / p(F_old | theta_s): the same importance
+            # weights a fit on all the data would give these draws (the draws themselves stay)
+            log_lik = []
+            for b in self._draw_backends:
+                with torch.no_grad():
+                    before = -b.negative_log_likelihood().sum() * b.n_samples
+                    b.add_data(c, f)
+                    log_lik.append(-b.negative_log_likelihood().sum() * b.n_samples - before)
+            hp = self.hyper_posterior
+            logw = hp.weights.log().to(self._device, self.dtype) + torch.stack(log_lik)
+            w = (logw - logw.max()).exp()
+            hp.weights = (w / w.sum()).to(hp.weights)
+            hp.extra["draws_ess"] = float(1 / hp.weights.pow(2).sum())  # how far the data moved them
         self._statistics = None  # no longer of all the data
         self._n_pairs = None
         self._parts.append((c, f, scale))
@@ -568,8 +703,12 @@ class InverseRFT(nn.Module):
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         self.eval()
-        post = self.backend.posterior(Contacts.points(beta, gamma))
-        return Posterior(post.mean.T.reshape(*S, 2), post.variance.T.reshape(*S, 2))
+        c = Contacts.points(beta, gamma)
+        backends, weights = self._weighted_backends()
+        posts = [b.posterior(c) for b in backends]
+        means = torch.stack([p.mean.T.reshape(*S, 2) for p in posts])
+        variances = torch.stack([p.variance.T.reshape(*S, 2) for p in posts])
+        return Posterior.mixture(means, variances, weights)
 
     def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None) -> Tensor:
         """Maps drawn from the joint posterior at angles of any broadcast shape S (rad): (n, *S, 2) in
@@ -586,18 +725,34 @@ class InverseRFT(nn.Module):
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         c = Contacts.points(beta, gamma)
+        N = c.beta.shape[0]
+        if N > 4096 and self.backend.posterior_root(c) is None:
+            raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
+                             "sample at most 4096 points at a time, or fit with method='spectral'")
         self.eval()
+        backends, weights = self._weighted_backends()
         with torch.no_grad():
-            root = self.backend.posterior_root(c)
-            N = c.beta.shape[0]
-            if root is None and N > 4096:
-                raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
-                                 "sample at most 4096 points at a time, or fit with method='spectral'")
-            post = self.backend.posterior(c, variance=False, covariance=root is None)
-            if root is None:
-                root = _psd_root(post.covariance)  # (2, N, N)
-            eps = torch.randn(2, root.shape[-1], int(n), generator=generator, dtype=root.dtype, device=root.device)
-            draws = post.mean[..., None] + root @ eps  # (2, N, n)
+            if weights is None:
+                counts = [int(n)]
+            else:  # how many maps each hyperparameter draw supplies
+                pick = torch.multinomial(weights.double().cpu(), int(n), replacement=True, generator=
+                                         generator if generator is None or generator.device.type == "cpu" else None)
+                counts = torch.bincount(pick, minlength=len(backends)).tolist()
+            out = []
+            for b, k in zip(backends, counts):
+                if k == 0:
+                    continue
+                root = b.posterior_root(c)
+                post = b.posterior(c, variance=False, covariance=root is None)
+                if root is None:
+                    root = _psd_root(post.covariance)  # (2, N, N)
+                eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
+                out.append(post.mean[..., None] + root @ eps)  # (2, N, k)
+            draws = torch.cat(out, -1)
+            if len(out) > 1:  # interleave the draws' maps (each draw's block is otherwise contiguous)
+                perm = torch.randperm(int(n), generator=generator if generator is None or
+                                      generator.device == draws.device else None, device=draws.device)
+                draws = draws[..., perm]
         return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
@@ -605,8 +760,12 @@ class InverseRFT(nn.Module):
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
-        post = self.backend.posterior(Contacts.points(beta, gamma), variance=False)
-        return post.mean.T.reshape(*S, 2)
+        c = Contacts.points(beta, gamma)
+        backends, weights = self._weighted_backends()
+        if weights is None:
+            return self.backend.posterior(c, variance=False).mean.T.reshape(*S, 2)
+        mean = sum(w * b.posterior(c, variance=False).mean for b, w in zip(backends, weights))
+        return mean.T.reshape(*S, 2)
 
     def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False,
                        noise_scale=None) -> Posterior:
@@ -638,33 +797,23 @@ class InverseRFT(nn.Module):
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
         rows = touching(flat)
-        N = flat.shape[0]
-        mean = flat.beta.new_zeros(2, N)
-        var = flat.beta.new_zeros(2, N)
-        if rows.any():
-            sub = flat[rows]
-            post = self.backend.posterior(sub, variance=(variance == "exact"))
-            v_sub = post.variance
-            if variance == "independent":
-                act = (sub.weight_x != 0) | (sub.weight_z != 0)
-                b, g = sub.beta[act], sub.gamma[act]
-                ones = torch.ones_like(b)[:, None]
-                seg_var = self.backend.posterior(Contacts(b[:, None], g[:, None], ones, ones)).variance
-                w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
-                per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
-                per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
-                v_sub = per_seg.sum(-1)
-            mean = mean.masked_scatter(rows.expand(2, N), post.mean)
-            var = var.masked_scatter(rows.expand(2, N), v_sub)
-        var = var.T.reshape(*lead, 2)
         if noise_scale is not None and not include_noise:
             raise ValueError("noise_scale only applies with include_noise=True (it scales the measurement noise "
                              "added to the prediction)")
+        scale = None
         if include_noise:
-            scale = torch.ones((), dtype=var.dtype, device=var.device) if noise_scale is None else \
-                _noise_scale(noise_scale, lead, var.dtype, var.device)
-            var = var + self.hypers.noise * scale.pow(2)
-        return Posterior(mean.T.reshape(*lead, 2), var)
+            scale = torch.ones((), dtype=c.beta.dtype, device=c.beta.device) if noise_scale is None else \
+                _noise_scale(noise_scale, lead, c.beta.dtype, c.beta.device)
+        backends, weights = self._weighted_backends()
+        means, variances = [], []
+        for backend in backends:
+            mean, var = _force_posterior(backend, flat, rows, variance)
+            var = var.T.reshape(*lead, 2)
+            if include_noise:
+                var = var + backend.hypers.noise * scale.pow(2)
+            means.append(mean.T.reshape(*lead, 2))
+            variances.append(var)
+        return Posterior.mixture(torch.stack(means), torch.stack(variances), weights)
 
     def cross_validate(self, groups, include_noise: bool = False, refit: bool = False, n_iter: int = 300,
                        lr: float = 0.05):
@@ -685,7 +834,7 @@ class InverseRFT(nn.Module):
         model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
         return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
                 "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
-                "priors": self.priors}
+                "priors": self.priors, "hyper_posterior": self.hyper_method}
 
     def _measured(self) -> tuple[Contacts, Tensor]:
         """The training data as measured (the whitening undone)."""

@@ -61,6 +61,8 @@ def save_model(model, path) -> None:
         # bit only without a noise_scale (whitening by it and undoing it rounds), so the copy takes this one
         "data_digest": model.state_dict()["data_digest"].cpu(),
     }
+    if model.hyper_posterior is not None:  # the hyperparameter draws and weights predictions average over
+        payload["hyper_posterior"] = model.hyper_posterior.state()
     if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
         payload["options"]["surface_offset"] = True
         payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
@@ -103,6 +105,10 @@ def load_model(cls, path, map_location=None):
         with torch.no_grad():
             model.surface.offset.copy_(payload["surface_offset"].to(model.surface.offset))
         model._rebuild_backend()
+    if "hyper_posterior" in payload:
+        from .hyper_posterior import HyperPosterior
+
+        model._set_hyper_posterior(HyperPosterior.from_state(payload["hyper_posterior"]))
     model.loss_history = list(payload.get("loss_history", []))
     if "data_digest" in payload:  # the saved model's fingerprint (files before it: recomputed from the data)
         model.data_digest.copy_(payload["data_digest"].to(model.data_digest))

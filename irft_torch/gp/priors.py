@@ -8,7 +8,13 @@ plain marginal likelihood.
 Each prior is a normal density on log(value / centre), i.e. a log-normal prior on the value with
 MAP taken in log space (no Jacobian term, so the mode is the centre):
 
-- **outputscale** sigma_c^2 of map c: centre (zeta * rms_c)^2. Li et al. (Science 2013, Fig. 2 and
+- **outputscale** sigma_c^2 of map c: centre max(zeta rms_c, s_c, 0.5 rms_c max_c' s_c' / rms_c')^2, s_c the
+  data's own stress-per-depth scale of axis c (rms force over rms summed weight), log-sd ln 2 (sigma
+  within a factor 2 at two standard deviations). The calibration harness (``studies.calibration``,
+  issue 30) showed why the generic term alone is not enough: a medium whose map does not project on
+  the generic shape (a smooth random map, coefficients of other signs) gets zeta ~ 0, the old narrow
+  prior (a factor 1.5) pinned the map's variance near zero, and its intervals held the truth on 40 %
+  of the square. The rest of this paragraph explains the generic term, centre (zeta * rms_c)^2. Li et al. (Science 2013, Fig. 2 and
   the supplement's Table S2) found that the stress-per-depth maps of the granular media they
   measured share one generic shape and differ mainly by one scale factor zeta per medium; the
   media used in public code span about an order of magnitude (plastic pellets 0.11, poppy seeds
@@ -64,7 +70,8 @@ PRIORS = ("physical", None)
 GENERIC_RMS = (0.2088, 0.3805)  # rms of the generic Li et al. map over the square, (x, z), per unit zeta
 LENGTHSCALE_CENTRE = 1.5
 LENGTHSCALE_LOG_SD = 1.5
-OUTPUTSCALE_LOG_SD = math.log(1.5)  # of sigma^2: sigma within a factor 1.5 at two standard deviations
+OUTPUTSCALE_LOG_SD = math.log(2.0)  # of sigma^2: sigma within a factor 2 at two standard deviations
+JOINT_FRACTION = 0.5  # an axis' centre is at least this share of what the other axis' data scale implies
 NOISE_RELATIVE = 1e-2
 NOISE_LOG_SD = math.log(10.0)
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
@@ -80,14 +87,38 @@ def medium_scale(contacts: Contacts, forces: Tensor) -> float:
     return max(float((forces * g).sum()) / den, 0.0) if den > 0 else 0.0
 
 
+def residual_scale(contacts: Contacts, forces: Tensor) -> Tensor:
+    """(2,) N/cm^3: per axis, the rms of the forces less the generic shape's at its least-squares scale
+    (>= 0), over the rms summed weight: the size of what a physics mean leaves to the GP."""
+    a = FourierStressMap.generic().to(contacts.beta.dtype)(contacts.beta, contacts.gamma)
+    g = torch.stack([(contacts.weight_x * a[..., 0]).sum(-1), (contacts.weight_z * a[..., 1]).sum(-1)], -1)
+    s = ((forces * g).sum(0) / g.pow(2).sum(0).clamp_min(1e-300)).clamp_min(0)
+    r = forces - s * g
+    w = torch.stack([contacts.weight_x.abs().sum(-1), contacts.weight_z.abs().sum(-1)], -1)
+    return r.pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt().clamp_min(1e-300)
+
+
 def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics_mean: bool = False) -> dict:
     """The centres (physical units) of the three priors for these (whitened) data: outputscale (2,)
     in (N/cm^3)^2, lengthscale (dimensionless), noise (2,) in N^2."""
     rms = torch.tensor(GENERIC_RMS, dtype=forces.dtype, device=forces.device)
+    ms = map_scale.to(rms)
     # a fallback where the forces do not project on the generic shape: the data's own map scale
-    fallback = float((map_scale.to(rms) / rms).max())
+    fallback = float((ms / rms).max())
     zeta = max(medium_scale(contacts, forces), 0.1 * fallback)
-    sigma = zeta * rms * (PHYSICS_MEAN_RESIDUAL if physics_mean else 1.0)
+    if physics_mean:
+        # the residual's size: a fraction of the medium's map (generic-like media), or what the forces
+        # leave after the generic shape at its least-squares scale per axis (media of other shapes)
+        resid = residual_scale(contacts, forces)
+        sigma = torch.maximum(torch.maximum(zeta * rms * PHYSICS_MEAN_RESIDUAL, resid),
+                              JOINT_FRACTION * float((resid / rms).max()) * rms)
+    else:
+        # the largest of three estimates of each map's size: the generic shape at the medium's zeta (right
+        # for generic-like media, and for an axis the forces barely see), the axis' own stress per depth
+        # (forces over weights: right for media of any shape, the data's own scale), and half of what the
+        # other axis' data scale implies at the generic proportions (an axis whose forces are small along
+        # this motion, in a medium that does not project on the generic shape)
+        sigma = torch.maximum(torch.maximum(zeta * rms, ms), JOINT_FRACTION * fallback * rms)
     return {"zeta": zeta, "outputscale": sigma.pow(2), "lengthscale": LENGTHSCALE_CENTRE,
             "noise": NOISE_RELATIVE * forces.pow(2).mean(0)}
 

@@ -65,7 +65,9 @@ def test_loss_subtracts_the_log_prior_over_T():
     a = irft.InverseRFT(c, f, method="observations", priors="physical")
     b = irft.InverseRFT(c, f, method="observations", priors=None)
     b.hypers.load_state_dict(a.hypers.state_dict())
-    cen = prior_centres(a.train_contacts, a.train_forces, torch.ones(2), False)
+    from irft_torch.gp.model import _data_scales
+
+    cen = prior_centres(a.train_contacts, a.train_forces, _data_scales(a.train_contacts, a.train_forces)[1], False)
     h = a.hypers
 
     def lognormal(v, centre, sd):
@@ -73,7 +75,7 @@ def test_loss_subtracts_the_log_prior_over_T():
         return (-0.5 * z.pow(2) - math.log(sd * math.sqrt(2 * P))).sum()
 
     with torch.no_grad():
-        logp = (lognormal(h.outputscale, cen["outputscale"], math.log(1.5))
+        logp = (lognormal(h.outputscale, cen["outputscale"], math.log(2.0))
                 + lognormal(h.lengthscale, 1.5, 1.5)
                 + lognormal(h.noise, cen["noise"], math.log(10.0)))
         diff = a.loss() - b.loss()

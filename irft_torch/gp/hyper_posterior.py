@@ -1,0 +1,486 @@
+r"""A posterior over the hyperparameters: Laplace with importance reweighting, or NUTS.
+
+A point estimate (MAP or ML-II) of the lengthscales, outputscales and noise is one plausible
+setting among many; where the forces say little about a lengthscale, predictions made at one value
+extrapolate with a confidence nothing supports. Here every positive hyperparameter is written as
+theta = log(value), and
+
+    log p(theta | F) = log p(F | theta) + log p(theta) + const,
+
+with log p(F | theta) = -T * (the backend's negative log likelihood per sample, summed over the two
+axes): gpytorch's ``ExactMarginalLogLikelihood`` (and ``RFTBackend.loss``) divides by T, which is put
+back. The physical priors (``gp.priors``) are normal densities of log(value / centre), i.e. densities
+in theta already: no change-of-variables term is needed in these coordinates (a prior stated on the
+value itself would add sum(theta)). Without priors (``priors=None``) the prior is flat in theta.
+
+- ``laplace``: the mode theta_hat (the fitted hyperparameters, polished by a few Newton steps on the
+  exact Hessian), the Gaussian N(theta_hat, H^-1) with H the Hessian of -log p(theta | F) by autograd,
+  then importance sampling: proposals from a multivariate Student-t (5 degrees of freedom) on that
+  Gaussian, weights p(theta | F) / q(theta), self-normalised. Reported: the effective sample size
+  (sum w)^2 / sum w^2 and Pareto k-hat of the largest weights (Vehtari et al., PSIS: k-hat < 0.7
+  means the weights are reliable). The draws kept for prediction are a systematic resample.
+- ``nuts``: pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install pyro-ppl``);
+  the reference and the fallback when the Laplace weights are unreliable.
+
+Predictions are then the mixture over the draws (``gp.mixture``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+__all__ = ["HyperPosterior", "HyperSpec", "hyper_spec", "log_posterior", "laplace", "nuts", "point_mass",
+           "HYPER_POSTERIORS"]
+
+HYPER_POSTERIORS = ("map", "laplace", "nuts")
+
+
+@dataclass
+class HyperSpec:
+    """Where each free hyperparameter lives: raw parameter names in ``RFTHyperparameters``, their
+    shapes, constraints (value = constraint.transform(raw)) and readable labels per coordinate."""
+
+    names: list[str]
+    shapes: list[torch.Size]
+    constraints: list
+    labels: list[str]
+
+    @property
+    def size(self) -> int:
+        return len(self.labels)
+
+    def theta(self, hypers) -> Tensor:
+        """theta = log(value) (P,) of the hyperparameters' current values."""
+        params = dict(hypers.named_parameters())
+        return torch.cat([c.transform(params[n]).detach().reshape(-1).log()
+                          for n, c in zip(self.names, self.constraints)])
+
+    def raw(self, theta: Tensor) -> dict[str, Tensor]:
+        """Raw parameters for theta (differentiable); NaN where a value is at or below its constraint's
+        lower bound (an impossible setting)."""
+        out, i = {}, 0
+        for n, s, c in zip(self.names, self.shapes, self.constraints):
+            k = s.numel()
+            value = theta[i:i + k].exp().reshape(s)
+            lower = c.lower_bound.to(value)
+            raw = c.inverse_transform(torch.where(value > lower, value, torch.full_like(value, float("nan"))))
+            out[n] = raw
+            i += k
+        return out
+
+    def load(self, hypers, theta: Tensor) -> None:
+        """Write theta into ``hypers`` (in place, no gradient)."""
+        params = dict(hypers.named_parameters())
+        with torch.no_grad():
+            for n, raw in self.raw(theta.to(params[self.names[0]])).items():
+                if not torch.isfinite(raw).all():
+                    raise ValueError(f"hyperparameter {n} at or below its lower bound")
+                params[n].copy_(raw)
+
+
+def _label(name: str, shape: torch.Size) -> list[str]:
+    base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",
+            "likelihood.noise_covar.raw_noise": "noise", "mean.raw_scales": "mean_scale"}.get(name, name)
+    n = shape.numel()
+    if base == "lengthscale":
+        dims = ("sin2b", "cos2b", "sing", "cosg")
+        return [f"lengthscale_{'xz'[i // 4]}[{dims[i % 4]}]" for i in range(n)]
+    if n == 2:
+        return [f"{base}_x", f"{base}_z"]
+    return [base] if n == 1 else [f"{base}[{i}]" for i in range(n)]
+
+
+def hyper_spec(hypers) -> HyperSpec:
+    """The free (``requires_grad``) hyperparameters of an ``RFTHyperparameters``, each positive through
+    its gpytorch constraint."""
+    names, shapes, cons, labels = [], [], [], []
+    for name, p, c in hypers.named_parameters_and_constraints():
+        if not p.requires_grad:
+            continue
+        if c is None:
+            raise ValueError(f"hyperparameter {name} has no constraint: its value is not known to be positive")
+        names.append(name)
+        shapes.append(p.shape)
+        cons.append(c)
+        labels += _label(name, p.shape)
+    return HyperSpec(names, shapes, cons, labels)
+
+
+@contextlib.contextmanager
+def _swapped(hypers, raw: dict[str, Tensor]):
+    """The hyperparameter module's raw parameters replaced by the tensors ``raw`` (name -> tensor) for the
+    duration, restored on exit whatever happens (what ``torch.func.functional_call`` does, done on the one
+    shared module so that the model, its backend and gpytorch's parts all see the swap)."""
+    saved = []
+    try:
+        for name, t in raw.items():
+            owner, _, leaf = name.rpartition(".")
+            module = hypers.get_submodule(owner) if owner else hypers
+            saved.append((module, leaf, module._parameters[leaf]))
+            module._parameters[leaf] = t
+        yield
+    finally:
+        for module, leaf, p in reversed(saved):
+            module._parameters[leaf] = p
+
+
+def log_posterior(backend, spec: HyperSpec, theta: Tensor) -> Tensor:
+    """Unnormalised log p(theta | F) at theta (P,) (differentiable): -T x the backend's negative log
+    likelihood per sample (both axes) plus the log prior; -inf where theta is impossible (a value below its
+    bound, a covariance that is not positive definite)."""
+    raw = spec.raw(theta)
+    if not all(torch.isfinite(r).all() for r in raw.values()):
+        return theta.new_tensor(-math.inf)
+    was = backend.training
+    backend.train()
+    try:
+        with _swapped(backend.hypers, raw):
+            return -(backend.negative_log_likelihood().sum() * backend.n_samples) + backend.log_prior()
+    except (torch.linalg.LinAlgError, RuntimeError) as e:  # not positive definite at an extreme draw
+        if any(k in str(e).lower() for k in ("singular", "positive", "cholesky", "linalg")):
+            return theta.new_tensor(-math.inf)
+        raise
+    finally:
+        backend.train(was)
+
+
+@dataclass
+class HyperPosterior:
+    """Draws of the hyperparameters and their weights.
+
+    Attributes:
+        method: "map" (a point mass), "laplace" or "nuts".
+        labels: the P coordinates' names (``lengthscale_x[sin2b]``, ``outputscale_z``, ``noise_x``, ...).
+        theta: (S, P) draws of log(value).
+        weights: (S,) summing to 1.
+        mode: (P,) theta at the mode (the fitted, polished hyperparameters).
+        covariance: (P, P) Laplace covariance H^-1 (None for NUTS and a point mass).
+        ess: effective sample size of the importance weights (Laplace) or the draws (NUTS).
+        khat: Pareto k-hat of the importance weights (NaN where not computed).
+        n_proposals: how many proposals were weighed.
+    """
+
+    method: str
+    labels: list[str]
+    theta: Tensor
+    weights: Tensor
+    mode: Tensor
+    covariance: Tensor | None = None
+    ess: float = float("nan")
+    khat: float = float("nan")
+    n_proposals: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_draws(self) -> int:
+        return self.theta.shape[0]
+
+    def values(self) -> dict[str, Tensor]:
+        """Each hyperparameter's draws as values (S,) (exp of theta)."""
+        return {lab: self.theta[:, i].exp() for i, lab in enumerate(self.labels)}
+
+    def summary(self) -> str:
+        """One line per hyperparameter: mode and 95 % interval of the weighted draws (values)."""
+        lines = [f"hyperparameter posterior ({self.method}): {self.n_draws} draws, ESS {self.ess:.1f} of "
+                 f"{self.n_proposals}, Pareto k-hat {self.khat:.2f}"]
+        order = self.theta.argsort(0)
+        for i, lab in enumerate(self.labels):
+            v, w = self.theta[order[:, i], i], self.weights[order[:, i]]
+            cw = w.cumsum(0)
+            lo = v[int((cw < 0.025).sum().clamp_max(len(v) - 1))].exp().item()
+            hi = v[int((cw < 0.975).sum().clamp_max(len(v) - 1))].exp().item()
+            lines.append(f"  {lab:22s} mode {self.mode[i].exp().item():.4g}   95 % [{lo:.4g}, {hi:.4g}]")
+        return "\n".join(lines)
+
+    def state(self) -> dict:
+        """Tensors and metadata for a model file."""
+        return {"method": self.method, "labels": list(self.labels), "theta": self.theta.detach().cpu(),
+                "weights": self.weights.detach().cpu(), "mode": self.mode.detach().cpu(),
+                "covariance": None if self.covariance is None else self.covariance.detach().cpu(),
+                "ess": self.ess, "khat": self.khat, "n_proposals": self.n_proposals}
+
+    @classmethod
+    def from_state(cls, d: dict) -> HyperPosterior:
+        return cls(d["method"], list(d["labels"]), d["theta"], d["weights"], d["mode"], d.get("covariance"),
+                   float(d["ess"]), float(d["khat"]), int(d["n_proposals"]))
+
+
+def point_mass(backend) -> HyperPosterior:
+    """The hyperparameters as they are, weight 1: predictions equal the plug-in (MAP) ones."""
+    spec = hyper_spec(backend.hypers)
+    th = spec.theta(backend.hypers)
+    return HyperPosterior("map", spec.labels, th[None], th.new_ones(1), th, n_proposals=1, ess=1.0)
+
+
+def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """log p, its gradient (P,) and the Hessian (P, P) of -log p at theta, by autograd."""
+    th = theta.detach().clone().requires_grad_(True)
+    lp = log_posterior(backend, spec, th)
+    (g,) = torch.autograd.grad(lp, th, create_graph=True)
+    rows = [torch.autograd.grad(g[i], th, retain_graph=True)[0] for i in range(th.numel())]
+    H = -torch.stack(rows)
+    return lp.detach(), g.detach(), 0.5 * (H + H.mT).detach()
+
+
+def _positive_definite(H: Tensor, floor: float = 1e-6) -> Tensor:
+    """H with eigenvalues below ``floor`` x the largest raised to it (a direction the posterior is flat or
+    convex in at the point gets a wide, finite Gaussian: the importance weights then correct it)."""
+    lam, V = torch.linalg.eigh(H)
+    lam = lam.clamp_min(floor * lam.abs().max().clamp_min(1e-300))
+    return (V * lam) @ V.mT
+
+
+def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The mode of log p(theta | F) from theta: L-BFGS (strong Wolfe line search, torch.optim) to a
+    gradient below 1e-6, then Newton steps on the exact Hessian while the posterior still rises. Adam's last
+    iterate is near, not at, the mode, and the Laplace Gaussian belongs at the mode."""
+    x = theta.detach().clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([x], lr=1.0, max_iter=int(max_iter), tolerance_grad=1e-6, tolerance_change=1e-12,
+                            history_size=20, line_search_fn="strong_wolfe")
+    start = log_posterior(backend, spec, x.detach())
+
+    def closure():
+        opt.zero_grad()
+        lp = log_posterior(backend, spec, x)
+        loss = -lp if torch.isfinite(lp) else x.sum() * 0 + 1e30
+        loss.backward()
+        return loss
+
+    if max_iter > 0:
+        try:
+            opt.step(closure)
+        except (torch.linalg.LinAlgError, RuntimeError):  # a line-search probe too far: keep the start
+            x = theta.detach().clone()
+    cand = x.detach()
+    with torch.no_grad():
+        lp_c = log_posterior(backend, spec, cand)
+    theta = cand if torch.isfinite(lp_c) and lp_c >= start else theta.detach()
+    lp, g, H = _hessian(backend, spec, theta)
+    for _ in range(3):  # Newton on the exact Hessian: quadratic convergence near the mode
+        if float(g.abs().max()) < 1e-6:
+            break
+        step = torch.linalg.solve(_positive_definite(H), g)
+        step = step / max(1.0, float(step.abs().max()))
+        with torch.no_grad():
+            lp_c = log_posterior(backend, spec, theta + step)
+        if not (torch.isfinite(lp_c) and lp_c > lp):
+            break
+        theta = (theta + step).detach()
+        lp, g, H = _hessian(backend, spec, theta)
+    return theta, H, lp
+
+
+def pareto_khat(log_weights: Tensor) -> float:
+    """Pareto k-hat of importance weights (Vehtari, Simpson, Gelman, Yao & Gabry, PSIS): the shape of a
+    generalized Pareto distribution fitted (scipy) to the M = min(N / 5, 3 sqrt(N)) largest weights
+    above the next one. < 0.5: fine; 0.5-0.7: usable; > 0.7: the weights' variance is unreliable."""
+    from scipy.stats import genpareto
+
+    lw = log_weights[torch.isfinite(log_weights)].double()
+    N = lw.numel()
+    M = int(min(N / 5, 3 * math.sqrt(N)))
+    if M < 5:
+        return float("nan")
+    w = (lw - lw.max()).exp().sort().values
+    tail, cut = w[-M:], w[-M - 1]
+    excess = (tail - cut).numpy()
+    if excess.max() <= 0:
+        return 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        k, _, _ = genpareto.fit(excess, floc=0)
+    return float(k)
+
+
+def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: bool = True) -> tuple[Tensor, Tensor]:
+    """n draws (n, P) of a multivariate Student-t and their log density (n,). ``qmc``: from a scrambled
+    Sobol sequence in P + 1 dimensions (normals by the inverse normal CDF, the chi-square by scipy's
+    inverse CDF): importance-sampling estimates then converge about as 1/n instead of 1/sqrt(n)."""
+    from scipy.stats import chi2
+
+    P = mean.numel()
+    L = torch.linalg.cholesky(cov)
+    if qmc:
+        seed = int(torch.randint(0, 2**31 - 1, (), generator=generator))
+        u = torch.quasirandom.SobolEngine(P + 1, scramble=True, seed=seed).draw(n, dtype=torch.float64)
+        u = u.clamp(1e-12, 1 - 1e-12)
+        z = (math.sqrt(2) * torch.special.erfinv(2 * u[:, :P] - 1)).to(mean)
+        v = torch.as_tensor(chi2.ppf(u[:, P].numpy(), df), dtype=mean.dtype, device=mean.device)
+    else:
+        z = torch.randn(n, P, generator=generator, dtype=mean.dtype, device=mean.device)
+        v = torch.randn(n, int(df), generator=generator, dtype=mean.dtype, device=mean.device).pow(2).sum(-1)
+    x = mean + (z @ L.mT) * (df / v).sqrt()[:, None]
+    d = torch.linalg.solve_triangular(L, (x - mean).mT, upper=False).pow(2).sum(0)
+    logdet = 2 * torch.log(torch.diagonal(L)).sum()
+    logq = (math.lgamma((df + P) / 2) - math.lgamma(df / 2) - 0.5 * P * math.log(df * math.pi) - 0.5 * logdet
+            - 0.5 * (df + P) * torch.log1p(d / df))
+    return x, logq
+
+
+def _systematic(weights: Tensor, n: int, generator) -> Tensor:
+    """Indices (n,) of a systematic resample of ``weights`` (low variance: each index appears
+    floor(n w) or ceil(n w) times)."""
+    u0 = torch.rand((), generator=generator, dtype=weights.dtype, device=weights.device)
+    pos = (u0 + torch.arange(n, dtype=weights.dtype, device=weights.device)) / n
+    return torch.searchsorted(weights.cumsum(0).clamp_max(1.0), pos).clamp_max(len(weights) - 1)
+
+
+def _merge(theta: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Identical draws merged, their weights added."""
+    uniq, inv = torch.unique(theta, dim=0, return_inverse=True)
+    w = weights.new_zeros(uniq.shape[0]).index_add_(0, inv, weights)
+    return uniq, w
+
+
+def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None, max_iter: int = 100,
+            df: float = 30.0, inflate: float = 1.5, qmc: bool = True,
+            generator: torch.Generator | None = None) -> HyperPosterior:
+    """The Laplace approximation at the mode, importance-reweighted (module docstring).
+
+    Args:
+        backend: a fitted model's backend (``InverseRFT.backend``); its hyperparameters are moved to
+            the polished mode.
+        n_proposals: proposals weighed (one marginal likelihood each).
+        n_draws: draws kept for prediction (a systematic resample, identical ones merged); None keeps every
+            proposal with its weight.
+        free: labels (or a bool mask (P,)) of the hyperparameters to marginalise; the others stay at the
+            mode (default: all).
+        max_iter: L-BFGS iterations polishing the mode before the Hessian is taken.
+        df, inflate: the proposal is a Student-t with ``df`` degrees of freedom and covariance ``inflate``
+            x H^-1: wider than the Laplace Gaussian, so the weights stay bounded where the posterior's
+            tails are heavier (a lengthscale the data bound on one side only). On a turning C-toe
+            (12 hyperparameters) this gave Pareto k-hat 0.16 and ESS 50 of 256, against 0.88 and 26 for the
+            Laplace Gaussian itself.
+        qmc: proposals from a scrambled Sobol sequence (``_student_t``) rather than pseudo-random.
+        generator: a ``torch.Generator`` for reproducible draws.
+    """
+    spec = hyper_spec(backend.hypers)
+    P = spec.size
+    mask = _free_mask(spec, free)
+    theta0 = spec.theta(backend.hypers)
+    idx = mask.nonzero()[:, 0].to(theta0.device)
+
+    def full(sub: Tensor) -> Tensor:
+        return theta0.index_put((idx,), sub) if sub.ndim == 1 else theta0.expand(sub.shape[0], P).index_put(
+            (torch.arange(sub.shape[0], device=sub.device)[:, None], idx[None]), sub)
+
+    sub_spec = _SubSpec(spec, theta0, idx)
+    mode_sub, H, lp_mode = _polish(backend, sub_spec, theta0[idx], max_iter)
+    mode = full(mode_sub)
+    spec.load(backend.hypers, mode)
+    cov = torch.linalg.inv(_positive_definite(H))
+    cov = 0.5 * (cov + cov.mT)
+    x, logq = _student_t(mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
+    with torch.no_grad():
+        logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x])
+    spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
+    logw = logp - logq
+    ok = torch.isfinite(logw)
+    if not ok.any():
+        raise RuntimeError("every Laplace proposal has zero posterior density: the hyperparameter posterior is far "
+                           "from Gaussian here; use hyper_posterior='nuts' or 'map'")
+    lw = torch.where(ok, logw - logw[ok].max(), torch.full_like(logw, -math.inf))
+    w = lw.exp()
+    w = w / w.sum()
+    ess = float(1 / w.pow(2).sum())
+    khat = pareto_khat(logw)
+    thetas = full(x)
+    if n_draws is not None and n_draws < len(w):
+        pick = _systematic(w, int(n_draws), generator)
+        thetas, w = _merge(thetas[pick], torch.full((len(pick),), 1 / len(pick), dtype=w.dtype, device=w.device))
+    else:
+        keep = w > 0
+        thetas, w = thetas[keep], w[keep]
+    full_cov = theta0.new_zeros(P, P)
+    full_cov[idx[:, None], idx[None, :]] = cov
+    return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
+                          int(n_proposals), {"log_posterior_mode": float(lp_mode)})
+
+
+class _SubSpec(HyperSpec):
+    """A spec over some coordinates of another, the rest held at ``base``."""
+
+    def __init__(self, spec: HyperSpec, base: Tensor, idx: Tensor) -> None:
+        super().__init__(spec.names, spec.shapes, spec.constraints, [spec.labels[int(i)] for i in idx])
+        self.full_spec, self.base, self.idx = spec, base.detach(), idx
+
+    def raw(self, theta: Tensor) -> dict[str, Tensor]:
+        return self.full_spec.raw(self.base.index_put((self.idx,), theta))
+
+
+def _free_mask(spec: HyperSpec, free) -> Tensor:
+    P = spec.size
+    if free is None:
+        mask = torch.ones(P, dtype=torch.bool)
+    elif isinstance(free, Tensor):
+        mask = free.to(torch.bool).reshape(-1)
+    else:
+        unknown = [f for f in free if f not in spec.labels]
+        if unknown:
+            raise ValueError(f"free: unknown hyperparameter(s) {unknown}; known: {spec.labels}")
+        mask = torch.tensor([lab in set(free) for lab in spec.labels])
+    if mask.numel() != P or not mask.any():
+        raise ValueError(f"free must select some of the {P} hyperparameters {spec.labels}")
+    return mask
+
+
+def nuts(backend, n_samples: int = 256, warmup: int = 512, n_draws: int = 16, num_chains: int = 1, free=None,
+         seed: int = 0, progress: bool = False) -> HyperPosterior:
+    """NUTS (pyro) on -log p(theta | F), each chain started at the fitted hyperparameters; ``n_samples``
+    after ``warmup`` per chain (chains run one after the other in this process), all draws thinned
+    evenly to ``n_draws`` equal-weight draws (botorch's ``fit_fully_bayesian_model_nuts`` defaults: 512
+    warm-up, 256 draws, 16 kept). ``free``: as in ``laplace``. Needs pyro-ppl (``pip install pyro-ppl``,
+    or the ``bayes`` extra)."""
+    try:
+        from pyro.infer.mcmc import MCMC, NUTS
+        from pyro.ops.stats import effective_sample_size
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError("hyper_posterior='nuts' needs pyro: pip install pyro-ppl (or irft-torch[bayes])") from e
+    spec = hyper_spec(backend.hypers)
+    theta0 = spec.theta(backend.hypers)
+    mask = _free_mask(spec, free)
+    idx = mask.nonzero()[:, 0].to(theta0.device)
+    sub = _SubSpec(spec, theta0, idx)
+
+    def potential(params):
+        lp = log_posterior(backend, sub, params["theta"])
+        return -lp if torch.isfinite(lp) else params["theta"].sum() * 0 + 1e30
+
+    chains = []
+    for chain in range(int(num_chains)):
+        torch.manual_seed(seed + chain)
+        kernel = NUTS(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=True, full_mass=False)
+        mcmc = MCMC(kernel, num_samples=int(n_samples), warmup_steps=int(warmup),
+                    initial_params={"theta": theta0[idx].detach().clone()}, disable_progbar=not progress)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mcmc.run()
+        chains.append(mcmc.get_samples()["theta"].detach().reshape(-1, len(idx)))
+    spec.load(backend.hypers, theta0)
+    by_chain = torch.stack(chains)  # (C, n, P_free)
+    draws = by_chain.reshape(-1, len(idx))
+    S = draws.shape[0]
+    pick = torch.linspace(0, S - 1, min(int(n_draws), S)).round().long()
+    full = theta0.detach().expand(len(pick), -1).clone()
+    full[:, idx] = draws[pick]
+    w = torch.full((len(pick),), 1 / len(pick), dtype=full.dtype)
+    c = draws - draws.mean(0)
+    cov = theta0.new_zeros(spec.size, spec.size)
+    cov[idx[:, None], idx[None, :]] = c.mT @ c / max(S - 1, 1)
+    ess = float(effective_sample_size(by_chain, chain_dim=0, sample_dim=1).min())
+    return HyperPosterior("nuts", spec.labels, full, w, theta0.detach(), cov, ess, float("nan"), S,
+                          {"all_draws": draws})
+
+
+def draw_hypers(hypers, spec: HyperSpec, theta: Tensor):
+    """A copy of ``hypers`` (priors and constraints included) set to theta."""
+    h = copy.deepcopy(hypers)
+    spec.load(h, theta)
+    return h

@@ -1,0 +1,1 @@
+"""Studies built on the library: the calibration harness (``studies.calibration``)."""

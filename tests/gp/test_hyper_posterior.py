@@ -1,0 +1,311 @@
+"""Hyperparameter posteriors (gp.hyper_posterior, gp.mixture): against brute-force numerical integration on
+the dense reference, hand-derived mixtures, Monte Carlo and finite differences."""
+
+import math
+
+import pytest
+import torch
+from scipy.optimize import brentq
+from scipy.stats import norm
+
+import irft_torch as irft
+from irft_torch.gp.hyper_posterior import hyper_spec, log_posterior, point_mass
+from irft_torch.gp.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.model import _data_scales
+from irft_torch.gp.priors import LENGTHSCALE_CENTRE, LENGTHSCALE_LOG_SD, NOISE_LOG_SD, OUTPUTSCALE_LOG_SD, prior_centres
+
+from .dense_reference import axis_reference
+
+F64 = torch.float64
+
+
+def small_problem(T=40, seed=0):
+    toe = irft.rft.CToe(0.02, 0.008, n_segments=5)
+    c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.15, 0.0), (-0.05, -0.04), (0.08, -0.01), (0.15, -0.04)],
+                                                    n_steps=T))
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(0.7, 1.1), c)
+    g = torch.Generator().manual_seed(seed)
+    f = f + 0.05 * f.std(0) * torch.randn(f.shape, generator=g, dtype=F64)
+    return c, f
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    c, f = small_problem()
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.fit(n_iter=150, progress=False)
+    return c, f, m
+
+
+def query():
+    b = torch.tensor([-1.2, -0.4, 0.0, 0.3, 1.0], dtype=F64)
+    g = torch.tensor([-1.5, -0.3, 0.8, 1.2, 1.55], dtype=F64)  # the canonical square (the reference does not mirror)
+    return b, g
+
+
+# ---- mixtures ---------------------------------------------------------------------------------------
+def test_mixture_moments_and_quantiles_against_scipy_and_monte_carlo():
+    g = torch.Generator().manual_seed(3)
+    means = torch.randn(6, 4, generator=g, dtype=F64) * 2
+    variances = torch.rand(6, 4, generator=g, dtype=F64) + 0.05
+    w = torch.rand(6, generator=g, dtype=F64)
+    w = w / w.sum()
+    mean, var = mixture_moments(means, variances, w)
+    # hand formula: E[x] and E[x^2] - E[x]^2
+    ex2 = (w[:, None] * (variances + means**2)).sum(0)
+    torch.testing.assert_close(mean, (w[:, None] * means).sum(0), rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(var, ex2 - mean**2, rtol=1e-12, atol=1e-12)
+    for q in (0.025, 0.5, 0.975):
+        ours = mixture_quantile(q, means, variances, w)
+        for j in range(4):  # scipy's root of the CDF written with scipy's normal
+            cdf = lambda x: float(sum(w[s] * norm.cdf(x, means[s, j], variances[s, j].sqrt()) for s in range(6))) - q
+            ref = brentq(cdf, -50, 50, xtol=1e-13)
+            assert float(ours[j]) == pytest.approx(ref, abs=1e-9)
+    # Monte Carlo: draw a component by weight, then a normal
+    n = 400_000
+    comp = torch.multinomial(w, n, replacement=True, generator=g)
+    x = means[comp] + variances[comp].sqrt() * torch.randn(n, 4, generator=g, dtype=F64)
+    for q in (0.025, 0.975):
+        torch.testing.assert_close(mixture_quantile(q, means, variances, w), torch.quantile(x, q, dim=0), atol=0.03,
+                                   rtol=0)
+
+
+def test_posterior_interval_of_a_mixture_is_not_the_moment_matched_one():
+    means = torch.tensor([[0.0], [4.0]], dtype=F64)
+    variances = torch.tensor([[1.0], [1.0]], dtype=F64)
+    post = irft.Posterior.mixture(means, variances, torch.tensor([0.5, 0.5], dtype=F64))
+    lo, hi = post.interval(0.95)
+    # P(X <= hi) = 0.975 by the mixture CDF
+    cdf = 0.5 * norm.cdf(float(hi), 0, 1) + 0.5 * norm.cdf(float(hi), 4, 1)
+    assert cdf == pytest.approx(0.975, abs=1e-10)
+    assert float(post.variance) == pytest.approx(1 + 4.0, rel=1e-12)  # 1 + (2^2)
+    one = irft.Posterior.mixture(means[:1], variances[:1], torch.ones(1, dtype=F64))
+    assert one.components is None and float(one.mean) == 0.0
+
+
+# ---- the log posterior ------------------------------------------------------------------------------
+def test_log_posterior_is_the_dense_marginal_likelihood_times_T_plus_the_log_prior(fitted):
+    """n put back and no Jacobian: log p(theta | F) = sum_axes log N(F; 0, W K W^T + s^2 I) + sum of the normal
+    log densities of log(value / centre), all by hand on the dense reference."""
+    c, f, m = fitted
+    h = m.hypers
+    spec = hyper_spec(h)
+    lp = float(log_posterior(m.backend, spec, spec.theta(h)))
+    total = 0.0
+    for a, w in enumerate((c.weight_x, c.weight_z)):
+        mll, _, _ = axis_reference(c, f[:, a], w, h.lengthscale[a, 0].detach(), h.outputscale[a].detach(),
+                                   h.noise[a].detach())
+        total += float(mll) * len(f)
+    cen = prior_centres(c, f, _data_scales(c, f)[1], False)
+
+    def lognormal(v, centre, sd):
+        z = (v.log() - torch.as_tensor(centre, dtype=F64).log()) / sd
+        return float((-0.5 * z.pow(2) - math.log(sd * math.sqrt(2 * math.pi))).sum())
+
+    total += lognormal(h.outputscale.detach(), cen["outputscale"], OUTPUTSCALE_LOG_SD)
+    total += lognormal(h.lengthscale.detach(), LENGTHSCALE_CENTRE, LENGTHSCALE_LOG_SD)
+    total += lognormal(h.noise.detach(), cen["noise"], NOISE_LOG_SD)
+    assert lp == pytest.approx(total, rel=1e-9)
+    assert lp == pytest.approx(-float(m.loss()) * len(f), rel=1e-10)
+
+
+def test_log_posterior_gradient_against_finite_differences(fitted):
+    c, f, m = fitted
+    spec = hyper_spec(m.hypers)
+    th = spec.theta(m.hypers).clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(log_posterior(m.backend, spec, th), th)
+    eps = 1e-5
+    for i in (0, 3, 9, 11):
+        e = torch.zeros_like(th)
+        e[i] = eps
+        with torch.no_grad():
+            fd = (log_posterior(m.backend, spec, th + e) - log_posterior(m.backend, spec, th - e)) / (2 * eps)
+        assert float(g[i]) == pytest.approx(float(fd), rel=1e-5, abs=1e-6)
+
+
+# ---- Laplace against brute force ---------------------------------------------------------------------
+def _brute_force(m, c, f, free_axes_values, grid_1d, query_pts):
+    """Mixture mean and variance of alpha_z at the query by trapezoidal integration over log outputscale_z
+    (and optionally log noise_z) on a grid: dense reference likelihood + the prior written by hand."""
+    h = m.hypers
+    cen = prior_centres(c, f, _data_scales(c, f)[1], False)
+    ls = h.lengthscale[1, 0].detach()
+    b, g = query_pts
+    th_star = torch.stack([b, g], -1)
+    logps, means, variances = [], [], []
+    for point in grid_1d:
+        os = point[0].exp()
+        noise = point[1].exp() if len(point) > 1 else h.noise[1].detach()
+        mll, map_post, _ = axis_reference(c, f[:, 1], c.weight_z, ls, os, noise)
+        lp = float(mll) * len(f) - 0.5 * float((point[0] - cen["outputscale"][1].log()) / OUTPUTSCALE_LOG_SD) ** 2
+        if len(point) > 1:
+            lp -= 0.5 * float((point[1] - cen["noise"][1].log()) / NOISE_LOG_SD) ** 2
+        mu, var = map_post(th_star)
+        logps.append(lp)
+        means.append(mu)
+        variances.append(var)
+    lw = torch.tensor(logps, dtype=F64)
+    w = (lw - lw.max()).exp()
+    w = w / w.sum()
+    return mixture_moments(torch.stack(means), torch.stack(variances), w)
+
+
+def test_laplace_mixture_matches_brute_force_integration_over_one_hyperparameter(fitted):
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    hp = m.fit_hyper_posterior("laplace", n_proposals=1024, n_draws=None, free=["outputscale_z"],
+                               generator=torch.Generator().manual_seed(0))
+    assert hp.khat < 0.5 and hp.ess > 500
+    spec = hyper_spec(m.hypers)
+    j = spec.labels.index("outputscale_z")
+    mode, sd = float(hp.mode[j]), float(hp.covariance[j, j].sqrt())
+    grid = torch.linspace(mode - 10 * sd, mode + 10 * sd, 201, dtype=F64)[:, None]  # trapezoid: exponentially accurate
+    mean_ref, var_ref = _brute_force(m, c, f, None, grid, query())
+    post = m.stress_map(*query())
+    scale = float(mean_ref.abs().max())
+    torch.testing.assert_close(post.mean[:, 1], mean_ref, atol=1e-3 * scale, rtol=0)
+    torch.testing.assert_close(post.variance[:, 1], var_ref, rtol=1e-3, atol=0)
+    # the integration mattered: the plug-in variance differs from the mixture's by more than the tolerance
+    plug = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    plug.load_state_dict(m.state_dict())
+    assert (plug.stress_map(*query()).variance[:, 1] / var_ref - 1).abs().max() > 3e-3
+
+
+def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameters(fitted):
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    hp = m.fit_hyper_posterior("laplace", n_proposals=2048, n_draws=None, free=["outputscale_z", "noise_z"],
+                               generator=torch.Generator().manual_seed(1))
+    spec = hyper_spec(m.hypers)
+    i, j = spec.labels.index("outputscale_z"), spec.labels.index("noise_z")
+    a = torch.linspace(float(hp.mode[i] - 8 * hp.covariance[i, i].sqrt()),
+                       float(hp.mode[i] + 8 * hp.covariance[i, i].sqrt()), 41, dtype=F64)
+    b = torch.linspace(float(hp.mode[j] - 8 * hp.covariance[j, j].sqrt()),
+                       float(hp.mode[j] + 8 * hp.covariance[j, j].sqrt()), 41, dtype=F64)
+    grid = torch.cartesian_prod(a, b)
+    mean_ref, var_ref = _brute_force(m, c, f, None, grid, query())
+    post = m.stress_map(*query())
+    torch.testing.assert_close(post.mean[:, 1], mean_ref, atol=1e-3 * float(mean_ref.abs().max()), rtol=0)
+    torch.testing.assert_close(post.variance[:, 1], var_ref, rtol=1e-3, atol=0)
+
+
+def test_a_point_mass_gives_the_plug_in_predictions(fitted):
+    """Exactly up to the round trip value -> log -> exp -> raw of the hyperparameters (a few ulps)."""
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    ref_map = m.stress_map(*query())
+    ref_f = m.predict_forces(c[:7], include_noise=True)
+    m._set_hyper_posterior(point_mass(m.backend))
+    assert m._draw_backends is not None and m._draw_backends[0] is not m.backend
+    got = m.stress_map(*query())
+    torch.testing.assert_close(got.mean, ref_map.mean, rtol=1e-11, atol=1e-13)
+    torch.testing.assert_close(got.variance, ref_map.variance, rtol=1e-11, atol=1e-15)
+    gf = m.predict_forces(c[:7], include_noise=True)
+    torch.testing.assert_close(gf.mean, ref_f.mean, rtol=1e-11, atol=1e-12)
+    torch.testing.assert_close(gf.variance, ref_f.variance, rtol=1e-11, atol=1e-15)
+    lo, hi = got.interval(0.9)
+    rlo, rhi = ref_map.interval(0.9)
+    torch.testing.assert_close(lo, rlo)
+    torch.testing.assert_close(hi, rhi)
+
+
+def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_path):
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="laplace")
+    m.load_state_dict(m0.state_dict())
+    m.fit(n_iter=0, progress=False)  # the posterior over hyperparameters at the loaded fit
+    hp = m.hyper_posterior
+    assert hp is not None and hp.n_draws >= 2 and abs(float(hp.weights.sum()) - 1) < 1e-12
+    assert "outputscale_x" in hp.summary()
+    # each prediction is the weighted mixture of the draws' own plug-in predictions
+    per = []
+    for th in hp.theta:
+        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+        d.load_state_dict(m0.state_dict())
+        hyper_spec(d.hypers).load(d.hypers, th)
+        per.append(d.predict_forces(c[5:12]))
+    mean, var = mixture_moments(torch.stack([p.mean for p in per]), torch.stack([p.variance for p in per]),
+                                hp.weights)
+    got = m.predict_forces(c[5:12])
+    torch.testing.assert_close(got.mean, mean, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(got.variance, var, rtol=1e-10, atol=1e-14)
+    # the mean map is the mixture mean; sample_maps draws from the mixture (its mean and variance, MC)
+    b, g = query()
+    torch.testing.assert_close(m(b, g), m.stress_map(b, g).mean)
+    draws = m.sample_maps(b, g, 20_000, generator=torch.Generator().manual_seed(2))
+    post = m.stress_map(b, g)
+    torch.testing.assert_close(draws.mean(0), post.mean, atol=4 * float(post.stddev.max()) / 141, rtol=0)
+    torch.testing.assert_close(draws.var(0), post.variance, rtol=0.05, atol=0)
+    # save and load keep the draws and the predictions
+    m.save(tmp_path / "m.pt")
+    back = irft.InverseRFT.load(tmp_path / "m.pt")
+    assert back.hyper_posterior is not None and back.hyper_method == "laplace"
+    torch.testing.assert_close(back.predict_forces(c[5:12]).variance, got.variance, rtol=1e-10, atol=1e-14)
+
+
+def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(fitted):
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c[:30], f[:30], method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict(), strict=False)
+    hp = m.fit_hyper_posterior("laplace", n_proposals=64, n_draws=8, generator=torch.Generator().manual_seed(4))
+    w0, thetas = hp.weights.clone(), hp.theta.clone()
+    m.add_data(c[30:], f[30:])
+    # by hand: p(F_new | F_old, theta_s) from the dense reference on all and on the old samples
+    logr = []
+    for th in thetas:
+        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+        hyper_spec(d.hypers).load(d.hypers, th)
+        h = d.hypers
+        tot = 0.0
+        for a, w in enumerate((c.weight_x, c.weight_z)):
+            args = (h.lengthscale[a, 0].detach(), h.outputscale[a].detach(), h.noise[a].detach())
+            all_, _, _ = axis_reference(c, f[:, a], w, *args)
+            old, _, _ = axis_reference(c[:30], f[:30, a], w[:30], *args)
+            tot += float(all_) * len(f) - float(old) * 30
+        logr.append(tot)
+    lw = w0.log() + torch.tensor(logr, dtype=F64)
+    ref = (lw - lw.max()).exp()
+    torch.testing.assert_close(m.hyper_posterior.weights, ref / ref.sum(), rtol=1e-8, atol=1e-12)
+
+
+def test_bad_hyper_posterior_arguments_are_refused():
+    c, f = small_problem(T=20)
+    with pytest.raises(ValueError, match="hyper_posterior must be one of"):
+        irft.InverseRFT(c, f, hyper_posterior="mcmc")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    with pytest.raises(ValueError, match="free: unknown"):
+        m.fit_hyper_posterior("laplace", free=["lengthscale"])
+    with pytest.raises(NotImplementedError, match="surface"):
+        irft.InverseRFT(c, f, hyper_posterior="laplace", surface_offset=True)
+
+
+def test_nuts_agrees_with_brute_force_on_one_hyperparameter(fitted):
+    pytest.importorskip("pyro")
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    hp = m.fit_hyper_posterior("nuts", n_draws=400, free=["outputscale_z"], n_samples=400, warmup=200)
+    spec = hyper_spec(m.hypers)
+    j = spec.labels.index("outputscale_z")
+    draws = hp.extra["all_draws"][:, 0]
+    # brute force: the posterior mean and sd of log outputscale_z on a fine grid, by log_posterior's dense twin
+    grid = torch.linspace(float(draws.mean() - 8 * draws.std()), float(draws.mean() + 8 * draws.std()), 801,
+                          dtype=F64)
+    h = m.hypers
+    cen = prior_centres(c, f, _data_scales(c, f)[1], False)
+    lps = []
+    for t in grid:
+        mll, _, _ = axis_reference(c, f[:, 1], c.weight_z, h.lengthscale[1, 0].detach(), t.exp(), h.noise[1].detach())
+        lps.append(float(mll) * len(f) - 0.5 * float((t - cen["outputscale"][1].log()) / OUTPUTSCALE_LOG_SD) ** 2)
+    lw = torch.tensor(lps, dtype=F64)
+    w = (lw - lw.max()).exp()
+    w = w / w.sum()
+    mean = float((w * grid).sum())
+    sd = float((w * (grid - mean) ** 2).sum().sqrt())
+    assert hp.theta.shape[1] == spec.size and bool((hp.theta[:, j] != hp.mode[j]).any())
+    # within 4 Monte Carlo standard errors at the chain's effective sample size
+    assert abs(float(draws.mean()) - mean) < 4 * sd / math.sqrt(max(hp.ess, 1.0))
+    assert float(draws.std()) == pytest.approx(sd, rel=0.25)
