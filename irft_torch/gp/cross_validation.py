@@ -32,6 +32,7 @@ from torch import Tensor
 
 from .backends import make_backend
 from .backends.base import touching
+from .mixture import mixture_moments
 
 __all__ = ["GroupPredictions", "cross_validate"]
 
@@ -115,13 +116,29 @@ def cross_validate(model, groups, include_noise: bool = False, refit: bool = Fal
     if model.surface is not None:
         c = model.train_contacts  # at the learned offset
     index, labels = _group_index(groups, len(f), f.device)
-    mean, var = torch.zeros_like(f), torch.zeros_like(f)
     rows = touching(c)
+    backends, weights = model._weighted_backends()
+    parts = [_held_out(model, b.hypers, c, f, index, len(labels), rows) for b in backends]
+    if weights is None:
+        mean, var = parts[0]
+        noise = model.hypers.noise.detach()
+    else:  # the mixture over hyperparameter draws: mean, total variance, and the draws' mean noise
+        mean, var = mixture_moments(torch.stack([p[0] for p in parts]), torch.stack([p[1] for p in parts]), weights)
+        noise = sum(w * b.hypers.noise.detach() for b, w in zip(backends, weights))
+    noise = noise * s.pow(2)  # (T, 2) N^2, measured units
+    var = var * s.pow(2)
+    return GroupPredictions(mean * s, var + noise if include_noise else var, f * s, index, labels, noise,
+                            include_noise)
+
+
+def _held_out(model, hypers, c, f, index, n_groups: int, rows) -> tuple[Tensor, Tensor]:
+    """Mean and variance (T, 2) of each group's forces (whitened) from the other groups at ``hypers``."""
+    mean, var = torch.zeros_like(f), torch.zeros_like(f)
     with torch.no_grad():
-        for g in range(len(labels)):
+        for g in range(n_groups):
             held = index == g
             keep = ~held
-            backend = make_backend(model.method, model.hypers, c[keep], f[keep], solver=model.solver, tol=model.tol)
+            backend = make_backend(model.method, hypers, c[keep], f[keep], solver=model.solver, tol=model.tol)
             if type(backend) is not type(model.backend):
                 raise TypeError(f"cross_validate rebuilds the backend by its name ({model.method!r}); the model's "
                                 f"{type(model.backend).__name__} is not that class and would be replaced")
@@ -129,10 +146,7 @@ def cross_validate(model, groups, include_noise: bool = False, refit: bool = Fal
             if ask.any():
                 post = backend.posterior(c[ask], variance=True)
                 mean[ask], var[ask] = post.mean.T, post.variance.T
-        noise = model.hypers.noise.detach() * s.pow(2)  # (T, 2) N^2, measured units
-    var = var * s.pow(2)
-    return GroupPredictions(mean * s, var + noise if include_noise else var, f * s, index, labels, noise,
-                            include_noise)
+    return mean, var
 
 
 def _refit(model, groups, include_noise: bool, n_iter: int, lr: float) -> GroupPredictions:

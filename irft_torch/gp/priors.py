@@ -14,11 +14,11 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   issue 30) showed why the generic term alone is not enough: a medium whose map does not project on
   the generic shape (a smooth random map, coefficients of other signs) gets zeta ~ 0, the old narrow
   prior (a factor 1.5) pinned the map's variance near zero, and its intervals held the truth on 40 %
-  of the square. The rest of this paragraph explains the generic term, centre (zeta * rms_c)^2. Li et al. (Science 2013, Fig. 2 and
-  the supplement's Table S2) found that the stress-per-depth maps of the granular media they
-  measured share one generic shape and differ mainly by one scale factor zeta per medium; the
-  media used in public code span about an order of magnitude (plastic pellets 0.11, poppy seeds
-  0.25 loose / 0.46 close, glass beads 0.33; the I-RFT paper's own glass-bead bed 1.0 (x) and 1.5
+  of the square. The rest of this paragraph explains the generic term, centre (zeta * rms_c)^2.
+  Li et al. (Science 2013, Fig. 2 and the supplement's Table S2) found that the stress-per-depth
+  maps of the granular media they measured share one generic shape and differ mainly by one scale
+  factor zeta per medium; the media used in public code span about an order of magnitude (plastic pellets 0.11, poppy
+  seeds 0.25 loose / 0.46 close, glass beads 0.33; the I-RFT paper's own glass-bead bed 1.0 (x) and 1.5
   (z)). So no fixed centre in N/cm^3 fits every medium; the medium's zeta is instead estimated from
   the forces themselves (least squares of the measured forces on the generic shape's forces, both
   axes together: one zeta per medium), and rms_c = (0.209, 0.381) is the root mean square of the

@@ -58,7 +58,8 @@ def test_mixture_moments_and_quantiles_against_scipy_and_monte_carlo():
     for q in (0.025, 0.5, 0.975):
         ours = mixture_quantile(q, means, variances, w)
         for j in range(4):  # scipy's root of the CDF written with scipy's normal
-            cdf = lambda x: float(sum(w[s] * norm.cdf(x, means[s, j], variances[s, j].sqrt()) for s in range(6))) - q
+            def cdf(x):
+                return float(sum(w[s] * norm.cdf(x, means[s, j], variances[s, j].sqrt()) for s in range(6))) - q
             ref = brentq(cdf, -50, 50, xtol=1e-13)
             assert float(ours[j]) == pytest.approx(ref, abs=1e-9)
     # Monte Carlo: draw a component by weight, then a normal
@@ -176,7 +177,7 @@ def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameter
     c, f, m0 = fitted
     m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
     m.load_state_dict(m0.state_dict())
-    hp = m.fit_hyper_posterior("laplace", n_proposals=2048, n_draws=None, free=["outputscale_z", "noise_z"],
+    hp = m.fit_hyper_posterior("laplace", n_proposals=1024, n_draws=None, free=["outputscale_z", "noise_z"],
                                generator=torch.Generator().manual_seed(1))
     spec = hyper_spec(m.hypers)
     i, j = spec.labels.index("outputscale_z"), spec.labels.index("noise_z")
