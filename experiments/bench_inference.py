@@ -16,6 +16,8 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
      ``irft fit a.npz b.npz ...`` does first) in 2 worker processes, and from statistics saved with
      the datasets (``irft ingest`` saves them), vs one process making every pass;
   7. 8 models on the same contacts (a noise study, C-toe gait 1): ``gp.fit_together`` vs fitting each.
+  8. the Laplace hyperparameter posterior (``hyper_posterior="laplace"``: fit, mode, Hessian, 128 weighed
+     proposals, 16 draw backends) vs the MAP fit alone, paper scale and DEM-like (issue 30: <= 2x).
 Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
 GPU, the references too; case 6 is CPU work and is skipped there).
 """
@@ -194,6 +196,33 @@ def fit_together_case(q: bool, row) -> None:
         f"InverseRFT.fit one by one {t_alone:.2f} s", ratio(t_alone / t_together), "-")
 
 
+def hyper_posterior_case(q: bool, row) -> None:
+    """8. The Laplace hyperparameter posterior (fit + Laplace + 16 draw backends) against the MAP fit alone
+    (``hyper_posterior="map"``), the same data and steps, on paper-scale and DEM-like data."""
+    n_iter = 60 if q else 300
+    for name, (c, f) in (("paper scale, C-toe T = 200 x M = 10", _paper_case(60 if q else 200)),
+                         ("DEM-like, T = 810 x M = 5", dem_like())):
+        c, f = on_device(c, f)
+        times = {}
+        for hp in ("map", "laplace"):
+            model = irft.InverseRFT(c, f, hyper_posterior=hp)
+            sync()
+            t0 = time.perf_counter()
+            model.fit(n_iter=n_iter, progress=False)
+            sync()
+            times[hp] = time.perf_counter() - t0
+        hp = model.hyper_posterior
+        row(f"8. hyperparameter posterior, {name} ({model.method}): fit + Laplace ({n_iter} steps, ESS "
+            f"{hp.ess:.0f} of {hp.n_proposals}, k-hat {hp.khat:.2f})", f"{times['laplace']:.2f} s",
+            f"MAP fit alone {times['map']:.2f} s", f"{times['laplace'] / times['map']:.2f}x slower", "<= 2x")
+
+
+def _paper_case(T: int):
+    c = paper_contacts(T)
+    f = irft.rft.forces(TRUTH, c)
+    return c, f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (seconds; for tests)")
@@ -325,6 +354,7 @@ def main(argv=None) -> None:
         f"one process, every pass {times['one process']:.1f} s",
         f"{times['one process'] / times['2 workers']:.1f}x; {times['one process'] / times['saved']:.1f}x", "-")
     fit_together_case(q, row)
+    hyper_posterior_case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 

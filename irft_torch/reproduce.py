@@ -73,6 +73,7 @@ class StudySettings:
     lengthscale: float = 1.0  # ours: initial lengthscale of every embedding dimension
     lengthscale_sensitivity: tuple[float, ...] = (2.0, 4.0)  # extra I-toe fits in the report
     priors: str | None = "physical"  # ours: hyperparameter priors (gp.priors); None: the paper's plain likelihood
+    hyper_posterior: str = "map"  # ours: "laplace" predicts with the hyperparameter posterior (gp.hyper_posterior)
     seed: int = 0
     quick: bool = False
 
@@ -140,7 +141,8 @@ def _build(config, prior_mean, noise, seed, truth_map, s, lengthscale=None, prio
     torch.manual_seed(s.seed)
     ls = s.lengthscale if lengthscale is None else lengthscale
     priors = s.priors if priors == "settings" else priors
-    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors)
+    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors,
+                       hyper_posterior=s.hyper_posterior)
     return model, toe, path, c
 
 

@@ -19,6 +19,8 @@ from tqdm.auto import tqdm
 from ..rft.contacts import M_TO_CM, Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
+from .backends.pairs import PairsBackend
+from .backends.weight_space import WeightSpaceBackend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .hyperparameters import RFTHyperparameters
@@ -625,12 +627,26 @@ class InverseRFT(nn.Module):
         spec = hyper_spec(self.hypers)
         if list(hp.labels) != spec.labels:
             raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
-        self._draw_backends = [
-            make_backend(self.method, draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)),
-                         self.train_contacts, self.train_forces, solver=self.solver, tol=self.tol,
-                         statistics=self._statistics) for th in hp.theta]
+        self._draw_backends = [self._backend_at(draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)))
+                               for th in hp.theta]
         for b in self._draw_backends:
             b.eval()
+
+    def _backend_at(self, hypers: RFTHyperparameters) -> RFTBackend:
+        """A backend like ``self.backend`` at other hyperparameters, sharing what does not depend on them:
+        the pairs backend's statistics and data factor; the spectral backend's statistics wherever they
+        cover the draw's basis (a draw with shorter lengthscales needs a larger basis: one pass)."""
+        own = self.backend
+        if type(own) is PairsBackend:
+            new = PairsBackend.__new__(PairsBackend)
+            WeightSpaceBackend.__init__(new, hypers, self.train_contacts, self.train_forces)
+            new.table = own.table
+            new._set_stats(own.stats)
+            new._data_factor = own._factor()  # hyperparameter-free
+            return new
+        stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
+        return make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
+                            tol=self.tol, statistics=stats if self.method == "spectral" else None)
 
     def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
         """The backends predictions average over and their weights (None: the one plug-in backend)."""
