@@ -20,8 +20,8 @@ from ..rft.contacts import M_TO_CM, Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.pairs import PairsBackend
-from .backends.weight_space import WeightSpaceBackend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
+from .backends.weight_space import WeightSpaceBackend
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .hyperparameters import RFTHyperparameters
 from .mixture import mixture_moments, mixture_quantile
