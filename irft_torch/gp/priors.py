@@ -14,7 +14,8 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   issue 30) showed why the generic term alone is not enough: a medium whose map does not project on
   the generic shape (a smooth random map, coefficients of other signs) gets zeta ~ 0, the old narrow
   prior (a factor 1.5) pinned the map's variance near zero, and its intervals held the truth on 41 %
-  of the square in one such case (``calibration_study.py --truth prior``: median 0.38, now 0.751). The rest of this paragraph explains the generic term, centre (zeta * rms_c)^2.
+  of the square in one such case (``calibration_study.py --truth prior``: median 0.38, now 0.751).
+  The rest of this paragraph explains the generic term, centre (zeta * rms_c)^2.
   Li et al. (Science 2013, Fig. 2 and the supplement's Table S2) found that the stress-per-depth
   maps of the granular media they measured share one generic shape and differ mainly by one scale
   factor zeta per medium; the media used in public code span about an order of magnitude (plastic pellets 0.11, poppy
