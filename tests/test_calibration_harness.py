@@ -32,7 +32,9 @@ def test_every_medium_is_finite_reproducible_and_mirror_consistent(family):
     a = truth(B, G)
     assert a.shape == (11, 11, 2) and torch.isfinite(a).all() and isinstance(label, str)
     torch.testing.assert_close(a, again(B, G))
-    # motion toward -x is the mirror image: alpha_x(b, g) = -alpha_x(-b, pi - g), alpha_z equal
+    # motion toward -x is the mirror image: alpha_x(b, g) = -alpha_x(-b, pi - g), alpha_z equal (inside the
+    # square: on its edge gamma = +-pi/2, straight down or up, a map outside Li's form need not be symmetric)
+    B, G, a = B[:, 1:-1], G[:, 1:-1], a[:, 1:-1]
     m = truth(-B, math.pi - G)
     torch.testing.assert_close(m[..., 0], -a[..., 0], rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(m[..., 1], a[..., 1], rtol=1e-10, atol=1e-12)
