@@ -594,8 +594,8 @@ class InverseRFT(nn.Module):
             n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
                 plug-in's); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for reproducible draws.
-            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``newton_steps``, ``df``) or
-                ``nuts`` (``n_samples``, ``warmup``, ``num_chains``, ``seed``).
+            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
+                ``qmc``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map".
         """
@@ -762,8 +762,7 @@ class InverseRFT(nn.Module):
             if weights is None:
                 counts = [int(n)]
             else:  # how many maps each hyperparameter draw supplies
-                pick = torch.multinomial(weights.double().cpu(), int(n), replacement=True, generator=
-                                         generator if generator is None or generator.device.type == "cpu" else None)
+                pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
                 counts = torch.bincount(pick, minlength=len(backends)).tolist()
             out = []
             for b, k in zip(backends, counts):
@@ -777,8 +776,7 @@ class InverseRFT(nn.Module):
                 out.append(post.mean[..., None] + root @ eps)  # (2, N, k)
             draws = torch.cat(out, -1)
             if len(out) > 1:  # interleave the draws' maps (each draw's block is otherwise contiguous)
-                perm = torch.randperm(int(n), generator=generator if generator is None or
-                                      generator.device == draws.device else None, device=draws.device)
+                perm = torch.randperm(int(n), generator=generator, device=draws.device)
                 draws = draws[..., perm]
         return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
 

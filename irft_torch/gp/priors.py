@@ -62,6 +62,7 @@ from gpytorch.priors import NormalPrior
 from torch import Tensor
 
 from ..rft.contacts import Contacts
+from ..rft.forces import forces as rft_forces
 from ..rft.stress_maps import FourierStressMap
 
 __all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "medium_scale", "prior_centres",
@@ -78,12 +79,16 @@ NOISE_LOG_SD = math.log(10.0)
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
 
 
+def _generic_forces(contacts: Contacts) -> Tensor:
+    """(T, 2) N: the generic shape's forces on the contacts, per unit zeta."""
+    return rft_forces(FourierStressMap.generic().to(contacts.beta.dtype), contacts)
+
+
 def medium_scale(contacts: Contacts, forces: Tensor) -> float:
     """Least-squares zeta of the generic map on these forces, both axes together:
     zeta = sum_c F_c . g_c / sum_c g_c . g_c, g_c the generic shape's forces (N per unit zeta).
     Returns 0 where the forces do not project positively on the shape."""
-    a = FourierStressMap.generic().to(contacts.beta.dtype)(contacts.beta, contacts.gamma)
-    g = torch.stack([(contacts.weight_x * a[..., 0]).sum(-1), (contacts.weight_z * a[..., 1]).sum(-1)], -1)
+    g = _generic_forces(contacts)
     den = float(g.pow(2).sum())
     return max(float((forces * g).sum()) / den, 0.0) if den > 0 else 0.0
 
@@ -91,8 +96,7 @@ def medium_scale(contacts: Contacts, forces: Tensor) -> float:
 def residual_scale(contacts: Contacts, forces: Tensor) -> Tensor:
     """(2,) N/cm^3: per axis, the rms of the forces less the generic shape's at its least-squares scale
     (>= 0), over the rms summed weight: the size of what a physics mean leaves to the GP."""
-    a = FourierStressMap.generic().to(contacts.beta.dtype)(contacts.beta, contacts.gamma)
-    g = torch.stack([(contacts.weight_x * a[..., 0]).sum(-1), (contacts.weight_z * a[..., 1]).sum(-1)], -1)
+    g = _generic_forces(contacts)
     s = ((forces * g).sum(0) / g.pow(2).sum(0).clamp_min(1e-300)).clamp_min(0)
     r = forces - s * g
     w = torch.stack([contacts.weight_x.abs().sum(-1), contacts.weight_z.abs().sum(-1)], -1)
