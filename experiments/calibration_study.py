@@ -42,41 +42,21 @@ from pathlib import Path
 import torch
 
 from irft_torch import metrics
-from irft_torch.gp.fourier import FourierBasis
 from irft_torch.gp.priors import GENERIC_RMS, LENGTHSCALE_CENTRE
 from irft_torch.reproduce import CONFIGS, LEVELS, StudySettings, _fit_group
 from irft_torch.rft import FourierStressMap
-from irft_torch.rft.stress_maps import mirror_to_canonical
+from irft_torch.studies.calibration import GPMedium
 
 NOISES = (0.0, 0.05, 0.2)
 SEEDS = (0, 1, 2)
 LOW, HIGH, MEDIAN_LOW, MEDIAN_HIGH = 0.85, 0.99, 0.90, 0.98
 
 
-class PriorDraw:
-    """A map drawn from the zero-mean GP prior of I-RFT (ARD RBF on the angle embedding): alpha_a(theta)
-    = psi(theta)^T u_a with u_a ~ N(0, s_a Sigma_beta kron Sigma_gamma) in a Fourier basis (``gp.fourier``),
-    callable like a ``FourierStressMap``: (beta, gamma) -> (..., 2) N/cm^3, any angles (mirrored into
-    the canonical square, alpha_x changing sign)."""
-
-    def __init__(self, outputscale, lengthscale: float, seed: int, tol: float = 1e-7) -> None:
-        ls = torch.full((2, 1, 4), float(lengthscale), dtype=torch.float64)
-        self.basis = FourierBasis.for_lengthscale(ls, tol)
-        Sb, Sg = self.basis.coefficients(ls)
-        g = torch.Generator().manual_seed(seed)
-        u = []
-        for a in range(2):
-            Lb = torch.linalg.cholesky(Sb[a] + 1e-12 * torch.eye(Sb.shape[-1], dtype=Sb.dtype))
-            Lg = torch.linalg.cholesky(Sg[a] + 1e-12 * torch.eye(Sg.shape[-1], dtype=Sg.dtype))
-            z = torch.randn(Sb.shape[-1], Sg.shape[-1], generator=g, dtype=torch.float64)
-            u.append(float(outputscale[a]) ** 0.5 * (Lb @ z @ Lg.mT))  # cov(vec u) = s Sb kron Sg
-        self.u = torch.stack(u)  # (2, Fb, Fg)
-
-    def __call__(self, beta, gamma):
-        b, g, sign = mirror_to_canonical(torch.as_tensor(beta), torch.as_tensor(gamma))
-        pb, pg = self.basis.features(b, g)
-        alpha = torch.einsum("...i,aij,...j->...a", pb, self.u.to(pb), pg)
-        return torch.stack([sign * alpha[..., 0], alpha[..., 1]], -1)
+def PriorDraw(outputscale, lengthscale: float, seed: int, tol: float = 1e-7) -> GPMedium:
+    """A map drawn from the zero-mean GP prior of I-RFT (ARD RBF on the angle embedding), exact in a Fourier
+    basis to kernel truncation error ``tol`` (``studies.calibration.GPMedium``), from ``seed``: callable like a
+    ``FourierStressMap``, (beta, gamma) -> (..., 2) N/cm^3, any angles."""
+    return GPMedium(outputscale, lengthscale, torch.Generator().manual_seed(seed), tol)
 
 
 def run(out: Path, quick: bool = False, priors: str | None = "physical", progress: bool = True,

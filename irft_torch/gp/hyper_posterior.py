@@ -37,8 +37,8 @@ import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
-__all__ = ["HyperPosterior", "HyperSpec", "hyper_spec", "log_posterior", "laplace", "nuts", "point_mass",
-           "HYPER_POSTERIORS"]
+__all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
+           "point_mass", "HYPER_POSTERIORS"]
 
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
 
@@ -483,3 +483,20 @@ def draw_hypers(hypers, spec: HyperSpec, theta: Tensor):
     h = copy.deepcopy(hypers)
     spec.load(h, theta)
     return h
+
+
+def add_data_to_draws(hp: HyperPosterior, backends: list, contacts, forces: Tensor) -> None:
+    """Stream samples into each draw's backend and reweight the draw by their likelihood given the old
+    samples, p(F_new | F_old, theta_s) = p(F_all | theta_s) / p(F_old | theta_s): the importance weights a
+    fit on all the data would give these draws (the draws themselves stay; ``hp.extra["draws_ess"]`` says
+    how far the new data moved the weights)."""
+    log_lik = []
+    with torch.no_grad():
+        for b in backends:
+            before = -b.negative_log_likelihood().sum() * b.n_samples
+            b.add_data(contacts, forces)
+            log_lik.append(-b.negative_log_likelihood().sum() * b.n_samples - before)
+    logw = hp.weights.log().to(forces) + torch.stack(log_lik)
+    w = (logw - logw.max()).exp()
+    hp.weights = (w / w.sum()).to(hp.weights)
+    hp.extra["draws_ess"] = float(1 / hp.weights.pow(2).sum())

@@ -19,10 +19,8 @@ from tqdm.auto import tqdm
 from ..rft.contacts import M_TO_CM, Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.pairs import PairsBackend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
-from .backends.weight_space import WeightSpaceBackend
-from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
+from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws, draw_hypers, hyper_spec, laplace, nuts
 from .hyperparameters import RFTHyperparameters
 from .mixture import mixture_moments, mixture_quantile
 from .model_file import ModelFileError, digest, load_model, save_model
@@ -637,13 +635,9 @@ class InverseRFT(nn.Module):
         the pairs backend's statistics and data factor; the spectral backend's statistics wherever they
         cover the draw's basis (a draw with shorter lengthscales needs a larger basis: one pass)."""
         own = self.backend
-        if type(own) is PairsBackend:
-            new = PairsBackend.__new__(PairsBackend)
-            WeightSpaceBackend.__init__(new, hypers, self.train_contacts, self.train_forces)
-            new.table = own.table
-            new._set_stats(own.stats)
-            new._data_factor = own._factor()  # hyperparameter-free
-            return new
+        shared = own.with_hypers(hypers)
+        if shared is not None:
+            return shared
         stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
         return make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
                             tol=self.tol, statistics=stats if self.method == "spectral" else None)
@@ -696,20 +690,7 @@ class InverseRFT(nn.Module):
         c, f = _whiten(c, f, scale)
         self.backend.add_data(c, f)
         if self._draw_backends is not None:
-            # each draw's weight times the new samples' likelihood given the old ones at that draw,
-            # p(F_new | F_old, theta_s) = p(F_all | theta_s) / p(F_old | theta_s): the same importance
-            # weights a fit on all the data would give these draws (the draws themselves stay)
-            log_lik = []
-            for b in self._draw_backends:
-                with torch.no_grad():
-                    before = -b.negative_log_likelihood().sum() * b.n_samples
-                    b.add_data(c, f)
-                    log_lik.append(-b.negative_log_likelihood().sum() * b.n_samples - before)
-            hp = self.hyper_posterior
-            logw = hp.weights.log().to(self._device, self.dtype) + torch.stack(log_lik)
-            w = (logw - logw.max()).exp()
-            hp.weights = (w / w.sum()).to(hp.weights)
-            hp.extra["draws_ess"] = float(1 / hp.weights.pow(2).sum())  # how far the data moved them
+            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
         self._statistics = None  # no longer of all the data
         self._n_pairs = None
         self._parts.append((c, f, scale))

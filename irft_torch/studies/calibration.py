@@ -111,11 +111,12 @@ class FourierMedium:
 
 class GPMedium:
     """A map drawn from a zero-mean GP with the I-RFT kernel (ARD RBF on the angle embedding), exact in a
-    Fourier basis to a kernel truncation error below 1e-7: alpha_a = psi(theta)^T u_a."""
+    Fourier basis to a kernel truncation error below ``tol``: alpha_a = psi(theta)^T u_a, u_a ~ N(0, s_a
+    Sigma_beta kron Sigma_gamma), drawn from the generator ``g``."""
 
-    def __init__(self, outputscale, lengthscale: float, g: torch.Generator) -> None:
+    def __init__(self, outputscale, lengthscale: float, g: torch.Generator, tol: float = 1e-7) -> None:
         ls = torch.full((2, 1, 4), float(lengthscale), dtype=F64)
-        self.basis = FourierBasis.for_lengthscale(ls, 1e-7)
+        self.basis = FourierBasis.for_lengthscale(ls, tol)
         Sb, Sg = self.basis.coefficients(ls)
         u = []
         for a in range(2):

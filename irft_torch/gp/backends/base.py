@@ -119,6 +119,11 @@ class RFTBackend(nn.Module):
     def add_data(self, contacts: Contacts, forces: Tensor) -> None:
         raise NotImplementedError
 
+    def with_hypers(self, hypers: RFTHyperparameters) -> RFTBackend | None:
+        """A backend on the same data at other hyperparameters that shares what does not depend on them
+        (a hyperparameter posterior's draws), or None where there is nothing to share (build a new one)."""
+        return None
+
     # ---- shared ------------------------------------------------------------------------------
     def loss(self) -> Tensor:
         """Negative log marginal likelihood per force sample summed over both axes, minus the log

@@ -122,6 +122,15 @@ class PairsBackend(WeightSpaceBackend):
         new._set_stats(self._reindexed(new.table, where) + self._statistics(c, f, new.table))
         return new
 
+    def with_hypers(self, hypers) -> PairsBackend:
+        """The same pairs, statistics and data factor (none depends on the hyperparameters) at ``hypers``."""
+        new = PairsBackend.__new__(PairsBackend)
+        WeightSpaceBackend.__init__(new, hypers, self.table, None)  # the sample count comes with the statistics
+        new.table = self.table
+        new._set_stats(self.stats)
+        new._data_factor = self._factor()
+        return new
+
     def add_data(self, contacts: Contacts, forces: Tensor) -> None:
         table, where = self._grown(contacts)
         stats = self._reindexed(table, where) + self._statistics(contacts, forces, table)
