@@ -22,6 +22,7 @@ from .model import InverseRFT, Posterior
 from .model_file import ModelFileError
 from .operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
+from .terrain_filter import TerrainFilter
 
 __all__ = [
     "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",
@@ -30,5 +31,5 @@ __all__ = [
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
-    "fit_together", "shares_fit", "cross_validate", "GroupPredictions",
+    "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "TerrainFilter",
 ]
