@@ -595,7 +595,6 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, nn.Module):
 
         return cross_validate(self, groups, include_noise=include_noise, refit=refit, n_iter=n_iter, lr=lr)
 
-
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, " \
                f"backend={self.backend.describe()!r}"
