@@ -19,8 +19,8 @@ from scipy.ndimage import uniform_filter1d
 
 from ..rft.contacts import SURFACE_FIELDS, Contacts, contacts
 from ..rft.toes import Toe
-from .can_log import ResampledLog
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .log_data import ResampledLog
 from .motor import MotorModel
 
 __all__ = ["ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
