@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .metrics import integrated_autocorrelation_time
-from .rft.contacts import Contacts
+from ..metrics import integrated_autocorrelation_time
+from ..rft.contacts import Contacts
 
 __all__ = ["DEMRun", "DEMReadReport", "read_runs", "canonical_angles", "run_contacts", "run_stress", "run_stress_se",
            "run_stress_rft", "stress_functional", "run_stress_origin", "recipe_functional", "calibrate_surface_offset",

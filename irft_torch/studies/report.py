@@ -1,5 +1,6 @@
 """The report of ``irft reproduce``: the tables (CSV), Fig. 5 and the reliability plot, and
-``report.md`` with every number beside the paper's, from the fits of ``reproduce.run_study``."""
+``report.md`` with every number beside the paper's, read from the study's results
+(``studies.reproduce.fit_study``; one direction: the study never imports this module)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from .reproduce import (
     sampling_statistics,
 )
 
-__all__ = ["write_study"]
+__all__ = ["write_study", "draw_fig5"]
 
 
 DEFINITIONS = (
@@ -178,11 +179,11 @@ def write_study(out: Path, s: StudySettings, results: list[FitResult], elapsed: 
                     w.writerow([config, axis, noise, *(_fmt(v) for v in calibration[(config, axis, noise)]), len(rs)])
     if figures:
         if pool is None:
-            _figures(out, [pick(c)[0] for c in CONFIGS])
+            draw_fig5(out, [pick(c)[0] for c in CONFIGS])
             _reliability_figure(out, calibration)
         else:  # a few seconds each: drawn in the workers, side by side (Fig. 5 as its fit ended: ``_fit_job``)
             todo = [pick(c)[0] for c in CONFIGS]
-            tasks = [pool.submit(_figures, out, [r]) for r in todo if not r.maps.get("figure_drawn")]
+            tasks = [pool.submit(draw_fig5, out, [r]) for r in todo if not r.maps.get("figure_drawn")]
             tasks.append(pool.submit(_reliability_figure, out, calibration))
             for t in tasks:
                 t.result()
@@ -190,11 +191,11 @@ def write_study(out: Path, s: StudySettings, results: list[FitResult], elapsed: 
     return {"results": results, "elapsed_s": elapsed, "out_dir": str(out)}
 
 
-def _figures(out: Path, results: list[FitResult]) -> None:
+def draw_fig5(out: Path, results: list[FitResult]) -> None:
     """Fig. 5, one PNG per configuration: the toe on its path and the sampled (beta, gamma) pairs
     (left); truth | estimate | signed error (estimate - truth) | posterior std with the sampled
     pairs, for alpha_x (top) and alpha_z (bottom)."""
-    from . import plotting
+    from .. import plotting
 
     for r in results:
         m = r.maps
@@ -217,7 +218,7 @@ def _figures(out: Path, results: list[FitResult]) -> None:
 def _reliability_figure(out: Path, calibration: dict) -> None:
     """Reliability plot: nominal level against the share of the truth inside the interval, one line
     per configuration and axis, one panel per noise level."""
-    from . import plotting
+    from .. import plotting
 
     noises = sorted({n for (_, _, n) in calibration})
     fig, axes = plotting.plt.subplots(1, len(noises), figsize=(6.5 * len(noises), 5.5), constrained_layout=True,

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .rft.toes import Toe
-from .rft.wheel import profile_from_elements
+from ..rft.toes import Toe
+from ..rft.wheel import profile_from_elements
 
 __all__ = ["WheelRun", "read_wheel_runs", "read_profile", "WHEEL_RADIUS", "WHEEL_WIDTH", "WHEELS", "GROUSER_PITCH"]
 

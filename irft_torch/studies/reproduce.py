@@ -1,28 +1,29 @@
-"""The I-RFT paper's numerical validation (Section V-A, Tables I and II, Fig. 5), rerun.
+"""The I-RFT paper's numerical validation (Section V-A, Tables I and II, Fig. 5), rerun: its
+settings (``StudySettings``, every choice the paper leaves open), its four configurations, the
+paper's own numbers, and the fits (``study_fits``, ``fit_study``), handed back as ``FitResult``s.
 
-Used by ``irft reproduce`` and ``experiments/numerical_validation.py``. Every choice the paper
-leaves open is a field of ``StudySettings`` and is written into the report (``study_report``).
+The report (``studies.report``) reads them; ``studies.paper_study.run_study`` (``irft reproduce``)
+runs both. This module never imports the report: the figures its workers draw come in as a function.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
-from . import metrics
-from .gp.batch_fit import fit_together
-from .gp.model import InverseRFT
-from .rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
-from .workers import worker_context
+from .. import metrics
+from ..gp.batch_fit import fit_together
+from ..gp.model import InverseRFT
+from ..rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
 
-__all__ = ["StudySettings", "PAPER_TABLE1", "PAPER_TABLE2", "CONFIGS", "configuration", "run_study"]
+__all__ = ["StudySettings", "FitResult", "PAPER_TABLE1", "PAPER_TABLE2", "CONFIGS", "LEVELS", "configuration",
+           "study_fits", "fit_study", "sampling_statistics", "tangent_heading"]
 
 CONFIGS = ("I-toe gait 1", "I-toe gait 2", "C-toe gait 1", "C-toe gait 2")
 
@@ -207,7 +208,7 @@ PINNING_STEPS = (10, 20, 50)  # samples per path tried against the paper's stati
 def tangent_heading(path):
     """The same positions with the body turned along the direction of motion (heading = the velocity's
     angle): a toe that follows the path's slope, as a toe on a leg turns with the leg."""
-    from .rft import pose_path
+    from ..rft import pose_path
 
     v = path.velocity
     return pose_path(path.time, path.position[:, 0], path.position[:, 1], heading=torch.atan2(v[:, 1], v[:, 0]))
@@ -236,20 +237,20 @@ def sampling_statistics(s: StudySettings, n_cells: int = 50, c_turns_on_gait_2: 
     return out
 
 
-def _fit_job(job: list, s: StudySettings, threads: int = 0, figure_dir: Path | None = None) -> list[FitResult]:
+def _fit_job(job: list, s: StudySettings, threads: int = 0, figure_dir: Path | None = None,
+             draw: Callable | None = None) -> list[FitResult]:
     """One group of fits of the study (a worker process's task; ``threads``: torch threads there, 0 = keep).
-    ``figure_dir``: draw Fig. 5 of the fits that keep their maps right here (a second or more each, side by
-    side with the other worker's fits instead of after them), and mark them drawn."""
+    ``figure_dir``, ``draw``: ``draw(figure_dir, [result])`` for the fits that keep their maps right here
+    (Fig. 5: a second or more each, side by side with the other worker's fits instead of after them), and
+    mark them drawn."""
     if threads:
         torch.set_num_threads(threads)
     torch.set_default_dtype(torch.float64)
     results = _fit_group(job, s)
-    if figure_dir is not None:
-        from .study_report import _figures
-
+    if figure_dir is not None and draw is not None:
         for r in results:
             if r.maps:
-                _figures(figure_dir, [r])
+                draw(figure_dir, [r])
                 r.maps["figure_drawn"] = True
     return results
 
@@ -283,11 +284,12 @@ def _groups(jobs: list, s: StudySettings) -> list[list[int]]:
     return out
 
 
-def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: int = 1,
-              figure_dir: Path | None = None) -> list[FitResult]:
-    """Every fit, in order, fitted in groups (``_groups``); in ``pool`` (a process pool of ``workers``) when
-    given (each fit is seeded on its own, so the results do not depend on where or in which order it
-    runs). Large groups first. ``figure_dir``: the pool's workers draw Fig. 5 as its fit ends."""
+def fit_study(jobs: list, s: StudySettings, progress: bool = True, pool=None, workers: int = 1,
+              figure_dir: Path | None = None, draw: Callable | None = None) -> list[FitResult]:
+    """Every fit of ``jobs`` (``study_fits``), in order, fitted in groups (``_groups``); in ``pool`` (a
+    process pool of ``workers``) when given (each fit is seeded on its own, so the results do not depend
+    on where or in which order it runs). Large groups first. ``figure_dir``, ``draw``: the pool's workers
+    draw Fig. 5 (``draw(figure_dir, [result])``, e.g. ``studies.report.draw_fig5``) as its fit ends."""
     groups = _groups(jobs, s)
     bar = tqdm(total=len(jobs), desc="irft reproduce", disable=not progress)
     out: list = [None] * len(jobs)
@@ -304,7 +306,7 @@ def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: 
         cost = {c: (4 if c.startswith("C") and c.endswith("2") else 1) for c in CONFIGS}
         order = sorted(groups, key=lambda g: -cost.get(jobs[g[0]][0], 1) * (1 + (len(g) - 1) / 4))
         threads = max(1, (os.cpu_count() or 1) // workers)
-        futures = {pool.submit(_fit_job, [jobs[i] for i in g], s, threads, figure_dir): g for g in order}
+        futures = {pool.submit(_fit_job, [jobs[i] for i in g], s, threads, figure_dir, draw): g for g in order}
         for fut in as_completed(futures):
             g = futures[fut]
             for i, r in zip(g, fut.result()):
@@ -315,15 +317,11 @@ def _run_fits(jobs: list, s: StudySettings, progress: bool, pool=None, workers: 
         bar.close()
 
 
-def run_study(out_dir: str | Path = "experiments/results", settings: StudySettings | None = None,
-              progress: bool = True, figures: bool = True, workers: int = 1) -> dict:
-    """Run Table I (zero and physics prior means, the paper's scale and the unscaled generic map)
-    and the Table II noise study; write CSVs, figures and ``report.md`` into ``out_dir``.
-    ``workers``: processes running the fits (1: here; ``default_workers()`` for all cores)."""
-    s = settings or StudySettings()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    torch.set_default_dtype(torch.float64)
+def study_fits(s: StudySettings) -> list:
+    """The fits of the study, one job each for ``fit_study``: Table I (zero and physics prior means, the
+    paper's scale and the unscaled generic map, with and without the hyperparameter priors, and under the
+    paper's pinned sampling) and the Table II noise study. A job is (config, prior_mean, noise, seed,
+    truth_map, truth_name, keep_maps[, lengthscale, priors, pinned])."""
     paper_truth = FourierStressMap.generic(*s.truth_scale)
     unscaled = FourierStressMap.generic()
     jobs = []
@@ -344,18 +342,4 @@ def run_study(out_dir: str | Path = "experiments/results", settings: StudySettin
         if not s.quick:  # Table I under the paper's sampling, as its statistics pin it
             for priors in dict.fromkeys((s.priors, None)):
                 jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", False, None, priors, True))
-    with contextlib.ExitStack() as stack:
-        pool = None
-        if workers > 1:
-            from concurrent.futures import ProcessPoolExecutor
-
-            ctx = worker_context(["irft_torch.reproduce"])  # as cli.REPRODUCE_PRELOAD: a server it started is used
-            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=ctx))
-        t0 = time.perf_counter()
-        results = _run_fits(jobs, s, progress, pool, workers, figure_dir=out if figures else None)
-        elapsed = time.perf_counter() - t0
-        from .study_report import write_study  # the report reads this module's tables and settings
-
-        return write_study(out, s, results, elapsed, figures, pool)
-
-
+    return jobs
