@@ -15,7 +15,7 @@ from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from ..rft.contacts import M_TO_CM, Contacts
+from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
@@ -35,12 +35,12 @@ from .inputs import (
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _psd_root
 from .priors import PRIORS, prior_centres, register_physical_priors
-from .surface import SurfaceOffset, surface_estimate, surface_negative_log_likelihood
+from .surface import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT"]
 
 
-class InverseRFT(PersistenceMixin, HyperMixtureMixin, nn.Module):
+class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -267,47 +267,6 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, nn.Module):
         the current offset)."""
         c = self._join()[0]
         return c if self.surface is None else self.surface.apply(c, detach=True)
-
-    @property
-    def surface_offset(self):
-        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
-        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
-        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        return surface_estimate(self)
-
-    def init_surface(self, offsets) -> Tensor:
-        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
-        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
-        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
-        ``stress_map`` and ``predict_forces`` are then at it."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
-        with torch.no_grad():
-            for g in range(self.surface.n_groups):
-                losses = []
-                for v in grid:
-                    self.surface.offset[g] = v
-                    losses.append(float(self._surface_loss()))
-                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
-        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
-        self.eval()
-        return self.surface.offset.detach().clone() / M_TO_CM
-
-    def _surface_loss(self) -> Tensor:
-        c, f, _ = self._join()
-        nll = surface_negative_log_likelihood(self.hypers, self.surface.apply(c), f, self.surface.table,
-                                              self.surface.index)
-        return nll.sum() - self.backend.log_prior() / max(len(f), 1)
-
-    def _rebuild_backend(self) -> None:
-        """The surface moved: the backend again, on the contacts at the current offset."""
-        method = self._method_arg if self._method_arg != "auto" else "auto"
-        self.backend = make_backend(method, self.hypers, self.train_contacts, self.train_forces, solver=self.solver,
-                                    tol=self.tol)
-        self._n_pairs = None
 
     @property
     def train_forces(self) -> Tensor:
