@@ -31,9 +31,9 @@ from pathlib import Path
 import torch
 
 import irft_torch as irft
-from irft_torch import reproduce
 from irft_torch.design import ProbeScorer, force_relative, optimize_probe
 from irft_torch.rft import FourierStressMap, Probe, ProbeBounds, forces, random_probes
+from irft_torch.studies import reproduce
 
 
 @dataclass(frozen=True)

@@ -167,7 +167,7 @@ def big_child(T: int, n_iter: int) -> None:
 
 def fit_together_case(q: bool, row) -> None:
     """Case 7: several models on the same contacts (a noise study): gp.fit_together vs one by one."""
-    from irft_torch.reproduce import configuration
+    from irft_torch.studies.reproduce import configuration
 
     toe, path = configuration("C-toe gait 1")
     c7 = irft.rft.contacts(toe, path)
@@ -330,9 +330,9 @@ def main(argv=None) -> None:
     # 6. a fleet of datasets
     import tempfile
 
-    from irft_torch.cli import _reduce_statistics
+    from irft_torch.cli.fit import _reduce_statistics
+    from irft_torch.data import Dataset, save_dataset
     from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
-    from irft_torch.hardware.pipeline import Dataset, save_dataset
 
     T6 = 20_000 if q else 250_000
     basis = initial_basis()

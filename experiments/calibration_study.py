@@ -1,6 +1,6 @@
 """Calibration study: does the 95 % posterior interval of the maps hold 95 % of the truth?
 
-The paper's four configurations (I/C toe x gait 1/2, ``irft_torch.reproduce.configuration``) x 2
+The paper's four configurations (I/C toe x gait 1/2, ``irft_torch.studies.reproduce.configuration``) x 2
 axes, forces from forward RFT with the generic map at the paper's scale, multiplicative noise of
 variance 0, 0.05 and 0.2 (the paper's Table II) x 3 noise seeds. For every fit: the share of the
 evaluation grid whose truth lies inside the central 50 %, 90 % and 95 % posterior intervals. A
@@ -43,9 +43,9 @@ import torch
 
 from irft_torch import metrics
 from irft_torch.gp.priors import GENERIC_RMS, LENGTHSCALE_CENTRE
-from irft_torch.reproduce import CONFIGS, LEVELS, StudySettings, _fit_group
 from irft_torch.rft import FourierStressMap
 from irft_torch.studies.calibration import GPMedium
+from irft_torch.studies.reproduce import CONFIGS, LEVELS, StudySettings, _fit_group
 
 NOISES = (0.0, 0.05, 0.2)
 SEEDS = (0, 1, 2)
@@ -166,7 +166,7 @@ def prior_ceiling(truth_map, s: StudySettings, level: float = 0.95) -> tuple[flo
     interval that is the prior's, perfectly scaled, gets where the data say nothing. A single smooth
     map has lighter tails than a Gaussian field, so this is above ``level`` (what over-covering cells
     approach)."""
-    from irft_torch.reproduce import _grid
+    from irft_torch.studies.reproduce import _grid
 
     B, G = _grid(s)
     true = truth_map(B, G)

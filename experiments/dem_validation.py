@@ -20,7 +20,7 @@ direction (LOGO, 9 folds), everything is fitted on the other runs only:
     time series of the training runs (the plate cut into 10 segments, centre deeper than 1 cm below
     z_top, the free surface at z_top: the surface the target is defined with; the library's default
     physical hyperparameter priors). Their prediction of a held-out run's target is the README's
-    recipe applied to the forces they predict for that run (``dem_data.recipe_functional``: one
+    recipe applied to the forces they predict for that run (``data.dem.recipe_functional``: one
     linear functional, so its posterior mean and variance are exact);
   * I-RFT, learned surface: zero mean, the free surface learned with the maps (``gp.surface``: one
     offset for the bed per fold, started at the best of a grid), on every tau-th sample, tau the
@@ -51,10 +51,11 @@ import numpy as np
 import torch
 
 import irft_torch as irft
-from irft_torch import dem_data, metrics
+from irft_torch import metrics
+from irft_torch.data import dem
 from irft_torch.gp.backends.pairs import PairsBackend
 from irft_torch.rft import Contacts, FourierStressMap
-from irft_torch.workers import worker_context
+from irft_torch.studies.workers import worker_context
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -80,9 +81,9 @@ class RunData:
     def __init__(self, run, min_depth: float) -> None:
         self.run = run
         self.min_depth = min_depth
-        self.angles = dem_data.canonical_angles(run)
-        self.target = {"origin": np.array(dem_data.run_stress_origin(run, min_depth)),
-                       "intercept": np.array(dem_data.run_stress(run, min_depth))}
+        self.angles = dem.canonical_angles(run)
+        self.target = {"origin": np.array(dem.run_stress_origin(run, min_depth)),
+                       "intercept": np.array(dem.run_stress(run, min_depth))}
         self._cache = {}
 
     def contacts(self, offset: float, stride: int):
@@ -90,19 +91,19 @@ class RunData:
         the depths of the segments measured from the surface ``z_top - offset``."""
         key = ("c", round(offset, 6), stride)
         if key not in self._cache:
-            self._cache[key] = dem_data.run_contacts(self.run, stride=stride, min_depth=self.min_depth - offset,
+            self._cache[key] = dem.run_contacts(self.run, stride=stride, min_depth=self.min_depth - offset,
                                                      surface_offset=offset)
         return self._cache[key]
 
     def functional(self, target: str, offset: float) -> Contacts:
         key = ("f", target, round(offset, 6))
         if key not in self._cache:
-            self._cache[key] = dem_data.recipe_functional(self.run, self.min_depth, target == "intercept", offset)
+            self._cache[key] = dem.recipe_functional(self.run, self.min_depth, target == "intercept", offset)
         return self._cache[key]
 
     def coef_sq(self, target: str) -> float:
         """sum_t coef_t^2 of the recipe (1/cm^6): the recipe's variance per unit of white 1 ms force noise."""
-        _, coef = dem_data.stress_functional(self.run, self.min_depth, target == "intercept")
+        _, coef = dem.stress_functional(self.run, self.min_depth, target == "intercept")
         return float(coef @ coef)
 
 
@@ -216,7 +217,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
     Returns (predictions: model -> target -> list of (mean (2,), var (2,) or None) per test run,
     info: offset, stride, models)."""
     generic = FourierStressMap.generic()
-    off = (dem_data.calibrate_surface_offset([d.run for d in train])[0] if a.offset == "auto" else float(a.offset))
+    off = (dem.calibrate_surface_offset([d.run for d in train])[0] if a.offset == "auto" else float(a.offset))
     th = torch.tensor([d.angles for d in train])
     shape = generic(th[:, 0], th[:, 1]).numpy()
     out = {n: {t: [] for t in TARGETS} for n in IRFT + BASELINES}
@@ -376,7 +377,7 @@ def main(argv=None) -> dict:
     matplotlib.use("Agg")  # this script only writes files; set here, never at import
     torch.set_default_dtype(torch.float64)
     t0 = time.perf_counter()
-    runs, report = dem_data.read_runs(a.data)
+    runs, report = dem.read_runs(a.data)
     print(f"read {len(runs)} runs; {report.summary()}")
     deep_enough = [(r.depth > a.min_depth).sum() >= 3 for r in runs]
     usable = [r for r, ok in zip(runs, deep_enough) if ok]

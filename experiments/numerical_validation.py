@@ -2,7 +2,7 @@
 
     python experiments/numerical_validation.py [--out experiments/results] [--quick]
 
-Same as ``irft reproduce``; the study itself lives in ``irft_torch.reproduce`` so that the
+Same as ``irft reproduce``; the study itself lives in ``irft_torch.studies`` so that the
 installed command can run it.
 """
 

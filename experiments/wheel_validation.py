@@ -78,7 +78,7 @@ import numpy as np
 import torch
 
 import irft_torch as irft
-from irft_torch import wheel_data as wd
+from irft_torch.data import wheel as wd
 from irft_torch.rft import Contacts, FourierStressMap
 from irft_torch.rft.stress_maps import wrap_beta
 from irft_torch.rft.wheel import average_rows, envelope_profile, wheel_contacts, wheel_kinematics

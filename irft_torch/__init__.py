@@ -16,13 +16,14 @@ import importlib
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
-__all__ = ["rft", "gp", "hardware", "metrics", "InverseRFT", "Posterior", "TerrainFilter", "__version__"]
+__all__ = ["rft", "gp", "hardware", "data", "design", "studies", "metrics", "InverseRFT", "Posterior",
+           "TerrainFilter", "__version__"]
 
-_SUBMODULES = ("rft", "gp", "hardware", "metrics")
+_SUBMODULES = ("rft", "gp", "hardware", "data", "design", "studies", "metrics")
 _FROM_GP = ("InverseRFT", "Posterior", "TerrainFilter")
 
 if TYPE_CHECKING:  # what static tools and IDEs see
-    from . import gp, hardware, metrics, rft
+    from . import data, design, gp, hardware, metrics, rft, studies
     from .gp import InverseRFT, Posterior, TerrainFilter
 
 

@@ -109,6 +109,7 @@ def test_notebook_runs_shows_figures_and_gets_its_numbers(path, tmp_path, kernel
     stderr = "".join(o.get("text", "") for o in out if o.output_type == "stream" and o.name == "stderr")
     assert "TqdmWarning" not in stderr and "IProgress" not in stderr, stderr
     assert "Matplotlib is currently using agg" not in stderr, stderr
+    assert "moved to irft_torch" not in stderr, stderr  # an old import path (a DeprecationWarning)
     text = "".join(o.get("text", "") for o in nb.cells[-1].get("outputs", []) if o.output_type == "stream")
     key = json.loads(text.split("KEY", 1)[1])
     print(path.stem, key)

@@ -18,10 +18,12 @@ from .fourier import FourierBasis
 from .hyperparameters import RFTHyperparameters
 from .kernels import AngleKernel, RFTCompositeKernel, angle_covariance
 from .means import GenericShapeMean
-from .model import InverseRFT, Posterior
+from .model import InverseRFT
 from .model_file import ModelFileError
 from .operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
+from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
+from .surface_profile import profile_surface
 from .terrain_filter import TerrainFilter
 
 __all__ = [
@@ -31,5 +33,5 @@ __all__ = [
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
-    "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "TerrainFilter",
+    "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface", "TerrainFilter",
 ]

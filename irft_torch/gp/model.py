@@ -9,203 +9,38 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 
 import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from ..rft.contacts import M_TO_CM, Contacts
+from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs
-from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws, draw_hypers, hyper_spec, laplace, nuts
+from .hyper_mixture import HyperMixtureMixin
+from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
-from .mixture import mixture_moments, mixture_quantile
-from .model_file import ModelFileError, digest, load_model, save_model
+from .inputs import (
+    _as_forces,
+    _as_noise_scale,
+    _check_dtype,
+    _check_statistics,
+    _check_units,
+    _data_scales,
+    _noise_scale,
+    _whiten,
+)
+from .model_file import PersistenceMixin
+from .posterior import Posterior, _force_posterior, _psd_root
 from .priors import PRIORS, prior_centres, register_physical_priors
+from .surface import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT"]
 
-@dataclass
-class Posterior:
-    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z).
 
-    Averaged over hyperparameter draws (``InverseRFT(..., hyper_posterior="laplace")``) each marginal is a
-    Gaussian mixture: ``mean`` and ``variance`` are its mean and total variance, ``components`` holds the
-    draws' own means and variances (S, ..., 2) and their weights (S,), and ``interval`` inverts the mixture's
-    CDF (``gp.mixture``)."""
-
-    mean: Tensor
-    variance: Tensor
-    components: tuple[Tensor, Tensor, Tensor] | None = None
-
-    @property
-    def stddev(self) -> Tensor:
-        return self.variance.clamp_min(0).sqrt()
-
-    def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
-        """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
-        if self.components is not None:
-            means, variances, weights = self.components
-            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
-                    mixture_quantile(0.5 + level / 2, means, variances, weights))
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
-
-    @classmethod
-    def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
-        """The mixture over draws: ``means``, ``variances`` (S, ..., 2), ``weights`` (S,); one draw is a
-        plain Gaussian posterior (the same numbers, no components)."""
-        if means.shape[0] == 1:
-            return cls(means[0], variances[0])
-        mean, var = mixture_moments(means, variances, weights)
-        return cls(mean, var, (means, variances, weights))
-
-
-def _as_forces(forces, T: int, dtype, device) -> Tensor:
-    f = torch.as_tensor(forces, dtype=dtype, device=device)
-    if f.ndim != 2 or f.shape[-1] != 2:
-        raise ValueError(f"forces must be (T, 2) = (F_x, F_z) in N, got shape {tuple(f.shape)}")
-    if f.shape[0] != T:
-        raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T} time steps")
-    bad = ~torch.isfinite(f)
-    if bad.any():
-        i = int(bad.any(-1).nonzero()[0])
-        raise ValueError(f"forces contains NaN or inf (first at sample {i}); mask or drop those samples")
-    return f
-
-
-def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
-    """(T, 2) relative noise standard deviations of T training samples; ones when ``noise_scale`` is None."""
-    if noise_scale is None:
-        return torch.ones(T, 2, dtype=dtype, device=device)
-    return _noise_scale(noise_scale, (T,), dtype, device).expand(T, 2).contiguous()
-
-
-def _noise_scale(noise_scale, lead: tuple, dtype, device) -> Tensor:
-    """``noise_scale`` of samples (*lead) = (..., T) as a tensor that broadcasts to exactly (*lead, 2):
-    per sample (a shape ending in T, or a 0-d scalar) or per sample and axis (ending in (T, 2)); anything
-    else is a ValueError (a (T,) scale must never line up with the two force axes)."""
-    s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
-    given, T = tuple(s.shape), (lead[-1] if lead else 1)
-    if s.ndim >= 2 and s.shape[-2:] == (T, 2):
-        pass  # per sample and axis
-    elif s.ndim == 0 or s.shape[-1] == T:
-        s = s[..., None]  # per sample, both axes
-    else:
-        raise ValueError(f"noise_scale must end in T = {T} (per sample) or in (T, 2) (per sample and axis) for "
-                         f"samples of shape {tuple(lead)}, got shape {given}")
-    try:
-        fits = torch.broadcast_shapes(s.shape, (*lead, 2)) == (*lead, 2)
-    except RuntimeError:
-        fits = False
-    if not fits:
-        raise ValueError(f"noise_scale of shape {given} does not broadcast to the samples {tuple(lead)}")
-    if not (torch.isfinite(s).all() and (s > 0).all()):
-        raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
-    return s
-
-
-def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
-    """Divide each composite observation (its force and its segment weights) by its noise scale:
-    F_t / s_t = sum_m (w_tm / s_t) alpha(theta_tm) + eps_t, eps_t ~ N(0, sigma^2), exactly."""
-    return c.scale_weights(1 / s[:, :1], 1 / s[:, 1:]), f / s
-
-
-def _psd_root(cov: Tensor) -> Tensor:
-    """L (..., N, N) with L L^T = cov for a positive semi-definite covariance (a smooth kernel's is
-    rank-deficient on many points): Cholesky with a jitter of 1e-12, then 1e-10, of the largest
-    variance (draws off by at most that), else the exact root from the eigendecomposition."""
-    cov = 0.5 * (cov + cov.mT)
-    top = cov.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(cov.dtype).tiny)[..., None, None]
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-    for rel in (1e-12, 1e-10):
-        L, info = torch.linalg.cholesky_ex(cov + rel * top * eye)
-        if not bool(info.any()):
-            return L
-    lam, V = torch.linalg.eigh(cov)
-    return V * lam.clamp_min(0).sqrt()[..., None, :]
-
-
-def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance: str) -> tuple[Tensor, Tensor]:
-    """Mean and variance (2, N) of the forces of contacts (N, M) from one backend; rows with no segment
-    in contact (``rows`` False) have force exactly 0, mean and variance."""
-    N = flat.shape[0]
-    mean = flat.beta.new_zeros(2, N)
-    var = flat.beta.new_zeros(2, N)
-    if rows.any():
-        sub = flat[rows]
-        post = backend.posterior(sub, variance=(variance == "exact"))
-        v_sub = post.variance
-        if variance == "independent":
-            act = (sub.weight_x != 0) | (sub.weight_z != 0)
-            b, g = sub.beta[act], sub.gamma[act]
-            ones = torch.ones_like(b)[:, None]
-            seg_var = backend.posterior(Contacts(b[:, None], g[:, None], ones, ones)).variance
-            w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
-            per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
-            per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
-            v_sub = per_seg.sum(-1)
-        mean = mean.masked_scatter(rows.expand(2, N), post.mean)
-        var = var.masked_scatter(rows.expand(2, N), v_sub)
-    return mean, var
-
-
-def _check_units(c: Contacts, f: Tensor) -> None:
-    """Warn where the data look off by 1000 or in degrees (the fit itself is unit-free)."""
-    fmax = float(f.abs().max())
-    if fmax > 1e4:
-        warnings.warn(f"forces reach {fmax:.3g}: above 1e4 N on a toe; are they in mN? (forces are in N)", stacklevel=3)
-    wmax = float(torch.maximum(c.weight_x.abs().sum(-1).max(), c.weight_z.sum(-1).max()))
-    if wmax > 1e5:
-        warnings.warn(f"segment weights reach {wmax:.3g} per sample: above 1e5 cm^3; are they in mm^3? (weights are "
-                      f"depth [cm] x area [cm^2])", stacklevel=3)
-    amax = float(torch.maximum(c.beta.abs().max(), c.gamma.abs().max()))
-    if amax > math.pi + 1e-6:
-        warnings.warn(f"angles reach {amax:.3g}: outside [-pi, pi]; are they in degrees? (angles are in rad)",
-                      stacklevel=3)
-
-
-def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):
-    """Precomputed statistics, checked to be of these forces (count and power per axis)."""
-    if stats is None:
-        return None
-    from .backends.weight_space import FeatureStatistics
-
-    if not isinstance(stats, FeatureStatistics):
-        raise TypeError(f"statistics must be a FeatureStatistics (gp.statistics), got {type(stats).__name__}")
-    if noise_scale is not None:
-        raise ValueError("statistics are computed with unit noise scale: drop noise_scale or statistics")
-    if prior_mean == "physics" and stats.meta.get("mean") != "generic shape":
-        raise ValueError("statistics lack the generic shape's forces a physics mean needs: compute them with "
-                         "gp.statistics.recording_statistics")
-    # float32 on either side (a float32 model given statistics of the float64 data) rounds the power at ~1e-7
-    rtol = 1e-9 if f.dtype == stats.yy.dtype == torch.float64 else 1e-5
-    power = f.double().pow(2).sum(0).to(stats.yy.device)
-    if stats.n != len(f) or not torch.allclose(stats.yy.double(), power, rtol=rtol, atol=1e-300):
-        raise ValueError(f"statistics are not of these forces: {stats.n} samples with power {stats.yy.tolist()} "
-                         f"vs {len(f)} samples with power {power.tolist()}")
-    return stats
-
-
-def _check_dtype(dtype) -> None:
-    if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
-
-
-def _data_scales(c: Contacts, f: Tensor) -> tuple[Tensor, Tensor]:
-    """The data's force scale (2,) N (rms force per axis) and stress-per-depth scale (2,) N/cm^3
-    (that over the rms summed weight)."""
-    s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
-    force_scale = f.T.pow(2).mean(-1).sqrt().clamp_min(1e-300)
-    return force_scale, force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
-
-
-class InverseRFT(nn.Module):
+class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -326,8 +161,6 @@ class InverseRFT(nn.Module):
                                  f"if {name} was not measured, zeros would claim the map is zero")
         self.surface = None
         if surface_offset or surface_groups is not None:
-            from .surface import SurfaceOffset
-
             self.surface = SurfaceOffset(c, surface_groups)
         self._method_arg = method
         self.prior_mean_kind, self.solver, self.dtype, self.tol = prior_mean, solver, dtype, float(tol)
@@ -436,51 +269,6 @@ class InverseRFT(nn.Module):
         return c if self.surface is None else self.surface.apply(c, detach=True)
 
     @property
-    def surface_offset(self):
-        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
-        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
-        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        from .surface import surface_estimate
-
-        return surface_estimate(self)
-
-    def init_surface(self, offsets) -> Tensor:
-        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
-        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
-        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
-        ``stress_map`` and ``predict_forces`` are then at it."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
-        grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
-        with torch.no_grad():
-            for g in range(self.surface.n_groups):
-                losses = []
-                for v in grid:
-                    self.surface.offset[g] = v
-                    losses.append(float(self._surface_loss()))
-                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
-        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
-        self.eval()
-        return self.surface.offset.detach().clone() / M_TO_CM
-
-    def _surface_loss(self) -> Tensor:
-        from .surface import surface_negative_log_likelihood
-
-        c, f, _ = self._join()
-        nll = surface_negative_log_likelihood(self.hypers, self.surface.apply(c), f, self.surface.table,
-                                              self.surface.index)
-        return nll.sum() - self.backend.log_prior() / max(len(f), 1)
-
-    def _rebuild_backend(self) -> None:
-        """The surface moved: the backend again, on the contacts at the current offset."""
-        method = self._method_arg if self._method_arg != "auto" else "auto"
-        self.backend = make_backend(method, self.hypers, self.train_contacts, self.train_forces, solver=self.solver,
-                                    tol=self.tol)
-        self._n_pairs = None
-
-    @property
     def train_forces(self) -> Tensor:
         """The training forces (T, 2), whitened by ``noise_scale``."""
         return self._join()[1]
@@ -579,74 +367,6 @@ class InverseRFT(nn.Module):
             self.fit_hyper_posterior()
         else:
             self._set_hyper_posterior(None)
-
-    def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
-                            generator: torch.Generator | None = None, **options) -> HyperPosterior | None:
-        """Fit the posterior over the hyperparameters at the current (fitted) ones; ``fit`` calls it when the
-        model was built with ``hyper_posterior`` "laplace" or "nuts". Predictions are then mixtures over its
-        draws.
-
-        Args:
-            method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
-            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
-            n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
-                plug-in's); None keeps every weighted proposal.
-            generator: a ``torch.Generator`` for reproducible draws.
-            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
-                ``qmc``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
-        Returns:
-            the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map".
-        """
-        method = self.hyper_method if method is None else method
-        if method not in HYPER_POSTERIORS:
-            raise ValueError(f"method must be one of {HYPER_POSTERIORS}, got {method!r}")
-        if self.surface is not None and method != "map":
-            raise NotImplementedError("a hyperparameter posterior with a learned surface offset is not supported")
-        if method == "map":
-            self._set_hyper_posterior(None)
-            return None
-        self.train()
-        try:
-            if method == "laplace":
-                hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
-            else:
-                hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
-        finally:
-            self.eval()
-        self._set_hyper_posterior(hp)
-        return hp
-
-    def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
-        """Keep ``hp`` and build one backend per draw (sharing nothing with ``self.backend`` but the data)."""
-        self.hyper_posterior = hp
-        if hp is None:
-            self._draw_backends = None
-            return
-        spec = hyper_spec(self.hypers)
-        if list(hp.labels) != spec.labels:
-            raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
-        self._draw_backends = [self._backend_at(draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)))
-                               for th in hp.theta]
-        for b in self._draw_backends:
-            b.eval()
-
-    def _backend_at(self, hypers: RFTHyperparameters) -> RFTBackend:
-        """A backend like ``self.backend`` at other hyperparameters, sharing what does not depend on them:
-        the pairs backend's statistics and data factor; the spectral backend's statistics wherever they
-        cover the draw's basis (a draw with shorter lengthscales needs a larger basis: one pass)."""
-        own = self.backend
-        shared = own.with_hypers(hypers)
-        if shared is not None:
-            return shared
-        stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
-        return make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
-                            tol=self.tol, statistics=stats if self.method == "spectral" else None)
-
-    def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
-        """The backends predictions average over and their weights (None: the one plug-in backend)."""
-        if self._draw_backends is None:
-            return [self.backend], None
-        return self._draw_backends, self.hyper_posterior.weights.to(self._device, self.dtype)
 
     def _adapt(self) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
@@ -833,78 +553,6 @@ class InverseRFT(nn.Module):
         from .cross_validation import cross_validate
 
         return cross_validate(self, groups, include_noise=include_noise, refit=refit, n_iter=n_iter, lr=lr)
-
-    # ---- persistence -----------------------------------------------------------------------------
-    def _options(self) -> dict:
-        """The constructor options that shape the model, beyond its data, backend and surface: what a
-        model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
-        return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
-                "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
-                "priors": self.priors, "hyper_posterior": self.hyper_method}
-
-    def _measured(self) -> tuple[Contacts, Tensor]:
-        """The training data as measured (the whitening undone)."""
-        c, f, s = self._join()
-        return c.scale_weights(s[:, :1], s[:, 1:]), f * s
-
-    def _data_digest_tensor(self) -> Tensor:
-        c, f = self._measured()
-        # the weights (what the maps see); the signed depths and areas only where the surface is learned
-        data = c.as_dict() if self.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
-        d = digest({"contacts": data, "forces": f, "noise_scale": self.noise_scale})
-        return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
-
-    def _fresh_digest(self) -> None:
-        if self._digest_stale:
-            self.data_digest.copy_(self._data_digest_tensor())
-            self._digest_stale = False
-
-    def state_dict(self, *args, **kwargs):
-        """The hyperparameters and the training data's digest. The backend's own entries (the same
-        hyperparameters again, and gpytorch's) are left out: which backend ``auto`` ends on is not part
-        of a model's state."""
-        self._fresh_digest()
-        out = super().state_dict(*args, **kwargs)
-        for k in [k for k in out if k.split(".", 1)[0] == "backend" or ".backend." in k]:
-            del out[k]
-        return out
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
-        other data is refused (its ``data_digest`` differs). ``strict=False`` loads the
-        hyperparameters alone (a warm start on new data)."""
-        self._fresh_digest()
-        theirs = state_dict.get("data_digest")
-        if theirs is not None and not torch.equal(theirs.to(self.data_digest.device), self.data_digest):
-            if strict:
-                raise ModelFileError("this state was fitted on other training data (data_digest differs); pass "
-                                     "strict=False to load only its hyperparameters")
-            state_dict = {k: v for k, v in state_dict.items() if k != "data_digest"}
-        state_dict = {k: v for k, v in state_dict.items() if not k.startswith("backend.")}
-        result = self.hypers.load_state_dict({k[len("hypers."):]: v for k, v in state_dict.items()
-                                              if k.startswith("hypers.")}, strict=strict)
-        if "data_digest" in state_dict:
-            self.data_digest.copy_(state_dict["data_digest"].to(self.data_digest))
-        if self.surface is not None and "surface.offset" in state_dict:
-            with torch.no_grad():
-                self.surface.offset.copy_(state_dict["surface.offset"].to(self.surface.offset))
-            self._rebuild_backend()
-        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest"
-                                                    or (self.surface is not None and k == "surface.offset"))]
-        if strict and unexpected:
-            raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
-        return result
-
-    def save(self, path) -> None:
-        """Write training data, options, the hyperparameters and a checksum to one file (format 2,
-        ``gp.model_file``): ``load`` refuses files that are damaged, foreign or of another version."""
-        save_model(self, path)
-
-    @classmethod
-    def load(cls, path, map_location=None) -> InverseRFT:
-        """Rebuild a model written by ``save`` (format 2, or 0.1.0's format, whose hyperparameters are
-        translated). Raises ``ModelFileError`` naming what is wrong for anything else."""
-        return load_model(cls, path, map_location)
 
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, " \

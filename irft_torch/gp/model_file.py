@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -13,7 +14,8 @@ from torch import Tensor
 
 from ..rft.contacts import Contacts
 
-__all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest"]
+__all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
+           "PersistenceMixin"]
 
 FILE_FORMAT = "irft_torch.InverseRFT"
 FILE_VERSION = 2
@@ -149,3 +151,83 @@ def _load_v1(cls, d: dict, path):
                   stacklevel=3)
     model.loss_history = list(d.get("loss_history", []))
     return model
+
+
+_Model = TypeVar("_Model", bound="PersistenceMixin")
+
+
+class PersistenceMixin:
+    """An ``InverseRFT``'s state and file: its options, its training data as measured and their digest,
+    ``state_dict`` / ``load_state_dict`` (hyperparameters and the data's digest, never the backend's
+    entries), ``save`` / ``load`` (``save_model``, ``load_model``). A mixin of ``InverseRFT``."""
+
+    def _options(self) -> dict:
+        """The constructor options that shape the model, beyond its data, backend and surface: what a
+        model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
+        return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
+                "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
+                "priors": self.priors, "hyper_posterior": self.hyper_method}
+
+    def _measured(self) -> tuple[Contacts, Tensor]:
+        """The training data as measured (the whitening undone)."""
+        c, f, s = self._join()
+        return c.scale_weights(s[:, :1], s[:, 1:]), f * s
+
+    def _data_digest_tensor(self) -> Tensor:
+        c, f = self._measured()
+        # the weights (what the maps see); the signed depths and areas only where the surface is learned
+        data = c.as_dict() if self.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
+        d = digest({"contacts": data, "forces": f, "noise_scale": self.noise_scale})
+        return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
+
+    def _fresh_digest(self) -> None:
+        if self._digest_stale:
+            self.data_digest.copy_(self._data_digest_tensor())
+            self._digest_stale = False
+
+    def state_dict(self, *args, **kwargs):
+        """The hyperparameters and the training data's digest. The backend's own entries (the same
+        hyperparameters again, and gpytorch's) are left out: which backend ``auto`` ends on is not part
+        of a model's state."""
+        self._fresh_digest()
+        out = super().state_dict(*args, **kwargs)
+        for k in [k for k in out if k.split(".", 1)[0] == "backend" or ".backend." in k]:
+            del out[k]
+        return out
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
+        other data is refused (its ``data_digest`` differs). ``strict=False`` loads the
+        hyperparameters alone (a warm start on new data)."""
+        self._fresh_digest()
+        theirs = state_dict.get("data_digest")
+        if theirs is not None and not torch.equal(theirs.to(self.data_digest.device), self.data_digest):
+            if strict:
+                raise ModelFileError("this state was fitted on other training data (data_digest differs); pass "
+                                     "strict=False to load only its hyperparameters")
+            state_dict = {k: v for k, v in state_dict.items() if k != "data_digest"}
+        state_dict = {k: v for k, v in state_dict.items() if not k.startswith("backend.")}
+        result = self.hypers.load_state_dict({k[len("hypers."):]: v for k, v in state_dict.items()
+                                              if k.startswith("hypers.")}, strict=strict)
+        if "data_digest" in state_dict:
+            self.data_digest.copy_(state_dict["data_digest"].to(self.data_digest))
+        if self.surface is not None and "surface.offset" in state_dict:
+            with torch.no_grad():
+                self.surface.offset.copy_(state_dict["surface.offset"].to(self.surface.offset))
+            self._rebuild_backend()
+        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest"
+                                                    or (self.surface is not None and k == "surface.offset"))]
+        if strict and unexpected:
+            raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
+        return result
+
+    def save(self, path) -> None:
+        """Write training data, options, the hyperparameters and a checksum to one file (format 2,
+        ``gp.model_file``): ``load`` refuses files that are damaged, foreign or of another version."""
+        save_model(self, path)
+
+    @classmethod
+    def load(cls: type[_Model], path, map_location=None) -> _Model:
+        """Rebuild a model written by ``save`` (format 2, or 0.1.0's format, whose hyperparameters are
+        translated). Raises ``ModelFileError`` naming what is wrong for anything else."""
+        return load_model(cls, path, map_location)

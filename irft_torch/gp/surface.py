@@ -25,6 +25,10 @@ Hessian of the total negative log likelihood (T x loss) in the offsets and the r
 hyperparameters, the hyperparameters marginalized (Schur complement; directions the data do not
 inform, zero curvature, are dropped), and the conditional one (hyperparameters fixed). See
 docs/surface.md for the sign convention and what is and is not identified.
+
+The front door composes it: ``InverseRFT`` holds a ``SurfaceOffset`` and takes its methods from
+``LearnedSurfaceMixin``; this module never imports the front door (the profile likelihood, which
+builds models, is ``gp.surface_profile``).
 """
 
 from __future__ import annotations
@@ -37,10 +41,12 @@ import torch
 from torch import Tensor, nn
 
 from ..rft.contacts import M_TO_CM, Contacts
+from .backends import make_backend
 from .backends.pairs import distinct_pairs
 from .kernels import angle_covariance
 
-__all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate", "profile_surface"]
+__all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate",
+           "LearnedSurfaceMixin"]
 
 
 @dataclass
@@ -229,36 +235,49 @@ def surface_estimate(model) -> SurfaceEstimate:
                            cov.detach() * k**2, corr)
 
 
-def profile_surface(contacts: Contacts, forces, offsets, n_iter: int = 300, lr: float = 0.05,
-                    level: float = 0.95, **kwargs) -> dict:
-    """Profile likelihood of one surface offset: at each offset (m) on a grid, an ``InverseRFT`` on
-    ``contacts.with_surface_offset(offset)`` (hyperparameters refitted, ``n_iter`` Adam steps, other
-    constructor arguments in ``kwargs``) and its total negative log likelihood (T x loss).
+class LearnedSurfaceMixin:
+    """What the front door needs to learn the surface with the maps (its ``surface``: a
+    ``SurfaceOffset`` or None): the offsets with their Laplace uncertainty (``surface_offset``), a start
+    by grid search (``init_surface``), the loss while the offsets move (``_surface_loss``) and the
+    backend rebuilt at the fitted offsets (``_rebuild_backend``). A mixin of ``InverseRFT``."""
 
-    Returns a dict: ``offsets`` (n,), ``nll`` (n,) minus its minimum (NaN where no segment touches),
-    ``best`` (the grid's
-    minimizer) and ``interval`` (lower, upper): the grid points where 2 x nll <= the chi-square(1)
-    quantile at ``level`` (the grid's own resolution; an end of the grid means the interval reaches
-    at least that far). Independent of the Laplace approximation, and of the model's own offset.
-    """
-    from .model import InverseRFT
+    @property
+    def surface_offset(self):
+        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
+        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
+        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+        return surface_estimate(self)
 
-    offsets = torch.as_tensor(offsets, dtype=torch.float64).reshape(-1)
-    nll = []
-    for d in offsets.tolist():
-        c = contacts.with_surface_offset(d)
-        if not bool((c.weight_z != 0).any()):
-            nll.append(math.nan)  # nothing in contact at this offset: no map to fit (left out)
-            continue
-        m = InverseRFT(c, forces, **kwargs)
-        m.fit(n_iter, lr, progress=False)
+    def init_surface(self, offsets) -> Tensor:
+        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
+        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
+        ``stress_map`` and ``predict_forces`` are then at it."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+        grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
         with torch.no_grad():
-            nll.append(float(m.loss()) * len(m.train_forces))
-    nll = torch.tensor(nll, dtype=torch.float64)
-    if not torch.isfinite(nll).any():
-        raise ValueError("profile_surface: no offset of the grid puts any segment in contact")
-    nll = nll - nll[torch.isfinite(nll)].min()
-    q = 2 * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item() ** 2  # chi2(1) quantile
-    inside = offsets[2 * nll <= q]
-    return {"offsets": offsets, "nll": nll, "best": float(offsets[int(torch.nan_to_num(nll, math.inf).argmin())]),
-            "interval": (float(inside.min()), float(inside.max()))}
+            for g in range(self.surface.n_groups):
+                losses = []
+                for v in grid:
+                    self.surface.offset[g] = v
+                    losses.append(float(self._surface_loss()))
+                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
+        self.eval()
+        return self.surface.offset.detach().clone() / M_TO_CM
+
+    def _surface_loss(self) -> Tensor:
+        c, f, _ = self._join()
+        nll = surface_negative_log_likelihood(self.hypers, self.surface.apply(c), f, self.surface.table,
+                                              self.surface.index)
+        return nll.sum() - self.backend.log_prior() / max(len(f), 1)
+
+    def _rebuild_backend(self) -> None:
+        """The surface moved: the backend again, on the contacts at the current offset."""
+        method = self._method_arg if self._method_arg != "auto" else "auto"
+        self.backend = make_backend(method, self.hypers, self.train_contacts, self.train_forces, solver=self.solver,
+                                    tol=self.tol)
+        self._n_pairs = None

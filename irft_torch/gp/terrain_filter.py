@@ -52,7 +52,8 @@ from torch import Tensor, nn
 
 from ..rft.contacts import Contacts
 from .embedding import embed_angles
-from .model import InverseRFT, Posterior
+from .model import InverseRFT
+from .posterior import Posterior
 
 __all__ = ["TerrainFilter"]
 

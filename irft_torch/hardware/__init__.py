@@ -2,8 +2,9 @@
 MIT-mode CAN frames, logs, the paper's signal
 pipeline and a simulated leg on a virtual bus. Imports neither ``gp`` nor plotting."""
 
-from .can_log import SUPPORTED_SUFFIXES, LogData, LogReadError, MotorSeries, ResampledLog, read_log, record
+from .can_log import SUPPORTED_SUFFIXES, read_log, record
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .log_data import LogData, LogReadError, MotorSeries, ResampledLog
 from .mit_can import MIT_ERRORS, MIT_MODELS, MitModel, decode_mit, encode_mit_reply, mit_model
 from .motor import MotorModel, kt_from_kv
 from .odrive_can import COMMANDS, Frame, FrameError, arbitration_id, decode, encode, request, split_id

@@ -1,6 +1,7 @@
 """The paper's signal pipeline: currents -> torques -> toe forces, minus the force measured in air
 along the same path, zero-phase moving-average filtered, repeated trials aligned and averaged,
-then contacts + forces written as a dataset for the inference model.
+then contacts + forces built into a dataset for the inference model (its file format:
+``data.dataset``).
 
 Trials and the air run are aligned by arc length along the toe's path (not by time), so runs at
 slightly different speeds or start times line up at the same place.
@@ -9,20 +10,20 @@ slightly different speeds or start times line up at the same place.
 from __future__ import annotations
 
 import warnings
-import zipfile
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.ndimage import uniform_filter1d
 
-from ..rft.contacts import SURFACE_FIELDS, Contacts, contacts
+from ..data.dataset import Dataset, dataset_summary, load_dataset, save_dataset
+from ..rft.contacts import contacts
 from ..rft.toes import Toe
-from .can_log import ResampledLog
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .log_data import ResampledLog
 from .motor import MotorModel
 
+# Dataset, dataset_summary, save_dataset and load_dataset: the dataset format (data.dataset), built here
 __all__ = ["ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
            "Dataset", "build_dataset", "dataset_summary", "save_dataset", "load_dataset"]
 
@@ -286,22 +287,6 @@ def average_trials(trials: list[ForceTrace], n_points: int | None = None, covera
     return ForceTrace(time, q, toe, tau, force, valid, masked, ref.arc_noise)
 
 
-@dataclass
-class Dataset:
-    """What the inference model takes: contacts (T, M), forces (T, 2) N, time (T,) s, and the toe
-    path (T, 2) m (world frame) for plots. ``statistics``: optional named arrays saved with the data
-    (the inference side's sufficient statistics, ``gp.statistics``; opaque here)."""
-
-    contacts: Contacts
-    forces: torch.Tensor
-    time: torch.Tensor
-    toe_position: torch.Tensor
-    statistics: dict | None = None
-
-    def __len__(self) -> int:
-        return len(self.contacts)
-
-
 def build_dataset(trace: ForceTrace, leg: FiveBarLeg, toe: Toe, hip_height: float,
                   heading: str | float = 0.0, max_depth: float | None = None) -> Dataset:
     """Contacts of ``toe`` along the leg's toe path (hips ``hip_height`` m above the surface) and
@@ -329,102 +314,3 @@ def build_dataset(trace: ForceTrace, leg: FiveBarLeg, toe: Toe, hip_height: floa
         raise ValueError(f"the toe never touches the sand (toe z from {z.min():.3f} to {z.max():.3f} m with hips "
                          f"{hip_height} m above the surface): check --hip-height and --l1/--l2")
     return Dataset(c, torch.as_tensor(t.force), torch.as_tensor(t.time), path.position)
-
-
-def dataset_summary(ds: Dataset, masked: dict | None = None, n_before: int | None = None) -> list[str]:
-    """Short printable lines: duration [s], samples, time in contact, toe depth range [m], force
-    range [N] per axis, and the masked samples with their reasons."""
-    t = ds.time.numpy()
-    f = ds.forces.numpy()
-    z = ds.toe_position[:, 1].numpy()
-    contact = (ds.contacts.weight_z != 0).any(1).numpy()
-    dt = np.diff(t)
-    dur = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    contact_s = float(np.sum(np.where(contact[1:] | contact[:-1], dt, 0.0))) if len(t) > 1 else 0.0
-    lines = [
-        f"duration {dur:.2f} s, {len(ds)} samples x {ds.contacts.n_segments} segments"
-        + (f" (of {n_before})" if n_before is not None and n_before != len(ds) else ""),
-        f"in contact {contact_s:.2f} s ({100 * contact.mean():.0f} % of samples), toe reference depth "
-        f"{max(0.0, -z.max()):.3f} to {max(0.0, -z.min()):.3f} m",
-        f"force F_x {f[:, 0].min():.3g} to {f[:, 0].max():.3g} N, F_z {f[:, 1].min():.3g} to {f[:, 1].max():.3g} N",
-    ]
-    if masked:
-        lines.append("masked: " + "; ".join(f"{v} {k}" for k, v in masked.items()))
-    else:
-        lines.append("masked: none")
-    return lines
-
-
-STATISTICS_PREFIX = "statistics."
-
-
-def save_dataset(path, ds: Dataset, **meta) -> Path:
-    """npz with beta, gamma, weight_x, weight_z (T, M) (and depth, area_x, area_z where the contacts
-    carry them), forces (T, 2), time, toe_position, meta, and ``ds.statistics`` (if any) as arrays
-    named "statistics.<name>". ".npz" is appended when ``path`` lacks it; the file is written whole
-    or not at all (a temporary file renamed into place). Returns the path written."""
-    import os
-
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
-    arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
-    arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(), toe_position=ds.toe_position.numpy(),
-                     meta=np.array(repr(meta)), **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def load_dataset(path) -> Dataset:
-    """Read a dataset written by ``save_dataset``; a damaged, truncated or foreign file raises
-    ValueError saying so (never a zip or pickle traceback)."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no dataset at {path}")
-    if path.is_dir():
-        raise ValueError(f"{path} is a directory, not a dataset .npz")
-    need = ("beta", "gamma", "weight_x", "weight_z", "forces", "time", "toe_position")
-    with open(path, "rb") as fh:
-        head = fh.read(30)
-    if not head.startswith(b"PK"):  # not a zip: np.load would read it as a .npy or a pickle and say so
-        raise ValueError(f"{path} is damaged or not an irft dataset (.npz from irft ingest): not an .npz (zip) "
-                         f"archive; it starts with {head.decode('latin-1')[:30]!r}")
-    try:
-        with np.load(path, allow_pickle=False) as d:
-            missing = set(need) - set(d.files)
-            if missing:
-                raise ValueError(f"{path} is not an irft dataset: missing {sorted(missing)}")
-            arrays = {k: np.asarray(d[k]) for k in need}
-            stats = {k[len(STATISTICS_PREFIX):]: np.asarray(d[k]) for k in d.files if k.startswith(STATISTICS_PREFIX)}
-            # the signed depths and areas (a learned surface offset, docs/surface.md): optional, all three
-            surface = [k for k in SURFACE_FIELDS if k in d.files]
-            if surface and len(surface) != len(SURFACE_FIELDS):
-                raise ValueError(f"{path} is damaged: it holds {surface} but not all of {list(SURFACE_FIELDS)}")
-            arrays.update({k: np.asarray(d[k]) for k in surface})
-    except ValueError as e:
-        if "not an irft dataset" in str(e):
-            raise
-        raise ValueError(f"{path} is damaged or not an irft dataset (.npz from irft ingest): {e}") from None
-    except (zipfile.BadZipFile, EOFError, OSError, KeyError) as e:
-        raise ValueError(f"{path} is damaged or not an irft dataset (.npz from irft ingest): "
-                         f"{type(e).__name__}: {e}") from None
-    T = len(arrays["forces"])
-    shapes = {k: v.shape for k, v in arrays.items()}
-    ok = (arrays["forces"].shape == (T, 2) and arrays["time"].shape == (T,) and arrays["toe_position"].shape == (T, 2)
-          and all(arrays[k].ndim == 2 and arrays[k].shape[0] == T for k in need[:4] + tuple(surface))
-          and len({arrays[k].shape for k in need[:4] + tuple(surface)}) == 1)
-    if not ok:
-        raise ValueError(f"{path}: inconsistent array shapes {shapes}; the file is damaged")
-    bad = [k for k, v in arrays.items() if not np.issubdtype(v.dtype, np.floating) or not np.isfinite(v).all()]
-    if bad:
-        raise ValueError(f"{path}: non-finite or non-numeric values in {bad}; the file is damaged")
-    c = Contacts(**{k: torch.as_tensor(arrays[k]) for k in need[:4] + tuple(surface)})
-    return Dataset(c, torch.as_tensor(arrays["forces"]), torch.as_tensor(arrays["time"]),
-                   torch.as_tensor(arrays["toe_position"]), stats or None)

@@ -518,7 +518,7 @@ def test_sampled_maps_have_the_dense_posterior_mean_and_covariance(method):
 
 
 def test_psd_root_of_rank_deficient_and_slightly_indefinite_covariances():
-    from irft_torch.gp.model import _psd_root
+    from irft_torch.gp.posterior import _psd_root
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn(50, 5, generator=g)

@@ -65,7 +65,7 @@ def test_loss_subtracts_the_log_prior_over_T():
     a = irft.InverseRFT(c, f, method="observations", priors="physical")
     b = irft.InverseRFT(c, f, method="observations", priors=None)
     b.hypers.load_state_dict(a.hypers.state_dict())
-    from irft_torch.gp.model import _data_scales
+    from irft_torch.gp.inputs import _data_scales
 
     cen = prior_centres(a.train_contacts, a.train_forces, _data_scales(a.train_contacts, a.train_forces)[1], False)
     h = a.hypers

@@ -139,8 +139,8 @@ def test_statistics_of_other_data_are_refused():
 
 
 def test_fit_reduces_datasets_in_worker_processes(tmp_path):
-    from irft_torch.cli import _reduce_statistics
-    from irft_torch.hardware.pipeline import Dataset, load_dataset, save_dataset
+    from irft_torch.cli.fit import _reduce_statistics
+    from irft_torch.data import Dataset, load_dataset, save_dataset
 
     paths, parts = [], []
     for i, seed in enumerate((11, 12, 13)):

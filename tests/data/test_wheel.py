@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from irft_torch import wheel_data as wd
+from irft_torch.data import wheel as wd
 from irft_torch.rft import FourierStressMap, forces
 from irft_torch.rft.wheel import wheel_contacts
 
-DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "rover_wheel"
+DATA = pathlib.Path(__file__).resolve().parents[3] / "shared" / "data" / "rover_wheel"
 needs_data = pytest.mark.skipif(not DATA.is_dir(),
                                 reason=f"rover-wheel data not found at {DATA} (not shipped: no licence)")
 

@@ -9,12 +9,11 @@ import matplotlib.image
 import numpy as np
 import pytest
 import torch
+from hardware.closed_form import ik_coaxial, torques_coaxial
 
 import irft_torch as irft
 from irft_torch.cli import main
 from irft_torch.hardware import FakeODrive, SimulatedLeg, load_dataset, read_log
-
-from .closed_form import ik_coaxial, torques_coaxial
 
 
 def test_record_simulate_ingest_fit(tmp_path, capsys):

@@ -49,7 +49,8 @@ def test_reproduce_quick_writes_everything_and_is_deterministic(tmp_path):
     c2 = {r["axis"]: r for r in t1 if r["config"] == "C-toe gait 2"}
     assert float(c2["Z"]["r2"]) > 0.9 and float(c2["X"]["r2"]) > 0.8
     # rerun: identical tables
-    from irft_torch.reproduce import StudySettings, run_study
+    from irft_torch.studies.paper_study import run_study
+    from irft_torch.studies.reproduce import StudySettings
 
     run_study(b, StudySettings.quick_settings(), progress=False, figures=False)
     assert (a / "table1.csv").read_text() == (b / "table1.csv").read_text()
@@ -57,7 +58,8 @@ def test_reproduce_quick_writes_everything_and_is_deterministic(tmp_path):
 
 
 def test_report_tables_are_well_formed_and_define_their_metrics(tmp_path):
-    from irft_torch.reproduce import StudySettings, run_study
+    from irft_torch.studies.paper_study import run_study
+    from irft_torch.studies.reproduce import StudySettings
 
     s = StudySettings(n_steps=30, grid=16, n_iter=10, noise_levels=(0.0, 0.05, 0.2), noise_seeds=(0,),
                       lengthscale_sensitivity=(), quick=True)
@@ -96,7 +98,7 @@ def _script(name):
     import importlib.util
     import pathlib
 
-    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod  # dataclasses look their module up there
@@ -148,12 +150,12 @@ def test_importing_the_experiments_keeps_the_matplotlib_backend():
             "for n in ('dem_validation', 'active_probing', 'experimental_validation'):\n"
             "    s = importlib.util.spec_from_file_location(n, pathlib.Path('experiments') / (n + '.py'))\n"
             "    m = importlib.util.module_from_spec(s); sys.modules[n] = m; s.loader.exec_module(m)\n"
-            "import irft_torch.reproduce, irft_torch.plotting\n"
+            "import irft_torch.studies.paper_study, irft_torch.plotting\n"
             "print(matplotlib.get_backend())")
     import os
     import pathlib
 
-    root = pathlib.Path(__file__).resolve().parents[1]
+    root = pathlib.Path(__file__).resolve().parents[2]
     env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root)
     assert r.returncode == 0, r.stderr
@@ -170,7 +172,7 @@ def test_calibration_study_quick_writes_coverage_that_matches_its_csv(tmp_path):
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    script = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
     subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)], check=True,
                    capture_output=True, text=True)
     rows = list(csv.DictReader(open(tmp_path / "calibration_study.csv")))
@@ -192,9 +194,9 @@ def test_sampling_statistics_match_the_hand_count():
     # the C-toe's segment count; the I-toe's gait-1 samples repeat three pairs (down, across, up)
     import torch
 
-    from irft_torch import reproduce as R
     from irft_torch.rft import contacts
-    from irft_torch.study_report import _pinning_rows
+    from irft_torch.studies import reproduce as R
+    from irft_torch.studies.report import _pinning_rows
 
     torch.set_default_dtype(torch.float64)
     for M in (6, 10):
@@ -236,7 +238,7 @@ def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(
     import subprocess
     from pathlib import Path
 
-    bench = Path(__file__).resolve().parents[1] / "experiments" / "bench_inference.py"
+    bench = Path(__file__).resolve().parents[2] / "experiments" / "bench_inference.py"
     r = subprocess.run([sys.executable, str(bench), "--quick", "--repeats", "1",
                         "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -252,7 +254,7 @@ def test_calibration_prior_draws_have_the_kernels_covariance():
 
     import torch
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    path = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
     spec = importlib.util.spec_from_file_location("calibration_study_draws", path)
     cs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cs)
@@ -275,7 +277,7 @@ def _calibration_study():
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "calibration_study.py"
+    path = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
     spec = importlib.util.spec_from_file_location("calibration_study_split", path)
     cs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cs)
@@ -285,7 +287,7 @@ def _calibration_study():
 def test_calibration_split_and_prior_ceiling_by_hand():
     import torch
 
-    from irft_torch import reproduce as R
+    from irft_torch.studies import reproduce as R
 
     cs = _calibration_study()
     torch.set_default_dtype(torch.float64)
@@ -313,8 +315,8 @@ def test_posterior_draws_are_covered_at_the_nominal_rate_on_average():
     # the variances (a missing or doubled term, a wrong jitter) moves that mean
     import torch
 
-    from irft_torch import reproduce as R
     from irft_torch.rft import FourierStressMap
+    from irft_torch.studies import reproduce as R
 
     cs = _calibration_study()
     torch.set_default_dtype(torch.float64)
@@ -334,8 +336,8 @@ def test_itoe_alpha_x_is_as_covered_as_a_calibrated_model_would_be_with_the_prio
     # all of them with the paper's plain likelihood (measured 0.000: overconfident)
     import torch
 
-    from irft_torch import reproduce as R
     from irft_torch.rft import FourierStressMap
+    from irft_torch.studies import reproduce as R
 
     cs = _calibration_study()
     torch.set_default_dtype(torch.float64)
@@ -355,8 +357,8 @@ def test_pinned_fits_use_the_paper_sampling():
     # Table I under the pinned sampling: PINNED_STEPS samples per path, the C-toe turning on gait 2 only
     import torch
 
-    from irft_torch import reproduce as R
     from irft_torch.rft import FourierStressMap
+    from irft_torch.studies import reproduce as R
 
     torch.set_default_dtype(torch.float64)
     s = R.StudySettings(n_iter=2, grid=8)
@@ -397,36 +399,26 @@ def test_bench_experiments_help_and_its_table_comparison(tmp_path, capsys):
 def test_reproduce_priors_none_runs_every_fit_on_the_plain_likelihood(tmp_path, monkeypatch):
     """`irft reproduce --priors none`: the settings the study runs with have no priors (the paper's model);
     the default keeps the library's physical priors."""
-    import irft_torch.reproduce as R
+    import irft_torch.studies.paper_study as P
+    import irft_torch.studies.reproduce as R
 
     seen = []
-    monkeypatch.setattr(R, "run_study", lambda out, s, **kw: seen.append(s) or {"out_dir": str(out), "elapsed_s": 0})
+    monkeypatch.setattr(P, "run_study", lambda out, s, **kw: seen.append(s) or {"out_dir": str(out), "elapsed_s": 0})
     assert main(["reproduce", "--priors", "none", "--out", str(tmp_path), "--no-progress"]) == 0
     assert main(["reproduce", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
     assert seen[0].priors is None and seen[0].n_iter == R.StudySettings().n_iter
     assert seen[1].priors == "physical" and seen[1].quick
 
 
-def test_the_study_groups_only_fits_that_batch_and_batches_every_noise_study(tmp_path, monkeypatch):
+def test_the_study_groups_only_fits_that_batch_and_batches_every_noise_study():
     """irft reproduce's grouping (``_groups``) against the batching's own rule (``gp.shares_fit``): every
     group of two or more is one that ``fit_together`` fits as one batch (none falls back, which would be
     slower, not wrong), and the noise levels x seeds of each configuration share one group."""
-    import irft_torch.reproduce as R
+    import irft_torch.studies.reproduce as R
     from irft_torch.gp.batch_fit import shares_fit
 
-    class Captured(Exception):
-        pass
-
-    seen = {}
-
-    def capture(jobs, s, *args, **kwargs):
-        seen["jobs"], seen["s"] = jobs, s
-        raise Captured
-
-    monkeypatch.setattr(R, "_run_fits", capture)
-    with pytest.raises(Captured):
-        R.run_study(tmp_path, R.StudySettings(), progress=False, figures=False)
-    jobs, s = seen["jobs"], seen["s"]
+    s = R.StudySettings()
+    jobs = R.study_fits(s)
     groups = R._groups(jobs, s)
     assert sorted(i for g in groups for i in g) == list(range(len(jobs)))
     batched = [g for g in groups if len(g) > 1]

@@ -1,0 +1,159 @@
+"""``irft fit``: fit ``InverseRFT`` to one or more datasets (summed spectral statistics for long
+recordings, reduced in worker processes) and write model.pt, the map with its uncertainty and the
+forces."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .arguments import _out_dir
+
+
+def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> dict:
+    """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma): cut from those saved in
+    the file when they are its own and cover the basis, else one pass (a worker of ``irft fit``).
+    Returns the statistics' state and whether they came from the file."""
+    import torch
+
+    from ..gp.backends.spectral import restrict_statistics
+    from ..gp.fourier import FourierBasis
+    from ..gp.statistics import recording_statistics, statistics_from_arrays
+    from ..hardware import load_dataset
+
+    if threads:
+        torch.set_num_threads(threads)
+    torch.set_default_dtype(torch.float64)
+    ds = load_dataset(path)
+    basis = FourierBasis(n_beta, n_gamma)
+    c, f = ds.contacts.to(dtype=torch.float64), ds.forces.to(torch.float64)
+    stats = None
+    if ds.statistics:
+        stats = statistics_from_arrays(ds.statistics, c, f, source=f"the statistics saved in {path}")
+        if stats is not None and (stats.meta["n_beta"] < n_beta or stats.meta["n_gamma"] < n_gamma):
+            stats = None
+    from_file = stats is not None
+    stats = restrict_statistics(stats, basis) if from_file else recording_statistics(c, f, basis)
+    return {"state": stats.state(), "from_file": from_file}
+
+
+def _spectral_start(contacts, method: str):
+    """The Fourier basis the model will start in if ``method`` gives the spectral backend on these
+    contacts (a default ``InverseRFT``: lengthscale 1, tol 1e-7), else None."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from ..gp.backends.select import choose_method
+    from ..gp.statistics import initial_basis
+
+    hypers = SimpleNamespace(lengthscale=torch.ones(2, 1, 4, dtype=torch.float64))
+    if method == "spectral" or (method == "auto" and choose_method(contacts, hypers) == "spectral"):
+        return initial_basis()
+    return None
+
+
+def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 0):
+    """The summed spectral statistics of the datasets at ``paths`` in ``basis``, reduced in ``jobs``
+    worker processes (0: up to half the CPU count, from 4 CPUs, when the pass, about ``n_samples`` x
+    F^2 flops, is long enough to pay for starting them, a few seconds each; 1: here, where torch
+    already spreads the pass's matrix products over the cores). Statistics saved in a file are
+    used when they are that file's own and cover the basis."""
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from ..gp.backends.weight_space import FeatureStatistics
+
+    t0 = time.perf_counter()
+    if jobs == 0:
+        cpus = os.cpu_count() or 1  # one process already uses every core for the pass's matrix products
+        jobs = min(len(paths), cpus // 2) if n_samples * basis.size**2 > 4e11 and cpus >= 4 else 1
+    args = [(str(p), basis.n_beta, basis.n_gamma) for p in paths]
+    if jobs > 1:
+        threads = max(1, (os.cpu_count() or 1) // jobs)
+        with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+            parts = list(pool.map(_statistics_of, *zip(*args), [threads] * len(args)))
+    else:
+        parts = [_statistics_of(*x) for x in args]
+    total = None
+    for part in parts:
+        st = FeatureStatistics.from_state(part["state"])
+        total = st if total is None else total + st
+    n_file = sum(p["from_file"] for p in parts)
+    print(f"spectral statistics ({basis.size} features) of {len(paths)} dataset(s): {n_file} read from the files, "
+          f"{len(paths) - n_file} computed in {jobs} process(es); {time.perf_counter() - t0:.1f} s")
+    return total
+
+
+def cmd_fit(a) -> int:
+    import torch
+
+    from .. import plotting
+    from ..gp import InverseRFT
+    from ..hardware import load_dataset
+
+    _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
+    parts = [load_dataset(p) for p in a.dataset]
+    ds = parts[0]
+    if len(parts) > 1:  # one recording after another: times shifted so the time axis keeps increasing
+        from ..rft import Contacts
+
+        times, t_end = [], 0.0
+        for d in parts:
+            t = d.time - d.time[0]
+            step = float(t[1] - t[0]) if len(t) > 1 else 0.0
+            times.append(t + t_end)
+            t_end = float(times[-1][-1]) + step
+        ds = type(ds)(Contacts.cat([d.contacts for d in parts]), torch.cat([d.forces for d in parts]),
+                      torch.cat(times), torch.cat([d.toe_position for d in parts]))
+        print(f"{len(parts)} datasets, {len(ds)} samples in all")
+    stats = None
+    if a.max_samples and len(ds) > a.max_samples:
+        keep = torch.linspace(0, len(ds) - 1, a.max_samples).round().long()
+        print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (--max-samples)")
+        ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
+    elif (basis := _spectral_start(ds.contacts.to(dtype=torch.float64), a.method)) is not None:
+        stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds))
+    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
+                       priors=None if a.priors == "none" else a.priors)
+    print(f"backend {model.backend.describe()}")
+    model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
+    print(model.diagnostics(warn=False))
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model.save(out / "model.pt")
+    fig = plotting.plot_posterior_map(model)
+    plotting.save(fig, out / "stress_map.png")
+    pred = model.predict_forces(ds.contacts)
+    meas = model.predict_forces(ds.contacts, include_noise=True)  # a new measurement: mean +- noise too
+    plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, meas.stddev, labels=("dataset", "I-RFT fit"),
+                                       band_label=r"$\pm 2\sigma$ of a measurement"), out / "forces.png")
+    rng = (ds.forces.amax(0) - ds.forces.amin(0)).clamp_min(1e-12)
+    nrmse = ((pred.mean - ds.forces).pow(2).mean(0).sqrt() / rng * 100).tolist()
+    print(f"wrote {out}/model.pt, stress_map.png, forces.png; force RMSE {nrmse[0]:.2f} % (x), "
+          f"{nrmse[1]:.2f} % (z) of range")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fit", help="fit I-RFT to a dataset; write the map, its uncertainty and figures",
+                       description="Fit InverseRFT to an ingested dataset and write model.pt and figures.")
+    p.add_argument("dataset", nargs="+", help="dataset .npz from irft ingest (several: fitted together)")
+    p.add_argument("--method", choices=["auto", "observations", "pairs", "spectral"], default="auto",
+                   help="inference backend (default auto: the cheapest exact space for the data)")
+    p.add_argument("--out", default="irft_fit", help="output directory (default irft_fit)")
+    p.add_argument("--n-iter", type=int, default=300)
+    p.add_argument("--lr", type=float, default=0.05)
+    p.add_argument("--prior-mean", choices=["zero", "physics"], default="zero")
+    p.add_argument("--priors", choices=["physical", "none"], default="physical",
+                   help="hyperparameter priors (default physical: MAP, gp.priors; none: the paper's plain marginal "
+                        "likelihood)")
+    p.add_argument("--max-samples", type=int, default=0,
+                   help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
+                        "by method='auto' keeps long recordings fast)")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="worker processes reducing the datasets to their spectral statistics (default 0: up to half "
+                        "the CPUs, from 4, when the pass is long, over about 5 million samples; 1: in this process)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_fit)

@@ -1,0 +1,88 @@
+"""The front door's predictions as mixtures over hyperparameter draws: ``InverseRFT`` fits the
+posterior over its hyperparameters (``gp.hyper_posterior``: Laplace with importance reweighting, or
+NUTS) and keeps one backend per draw; every prediction averages over them with the draws' weights
+(``gp.mixture``). A mixin of ``InverseRFT`` (like botorch's ``FantasizeMixin``): it uses the model's
+``hypers``, ``backend``, training data and options."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .backends import RFTBackend, make_backend
+from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
+from .hyperparameters import RFTHyperparameters
+
+__all__ = ["HyperMixtureMixin"]
+
+
+class HyperMixtureMixin:
+    """``fit_hyper_posterior`` and the backends predictions average over (``_weighted_backends``)."""
+
+    def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
+                            generator: torch.Generator | None = None, **options) -> HyperPosterior | None:
+        """Fit the posterior over the hyperparameters at the current (fitted) ones; ``fit`` calls it when the
+        model was built with ``hyper_posterior`` "laplace" or "nuts". Predictions are then mixtures over its
+        draws.
+
+        Args:
+            method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
+            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
+            n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
+                plug-in's); None keeps every weighted proposal.
+            generator: a ``torch.Generator`` for reproducible draws.
+            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
+                ``qmc``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
+        Returns:
+            the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map".
+        """
+        method = self.hyper_method if method is None else method
+        if method not in HYPER_POSTERIORS:
+            raise ValueError(f"method must be one of {HYPER_POSTERIORS}, got {method!r}")
+        if self.surface is not None and method != "map":
+            raise NotImplementedError("a hyperparameter posterior with a learned surface offset is not supported")
+        if method == "map":
+            self._set_hyper_posterior(None)
+            return None
+        self.train()
+        try:
+            if method == "laplace":
+                hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
+            else:
+                hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+        finally:
+            self.eval()
+        self._set_hyper_posterior(hp)
+        return hp
+
+    def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
+        """Keep ``hp`` and build one backend per draw (sharing nothing with ``self.backend`` but the data)."""
+        self.hyper_posterior = hp
+        if hp is None:
+            self._draw_backends = None
+            return
+        spec = hyper_spec(self.hypers)
+        if list(hp.labels) != spec.labels:
+            raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
+        self._draw_backends = [self._backend_at(draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)))
+                               for th in hp.theta]
+        for b in self._draw_backends:
+            b.eval()
+
+    def _backend_at(self, hypers: RFTHyperparameters) -> RFTBackend:
+        """A backend like ``self.backend`` at other hyperparameters, sharing what does not depend on them:
+        the pairs backend's statistics and data factor; the spectral backend's statistics wherever they
+        cover the draw's basis (a draw with shorter lengthscales needs a larger basis: one pass)."""
+        own = self.backend
+        shared = own.with_hypers(hypers)
+        if shared is not None:
+            return shared
+        stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
+        return make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
+                            tol=self.tol, statistics=stats if self.method == "spectral" else None)
+
+    def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
+        """The backends predictions average over and their weights (None: the one plug-in backend)."""
+        if self._draw_backends is None:
+            return [self.backend], None
+        return self._draw_backends, self.hyper_posterior.weights.to(self._device, self.dtype)

@@ -1,0 +1,115 @@
+"""The front door's input checks and whitening: forces (T, 2) in N, relative noise scales, units
+that look off by 1000 or in degrees, precomputed statistics of other data, the data's own force and
+stress-per-depth scales. Every bad input is a ValueError (or TypeError) naming the argument."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor
+
+from ..rft.contacts import Contacts
+
+__all__: list[str] = []
+
+
+def _as_forces(forces, T: int, dtype, device) -> Tensor:
+    f = torch.as_tensor(forces, dtype=dtype, device=device)
+    if f.ndim != 2 or f.shape[-1] != 2:
+        raise ValueError(f"forces must be (T, 2) = (F_x, F_z) in N, got shape {tuple(f.shape)}")
+    if f.shape[0] != T:
+        raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T} time steps")
+    bad = ~torch.isfinite(f)
+    if bad.any():
+        i = int(bad.any(-1).nonzero()[0])
+        raise ValueError(f"forces contains NaN or inf (first at sample {i}); mask or drop those samples")
+    return f
+
+
+def _as_noise_scale(noise_scale, T: int, dtype, device) -> Tensor:
+    """(T, 2) relative noise standard deviations of T training samples; ones when ``noise_scale`` is None."""
+    if noise_scale is None:
+        return torch.ones(T, 2, dtype=dtype, device=device)
+    return _noise_scale(noise_scale, (T,), dtype, device).expand(T, 2).contiguous()
+
+
+def _noise_scale(noise_scale, lead: tuple, dtype, device) -> Tensor:
+    """``noise_scale`` of samples (*lead) = (..., T) as a tensor that broadcasts to exactly (*lead, 2):
+    per sample (a shape ending in T, or a 0-d scalar) or per sample and axis (ending in (T, 2)); anything
+    else is a ValueError (a (T,) scale must never line up with the two force axes)."""
+    s = torch.as_tensor(noise_scale, dtype=dtype, device=device)
+    given, T = tuple(s.shape), (lead[-1] if lead else 1)
+    if s.ndim >= 2 and s.shape[-2:] == (T, 2):
+        pass  # per sample and axis
+    elif s.ndim == 0 or s.shape[-1] == T:
+        s = s[..., None]  # per sample, both axes
+    else:
+        raise ValueError(f"noise_scale must end in T = {T} (per sample) or in (T, 2) (per sample and axis) for "
+                         f"samples of shape {tuple(lead)}, got shape {given}")
+    try:
+        fits = torch.broadcast_shapes(s.shape, (*lead, 2)) == (*lead, 2)
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"noise_scale of shape {given} does not broadcast to the samples {tuple(lead)}")
+    if not (torch.isfinite(s).all() and (s > 0).all()):
+        raise ValueError("noise_scale must be positive and finite (a relative noise standard deviation per sample)")
+    return s
+
+
+def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
+    """Divide each composite observation (its force and its segment weights) by its noise scale:
+    F_t / s_t = sum_m (w_tm / s_t) alpha(theta_tm) + eps_t, eps_t ~ N(0, sigma^2), exactly."""
+    return c.scale_weights(1 / s[:, :1], 1 / s[:, 1:]), f / s
+
+
+def _check_units(c: Contacts, f: Tensor) -> None:
+    """Warn where the data look off by 1000 or in degrees (the fit itself is unit-free)."""
+    fmax = float(f.abs().max())
+    if fmax > 1e4:
+        warnings.warn(f"forces reach {fmax:.3g}: above 1e4 N on a toe; are they in mN? (forces are in N)", stacklevel=3)
+    wmax = float(torch.maximum(c.weight_x.abs().sum(-1).max(), c.weight_z.sum(-1).max()))
+    if wmax > 1e5:
+        warnings.warn(f"segment weights reach {wmax:.3g} per sample: above 1e5 cm^3; are they in mm^3? (weights are "
+                      f"depth [cm] x area [cm^2])", stacklevel=3)
+    amax = float(torch.maximum(c.beta.abs().max(), c.gamma.abs().max()))
+    if amax > math.pi + 1e-6:
+        warnings.warn(f"angles reach {amax:.3g}: outside [-pi, pi]; are they in degrees? (angles are in rad)",
+                      stacklevel=3)
+
+
+def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):
+    """Precomputed statistics, checked to be of these forces (count and power per axis)."""
+    if stats is None:
+        return None
+    from .backends.weight_space import FeatureStatistics
+
+    if not isinstance(stats, FeatureStatistics):
+        raise TypeError(f"statistics must be a FeatureStatistics (gp.statistics), got {type(stats).__name__}")
+    if noise_scale is not None:
+        raise ValueError("statistics are computed with unit noise scale: drop noise_scale or statistics")
+    if prior_mean == "physics" and stats.meta.get("mean") != "generic shape":
+        raise ValueError("statistics lack the generic shape's forces a physics mean needs: compute them with "
+                         "gp.statistics.recording_statistics")
+    # float32 on either side (a float32 model given statistics of the float64 data) rounds the power at ~1e-7
+    rtol = 1e-9 if f.dtype == stats.yy.dtype == torch.float64 else 1e-5
+    power = f.double().pow(2).sum(0).to(stats.yy.device)
+    if stats.n != len(f) or not torch.allclose(stats.yy.double(), power, rtol=rtol, atol=1e-300):
+        raise ValueError(f"statistics are not of these forces: {stats.n} samples with power {stats.yy.tolist()} "
+                         f"vs {len(f)} samples with power {power.tolist()}")
+    return stats
+
+
+def _check_dtype(dtype) -> None:
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
+
+
+def _data_scales(c: Contacts, f: Tensor) -> tuple[Tensor, Tensor]:
+    """The data's force scale (2,) N (rms force per axis) and stress-per-depth scale (2,) N/cm^3
+    (that over the rms summed weight)."""
+    s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
+    force_scale = f.T.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+    return force_scale, force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)

@@ -1,0 +1,94 @@
+"""Posterior marginals of the maps and the forces (``Posterior``), and how the front door forms them
+from a backend: the forces of contacts with rows out of contact skipped (``_force_posterior``) and
+the root of a positive semi-definite covariance for joint draws (``_psd_root``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..rft.contacts import Contacts
+from .backends import RFTBackend
+from .mixture import mixture_moments, mixture_quantile
+
+__all__ = ["Posterior"]
+
+
+@dataclass
+class Posterior:
+    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z).
+
+    Averaged over hyperparameter draws (``InverseRFT(..., hyper_posterior="laplace")``) each marginal is a
+    Gaussian mixture: ``mean`` and ``variance`` are its mean and total variance, ``components`` holds the
+    draws' own means and variances (S, ..., 2) and their weights (S,), and ``interval`` inverts the mixture's
+    CDF (``gp.mixture``)."""
+
+    mean: Tensor
+    variance: Tensor
+    components: tuple[Tensor, Tensor, Tensor] | None = None
+
+    @property
+    def stddev(self) -> Tensor:
+        return self.variance.clamp_min(0).sqrt()
+
+    def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
+        """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
+        if not 0 < level < 1:
+            raise ValueError(f"level must be in (0, 1), got {level}")
+        if self.components is not None:
+            means, variances, weights = self.components
+            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
+                    mixture_quantile(0.5 + level / 2, means, variances, weights))
+        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+        return self.mean - z * self.stddev, self.mean + z * self.stddev
+
+    @classmethod
+    def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
+        """The mixture over draws: ``means``, ``variances`` (S, ..., 2), ``weights`` (S,); one draw is a
+        plain Gaussian posterior (the same numbers, no components)."""
+        if means.shape[0] == 1:
+            return cls(means[0], variances[0])
+        mean, var = mixture_moments(means, variances, weights)
+        return cls(mean, var, (means, variances, weights))
+
+
+def _psd_root(cov: Tensor) -> Tensor:
+    """L (..., N, N) with L L^T = cov for a positive semi-definite covariance (a smooth kernel's is
+    rank-deficient on many points): Cholesky with a jitter of 1e-12, then 1e-10, of the largest
+    variance (draws off by at most that), else the exact root from the eigendecomposition."""
+    cov = 0.5 * (cov + cov.mT)
+    top = cov.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(cov.dtype).tiny)[..., None, None]
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    for rel in (1e-12, 1e-10):
+        L, info = torch.linalg.cholesky_ex(cov + rel * top * eye)
+        if not bool(info.any()):
+            return L
+    lam, V = torch.linalg.eigh(cov)
+    return V * lam.clamp_min(0).sqrt()[..., None, :]
+
+
+def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance: str) -> tuple[Tensor, Tensor]:
+    """Mean and variance (2, N) of the forces of contacts (N, M) from one backend; rows with no segment
+    in contact (``rows`` False) have force exactly 0, mean and variance."""
+    N = flat.shape[0]
+    mean = flat.beta.new_zeros(2, N)
+    var = flat.beta.new_zeros(2, N)
+    if rows.any():
+        sub = flat[rows]
+        post = backend.posterior(sub, variance=(variance == "exact"))
+        v_sub = post.variance
+        if variance == "independent":
+            act = (sub.weight_x != 0) | (sub.weight_z != 0)
+            b, g = sub.beta[act], sub.gamma[act]
+            ones = torch.ones_like(b)[:, None]
+            seg_var = backend.posterior(Contacts(b[:, None], g[:, None], ones, ones)).variance
+            w2 = torch.stack([sub.weight_x[act], sub.weight_z[act]]).pow(2)  # (2, n_active)
+            per_seg = torch.zeros(2, *sub.shape, dtype=w2.dtype, device=w2.device)
+            per_seg = per_seg.masked_scatter(act.expand(2, *act.shape), w2 * seg_var)
+            v_sub = per_seg.sum(-1)
+        mean = mean.masked_scatter(rows.expand(2, N), post.mean)
+        var = var.masked_scatter(rows.expand(2, N), v_sub)
+    return mean, var
