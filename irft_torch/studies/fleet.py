@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass
 
 __all__ = ["dataset_statistics", "reduce_on_dask", "FleetReduction", "DASK_MISSING"]
@@ -32,46 +33,65 @@ def dataset_statistics(path, basis=None, threads: int = 0):
     """One dataset file's spectral statistics in ``basis`` (default ``gp.statistics.initial_basis()``):
     cut from those saved in the file when they are its own (their fingerprint matches the data) and
     cover the basis, else one pass over its samples (float64, unit noise scale, the generic shape's
-    forces included). ``threads``: torch's intra-op threads for the pass (0: leave as is).
+    forces included). Statistics saved from other data are refused with a warning (and recomputed).
+    ``threads``: torch's intra-op threads for the pass (0: leave as is).
 
     Returns:
         (FeatureStatistics, whether they were read from the file).
     """
+    stats, from_file, note = _dataset_statistics(path, basis, threads)
+    if note:
+        warnings.warn(note, UserWarning, stacklevel=2)
+    return stats, from_file
+
+
+def _dataset_statistics(path, basis, threads: int):
+    """``dataset_statistics`` with the refusal as a message instead of a warning (a warning raised in one of
+    a Dask worker's threads is neither seen by the client nor safe to catch there)."""
+    import json
+
+    import numpy as np
     import torch
 
+    from ..data import load_dataset
     from ..gp.backends.spectral import restrict_statistics
-    from ..gp.statistics import initial_basis, recording_statistics, statistics_from_arrays
-    from ..hardware import load_dataset
+    from ..gp.statistics import data_fingerprint, initial_basis, recording_statistics, statistics_from_arrays
 
     if threads:
         torch.set_num_threads(int(threads))
     basis = basis or initial_basis()
     ds = load_dataset(path)
     c, f = ds.contacts.to(dtype=torch.float64), ds.forces.to(torch.float64)
-    stats = None
+    note = None
     if ds.statistics:
-        stats = statistics_from_arrays(ds.statistics, c, f, source=f"the statistics saved in {path}")
-        if stats is not None and (stats.meta["n_beta"] < basis.n_beta or stats.meta["n_gamma"] < basis.n_gamma):
-            stats = None
-    if stats is not None:
-        return restrict_statistics(stats, basis), True
-    return recording_statistics(c, f, basis), False
+        stats = statistics_from_arrays(ds.statistics, source=f"the statistics saved in {path}")  # checked below
+        try:
+            theirs = json.loads(str(np.asarray(ds.statistics["meta"]))).get("data_sha256")
+        except (KeyError, ValueError):
+            theirs = None
+        if theirs != data_fingerprint(c, f):
+            note = (f"the statistics saved in {path} do not belong to its contacts and forces (their data "
+                    "fingerprint differs): they are ignored and recomputed")
+        elif stats.meta["n_beta"] >= basis.n_beta and stats.meta["n_gamma"] >= basis.n_gamma:
+            return restrict_statistics(stats, basis), True, None
+    return recording_statistics(c, f, basis), False, note
 
 
 def _part(path: str, n_beta: int, n_gamma: int, threads: int) -> tuple:
-    """A Dask task: (statistics' state, from the file?) of one dataset (plain tensors: they pickle anywhere)."""
+    """A Dask task: (statistics' state, from the file?, notes) of one dataset (plain tensors and strings:
+    they pickle anywhere; the client turns the notes into warnings)."""
     from ..gp.fourier import FourierBasis
 
-    stats, from_file = dataset_statistics(path, FourierBasis(n_beta, n_gamma), threads)
-    return stats.state(), int(from_file)
+    stats, from_file, note = _dataset_statistics(path, FourierBasis(n_beta, n_gamma), threads)
+    return stats.state(), int(from_file), [note] if note else []
 
 
 def _add(a: tuple, b: tuple) -> tuple:
-    """A Dask task: the sum of two parts (statistics add up exactly; the counts of files read add too)."""
+    """A Dask task: the sum of two parts (statistics add up exactly; the counts and notes add too)."""
     from ..gp.backends.weight_space import FeatureStatistics
 
     total = FeatureStatistics.from_state(a[0]) + FeatureStatistics.from_state(b[0])
-    return total.state(), a[1] + b[1]
+    return total.state(), a[1] + b[1], a[2] + b[2]
 
 
 @dataclass
@@ -146,12 +166,14 @@ def reduce_on_dask(paths, basis=None, *, address: str | None = None, client=None
         while len(parts) > 1:  # a tree of sums on the workers
             pairs = [client.submit(_add, a, b, pure=False) for a, b in zip(parts[0::2], parts[1::2])]
             parts = pairs + ([parts[-1]] if len(parts) % 2 else [])
-        state, n_file = parts[0].result()
+        state, n_file, messages = parts[0].result()
         workers = len(client.scheduler_info().get("workers", {}))
     finally:
         if own_client is not None:
             own_client.close()
         if own_cluster is not None:
             own_cluster.close()
+    for message in messages:  # what the workers said (statistics saved with other data, ...), here
+        warnings.warn(message, UserWarning, stacklevel=2)
     return FleetReduction(FeatureStatistics.from_state(state), len(paths), int(n_file), workers,
                           time.perf_counter() - t0)
