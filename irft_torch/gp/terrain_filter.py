@@ -25,13 +25,14 @@ K_q (n x Q): A = U K_q, mean = m_q + A^T z, variance = k_qq - sum_i A_iq^2.
   environment, vectorised over all of them, no factorisation.
 
 The last map query's points are *tracked*: their A is extended by one row per sample (Q M kernel values)
-and carried through the window's update, so that a policy asking the same points every step pays
-O(n Q) per query instead of O(n M Q) kernel values.
+and carried through the window's update, and their posterior is refreshed inside each update, so that
+a policy asking the same points every step reads it instead of evaluating n M Q kernel values.
 
 Exactness: the same numbers as each environment's own ``InverseRFT(..., method="observations")`` at
 these hyperparameters fed the same samples with ``add_data`` (``tests/gp/test_terrain_filter.py``
-checks 1e-8 against it and the dense formula); a model fitted with another backend is the same GP, so
-a spectral model's own posterior differs from the filter's by at most its reported truncation error.
+checks 1e-8 against it, the pairs backend and the dense formula); a model fitted with another backend
+is the same GP, so a spectral model's own posterior differs from the filter's as it differs from the
+exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
 The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
 copied when the filter is built.
 
