@@ -40,7 +40,7 @@ from ..operators import RFTKernelLinearOperator, unique_pairs
 from .hyperparameters import BLOCKS, Block, RFT3DHyperparameters
 
 __all__ = ["Backend3D", "Observations3D", "WeightSpace3D", "Spectral3D", "Pairs3D", "block_rows", "block_targets",
-           "make_backend_3d", "METHODS_3D"]
+           "make_backend_3d", "METHODS_3D", "SpectralFeatureBank", "spectral_features"]
 
 METHODS_3D = ("auto", "observations", "pairs", "spectral")
 ONE = torch.Size([1])
@@ -231,7 +231,7 @@ class Observations3D(Backend3D):
         return mean, prior - torch.einsum("rat,rbt->tab", Vs, Vs)
 
 
-# ---- weight space (pairs, spectral) -----------------------------------------------------------------------------------
+# ---- weight space (pairs, spectral) ---------------------------------------------------------------------------------
 class WeightSpace3D(Backend3D):
     """Shared algebra of the weight-space backends (module doc). Subclasses give the features of rows,
     ``_features(c, b)`` -> Phi (n, F_b) (the maps' features side by side), and ``_sigma(b, X, detach)`` -> X Sigma_b."""
@@ -314,11 +314,18 @@ class Spectral3D(WeightSpace3D):
 
     name = "spectral"
 
-    def __init__(self, hypers, contacts, forces, tol: float = 1e-7) -> None:
+    def __init__(self, hypers, contacts, forces, tol: float = 1e-7, features=None,
+                 max_harmonics: int = MAX_HARMONICS) -> None:
         super().__init__(hypers, contacts, forces)
         if not 0 < tol < 1:
             raise ValueError(f"tol must be in (0, 1), got {tol}")
+        if not 1 <= int(max_harmonics) <= MAX_HARMONICS:
+            raise ValueError(f"max_harmonics must be an integer in [1, {MAX_HARMONICS}], got {max_harmonics}")
+        self.max_harmonics = int(max_harmonics)
+        if features is not None and not isinstance(features, BankRows):
+            raise TypeError(f"features must be SpectralFeatureBank(...).rows(index), got {type(features).__name__}")
         self.tol = float(tol)
+        self._bank = features
         self.basis = self._basis_for(hypers.lengthscale)
         self._set_features()
 
@@ -327,7 +334,7 @@ class Spectral3D(WeightSpace3D):
 
     def _basis_for(self, lengthscale: Tensor, shrink: float = 1.0) -> FourierBasis:
         ls = lengthscale.detach()[self._maps_rbf()] * shrink
-        return FourierBasis.for_lengthscale(ls, self.tol)
+        return FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
 
     def describe(self) -> str:
         return (f"spectral: T={self.n_samples}, {self.basis.size} Fourier features per map, kernel truncation "
@@ -346,8 +353,8 @@ class Spectral3D(WeightSpace3D):
         if not self.stale():
             return False
         need = self._basis_for(self.hypers.lengthscale, 0.85)
-        grown = FourierBasis(min(max(need.n_beta, self.basis.n_beta), MAX_HARMONICS),
-                             min(max(need.n_gamma, self.basis.n_gamma), MAX_HARMONICS))
+        grown = FourierBasis(min(max(need.n_beta, self.basis.n_beta), self.max_harmonics),
+                             min(max(need.n_gamma, self.basis.n_gamma), self.max_harmonics))
         if grown == self.basis:
             return False
         self.basis = grown
@@ -355,16 +362,9 @@ class Spectral3D(WeightSpace3D):
         return True
 
     def _features(self, c: Contacts3D, b: int) -> Tensor:
-        block = BLOCKS[b]
-        beta, gamma, ws = block_rows(c, block)
-        T, A = len(c), len(block.axes)
-        out = []
-        for i, m in enumerate(block.maps):
-            if self.hypers.constant_map(m):
-                out.append(ws[i].sum(-1, keepdim=True))
-                continue
-            out.append(_fourier_rows(c.beta, c.gamma, ws[i].reshape(A, T, -1), self.basis).reshape(A * T, -1))
-        return torch.cat(out, -1)
+        if self._bank is not None and c is self.train_contacts:
+            return self._bank.features(self.basis, b, self.hypers.constant_map(1))
+        return spectral_features(c, b, self.basis, self.hypers.constant_map(1))
 
     def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
         block = BLOCKS[b]
@@ -383,6 +383,76 @@ class Spectral3D(WeightSpace3D):
             out.append(s * (Sb[0].mT @ Y @ Sg[0]).reshape(-1, Fb * Fg))
             start += Fb * Fg
         return torch.cat(out, -1)
+
+
+def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool) -> Tensor:
+    """Phi (n, F_b) of the block's rows: per map of the block, sum_k w psi_beta(beta_k) x psi_gamma(gamma_k) (a
+    constant alpha_y: sum_k w), side by side."""
+    block = BLOCKS[b]
+    _, _, ws = block_rows(c, block)
+    T, A = len(c), len(block.axes)
+    out = []
+    for i, m in enumerate(block.maps):
+        if m == 1 and constant_y:
+            out.append(ws[i].sum(-1, keepdim=True))
+            continue
+        out.append(_fourier_rows(c.beta, c.gamma, ws[i].reshape(A, T, -1), basis).reshape(A * T, -1))
+    return torch.cat(out, -1)
+
+
+class SpectralFeatureBank:
+    """Spectral features of a data set's samples, computed once per basis (and cut from a larger nested basis
+    where one is held), for fits on subsets of its samples (cross-validation folds):
+    ``InverseRFT3D(contacts[idx], forces[idx], method="spectral", features=bank.rows(idx))``."""
+
+    def __init__(self, contacts: Contacts3D) -> None:
+        self.contacts = contacts
+        self._held: dict = {}
+
+    def _full(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+        key = (b, constant_y)
+        for (nb, ng), store in self._held.items():
+            if nb >= basis.n_beta and ng >= basis.n_gamma and key in store:
+                return _restrict(store[key], FourierBasis(nb, ng), basis, b, constant_y)
+        with torch.no_grad():
+            phi = spectral_features(self.contacts, b, basis, constant_y)
+        self._held.setdefault((basis.n_beta, basis.n_gamma), {})[key] = phi
+        return phi
+
+    def rows(self, index) -> BankRows:
+        return BankRows(self, torch.as_tensor(index))
+
+
+class BankRows:
+    """The samples ``index`` of a ``SpectralFeatureBank`` (the training rows of one model)."""
+
+    def __init__(self, bank: SpectralFeatureBank, index: Tensor) -> None:
+        self.bank, self.index = bank, index
+
+    def features(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+        phi = self.bank._full(basis, b, constant_y)
+        T = len(self.bank.contacts)
+        A = len(BLOCKS[b].axes)
+        idx = self.index if self.index.dtype != torch.bool else self.index.nonzero()[:, 0]
+        return phi[torch.cat([idx + a * T for a in range(A)])]
+
+
+def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, constant_y: bool) -> Tensor:
+    """Features in a nested smaller basis: the leading harmonics' columns of each map's block."""
+    if big == small:
+        return phi
+    Fb, Fg = big.sizes
+    fb, fg = small.sizes
+    sel = (torch.arange(fb)[:, None] * Fg + torch.arange(fg)[None, :]).reshape(-1)
+    out, start = [], 0
+    for m in BLOCKS[b].maps:
+        if m == 1 and constant_y:
+            out.append(phi[:, start:start + 1])
+            start += 1
+        else:
+            out.append(phi[:, start + sel])
+            start += Fb * Fg
+    return torch.cat(out, -1)
 
 
 def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22) -> Tensor:
@@ -508,16 +578,19 @@ def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
     return mean, _sample_blocks(cov, len(block.axes), len(c))
 
 
-def make_backend_3d(method: str, hypers, contacts: Contacts3D, forces: Tensor, tol: float = 1e-7) -> Backend3D:
+def make_backend_3d(method: str, hypers, contacts: Contacts3D, forces: Tensor, tol: float = 1e-7,
+                    features=None, max_harmonics: int = MAX_HARMONICS) -> Backend3D:
     """The backend for ``method``; "auto": observations while the element-pair count is small, else pairs where
     the data hold few distinct angle pairs, else spectral."""
     if method not in METHODS_3D:
         raise ValueError(f"method must be one of {METHODS_3D}, got {method!r}")
+    if features is not None and method == "auto":
+        method = "spectral"
     if method == "auto":
         n = int(contacts.in_contact().sum())
         live = contacts.in_contact()
         U = unique_pairs(torch.stack([contacts.beta[live], contacts.gamma[live]], -1).detach())[0].shape[0] if n else 1
-        if n <= 3000:
+        if n <= 1500:
             method = "observations"
         elif U <= 1500:
             method = "pairs"
@@ -527,4 +600,4 @@ def make_backend_3d(method: str, hypers, contacts: Contacts3D, forces: Tensor, t
         return Observations3D(hypers, contacts, forces)
     if method == "pairs":
         return Pairs3D(hypers, contacts, forces)
-    return Spectral3D(hypers, contacts, forces, tol=tol)
+    return Spectral3D(hypers, contacts, forces, tol=tol, features=features, max_harmonics=max_harmonics)

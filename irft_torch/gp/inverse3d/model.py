@@ -78,6 +78,12 @@ class InverseRFT3D(nn.Module):
         method: "auto", "observations", "pairs" or "spectral" (``gp.inverse3d.backends``).
         priors: "physical" (default, ``gp.inverse3d.priors``) or None (the plain marginal likelihood).
         dtype: float64 (default) or float32. lengthscale: initial lengthscale. tol: spectral truncation bound.
+        features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
+            data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
+            then share one pass over the elements.
+        max_harmonics: spectral backend: at most this many harmonics per angle (default 30); below the
+            lengthscales ``tol`` needs, the kernel is the RBF truncated there (``truncation_error`` says by how much;
+            a ``UserWarning`` after ``fit``).
 
     Example:
         >>> model = InverseRFT(contacts_3d, forces)       # (T, 3) forces: a 3-D model
@@ -88,7 +94,7 @@ class InverseRFT3D(nn.Module):
 
     def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
                  priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
-                 tol: float = 1e-7) -> None:
+                 tol: float = 1e-7, features=None, max_harmonics: int | None = None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
@@ -130,7 +136,11 @@ class InverseRFT3D(nn.Module):
             self.hypers.noise = centres["noise"].to(dtype)
         if priors == "physical":
             register_priors_3d(self.hypers, centres)
-        self.backend: Backend3D = make_backend_3d(method, self.hypers, c, f, tol=tol)
+        from ..fourier import MAX_HARMONICS
+
+        self.max_harmonics = MAX_HARMONICS if max_harmonics is None else int(max_harmonics)
+        self.backend: Backend3D = make_backend_3d(method, self.hypers, c, f, tol=tol, features=features,
+                                                  max_harmonics=self.max_harmonics)
         self.loss_history: list[float] = []
         self.eval()
 
@@ -172,6 +182,11 @@ class InverseRFT3D(nn.Module):
             bar.close()
         if self.backend.stale():
             self.backend.refresh()
+        err = float(self.backend.truncation_error().max())
+        if err > self.tol:
+            warnings.warn(f"the lengthscales need more than max_harmonics={self.max_harmonics} harmonics for tol="
+                          f"{self.tol:.0e}: the kernel used is the RBF truncated there (relative error <= {err:.1e})",
+                          stacklevel=2)
         self.loss_history.extend(history)
         return history
 
@@ -277,7 +292,7 @@ class InverseRFT3D(nn.Module):
     # ---- persistence -----------------------------------------------------------------------------------------------
     def _options(self) -> dict:
         return {"alpha_y": self.alpha_y, "method": self.method_arg, "priors": self.priors, "dtype": self.dtype,
-                "lengthscale": self.init_lengthscale, "tol": self.tol}
+                "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics}
 
     def save(self, path) -> None:
         """Training data, options and hyperparameters in one file (``load`` rebuilds the model)."""
