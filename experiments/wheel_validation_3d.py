@@ -210,7 +210,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
     lines += _bars(summary, row), ""
     lines += ["Spectral kernel truncation of the all-runs fits (relative, per map; at most "
               f"{args.harmonics} harmonics per angle): " + "; ".join(
-                  f"{w}: {', '.join(f'{v:.1e}' for v in m.truncation_error().tolist())}" for w, m in models.items()), ""]
+                  f"{w}: {', '.join(f'{v:.1e}' for v in m.truncation_error().tolist())}"
+                  for w, m in models.items()), ""]
     lines += [f"Fitted hyperparameters (all runs, alpha_y={default!r}): " + "; ".join(
         f"{w}: {m.hyperparameters()}" for w, m in models.items()), "",
         f"Time: {time.perf_counter() - t0:.0f} s (2 CPU cores). Figures: wheel3d_forces_{{smooth,grouser}}.png, "
