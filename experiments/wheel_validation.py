@@ -1,6 +1,15 @@
-"""Can I-RFT learn sand from a rover wheel's own runs? Leave-one-slip-out on measured single-wheel data.
+"""Can I-RFT learn sand from a rover wheel's own runs? Held-out levels on measured single-wheel data.
 
     python experiments/wheel_validation.py --data ../shared/data/rover_wheel [--out experiments/results]
+        [--study 3d|planar|both]
+
+``--study 3d`` (default): every run of both wheels at every slip angle, in 3-D (``wheel_validation_3d.py``
+beside this script: leave-one-slip-angle-out and leave-one-slip-out, I-RFT 3-D against the authors' RFT, the
+generic map with a least-squares scale per axis and the training mean; writes wheel_validation_3d.md,
+wheel3d_forces_{smooth,grouser}.png, wheel3d_maps.png). ``--study planar``: the planar study below (slip angle
+0 only), as before; ``both``: the two.
+
+The planar study:
 
 At slip angle 0 (a planar problem), for the smooth and the grousered wheel, each run (27 per wheel:
 9 commanded slips x ~3 trials) becomes one force observation: its mean longitudinal and vertical
@@ -533,6 +542,11 @@ def main(argv=None) -> None:
                          "the wheel) or the rim as meshed (grouser faces as plates, 6 poses per pitch); with "
                          "envelope the grousered wheel is also fitted the rim way, as an ablation row")
     ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
+    ap.add_argument("--study", default="3d", choices=["3d", "planar", "both"],
+                    help="3d: every run at every slip angle (wheel_validation_3d.py); planar: slip angle 0 (below)")
+    ap.add_argument("--harmonics", type=int, default=8,
+                    help="3-D: at most this many Fourier harmonics per angle (the spectral kernel is truncated there "
+                         "when the lengthscales need more; the report gives the truncation)")
     args = ap.parse_args(argv)
     import matplotlib
 
@@ -541,6 +555,17 @@ def main(argv=None) -> None:
     if not args.data.is_dir():
         raise SystemExit(f"--data {args.data}: no such directory (the rover-wheel data are not shipped)")
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.study in ("3d", "both"):
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import wheel_validation_3d
+
+        text = wheel_validation_3d.run(args.data, args.out, args, wheels=tuple(args.wheels))
+        (args.out / "wheel_validation_3d.md").write_text(text + "\n")
+        print(text)
+        if args.study == "3d":
+            return
     t0 = time.perf_counter()
     results = {}
     for wheel in args.wheels:

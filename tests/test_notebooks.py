@@ -55,6 +55,14 @@ print("KEY" + _json.dumps({"force_rmse_percent": _f, "sand_std": medium(_B, _G).
 print("KEY" + _json.dumps({"designed": _rmse(model, truth), "paper": _rmse(base, truth)}))
 """, lambda k: (0 < k["designed"][0] < 0.05 and 0 < k["designed"][1] < 0.08   # measured 0.029, 0.057
                 and all(0 < v < 0.2 for v in k["paper"]))),                          # measured 0.047, 0.138
+    "04_turning_leg_3d": (2, """
+import json as _json, torch as _torch
+_l3 = _torch.einsum("tji,tj->ti", Rt, model.predict_forces(c3t).mean)
+_p2 = planar.predict_forces(c2t).mean
+_e2 = _torch.stack([_p2[:, 0] - leg_t[:, 0], -leg_t[:, 1], _p2[:, 1] - leg_t[:, 2]], -1)
+print("KEY" + _json.dumps({"planar": _e2.pow(2).mean(0).sqrt().tolist(),
+                           "three_d": (_l3 - leg_t).pow(2).mean(0).sqrt().tolist()}))
+""", lambda k: all(t < 0.5 * p for t, p in zip(k["three_d"], k["planar"]))),  # 0.06/0.06/0.22 vs 0.86/1.75/0.82
 }
 
 

@@ -107,6 +107,17 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         >>> pred = model.predict_forces(new_contacts)   # .mean, .variance: (T', 2) in N
     """
 
+    def __new__(cls, contacts=None, forces=None, *args, **kwargs):
+        """``InverseRFT(contacts_3d, forces)`` with a ``rft.Contacts3D`` and (T, 3) forces builds the 3-D model,
+        ``gp.inverse3d.InverseRFT3D`` (docs/inverse3d.md)."""
+        from ..rft.contacts3d import Contacts3D
+
+        if cls is InverseRFT and isinstance(contacts, Contacts3D):
+            from .inverse3d import InverseRFT3D
+
+            return InverseRFT3D(contacts, forces, *args, **kwargs)
+        return super().__new__(cls)
+
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,

@@ -1,0 +1,603 @@
+r"""Backends of 3-D I-RFT: the block covariance of ``hyperparameters`` computed exactly in the smallest space.
+
+Each block b (horizontal: rows F_x then F_y, maps alpha_x, alpha_y; vertical: rows F_z, map alpha_z) is a
+Gaussian linear model F_b = sum_c W_bc alpha_c + eps with one noise variance per row group (axis).
+
+- ``"observations"``: the n_b x n_b covariance sum_c W_bc K_c W_bc^T + D_b, each term the planar library's
+  lazy W K W^T (``RFTKernelLinearOperator``) over the rows' elements, made dense; a constant alpha_y is
+  s_y (W 1)(W 1)^T. For few samples with few elements each (toes).
+- ``"pairs"``: u_c = map c at the U distinct angle pairs of the data, Sigma_c = K_c(U, U): exact, O(U^3).
+- ``"spectral"``: u_c = Fourier coefficients on the angle torus (``gp.fourier``), Sigma_c = s_c Sigma_beta
+  kron Sigma_gamma: exact up to the reported truncation; the wheels' tens of thousands of elements per run
+  enter once, as T x F features.
+
+The weight-space pair (pairs, spectral) share one algebra. Per block, the rows of each axis a (group g)
+are reduced once, hyperparameter-free, to R_g (r_g x F), c_g = Q_g^T y_g and rho_g = |y_g|^2 - |c_g|^2
+(a thin SVD of Phi_g, ``weight_space.data_factor_from_rows``). With R~ = [R_g / sigma_g], c~ = [c_g /
+sigma_g] stacked over the groups and A = R~ Sigma R~^T, exactly (Woodbury and Sylvester, D = diag(sigma_g^2)):
+
+    y^T (D + Phi Sigma Phi^T)^{-1} y = sum_g rho_g / sigma_g^2 + c~^T (I + A)^{-1} c~
+    log |D + Phi Sigma Phi^T|       = sum_g n_g log sigma_g^2 + log |I + A|
+
+one Cholesky of I + A (r = sum r_g <= n_b) per step, no inverse or root of Sigma; with one group it is the
+planar ``WeightSpaceBackend``'s formula. Posterior of query rows with features Phi_q: mean Phi_q Sigma v,
+v = H^T L^{-1} c~, covariance Phi_q Sigma Phi_q^T - (H Sigma Phi_q^T)^T (H Sigma Phi_q^T), H = L^{-1} R~.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from linear_operator.utils.cholesky import psd_safe_cholesky
+from torch import Tensor, nn
+
+from ...rft.contacts3d import Contacts3D
+from ..backends.weight_space import data_factor_from_rows
+from ..embedding import embed_angles, rbf
+from ..fourier import MAX_HARMONICS, FourierBasis
+from ..operators import RFTKernelLinearOperator, unique_pairs
+from .hyperparameters import BLOCKS, Block, RFT3DHyperparameters
+
+__all__ = ["Backend3D", "Observations3D", "WeightSpace3D", "Spectral3D", "Pairs3D", "block_rows", "block_targets",
+           "make_backend_3d", "METHODS_3D", "SpectralFeatureBank", "spectral_features"]
+
+METHODS_3D = ("auto", "observations", "pairs", "spectral")
+ONE = torch.Size([1])
+
+
+def block_rows(c: Contacts3D, block: Block) -> tuple[Tensor, Tensor, list[Tensor]]:
+    """The block's rows of contacts (T, K): beta, gamma (n, K) and, per map of the block, the weights (n, K);
+    n = T x the block's axes, axis-major (all F_x rows, then all F_y rows)."""
+    A = len(block.axes)
+    beta, gamma = c.beta.repeat(A, 1), c.gamma.repeat(A, 1)
+    per_map = {0: c.weight_x, 1: c.weight_y}
+    weights = []
+    for m in block.maps:
+        if m == 2:
+            weights.append(c.weight_z)
+        else:
+            weights.append(torch.cat([per_map[m][..., a] for a in block.axes]))
+    return beta, gamma, weights
+
+
+def block_targets(forces: Tensor, block: Block) -> Tensor:
+    """(n,) the block's forces, axis-major."""
+    return torch.cat([forces[:, a] for a in block.axes])
+
+
+def _pack(c: Contacts3D, parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor]:
+    """Per-sample (T, 3) means and (T, 3, 3) covariances from the blocks' (mean (n,), cov (n, n) or the per-sample
+    blocks (T, A, A))."""
+    T = len(c)
+    mean = c.beta.new_zeros(T, 3)
+    cov = c.beta.new_zeros(T, 3, 3)
+    for block, (m, s) in zip(BLOCKS, parts):
+        A = len(block.axes)
+        mean[:, list(block.axes)] = m.reshape(A, T).T
+        idx = torch.tensor(block.axes)
+        cov[:, idx[:, None], idx[None, :]] = s
+    return mean, cov
+
+
+def _sample_blocks(cov: Tensor, A: int, T: int) -> Tensor:
+    """(n, n) covariance of axis-major rows -> (T, A, A): each sample's own block."""
+    return cov.reshape(A, T, A, T).diagonal(dim1=1, dim2=3).permute(2, 0, 1)
+
+
+class Backend3D(nn.Module):
+    """One interface: ``negative_log_likelihood`` (2,) per block / T, ``loss``, ``posterior`` of any
+    ``Contacts3D`` (per sample (T, 3) mean and (T, 3, 3) covariance, or the blocks' joint covariances)."""
+
+    name = "base"
+
+    def __init__(self, hypers: RFT3DHyperparameters, contacts: Contacts3D, forces: Tensor) -> None:
+        super().__init__()
+        self.hypers = hypers
+        self.n_samples = len(contacts)
+        self.train_contacts, self.train_forces = contacts, forces
+        self.in_fit = False
+
+    def negative_log_likelihood(self) -> Tensor:
+        raise NotImplementedError
+
+    def _block_posterior(self, b: int, c: Contacts3D, full: bool) -> tuple[Tensor, Tensor]:
+        """Mean (n,) and covariance (n, n) of the block's rows of c (full) or each sample's (T, A, A)."""
+        raise NotImplementedError
+
+    def loss(self) -> Tensor:
+        """Negative log marginal likelihood per sample summed over the blocks, minus log prior / T (MAP)."""
+        return self.negative_log_likelihood().sum() - self.log_prior() / max(self.n_samples, 1)
+
+    def log_prior(self) -> Tensor:
+        total = self.hypers.kernel.raw_outputscale.new_zeros(())
+        for _, module, prior, closure, _ in self.hypers.named_priors():
+            total = total + prior.log_prob(closure(module)).sum()
+        return total
+
+    def posterior(self, c: Contacts3D, joint: bool = False):
+        """Posterior of the weighted sums of c: (mean (T, 3), covariance (T, 3, 3)) per sample; with ``joint``,
+        also the blocks' joint covariances [(2T, 2T) horizontal, (T, T) vertical]."""
+        parts, joints = [], []
+        for b, block in enumerate(BLOCKS):
+            m, cov = self._block_posterior(b, c, full=joint)
+            if joint:
+                joints.append(cov)
+                cov = _sample_blocks(cov, len(block.axes), len(c))
+            parts.append((m, cov))
+        mean, cov = _pack(c, parts)
+        return (mean, cov, joints) if joint else (mean, cov)
+
+    def truncation_error(self) -> Tensor:
+        return self.hypers.kernel.outputscale.detach().new_zeros(3)
+
+    def stale(self) -> bool:
+        return False
+
+    def refresh(self) -> bool:
+        return False
+
+    def describe(self) -> str:
+        return f"{self.name}: T={self.n_samples}"
+
+    @staticmethod
+    def _gaussian_nll(quad: Tensor, logdet: Tensor, n: int) -> Tensor:
+        return 0.5 * (quad + logdet + n * math.log(2 * math.pi))
+
+
+# ---- observations ---------------------------------------------------------------------------------------------------
+class Observations3D(Backend3D):
+    """Exact 3-D I-RFT in the space of the observations (per block n_b x n_b, one Cholesky per step)."""
+
+    name = "observations"
+
+    def __init__(self, hypers, contacts: Contacts3D, forces: Tensor) -> None:
+        super().__init__(hypers, contacts, forces)
+        self._train = [block_rows(contacts, b) for b in BLOCKS]
+        self._structures = [[self._structure(rows[0], rows[1], w, rows[0], rows[1], w, same=True)
+                             for w in rows[2]] for rows in self._train]
+        self._factor_cache = None
+
+    @staticmethod
+    def _structure(b1, g1, w1, b2, g2, w2, same=False):
+        with torch.no_grad():
+            return RFTKernelLinearOperator.segment_structure(b1[None], g1[None], w1[None], b2[None], g2[None],
+                                                             w2[None], ONE, same_inputs=same)
+
+    def _term(self, c: int, structure, w1: Tensor, w2: Tensor, detach: bool) -> Tensor:
+        """Prior covariance of two row sets through map c (n1, n2)."""
+        ls, os = self.hypers.lengthscale[c:c + 1], self.hypers.outputscale[c:c + 1]
+        if detach:
+            ls, os = ls.detach(), os.detach()
+        if self.hypers.constant_map(c):
+            return os[0] * w1.sum(-1)[:, None] * w2.sum(-1)[None, :]
+        return RFTKernelLinearOperator.from_structure(structure, ls, os, ONE).to_dense()[0]
+
+    def _train_cov(self, b: int, detach: bool) -> Tensor:
+        block, (_, _, ws) = BLOCKS[b], self._train[b]
+        K = sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws))
+        noise = self.hypers.noise.detach() if detach else self.hypers.noise
+        d = torch.cat([noise[a].expand(self.n_samples) for a in block.axes])
+        return 0.5 * (K + K.mT) + torch.diag(d)
+
+    def negative_log_likelihood(self) -> Tensor:
+        out = []
+        for b, block in enumerate(BLOCKS):
+            C = self._train_cov(b, detach=False)
+            L = psd_safe_cholesky(C)
+            y = block_targets(self.train_forces, block)
+            z = torch.linalg.solve_triangular(L, y[:, None], upper=False)[:, 0]
+            nll = self._gaussian_nll(z.pow(2).sum(), 2 * torch.log(torch.diagonal(L)).sum(), y.shape[0])
+            out.append(nll / self.n_samples)
+        return torch.stack(out)
+
+    def _factor(self):
+        key = torch.cat([p.detach().reshape(-1) for p in self.hypers.parameters()])
+        if self._factor_cache is None or not torch.equal(self._factor_cache[0], key):
+            with torch.no_grad():
+                out = []
+                for b, block in enumerate(BLOCKS):
+                    L = psd_safe_cholesky(self._train_cov(b, detach=True))
+                    y = block_targets(self.train_forces, block)
+                    out.append((L, torch.cholesky_solve(y[:, None], L)[:, 0]))
+            self._factor_cache = (key, out)
+        return self._factor_cache[1]
+
+    def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
+        block = BLOCKS[b]
+        out = 0
+        for i, c in enumerate(block.maps):
+            s = self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
+            out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
+        return out
+
+    def _block_posterior(self, b, c, full):
+        L, alpha = self._factor()[b]
+        q = block_rows(c, BLOCKS[b])
+        Kqt = self._cross(b, q, self._train[b], same=False)
+        mean = Kqt @ alpha
+        V = torch.linalg.solve_triangular(L, Kqt.mT, upper=False)
+        A, T = len(BLOCKS[b].axes), len(c)
+        if full:
+            cov = self._cross(b, q, q, same=True) - V.mT @ V
+            return mean, 0.5 * (cov + cov.mT)
+        # each sample's A x A block: prior blocks from the per-sample rows, minus the data's part
+        prior = c.beta.new_zeros(T, A, A)
+        for t0 in range(0, T, 256):
+            sl = slice(t0, min(T, t0 + 256))
+            sub = block_rows(c[sl], BLOCKS[b])
+            prior[sl] = _sample_blocks(self._cross(b, sub, sub, same=True), A, sl.stop - sl.start)
+        Vs = V.reshape(V.shape[0], A, T)
+        return mean, prior - torch.einsum("rat,rbt->tab", Vs, Vs)
+
+
+# ---- weight space (pairs, spectral) ---------------------------------------------------------------------------------
+class WeightSpace3D(Backend3D):
+    """Shared algebra of the weight-space backends (module doc). Subclasses give the features of rows,
+    ``_features(c, b)`` -> Phi (n, F_b) (the maps' features side by side), and ``_sigma(b, X, detach)`` -> X Sigma_b."""
+
+    def __init__(self, hypers, contacts, forces) -> None:
+        super().__init__(hypers, contacts, forces)
+        self._factors = None
+        self._post_cache = None
+
+    def _set_features(self) -> None:
+        """(Re)compute the training rows' data factors, hyperparameter-free."""
+        self._factors, self._post_cache = [], None
+        T = self.n_samples
+        with torch.no_grad():
+            for b, block in enumerate(BLOCKS):
+                Phi = self._features(self.train_contacts, b)
+                y = block_targets(self.train_forces, block)
+                groups = []
+                for g in range(len(block.axes)):
+                    f = data_factor_from_rows(Phi[None, g * T:(g + 1) * T], y[None, g * T:(g + 1) * T], None,
+                                              Phi.dtype)
+                    groups.append((f.R[0], f.c_y[0], f.rho[0, 0]))
+                self._factors.append(groups)
+
+    def _system(self, b: int, detach: bool):
+        block, groups = BLOCKS[b], self._factors[b]
+        noise = self.hypers.noise.detach() if detach else self.hypers.noise
+        inv = [noise[a].rsqrt() for a in block.axes]
+        Rt = torch.cat([R * s for (R, _, _), s in zip(groups, inv)])
+        ct = torch.cat([cy * s for (_, cy, _), s in zip(groups, inv)])
+        A = self._sigma(b, Rt, detach) @ Rt.mT
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        L = torch.linalg.cholesky(0.5 * (A + A.mT) + eye)
+        quad0 = sum(rho / noise[a] for (_, _, rho), a in zip(groups, block.axes))
+        logdet0 = sum(self.n_samples * torch.log(noise[a]) for a in block.axes)
+        return L, Rt, ct, quad0, logdet0
+
+    def negative_log_likelihood(self) -> Tensor:
+        out = []
+        for b, block in enumerate(BLOCKS):
+            L, _, ct, quad0, logdet0 = self._system(b, detach=False)
+            z = torch.linalg.solve_triangular(L, ct[:, None], upper=False)[:, 0]
+            logdet = logdet0 + 2 * torch.log(torch.diagonal(L)).sum()
+            out.append(self._gaussian_nll(quad0 + z.pow(2).sum(), logdet, self.n_samples * len(block.axes))
+                       / self.n_samples)
+        return torch.stack(out)
+
+    def _terms(self, b: int):
+        key = torch.cat([p.detach().reshape(-1) for p in self.hypers.parameters()])
+        if self._post_cache is None or self._post_cache[0] is not self._factors or \
+                not torch.equal(self._post_cache[1], key):
+            with torch.no_grad():
+                out = []
+                for bb in range(len(BLOCKS)):
+                    L, Rt, ct, _, _ = self._system(bb, detach=True)
+                    H = torch.linalg.solve_triangular(L, Rt, upper=False)
+                    z = torch.linalg.solve_triangular(L, ct[:, None], upper=False)[:, 0]
+                    out.append((H, H.mT @ z))
+            self._post_cache = (self._factors, key, out)
+        return self._post_cache[2][b]
+
+    def _block_posterior(self, b, c, full):
+        H, v = self._terms(b)
+        Phi = self._features(c, b)
+        C = self._sigma(b, Phi, detach=True)  # Phi Sigma
+        mean = C @ v
+        G = H @ C.mT
+        if full:
+            cov = C @ Phi.mT - G.mT @ G
+            return mean, 0.5 * (cov + cov.mT)
+        A, T = len(BLOCKS[b].axes), len(c)
+        Cs, Ps, Gs = C.reshape(A, T, -1), Phi.reshape(A, T, -1), G.reshape(G.shape[0], A, T)
+        prior = torch.einsum("atf,btf->tab", Cs, Ps)
+        return mean, prior - torch.einsum("rat,rbt->tab", Gs, Gs)
+
+
+class Spectral3D(WeightSpace3D):
+    """3-D I-RFT in a Fourier basis on the (beta, gamma) torus (``gp.fourier``), sized for the kernel's
+    relative truncation error <= ``tol`` at the current lengthscales; grows (``refresh``) when they shrink."""
+
+    name = "spectral"
+
+    def __init__(self, hypers, contacts, forces, tol: float = 1e-7, features=None,
+                 max_harmonics: int = MAX_HARMONICS) -> None:
+        super().__init__(hypers, contacts, forces)
+        if not 0 < tol < 1:
+            raise ValueError(f"tol must be in (0, 1), got {tol}")
+        if not 1 <= int(max_harmonics) <= MAX_HARMONICS:
+            raise ValueError(f"max_harmonics must be an integer in [1, {MAX_HARMONICS}], got {max_harmonics}")
+        self.max_harmonics = int(max_harmonics)
+        if features is not None and not isinstance(features, BankRows):
+            raise TypeError(f"features must be SpectralFeatureBank(...).rows(index), got {type(features).__name__}")
+        self.tol = float(tol)
+        self._bank = features
+        self.basis = self._basis_for(hypers.lengthscale)
+        self._set_features()
+
+    def _maps_rbf(self) -> list[int]:
+        return [c for c in range(3) if not self.hypers.constant_map(c)]
+
+    def _basis_for(self, lengthscale: Tensor, shrink: float = 1.0) -> FourierBasis:
+        ls = lengthscale.detach()[self._maps_rbf()] * shrink
+        return FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
+
+    def describe(self) -> str:
+        return (f"spectral: T={self.n_samples}, {self.basis.size} Fourier features per map, kernel truncation "
+                f"error <= {self.truncation_error().max().item():.1e}")
+
+    def truncation_error(self) -> Tensor:
+        out = self.hypers.kernel.outputscale.detach().new_zeros(3)
+        maps = self._maps_rbf()
+        out[maps] = self.basis.truncation_error(self.hypers.lengthscale.detach()[maps])
+        return out
+
+    def stale(self) -> bool:
+        return bool((self.truncation_error() > self.tol).any())
+
+    def refresh(self) -> bool:
+        if not self.stale():
+            return False
+        need = self._basis_for(self.hypers.lengthscale, 0.85)
+        grown = FourierBasis(min(max(need.n_beta, self.basis.n_beta), self.max_harmonics),
+                             min(max(need.n_gamma, self.basis.n_gamma), self.max_harmonics))
+        if grown == self.basis:
+            return False
+        self.basis = grown
+        self._set_features()
+        return True
+
+    def _features(self, c: Contacts3D, b: int) -> Tensor:
+        if self._bank is not None and c is self.train_contacts:
+            return self._bank.features(self.basis, b, self.hypers.constant_map(1))
+        return spectral_features(c, b, self.basis, self.hypers.constant_map(1))
+
+    def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
+        block = BLOCKS[b]
+        out, start = [], 0
+        for m in block.maps:
+            s = self.hypers.outputscale[m]
+            s = s.detach() if detach else s
+            if self.hypers.constant_map(m):
+                out.append(X[:, start:start + 1] * s)
+                start += 1
+                continue
+            ls = self.hypers.lengthscale[m:m + 1]
+            Sb, Sg = self.basis.coefficients(ls.detach() if detach else ls)
+            Fb, Fg = self.basis.sizes
+            Y = X[:, start:start + Fb * Fg].reshape(-1, Fb, Fg)
+            out.append(s * (Sb[0].mT @ Y @ Sg[0]).reshape(-1, Fb * Fg))
+            start += Fb * Fg
+        return torch.cat(out, -1)
+
+
+def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool) -> Tensor:
+    """Phi (n, F_b) of the block's rows: per map of the block, sum_k w psi_beta(beta_k) x psi_gamma(gamma_k) (a
+    constant alpha_y: sum_k w), side by side."""
+    block = BLOCKS[b]
+    _, _, ws = block_rows(c, block)
+    T, A = len(c), len(block.axes)
+    out = []
+    for i, m in enumerate(block.maps):
+        if m == 1 and constant_y:
+            out.append(ws[i].sum(-1, keepdim=True))
+            continue
+        out.append(_fourier_rows(c.beta, c.gamma, ws[i].reshape(A, T, -1), basis).reshape(A * T, -1))
+    return torch.cat(out, -1)
+
+
+class SpectralFeatureBank:
+    """Spectral features of a data set's samples, computed once per basis (and cut from a larger nested basis
+    where one is held), for fits on subsets of its samples (cross-validation folds):
+    ``InverseRFT3D(contacts[idx], forces[idx], method="spectral", features=bank.rows(idx))``."""
+
+    def __init__(self, contacts: Contacts3D) -> None:
+        self.contacts = contacts
+        self._held: dict = {}
+
+    def _full(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+        key = (b, constant_y)
+        for (nb, ng), store in self._held.items():
+            if nb >= basis.n_beta and ng >= basis.n_gamma and key in store:
+                return _restrict(store[key], FourierBasis(nb, ng), basis, b, constant_y)
+        with torch.no_grad():
+            phi = spectral_features(self.contacts, b, basis, constant_y)
+        self._held.setdefault((basis.n_beta, basis.n_gamma), {})[key] = phi
+        return phi
+
+    def rows(self, index) -> BankRows:
+        return BankRows(self, torch.as_tensor(index))
+
+
+class BankRows:
+    """The samples ``index`` of a ``SpectralFeatureBank`` (the training rows of one model)."""
+
+    def __init__(self, bank: SpectralFeatureBank, index: Tensor) -> None:
+        self.bank, self.index = bank, index
+
+    def features(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+        phi = self.bank._full(basis, b, constant_y)
+        T = len(self.bank.contacts)
+        A = len(BLOCKS[b].axes)
+        idx = self.index if self.index.dtype != torch.bool else self.index.nonzero()[:, 0]
+        return phi[torch.cat([idx + a * T for a in range(A)])]
+
+
+def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, constant_y: bool) -> Tensor:
+    """Features in a nested smaller basis: the leading harmonics' columns of each map's block."""
+    if big == small:
+        return phi
+    Fb, Fg = big.sizes
+    fb, fg = small.sizes
+    sel = (torch.arange(fb)[:, None] * Fg + torch.arange(fg)[None, :]).reshape(-1)
+    out, start = [], 0
+    for m in BLOCKS[b].maps:
+        if m == 1 and constant_y:
+            out.append(phi[:, start:start + 1])
+            start += 1
+        else:
+            out.append(phi[:, start + sel])
+            start += Fb * Fg
+    return torch.cat(out, -1)
+
+
+def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22) -> Tensor:
+    """Features of weighted sums: beta, gamma (T, K), weights (A, T, K) -> (A, T, F) = sum_k w psi_beta x psi_gamma,
+    one batched product per chunk of samples."""
+    A, T, K = w.shape
+    Fb, Fg = basis.sizes
+    out = w.new_zeros(A, T, Fb * Fg)
+    step = max(1, chunk // max(1, K * (Fb + Fg + A * Fb)))
+    for t0 in range(0, T, step):
+        sl = slice(t0, min(T, t0 + step))
+        pb, pg = basis.features(beta[sl], gamma[sl])  # (t, K, Fb), (t, K, Fg)
+        left = (w[:, sl, :, None] * pb[None]).permute(1, 0, 3, 2).reshape(sl.stop - sl.start, A * Fb, K)
+        prod = (left @ pg).reshape(-1, A, Fb * Fg)  # (t, A, F)
+        out[:, sl] = prod.transpose(0, 1)
+    return out
+
+
+class Pairs3D(WeightSpace3D):
+    """Exact 3-D I-RFT in the space of the data's U distinct (beta, gamma) pairs: u_c = map c there,
+    Sigma_c = K_c(U, U) (alpha_x and alpha_y share the table)."""
+
+    name = "pairs"
+
+    def __init__(self, hypers, contacts, forces) -> None:
+        super().__init__(hypers, contacts, forces)
+        live = contacts.in_contact()
+        pairs = torch.stack([contacts.beta[live], contacts.gamma[live]], -1)
+        self.table = unique_pairs(pairs.detach())[0] if pairs.shape[0] else contacts.beta.new_zeros(1, 2)
+        self._set_features()
+
+    def describe(self) -> str:
+        return f"pairs: T={self.n_samples}, U={self.table.shape[0]} distinct angle pairs"
+
+    def _index(self, c: Contacts3D) -> Tensor:
+        live = c.in_contact()
+        own = torch.stack([c.beta[live], c.gamma[live]], -1)
+        U = self.table.shape[0]
+        both, inverse = unique_pairs(torch.cat([self.table, own.detach()]))
+        if both.shape[0] != U:  # a query pair not in the table: not representable in this space
+            return None
+        remap = torch.empty(U, dtype=torch.long, device=c.beta.device)
+        remap[inverse[:U]] = torch.arange(U, device=c.beta.device)
+        idx = torch.zeros(c.shape, dtype=torch.long, device=c.beta.device)
+        return idx.masked_scatter(live, remap[inverse[U:]])
+
+    def _features(self, c: Contacts3D, b: int) -> Tensor:
+        idx = self._index(c)
+        block = BLOCKS[b]
+        _, _, ws = block_rows(c, block)
+        A = len(block.axes)
+        out = []
+        for i, m in enumerate(block.maps):
+            if self.hypers.constant_map(m):
+                out.append(ws[i].sum(-1, keepdim=True))
+            elif idx is not None:
+                j = idx.repeat(A, 1)
+                out.append(ws[i].new_zeros(j.shape[0], self.table.shape[0]).scatter_add(-1, j, ws[i]))
+            else:
+                raise _OffTable()
+        return torch.cat(out, -1)
+
+    def _K(self, m: int, detach: bool) -> Tensor:
+        ls, s = self.hypers.lengthscale[m], self.hypers.outputscale[m]
+        if detach:
+            ls, s = ls.detach(), s.detach()
+        z = embed_angles(self.table[:, 0], self.table[:, 1]) / ls
+        return rbf(z, z, s)
+
+    def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
+        out, start, U = [], 0, self.table.shape[0]
+        for m in BLOCKS[b].maps:
+            if self.hypers.constant_map(m):
+                s = self.hypers.outputscale[m]
+                out.append(X[:, start:start + 1] * (s.detach() if detach else s))
+                start += 1
+            else:
+                out.append(X[:, start:start + U] @ self._K(m, detach))
+                start += U
+        return torch.cat(out, -1)
+
+    def _block_posterior(self, b, c, full):
+        try:
+            return super()._block_posterior(b, c, full)
+        except _OffTable:
+            # queries at pairs the data never saw: the exact answer through the observations algebra
+            return _observation_posterior(self, b, c, full)
+
+
+class _OffTable(Exception):
+    pass
+
+
+def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
+    """Exact posterior of query rows whose angles are off the pairs table: prior cross-covariances with the
+    table's map values, through the same H, v (u = map values at the table)."""
+    block = BLOCKS[b]
+    H, v = backend._terms(b)
+    beta, gamma, ws = block_rows(c, block)
+    U = backend.table.shape[0]
+    cols, priors = [], 0
+    tb, tg = backend.table[:, 0], backend.table[:, 1]
+    for i, m in enumerate(block.maps):
+        if backend.hypers.constant_map(m):
+            s = backend.hypers.outputscale[m].detach()
+            cols.append(ws[i].sum(-1, keepdim=True) * s)
+            priors = priors + s * ws[i].sum(-1)[:, None] * ws[i].sum(-1)[None, :]
+            continue
+        ls, s = backend.hypers.lengthscale[m:m + 1].detach(), backend.hypers.outputscale[m:m + 1].detach()
+        ones = torch.ones(U, 1, dtype=tb.dtype)
+        st = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], tb[None, :, None],
+                                                       tg[None, :, None], ones[None], ONE)
+        cols.append(RFTKernelLinearOperator.from_structure(st, ls, s, ONE).to_dense()[0])
+        sq = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], beta[None], gamma[None],
+                                                       ws[i][None], ONE, same_inputs=True)
+        priors = priors + RFTKernelLinearOperator.from_structure(sq, ls, s, ONE).to_dense()[0]
+    C = torch.cat(cols, -1)  # Cov(q, u) = W_q K(q, table)
+    mean = C @ v
+    G = H @ C.mT
+    cov = priors - G.mT @ G
+    if full:
+        return mean, 0.5 * (cov + cov.mT)
+    return mean, _sample_blocks(cov, len(block.axes), len(c))
+
+
+def make_backend_3d(method: str, hypers, contacts: Contacts3D, forces: Tensor, tol: float = 1e-7,
+                    features=None, max_harmonics: int = MAX_HARMONICS) -> Backend3D:
+    """The backend for ``method``; "auto": observations while the element-pair count is small, else pairs where
+    the data hold few distinct angle pairs, else spectral."""
+    if method not in METHODS_3D:
+        raise ValueError(f"method must be one of {METHODS_3D}, got {method!r}")
+    if features is not None and method == "auto":
+        method = "spectral"
+    if method == "auto":
+        n = int(contacts.in_contact().sum())
+        live = contacts.in_contact()
+        U = unique_pairs(torch.stack([contacts.beta[live], contacts.gamma[live]], -1).detach())[0].shape[0] if n else 1
+        if n <= 1500:
+            method = "observations"
+        elif U <= 1500:
+            method = "pairs"
+        else:
+            method = "spectral"
+    if method == "observations":
+        return Observations3D(hypers, contacts, forces)
+    if method == "pairs":
+        return Pairs3D(hypers, contacts, forces)
+    return Spectral3D(hypers, contacts, forces, tol=tol, features=features, max_harmonics=max_harmonics)

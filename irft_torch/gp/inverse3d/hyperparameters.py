@@ -1,0 +1,107 @@
+"""Hyperparameters of 3-D I-RFT: three maps (alpha_x, alpha_y, alpha_z), three force-noise variances, and
+how the model's covariance splits into two independent blocks.
+
+The blocks (docs/inverse3d.md): F_z sees alpha_z only; F_x and F_y both see alpha_x (through the element's
+in-plane direction u) and alpha_y (through e1). So the force covariance is block diagonal,
+
+    horizontal (rows F_x then F_y, 2T):  sum_{c in x, y} W_hc K_c W_hc^T + diag(sigma_x^2 I, sigma_y^2 I)
+    vertical   (rows F_z, T):            W_z K_z W_z^T + sigma_z^2 I
+
+and the planar model is the special case where the F_y rows see no map (they add only their own noise
+term). alpha_y is either a third map over (beta, gamma) (an ARD RBF on the embedding, like the others) or
+a constant with a zero-mean normal prior of variance s_y (a rank-one kernel term s_y (W_y 1)(W_y 1)^T).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from gpytorch import Module
+from gpytorch.likelihoods import GaussianLikelihood
+from torch import Tensor
+
+from ..constraints import ScaledGreaterThan
+from ..kernels import AngleKernel
+
+__all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "RFT3DHyperparameters"]
+
+MAPS = ("alpha_x", "alpha_y", "alpha_z")
+AXES = ("F_x", "F_y", "F_z")
+ALPHA_Y = ("map", "constant")
+
+
+@dataclass(frozen=True)
+class Block:
+    """One independent block of the force covariance: the maps it sees and the force axes of its rows (each
+    axis a group of T rows, in this order, with its own noise variance)."""
+
+    name: str
+    maps: tuple[int, ...]
+    axes: tuple[int, ...]
+
+
+BLOCKS = (Block("horizontal", (0, 1), (0, 1)), Block("vertical", (2,), (2,)))
+
+
+class RFT3DHyperparameters(Module):
+    """Kernel of the three maps (``AngleKernel`` with batch (3,): lengthscale (3, 1, 4), outputscale (3,) in
+    (N/cm^3)^2) and the noise of the three force axes (a batched gpytorch ``GaussianLikelihood``, (3,) N^2).
+
+    With ``alpha_y="constant"`` only the alpha_y outputscale is used for that map (the prior variance of the
+    constant); its lengthscale has no gradient and stays where it is.
+    """
+
+    def __init__(self, alpha_y: str = "map", noise_floor: float = 1e-6, force_scale=1.0, map_scale=1.0) -> None:
+        super().__init__()
+        if alpha_y not in ALPHA_Y:
+            raise ValueError(f"alpha_y must be one of {ALPHA_Y}, got {alpha_y!r}")
+        self.alpha_y = alpha_y
+        fs = torch.as_tensor(force_scale, dtype=torch.get_default_dtype()).expand(3)
+        ms = torch.as_tensor(map_scale, dtype=torch.get_default_dtype()).expand(3)
+        self.kernel = AngleKernel(batch_shape=torch.Size([3]),
+                                  outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
+        self.likelihood = GaussianLikelihood(batch_shape=torch.Size([3]),
+                                             noise_constraint=ScaledGreaterThan(noise_floor, fs.pow(2).reshape(3, 1)))
+
+    @property
+    def lengthscale(self) -> Tensor:
+        """(3, 1, 4), dimensionless."""
+        return self.kernel.lengthscale
+
+    @lengthscale.setter
+    def lengthscale(self, value) -> None:
+        self.kernel.lengthscale = value
+
+    @property
+    def outputscale(self) -> Tensor:
+        """(3,) prior variances of alpha_x, alpha_y (of the constant with ``alpha_y="constant"``), alpha_z."""
+        return self.kernel.outputscale
+
+    @outputscale.setter
+    def outputscale(self, value) -> None:
+        self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(3)
+
+    @property
+    def noise(self) -> Tensor:
+        """(3,) force-noise variances of F_x, F_y, F_z, N^2."""
+        return self.likelihood.noise.reshape(3)
+
+    @noise.setter
+    def noise(self, value) -> None:
+        raw = self.likelihood.noise_covar.raw_noise
+        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1).expand(3)
+        lower = self.likelihood.noise_covar.raw_noise_constraint.lower_bound.to(value)
+        self.likelihood.noise = torch.maximum(value, lower.reshape(-1) * 1.0001).reshape(raw.shape)
+
+    def constant_map(self, c: int) -> bool:
+        """Whether map c is a constant (alpha_y with ``alpha_y="constant"``)."""
+        return c == 1 and self.alpha_y == "constant"
+
+    def as_dict(self) -> dict[str, list]:
+        ls = self.lengthscale.detach()
+        out = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),
+               "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist(), "alpha_y": self.alpha_y}
+        if self.alpha_y == "map":
+            out["lengthscale_y"] = ls[1, 0].tolist()
+        return out

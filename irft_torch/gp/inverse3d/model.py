@@ -1,0 +1,318 @@
+"""InverseRFT3D: learn alpha_x(beta, gamma), alpha_y and alpha_z(beta, gamma) from 3-D forces.
+
+``irft.InverseRFT(contacts_3d, forces)`` with a ``Contacts3D`` and (T, 3) forces builds this model. It is
+the planar front door's 3-D counterpart: it checks the data, sets data-scaled initial hyperparameters and
+physical priors, picks a backend (``gp.inverse3d.backends``) and delegates every computation to it.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from ...rft.contacts3d import Contacts3D
+from ...rft.stress_maps import mirror_to_canonical
+from .backends import METHODS_3D, Backend3D, make_backend_3d
+from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
+from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
+
+__all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
+
+FORMAT_3D = "irft_torch.InverseRFT3D/1"
+
+
+@dataclass
+class Posterior3D:
+    """Gaussian posterior marginals, axis order (x, y, z): ``mean`` and ``variance`` (..., 3) and, for forces,
+    the full ``covariance`` (..., 3, 3) of each sample's three axes."""
+
+    mean: Tensor
+    variance: Tensor
+    covariance: Tensor | None = None
+
+    @property
+    def stddev(self) -> Tensor:
+        return self.variance.clamp_min(0).sqrt()
+
+    def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
+        if not 0 < level < 1:
+            raise ValueError(f"level must be in (0, 1), got {level}")
+        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+        return self.mean - z * self.stddev, self.mean + z * self.stddev
+
+
+def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
+    """Map evaluations as one-element functionals (N, 1): the F_x row reads alpha_x (times the mirror sign of
+    angles outside the canonical square), the F_y row alpha_y, the F_z row alpha_z."""
+    bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
+    one, zero = torch.ones_like(bc), torch.zeros_like(bc)
+    return Contacts3D(bc[:, None], gc[:, None], torch.stack([sx, zero], -1)[:, None],
+                      torch.stack([zero, one], -1)[:, None], one[:, None])
+
+
+def _as_forces(forces, T: int, dtype, device) -> Tensor:
+    f = torch.as_tensor(forces, dtype=dtype, device=device)
+    if f.ndim != 2 or f.shape[-1] != 3:
+        raise ValueError(f"forces must be (T, 3) = (F_x, F_y, F_z) in N for Contacts3D, got shape {tuple(f.shape)}")
+    if f.shape[0] != T:
+        raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T}")
+    if not torch.isfinite(f).all():
+        raise ValueError("forces contains NaN or inf; mask or drop those samples")
+    return f
+
+
+class InverseRFT3D(nn.Module):
+    """3-D I-RFT: GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma) and alpha_y (a third map over
+    (beta, gamma), or a constant) from forces F[t] = sum_k W[t, k] alpha(theta[t, k]) + noise (docs/inverse3d.md).
+
+    Args:
+        contacts: training ``Contacts3D`` (T, K) (``rft.contacts_3d``).
+        forces: (T, 3) measured (F_x, F_y, F_z) in N.
+        alpha_y: "map" (default: a GP over (beta, gamma) like the other two) or "constant" (one value with a
+            zero-mean normal prior: a rank-one kernel term).
+        method: "auto", "observations", "pairs" or "spectral" (``gp.inverse3d.backends``).
+        priors: "physical" (default, ``gp.inverse3d.priors``) or None (the plain marginal likelihood).
+        dtype: float64 (default) or float32. lengthscale: initial lengthscale. tol: spectral truncation bound.
+        features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
+            data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
+            then share one pass over the elements.
+        max_harmonics: spectral backend: at most this many harmonics per angle (default 30); below the
+            lengthscales ``tol`` needs, the kernel is the RBF truncated there (``truncation_error`` says by how much;
+            a ``UserWarning`` after ``fit``).
+
+    Example:
+        >>> model = InverseRFT(contacts_3d, forces)       # (T, 3) forces: a 3-D model
+        >>> model.fit(n_iter=200)
+        >>> model.predict_forces(new).covariance         # (T', 3, 3)
+        >>> model.stress_map(beta, gamma).mean           # (..., 3): alpha_x, alpha_y, alpha_z
+    """
+
+    def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
+                 priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
+                 tol: float = 1e-7, features=None, max_harmonics: int | None = None) -> None:
+        super().__init__()
+        if not isinstance(contacts, Contacts3D):
+            raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
+        if alpha_y not in ALPHA_Y:
+            raise ValueError(f"alpha_y must be one of {ALPHA_Y}, got {alpha_y!r}")
+        if method not in METHODS_3D:
+            raise ValueError(f"method must be one of {METHODS_3D}, got {method!r}")
+        if priors not in ("physical", None):
+            raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
+        if not (math.isfinite(lengthscale) and lengthscale > 0.05):
+            raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
+        T = len(contacts)
+        if T < 2:
+            raise ValueError(f"need at least 2 force observations, got {T}")
+        device = contacts.beta.device
+        c = contacts.to(dtype=dtype, device=device)
+        f = _as_forces(forces, T, dtype, device)
+        if not (c.weight_z != 0).any() and not (c.weight_x != 0).any():
+            raise ValueError("contacts carry no weight: no element is in contact, nothing to learn")
+        if float(f.abs().max()) > 1e4:
+            warnings.warn(f"forces reach {float(f.abs().max()):.3g}: above 1e4 N; are they in mN? (forces are in N)",
+                          stacklevel=2)
+        self.alpha_y, self.method_arg, self.priors, self.dtype = alpha_y, method, priors, dtype
+        self.tol, self.init_lengthscale = float(tol), float(lengthscale)
+        self.train_contacts, self.train_forces = c, f
+        self._device = device
+        power = f.pow(2).mean(0)
+        noise_floor = max(float(power[power > 0].min()) if (power > 0).any() else 1.0, 1e-300) * \
+            (1e-8 if dtype == torch.float64 else 1e-5)
+        force_scale, map_scale = data_scales_3d(c, f)
+        self.hypers = RFT3DHyperparameters(alpha_y, noise_floor, force_scale.clamp_min(1e-6).cpu(),
+                                           map_scale.cpu()).to(device=device, dtype=dtype)
+        centres = prior_centres_3d(c, f, map_scale, noise_floor)
+        with torch.no_grad():
+            self.hypers.outputscale = centres["outputscale"].to(dtype)
+            self.hypers.lengthscale = torch.full((3, 1, 4), float(lengthscale), dtype=dtype)
+            self.hypers.noise = centres["noise"].to(dtype)
+        if priors == "physical":
+            register_priors_3d(self.hypers, centres)
+        from ..fourier import MAX_HARMONICS
+
+        self.max_harmonics = MAX_HARMONICS if max_harmonics is None else int(max_harmonics)
+        self.backend: Backend3D = make_backend_3d(method, self.hypers, c, f, tol=tol, features=features,
+                                                  max_harmonics=self.max_harmonics)
+        self.loss_history: list[float] = []
+        self.eval()
+
+    # ---- views -------------------------------------------------------------------------------------------------
+    @property
+    def method(self) -> str:
+        return self.backend.name
+
+    def hyperparameters(self) -> dict:
+        return self.hypers.as_dict()
+
+    def truncation_error(self) -> Tensor:
+        return self.backend.truncation_error()
+
+    def loss(self) -> Tensor:
+        """Negative log marginal likelihood per sample summed over the two blocks (minus log prior / T)."""
+        return self.backend.loss()
+
+    def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
+        """Adam on the exact marginal likelihood (MAP with the priors). Ctrl-C keeps what was learned."""
+        if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
+            raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
+        params = [p for p in self.hypers.parameters() if p.requires_grad]
+        opt = torch.optim.Adam(params, lr=lr)
+        history: list[float] = []
+        bar = tqdm(range(int(n_iter)), desc=f"I-RFT 3-D fit ({self.method})", disable=not progress, leave=False)
+        try:
+            for step in bar:
+                opt.zero_grad(set_to_none=True)
+                loss = self.backend.loss()
+                loss.backward()
+                opt.step()
+                history.append(loss.item())
+                if step % 10 == 9 and self.backend.stale():
+                    self.backend.refresh()
+        except KeyboardInterrupt:
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
+        finally:
+            bar.close()
+        if self.backend.stale():
+            self.backend.refresh()
+        err = float(self.backend.truncation_error().max())
+        if err > self.tol:
+            warnings.warn(f"the lengthscales need more than max_harmonics={self.max_harmonics} harmonics for tol="
+                          f"{self.tol:.0e}: the kernel used is the RBF truncated there (relative error <= {err:.1e})",
+                          stacklevel=2)
+        self.loss_history.extend(history)
+        return history
+
+    # ---- prediction ----------------------------------------------------------------------------------------------
+    def predict_forces(self, contacts: Contacts3D, include_noise: bool = False) -> Posterior3D:
+        """Posterior of (F_x, F_y, F_z) for contacts (T, K): mean, variance (T, 3) in N, N^2 and each sample's
+        3 x 3 ``covariance`` (F_x and F_y correlate through alpha_x and alpha_y; F_z is independent of both)."""
+        if not isinstance(contacts, Contacts3D):
+            raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
+        c = contacts.to(dtype=self.dtype, device=self._device)
+        with torch.no_grad():
+            mean, cov = self.backend.posterior(c)
+        cov = 0.5 * (cov + cov.mT)
+        if include_noise:
+            cov = cov + torch.diag_embed(self.hypers.noise.detach()).expand_as(cov)
+        return Posterior3D(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
+
+    def stress_map(self, beta, gamma) -> Posterior3D:
+        """Posterior of (alpha_x, alpha_y, alpha_z) at angles of any broadcast shape S (rad): mean, variance
+        S + (3,) in N/cm^3 (angles outside the canonical square mapped in by the mirror identity)."""
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
+        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        p = self.predict_forces(point_contacts(beta, gamma))
+        return Posterior3D(p.mean.reshape(*S, 3), p.variance.reshape(*S, 3), p.covariance.reshape(*S, 3, 3))
+
+    def forward(self, beta, gamma) -> Tensor:
+        """Posterior mean map (..., 3) = (alpha_x, alpha_y, alpha_z): ``rft.forces_3d(model, contacts)`` works."""
+        return self.stress_map(beta, gamma).mean
+
+    def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None) -> Tensor:
+        """Maps drawn from the joint posterior at angles of any broadcast shape S: (n, *S, 3) in N/cm^3 (the
+        points of one draw jointly distributed; alpha_x and alpha_y correlated as the data make them)."""
+        if int(n) != n or n < 1:
+            raise ValueError(f"n must be a positive integer, got {n!r}")
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
+        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        c = point_contacts(beta, gamma)
+        N = len(c)
+        if N > 3000:
+            raise ValueError(f"{N} points: sample at most 3000 at a time (the joint covariance is dense)")
+        from ..model import _psd_root
+
+        with torch.no_grad():
+            mean, _, joints = self.backend.posterior(c, joint=True)
+            out = mean.new_zeros(int(n), N, 3)
+            h = joints[0]
+            eps = torch.randn(h.shape[0], int(n), generator=generator, dtype=h.dtype, device=h.device)
+            dh = (_psd_root(h) @ eps).T.reshape(int(n), 2, N)
+            out[..., 0], out[..., 1] = dh[:, 0], dh[:, 1]
+            eps = torch.randn(N, int(n), generator=generator, dtype=h.dtype, device=h.device)
+            out[..., 2] = (_psd_root(joints[1]) @ eps).T
+            out = out + mean
+        return out.reshape(int(n), *S, 3)
+
+    def cross_validate(self, groups, refit: bool = False, n_iter: int = 300, lr: float = 0.05,
+                       include_noise: bool = False) -> Posterior3D:
+        """Each group of training samples predicted from the other groups: at this model's fitted
+        hyperparameters (default) or by a model like this one fitted on the others (``refit``). Returns the
+        held-out ``Posterior3D`` (T, 3) in the training order."""
+        g = torch.as_tensor(groups, device=self._device)
+        T = len(self.train_contacts)
+        if g.shape != (T,):
+            raise ValueError(f"groups must be ({T},) labels, one per training sample, got {tuple(g.shape)}")
+        mean = self.train_forces.new_zeros(T, 3)
+        cov = self.train_forces.new_zeros(T, 3, 3)
+        for label in g.unique():
+            test = g == label
+            if bool(test.all()):
+                raise ValueError("cross_validate needs at least two groups")
+            ctr, ftr = self.train_contacts[~test], self.train_forces[~test]
+            if refit:
+                m = InverseRFT3D(ctr, ftr, **self._options())
+                m.fit(n_iter=n_iter, lr=lr, progress=False)
+            else:
+                m = InverseRFT3D.__new__(InverseRFT3D)
+                nn.Module.__init__(m)
+                m.__dict__.update({k: v for k, v in self.__dict__.items() if k not in ("_modules",)})
+                m._modules = {"hypers": self.hypers}
+                m.backend = make_backend_3d(self.method, self.hypers, ctr, ftr, tol=self.tol)
+            p = m.predict_forces(self.train_contacts[test], include_noise=include_noise)
+            mean[test], cov[test] = p.mean, p.covariance
+        return Posterior3D(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
+
+    def diagnostics(self, n: int = 21) -> dict:
+        """Per map, the share of the canonical square where the posterior std is below half the prior's (what
+        the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere."""
+        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype)
+        beta, gamma = torch.meshgrid(b, b, indexing="ij")
+        post = self.stress_map(beta, gamma)
+        prior = self.hypers.outputscale.detach().sqrt()
+        share = (post.stddev < 0.5 * prior).reshape(-1, 3).to(self.dtype).mean(0)
+        out = {name: {"constrained_share": float(s), "prior_std": float(p)}
+               for name, s, p in zip(MAPS, share, prior)}
+        for name, s in zip(MAPS, share):
+            if float(s) == 0:
+                warnings.warn(f"{name} is not constrained by these forces: its posterior is the prior", stacklevel=2)
+        return out
+
+    # ---- persistence -----------------------------------------------------------------------------------------------
+    def _options(self) -> dict:
+        return {"alpha_y": self.alpha_y, "method": self.method_arg, "priors": self.priors, "dtype": self.dtype,
+                "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics}
+
+    def save(self, path) -> None:
+        """Training data, options and hyperparameters in one file (``load`` rebuilds the model)."""
+        torch.save({"format": FORMAT_3D, "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
+                    "forces": self.train_forces.cpu(), "options": self._options(),
+                    "hypers": {k: v.cpu() for k, v in self.hypers.state_dict().items()}}, path)
+
+    @classmethod
+    def load(cls, path, map_location=None) -> InverseRFT3D:
+        d = torch.load(path, map_location=map_location, weights_only=False)
+        if not isinstance(d, dict) or d.get("format") != FORMAT_3D:
+            from ..model_file import ModelFileError
+
+            raise ModelFileError(f"{path} is not a 3-D I-RFT model file ({FORMAT_3D})")
+        model = cls(Contacts3D(**d["contacts"]), d["forces"], **d["options"])
+        model.hypers.load_state_dict(d["hypers"], strict=False)
+        if hasattr(model.backend, "refresh"):
+            model.backend.refresh()
+        return model
+
+    def extra_repr(self) -> str:
+        return f"T={len(self.train_contacts)}, K={self.train_contacts.n_elements}, alpha_y={self.alpha_y!r}, " \
+               f"backend={self.backend.describe()!r}"

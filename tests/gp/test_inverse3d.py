@@ -1,0 +1,217 @@
+"""3-D I-RFT (gp.inverse3d) against a dense reference written plainly (explicit W over every element, explicit K,
+torch Cholesky), against the planar model (its special case), and on what a user sees (errors, save/load)."""
+
+import math
+
+import pytest
+import torch
+
+import irft_torch as irft
+from irft_torch.gp.inverse3d import InverseRFT3D
+from irft_torch.rft import (
+    Contacts3D,
+    CToe,
+    FourierStressMap,
+    Mesh,
+    contacts,
+    contacts_3d,
+    forces,
+    forces_3d,
+    planar_motion,
+    spline_path,
+)
+
+
+# ---- the dense reference ------------------------------------------------------------------------------------------
+def _embed(b, g):
+    return torch.stack([torch.sin(2 * b), torch.cos(2 * b), torch.sin(g), torch.cos(g)], -1)
+
+
+def _k(b1, g1, b2, g2, ls, s, constant):
+    if constant:
+        return s * torch.ones(b1.shape[0], b2.shape[0], dtype=b1.dtype)
+    a, c = _embed(b1, g1) / ls, _embed(b2, g2) / ls
+    return s * torch.exp(-0.5 * ((a[:, None] - c[None]) ** 2).sum(-1))
+
+
+def _W(w):
+    """(T, K) -> (T, T*K) block rows."""
+    T, K = w.shape
+    out = torch.zeros(T, T * K, dtype=w.dtype)
+    for t in range(T):
+        out[t, t * K:(t + 1) * K] = w[t]
+    return out
+
+
+def _rows(c):
+    """Per map, the explicit (3T, T K) weight matrix over the rows (F_x, F_y, F_z) x T."""
+    T, K = c.shape
+    z = torch.zeros(T, T * K, dtype=c.beta.dtype)
+    Wx = torch.cat([_W(c.weight_x[..., 0]), _W(c.weight_x[..., 1]), z])
+    Wy = torch.cat([_W(c.weight_y[..., 0]), _W(c.weight_y[..., 1]), z])
+    Wz = torch.cat([z, z, _W(c.weight_z)])
+    return (Wx, Wy, Wz), c.beta.reshape(-1), c.gamma.reshape(-1)
+
+
+def dense(c, f, ls, os, noise, constant_y):
+    """(nll / T summed, posterior function of (contacts) -> mean (T, 3), full covariance (3T, 3T))."""
+    Ws, b, g = _rows(c)
+    T = len(c)
+    Ks = [_k(b, g, b, g, ls[m, 0], os[m], constant_y and m == 1) for m in range(3)]
+    C = sum(W @ K @ W.T for W, K in zip(Ws, Ks)) + torch.diag(noise.repeat_interleave(T))
+    y = f.T.reshape(-1)
+    L = torch.linalg.cholesky(C)
+    alpha = torch.cholesky_solve(y[:, None], L)[:, 0]
+    nll = 0.5 * (y @ alpha + 2 * torch.log(torch.diagonal(L)).sum() + 3 * T * math.log(2 * math.pi)) / T
+
+    def post(q):
+        Wq, bq, gq = _rows(q)
+        Kqt = sum(Wa @ _k(bq, gq, b, g, ls[m, 0], os[m], constant_y and m == 1) @ Wt.T
+                  for m, (Wa, Wt) in enumerate(zip(Wq, Ws)))
+        Kqq = sum(Wa @ _k(bq, gq, bq, gq, ls[m, 0], os[m], constant_y and m == 1) @ Wa.T for m, Wa in enumerate(Wq))
+        mean = Kqt @ alpha
+        cov = Kqq - Kqt @ torch.cholesky_solve(Kqt.T, L)
+        return mean.reshape(3, -1).T, cov
+
+    return nll, post
+
+
+def per_sample(cov, T):
+    return cov.reshape(3, T, 3, T).diagonal(dim1=1, dim2=3).permute(2, 0, 1)
+
+
+# ---- data: a C-toe turning about the vertical while it strokes and drifts sideways --------------------------------
+def turning_toe(T=10, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    mesh = Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2)
+    t = torch.linspace(0, 1, T)
+    yaw = 0.9 * t
+    c, s, z, o = torch.cos(yaw), torch.sin(yaw), torch.zeros(T), torch.ones(T)
+    R = torch.stack([torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1), torch.stack([z, z, o], -1)], -2)
+    v = torch.stack([0.02 * o, 0.01 * torch.sin(3 * t), -0.01 * torch.cos(2 * t)], -1)
+    w = torch.stack([z, z, 0.9 * o], -1)
+    x0 = torch.stack([0.02 * t, z, -0.015 - 0.01 * t], -1)
+    cc = contacts_3d(mesh, v, w, surface=0.0, position=x0, rotation=R)
+    f = forces_3d(FourierStressMap.generic(0.5, 0.6), cc, alpha_y=0.1)
+    return cc, f + 0.02 * torch.randn(f.shape, generator=gen)
+
+
+def _set(model, ls, os, noise):
+    with torch.no_grad():
+        model.hypers.lengthscale = ls
+        model.hypers.outputscale = os
+        model.hypers.noise = noise
+
+
+CASES = [(m, a) for m in ("observations", "pairs", "spectral") for a in ("map", "constant")]
+
+
+@pytest.mark.parametrize("method,alpha_y", CASES)
+def test_backends_match_the_dense_reference(method, alpha_y):
+    c, f = turning_toe()
+    tol = 1e-12 if method == "spectral" else 1e-7
+    model = InverseRFT3D(c, f, method=method, alpha_y=alpha_y, priors=None, tol=tol)
+    gen = torch.Generator().manual_seed(1)
+    ls = (0.8 + torch.rand(3, 1, 4, generator=gen))
+    _set(model, ls, torch.tensor([0.09, 0.02, 0.2]), torch.tensor([4e-4, 3e-4, 5e-4]))
+    model.backend.refresh()
+    # spectral: exact to its truncation (basis sized for 1e-12 relative kernel error); the others: arithmetic
+    rtol = 1e-8 if method != "spectral" else 1e-7
+    loss = model.loss()
+    loss.backward()
+    raw = [p for p in model.hypers.parameters() if p.requires_grad]
+    grads = [p.grad.clone() for p in raw]
+    for p in raw:
+        p.grad = None
+    ref, post = dense(c, f, model.hypers.lengthscale, model.hypers.outputscale, model.hypers.noise,
+                      alpha_y == "constant")
+    ref.backward()
+    torch.testing.assert_close(loss, ref, rtol=rtol, atol=0)
+    for g, p in zip(grads, raw):
+        torch.testing.assert_close(g, p.grad, rtol=1e-6 if method != "spectral" else 1e-5, atol=1e-9)
+    # forces of new contacts: mean and each sample's 3 x 3 covariance, and the joint block covariances
+    q, _ = turning_toe(T=6, seed=2)
+    q = q[1:5]
+    with torch.no_grad():
+        mean_ref, cov_ref = post(q)
+        pred = model.predict_forces(q)
+        torch.testing.assert_close(pred.mean, mean_ref, rtol=rtol, atol=1e-10)
+        torch.testing.assert_close(pred.covariance, per_sample(cov_ref, len(q)), rtol=1e-6, atol=1e-10)
+        m, cv, joints = model.backend.posterior(q, joint=True)
+        T = len(q)
+        torch.testing.assert_close(joints[0], cov_ref[:2 * T, :2 * T], rtol=1e-6, atol=1e-10)
+        torch.testing.assert_close(joints[1], cov_ref[2 * T:, 2 * T:], rtol=1e-6, atol=1e-10)
+        # map posteriors at points off the data: alpha_x (mirror sign included), alpha_y, alpha_z
+        b = torch.tensor([-1.2, 0.3, 1.0, 0.1])
+        gm = torch.tensor([0.4, -1.1, 2.5, 0.0])
+        sm = model.stress_map(b, gm)
+        from irft_torch.gp.inverse3d import point_contacts
+
+        pm, pc = post(point_contacts(b, gm))
+        torch.testing.assert_close(sm.mean, pm, rtol=rtol, atol=1e-10)
+        torch.testing.assert_close(sm.covariance, per_sample(pc, 4), rtol=1e-6, atol=1e-10)
+
+
+def test_planar_motion_is_the_planar_model():
+    """A C-toe in the x-z plane: alpha_x and alpha_z posteriors, forces and the loss are the planar model's, the
+    F_y rows adding only their own noise term (F_y here pure noise)."""
+    toe = CToe(0.02, 0.008, n_segments=6)
+    path = spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=30)
+    c2 = contacts(toe, path)
+    f2 = forces(FourierStressMap.generic(), c2)
+    c3 = contacts_3d(Mesh.from_toe(toe), surface=0.0, **planar_motion(path))
+    fy = 0.01 * torch.randn(len(c2), generator=torch.Generator().manual_seed(0))
+    f3 = torch.stack([f2[:, 0], fy, f2[:, 1]], -1)
+    for method in ("observations", "pairs"):
+        m2 = irft.InverseRFT(c2, f2, method=method, priors=None)
+        m3 = irft.InverseRFT(c3, f3, method=method, priors=None)
+        assert isinstance(m3, InverseRFT3D)
+        ls, os, nz = m2.hypers.lengthscale, m2.hypers.outputscale, m2.hypers.noise
+        _set(m3, torch.stack([ls[0], ls[0] * 1.3, ls[1]]), torch.stack([os[0], os[0], os[1]]),
+             torch.stack([nz[0], torch.tensor(2e-4), nz[1]]))
+        sy = m3.hypers.noise[1]
+        own = 0.5 * (fy.pow(2).sum() / sy + len(fy) * torch.log(sy) + len(fy) * math.log(2 * math.pi)) / len(fy)
+        torch.testing.assert_close(m3.loss().detach(), (m2.loss() + own).detach(), rtol=1e-12, atol=1e-12)
+        b = torch.linspace(-1.5, 1.5, 9)
+        p3, p2 = m3.stress_map(b, b.flip(0)), m2.stress_map(b, b.flip(0))
+        torch.testing.assert_close(p3.mean[:, [0, 2]], p2.mean, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(p3.variance[:, [0, 2]], p2.variance, rtol=1e-10, atol=1e-12)
+        q3, q2 = m3.predict_forces(c3), m2.predict_forces(c2)
+        torch.testing.assert_close(q3.mean[:, [0, 2]], q2.mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(q3.variance[:, [0, 2]], q2.variance, rtol=1e-10, atol=1e-10)
+        assert q3.covariance[:, 2, :2].abs().max() == 0  # F_z independent of (F_x, F_y)
+
+
+def test_fit_recovers_the_medium_and_round_trips(tmp_path):
+    c, f = turning_toe(T=24)
+    model = irft.InverseRFT(c, f, alpha_y="constant")
+    model.fit(n_iter=60, lr=0.05, progress=False)
+    pred = model.predict_forces(c)
+    assert ((pred.mean - f).pow(2).mean(0).sqrt() < 0.15 * f.pow(2).mean(0).sqrt() + 0.05).all()
+    draws = model.sample_maps(torch.zeros(3), torch.tensor([0.0, 0.5, 1.0]), n=4,
+                              generator=torch.Generator().manual_seed(0))
+    assert draws.shape == (4, 3, 3)
+    assert (draws[:, :, 1] - draws[:, :1, 1]).abs().max() < 1e-6  # a constant alpha_y: one value per draw (jitter)
+    assert draws[:, 0, 1].std() > 0
+    model.save(tmp_path / "m3.pt")
+    back = InverseRFT3D.load(tmp_path / "m3.pt")
+    torch.testing.assert_close(back.predict_forces(c).mean, pred.mean, rtol=1e-10, atol=1e-12)
+    cv = model.cross_validate(torch.arange(len(c)) // 6)
+    assert cv.mean.shape == (len(c), 3) and (cv.variance > 0).all()
+
+
+def test_bad_input():
+    c, f = turning_toe(T=4)
+    with pytest.raises(ValueError, match=r"\(T, 3\)"):
+        irft.InverseRFT(c, f[:, :2])
+    with pytest.raises(ValueError, match="alpha_y"):
+        InverseRFT3D(c, f, alpha_y="field")
+    with pytest.raises(ValueError, match="NaN"):
+        InverseRFT3D(c, f * float("nan"))
+    with pytest.raises(ValueError, match="method"):
+        InverseRFT3D(c, f, method="grid")
+    with pytest.raises(TypeError, match="Contacts3D"):
+        InverseRFT3D(c, f).predict_forces(c.planar())
+    empty = Contacts3D(c.beta, c.gamma, c.weight_x * 0, c.weight_y * 0, c.weight_z * 0)
+    with pytest.raises(ValueError, match="no element"):
+        InverseRFT3D(empty, f)
