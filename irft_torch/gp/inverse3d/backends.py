@@ -37,33 +37,15 @@ from ..backends.weight_space import data_factor_from_rows
 from ..embedding import embed_angles, rbf
 from ..fourier import MAX_HARMONICS, FourierBasis
 from ..operators import RFTKernelLinearOperator, unique_pairs
-from .hyperparameters import BLOCKS, Block, RFT3DHyperparameters
+from .features import BankRows, SpectralFeatureBank, spectral_features
+from .hyperparameters import BLOCKS, RFT3DHyperparameters
+from .rows import block_rows, block_targets
 
 __all__ = ["Backend3D", "Observations3D", "WeightSpace3D", "Spectral3D", "Pairs3D", "block_rows", "block_targets",
            "make_backend_3d", "METHODS_3D", "SpectralFeatureBank", "spectral_features"]
 
 METHODS_3D = ("auto", "observations", "pairs", "spectral")
 ONE = torch.Size([1])
-
-
-def block_rows(c: Contacts3D, block: Block) -> tuple[Tensor, Tensor, list[Tensor]]:
-    """The block's rows of contacts (T, K): beta, gamma (n, K) and, per map of the block, the weights (n, K);
-    n = T x the block's axes, axis-major (all F_x rows, then all F_y rows)."""
-    A = len(block.axes)
-    beta, gamma = c.beta.repeat(A, 1), c.gamma.repeat(A, 1)
-    per_map = {0: c.weight_x, 1: c.weight_y}
-    weights = []
-    for m in block.maps:
-        if m == 2:
-            weights.append(c.weight_z)
-        else:
-            weights.append(torch.cat([per_map[m][..., a] for a in block.axes]))
-    return beta, gamma, weights
-
-
-def block_targets(forces: Tensor, block: Block) -> Tensor:
-    """(n,) the block's forces, axis-major."""
-    return torch.cat([forces[:, a] for a in block.axes])
 
 
 def _pack(c: Contacts3D, parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor]:
@@ -383,92 +365,6 @@ class Spectral3D(WeightSpace3D):
             out.append(s * (Sb[0].mT @ Y @ Sg[0]).reshape(-1, Fb * Fg))
             start += Fb * Fg
         return torch.cat(out, -1)
-
-
-def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool) -> Tensor:
-    """Phi (n, F_b) of the block's rows: per map of the block, sum_k w psi_beta(beta_k) x psi_gamma(gamma_k) (a
-    constant alpha_y: sum_k w), side by side."""
-    block = BLOCKS[b]
-    _, _, ws = block_rows(c, block)
-    T, A = len(c), len(block.axes)
-    out = []
-    for i, m in enumerate(block.maps):
-        if m == 1 and constant_y:
-            out.append(ws[i].sum(-1, keepdim=True))
-            continue
-        out.append(_fourier_rows(c.beta, c.gamma, ws[i].reshape(A, T, -1), basis).reshape(A * T, -1))
-    return torch.cat(out, -1)
-
-
-class SpectralFeatureBank:
-    """Spectral features of a data set's samples, computed once per basis (and cut from a larger nested basis
-    where one is held), for fits on subsets of its samples (cross-validation folds):
-    ``InverseRFT3D(contacts[idx], forces[idx], method="spectral", features=bank.rows(idx))``."""
-
-    def __init__(self, contacts: Contacts3D) -> None:
-        self.contacts = contacts
-        self._held: dict = {}
-
-    def _full(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
-        key = (b, constant_y)
-        for (nb, ng), store in self._held.items():
-            if nb >= basis.n_beta and ng >= basis.n_gamma and key in store:
-                return _restrict(store[key], FourierBasis(nb, ng), basis, b, constant_y)
-        with torch.no_grad():
-            phi = spectral_features(self.contacts, b, basis, constant_y)
-        self._held.setdefault((basis.n_beta, basis.n_gamma), {})[key] = phi
-        return phi
-
-    def rows(self, index) -> BankRows:
-        return BankRows(self, torch.as_tensor(index))
-
-
-class BankRows:
-    """The samples ``index`` of a ``SpectralFeatureBank`` (the training rows of one model)."""
-
-    def __init__(self, bank: SpectralFeatureBank, index: Tensor) -> None:
-        self.bank, self.index = bank, index
-
-    def features(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
-        phi = self.bank._full(basis, b, constant_y)
-        T = len(self.bank.contacts)
-        A = len(BLOCKS[b].axes)
-        idx = self.index if self.index.dtype != torch.bool else self.index.nonzero()[:, 0]
-        return phi[torch.cat([idx + a * T for a in range(A)])]
-
-
-def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, constant_y: bool) -> Tensor:
-    """Features in a nested smaller basis: the leading harmonics' columns of each map's block."""
-    if big == small:
-        return phi
-    Fb, Fg = big.sizes
-    fb, fg = small.sizes
-    sel = (torch.arange(fb)[:, None] * Fg + torch.arange(fg)[None, :]).reshape(-1)
-    out, start = [], 0
-    for m in BLOCKS[b].maps:
-        if m == 1 and constant_y:
-            out.append(phi[:, start:start + 1])
-            start += 1
-        else:
-            out.append(phi[:, start + sel])
-            start += Fb * Fg
-    return torch.cat(out, -1)
-
-
-def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22) -> Tensor:
-    """Features of weighted sums: beta, gamma (T, K), weights (A, T, K) -> (A, T, F) = sum_k w psi_beta x psi_gamma,
-    one batched product per chunk of samples."""
-    A, T, K = w.shape
-    Fb, Fg = basis.sizes
-    out = w.new_zeros(A, T, Fb * Fg)
-    step = max(1, chunk // max(1, K * (Fb + Fg + A * Fb)))
-    for t0 in range(0, T, step):
-        sl = slice(t0, min(T, t0 + step))
-        pb, pg = basis.features(beta[sl], gamma[sl])  # (t, K, Fb), (t, K, Fg)
-        left = (w[:, sl, :, None] * pb[None]).permute(1, 0, 3, 2).reshape(sl.stop - sl.start, A * Fb, K)
-        prod = (left @ pg).reshape(-1, A, Fb * Fg)  # (t, A, F)
-        out[:, sl] = prod.transpose(0, 1)
-    return out
 
 
 class Pairs3D(WeightSpace3D):

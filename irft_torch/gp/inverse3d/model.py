@@ -231,7 +231,7 @@ class InverseRFT3D(nn.Module):
         N = len(c)
         if N > 3000:
             raise ValueError(f"{N} points: sample at most 3000 at a time (the joint covariance is dense)")
-        from ..model import _psd_root
+        from ..posterior import _psd_root
 
         with torch.no_grad():
             mean, _, joints = self.backend.posterior(c, joint=True)
