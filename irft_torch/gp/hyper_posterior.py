@@ -99,8 +99,9 @@ def _label(name: str, shape: torch.Size) -> list[str]:
 
 
 def hyper_spec(hypers) -> HyperSpec:
-    """The free (``requires_grad``) hyperparameters of an ``RFTHyperparameters``, each positive through
-    its gpytorch constraint."""
+    """The free (``requires_grad``) hyperparameters of an ``RFTHyperparameters`` (or any hyperparameter module: one
+    with a ``hyper_labels(name, shape)`` method names its own coordinates, as the 3-D model's does), each positive
+    through its gpytorch constraint."""
     names, shapes, cons, labels = [], [], [], []
     for name, p, c in hypers.named_parameters_and_constraints():
         if not p.requires_grad:
@@ -110,7 +111,7 @@ def hyper_spec(hypers) -> HyperSpec:
         names.append(name)
         shapes.append(p.shape)
         cons.append(c)
-        labels += _label(name, p.shape)
+        labels += hypers.hyper_labels(name, p.shape) if hasattr(hypers, "hyper_labels") else _label(name, p.shape)
     return HyperSpec(names, shapes, cons, labels)
 
 
