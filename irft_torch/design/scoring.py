@@ -208,7 +208,7 @@ class ProbeScorer:
                 raise ValueError(f"tol= sizes a spectral basis: method must be None or 'spectral', got {method!r}")
             tol = float(tol)
         noise_scale = cls._model_noise_scale(model, noise_scale)
-        if getattr(model, "_draw_backends", None) is not None:  # a hyperparameter posterior: average over its draws
+        if model._weighted_backends()[1] is not None:  # hyperparameter draws or averaged means: average over them
             return MixtureScorer.from_model(model, method, noise_scale, tol)
         out = cls(cls._derive(model, method, tol), noise_scale)
         out._recipe, out._derived_from = (model, method, tol), cls._state_of(model.backend)
@@ -318,9 +318,10 @@ class ProbeScorer:
             iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
 
-    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
+              per_axis: bool = False) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
-        better) or its information gain ("eig", nats, higher is better)."""
+        better) or its information gain ("eig", nats, higher is better); ``per_axis``: (n, 2), per map."""
         if criterion not in ("variance", "eig"):
             raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
         if criterion == "eig" and region is not None:
@@ -328,7 +329,7 @@ class ProbeScorer:
                              "information about the forces of the probe itself: pass region=None")
         cands = [self._cast(c) for c in candidates]
         if not cands:
-            return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
+            return torch.zeros((0, 2) if per_axis else 0, dtype=self.noise.dtype, device=self.noise.device)
         # Batches of candidates of similar length (shortest first, so that padding to the longest wastes
         # little), each at most SCORE_ROWS rows and SCORE_ROWS^2 / 10 padded block entries: one covariance
         # product and one Cholesky per batch.
@@ -340,7 +341,7 @@ class ProbeScorer:
             n = 0 if i is None else len(cands[i])  # the longest so far: the candidates come sorted
             if chunk and (i is None or rows + n > SCORE_ROWS or (len(chunk) + 1) * n**2 > SCORE_ROWS**2 // 10):
                 for j, v in zip(chunk, self._score_batch([cands[j] for j in chunk], criterion, region)):
-                    scores[j] = v.sum()
+                    scores[j] = v if per_axis else v.sum()
                 chunk, rows = [], 0
             if i is not None:
                 chunk.append(i)
@@ -441,11 +442,13 @@ class MixtureScorer:
         scorers = list(scorers)
         if not scorers:
             raise ValueError("a MixtureScorer needs at least one scorer")
-        w = torch.as_tensor(weights, dtype=scorers[0].noise.dtype, device=scorers[0].noise.device).reshape(-1)
-        if w.numel() != len(scorers) or not torch.isfinite(w).all() or (w < 0).any() or w.sum() <= 0:
-            raise ValueError(f"weights must be {len(scorers)} non-negative finite numbers with a positive sum, got "
-                             f"{w.tolist()}")
-        self.scorers, self.weights = scorers, w / w.sum()
+        w = torch.as_tensor(weights, dtype=scorers[0].noise.dtype, device=scorers[0].noise.device)
+        w = w.reshape(-1) if w.ndim < 2 else w
+        if (w.shape[0] != len(scorers) or w.ndim > 2 or (w.ndim == 2 and w.shape[1] != 2)
+                or not torch.isfinite(w).all() or (w < 0).any() or (w.sum(0) <= 0).any()):
+            raise ValueError(f"weights must be {len(scorers)} non-negative finite numbers (or {len(scorers)} x 2, per "
+                             f"map) with a positive sum, got shape {tuple(w.shape)}: {w.tolist()}")
+        self.scorers, self.weights = scorers, w / w.sum(0)
         self._recipe: tuple | None = None  # (model, method, noise_scale, tol) of ``from_model``
         self._draws_of = None
 
@@ -473,13 +476,20 @@ class MixtureScorer:
     def _current(self) -> list[ProbeScorer]:
         if self._recipe is not None and self._state(self._recipe[0]) != self._draws_of:
             self.scorers, w = self._build(*self._recipe)
-            self.weights = w.to(self.scorers[0].noise) / w.sum()
+            self.weights = w.to(self.scorers[0].noise) / w.sum(0)
             self._draws_of = self._state(self._recipe[0])
         return self.scorers
 
-    def _average(self, values: list[Tensor]) -> Tensor:
-        w = self.weights.to(values[0])
-        return sum(wi * v for wi, v in zip(w, values))
+    def _per_map(self) -> Tensor:
+        """(S, 2) the draws' weights per map (one weight for both maps where they are not per map)."""
+        return self.weights[:, None].expand(-1, 2) if self.weights.ndim == 1 else self.weights
+
+    def _average(self, values: list[Tensor], per_axis: bool = True) -> Tensor:
+        """The weighted average of per-map values (..., 2) (each map with its own weights); with
+        ``per_axis`` False the average is summed over the maps."""
+        w = self._per_map().to(values[0])
+        out = sum(wi * v for wi, v in zip(w, values))
+        return out if per_axis else out.sum(-1)
 
     # ---- what a ProbeScorer answers ---------------------------------------------------------------
     @property
@@ -488,12 +498,12 @@ class MixtureScorer:
 
     @property
     def noise(self) -> Tensor:
-        """(2,) the draws' force noise variances, weighted mean, N^2."""
+        """(2,) the draws' force noise variances, weighted mean per map, N^2."""
         return self._average([s.noise for s in self._current()])
 
     @property
     def outputscale(self) -> Tensor:
-        """(2,) the draws' prior map variances, weighted mean, (N/cm^3)^2."""
+        """(2,) the draws' prior map variances, weighted mean per map, (N/cm^3)^2."""
         return self._average([s.outputscale for s in self._current()])
 
     @property
@@ -501,23 +511,27 @@ class MixtureScorer:
         return len(self._current())
 
     def covariance(self, contacts) -> Tensor:
-        """(2, T, T) the draws' posterior covariances of the candidate's forces, weighted mean, N^2 (the
-        spread of the draws' means is not included: scores depend on the covariances only)."""
-        return self._average([s.covariance(contacts) for s in self._current()])
+        """(2, T, T) the draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2
+        (the spread of the draws' means is not included: scores depend on the covariances only)."""
+        covs = [s.covariance(contacts) for s in self._current()]
+        w = self._per_map().to(covs[0])
+        return sum(wi[:, None, None] * v for wi, v in zip(w, covs))
 
     def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
         """Expected information gain averaged over the draws, nats (scalar, or (2,) per map)."""
-        return self._average([s.information_gain(contacts, per_axis) for s in self._current()])
+        return self._average([s.information_gain(contacts, True) for s in self._current()], per_axis)
 
     def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
         """Expected integrated map variance after the candidate (now, if None), averaged over the draws
         (each draw's map variance divided by its own prior variance: 2 = the prior, 0 = known)."""
-        return self._average([s.integrated_variance(contacts, region, per_axis) for s in self._current()])
+        return self._average([s.integrated_variance(contacts, region, True) for s in self._current()], per_axis)
 
-    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
-        """Scores (n,) averaged over the draws (see ``ProbeScorer.score``)."""
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
+              per_axis: bool = False) -> Tensor:
+        """Scores (n,) averaged over the draws (see ``ProbeScorer.score``); ``per_axis``: (n, 2)."""
         candidates = list(candidates)
-        return self._average([s.score(candidates, criterion, region) for s in self._current()])
+        return self._average([s.score(candidates, criterion, region, per_axis=True) for s in self._current()],
+                             per_axis)
 
     def rank(self, candidates: Sequence, criterion: str = "variance",
              region: Region | None = None) -> list[tuple[int, float]]:
@@ -540,7 +554,7 @@ class MixtureScorer:
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
         with torch.no_grad():
             posts = [s.backend.posterior(pts) for s in scorers]
-        w = self.weights.to(posts[0].mean)[:, None, None]
+        w = self._per_map().to(posts[0].mean)[:, :, None]  # (S, 2, 1) against (S, 2, N)
         means = torch.stack([p.mean for p in posts])
         second = (w * (torch.stack([p.variance for p in posts]) + means.pow(2))).sum(0)
         mean = (w * means).sum(0)

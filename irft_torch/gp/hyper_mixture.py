@@ -82,7 +82,14 @@ class HyperMixtureMixin:
                             tol=self.tol, statistics=stats if self.method == "spectral" else None)
 
     def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
-        """The backends predictions average over and their weights (None: the one plug-in backend)."""
+        """The backends predictions average over and their weights: None (the one plug-in backend), (S,)
+        (hyperparameter draws) or (S, 2) per map (prior means averaged, ``gp.mean_average``)."""
+        if getattr(self, "mean_average", None) is not None:
+            return self._model_weighted_backends()
+        return self._own_weighted_backends()
+
+    def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
+        """This model's own backends (its draws, or the plug-in) and their weights (S,) or None."""
         if self._draw_backends is None:
             return [self.backend], None
         return self._draw_backends, self.hyper_posterior.weights.to(self._device, self.dtype)
