@@ -400,7 +400,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     full_cov = theta0.new_zeros(P, P)
     full_cov[idx[:, None], idx[None, :]] = cov
     return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
-                          int(n_proposals), {"log_posterior_mode": float(lp_mode)})
+                          int(n_proposals), {"log_posterior_mode": float(lp_mode),
+                                             "hessian": H.detach() if bool(mask.all()) else None})
 
 
 class _SubSpec(HyperSpec):
@@ -502,7 +503,7 @@ def log_prior_per_axis(hypers) -> Tensor:
     return out
 
 
-def log_evidence(backend) -> Tensor:
+def log_evidence(backend, hessian: Tensor | None = None) -> Tensor:
     r"""(2,) the log marginal likelihood of each map's model, log p(F_c | model) (its hyperparameters
     integrated out), by the Laplace approximation at the backend's current hyperparameters, which must be
     the mode of their posterior (``laplace`` polishes them there):
@@ -513,13 +514,14 @@ def log_evidence(backend) -> Tensor:
     -log p(theta | F). The two maps' models are independent (each its own hyperparameters and force
     axis), so the evidence factorises over them; where a hyperparameter is shared (tied noise) the two
     entries are both the joint evidence / 2. The priors must be proper (``priors="physical"``): a flat
-    prior has no evidence (ValueError)."""
+    prior has no evidence (ValueError). ``hessian``: H at these hyperparameters if already known (P, P)
+    (``laplace`` keeps it in ``extra["hessian"]``), else computed by autograd."""
     hypers = backend.hypers
     if not any(True for _ in hypers.named_priors()):
         raise ValueError("the evidence needs proper hyperparameter priors (priors='physical'); these have none")
     spec = hyper_spec(hypers)
     theta = spec.theta(hypers)
-    _, _, H = _hessian(backend, spec, theta)
+    H = _hessian(backend, spec, theta)[2] if hessian is None else hessian.to(theta)
     was = backend.training
     backend.train()
     try:

@@ -125,18 +125,22 @@ class MeanAverageMixin:
 
     def _set_mean_average(self) -> None:
         """Evidence of both models per map (each at the mode of its hyperparameter posterior) and the
-        weights. A model without a hyperparameter posterior is polished to its mode first."""
+        weights. A model without a Laplace posterior is polished to its mode first (the plug-in then predicts
+        there)."""
         if not self.averages_means:
             self.mean_average = None
             return
         evidence = []
         for m in (self, self.companion):
-            if m.hyper_posterior is None:
+            hp = m.hyper_posterior
+            if hp is None or hp.method != "laplace":  # laplace leaves them at the mode; a plug-in or NUTS does not
                 _polish_to_mode(m.backend)
-                m._set_hyper_posterior(None)  # draws (none) at the polished hyperparameters
+                if hp is None:
+                    m._set_hyper_posterior(None)  # the plug-in at the polished hyperparameters
+            hessian = hp.extra.get("hessian") if hp is not None and hp.method == "laplace" else None
             m.train()
             try:
-                evidence.append(log_evidence(m.backend).detach().double().cpu())
+                evidence.append(log_evidence(m.backend, hessian).detach().double().cpu())
             finally:
                 m.eval()
         self.mean_average = MeanAverage.from_evidence(torch.stack(evidence))
