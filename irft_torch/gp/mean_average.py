@@ -28,6 +28,7 @@ mixture over both models' draws with weights pi_mc w_ms per map (``gp.mixture``)
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import torch
@@ -119,9 +120,11 @@ class MeanAverageMixin:
     def _fit_companion(self, n_iter: int, lr: float, progress: bool) -> None:
         """Fit the physics-mean companion as this model was fitted (same steps and rate), on this model's
         current data (a new companion if the data grew since it was built)."""
+        t0 = time.perf_counter()
         if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
             self._set_companion(self._new_companion())
         self.companion.fit(n_iter, lr, progress=progress)
+        self.companion_fit_seconds = time.perf_counter() - t0  # what the average adds to a fit (benchmarks)
 
     def _set_mean_average(self) -> None:
         """Evidence of both models per map (each at the mode of its hyperparameter posterior) and the

@@ -362,26 +362,54 @@ class Case:
 
 def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_grid: int = 41, draws: int = 200,
              model_options: dict | None = None) -> list[dict]:
-    """Fit one case once and score each of ``posteriors`` ("map": the plug-in; "laplace", "nuts": that
-    hyperparameter posterior, started from the same fit). One row per posterior."""
+    """Fit one case once and score each of ``posteriors``: "map" (the zero-mean plug-in), "laplace", "nuts"
+    (that hyperparameter posterior of the zero-mean model, started from the same fit), "average_map" (the
+    zero and physics prior means averaged per map by their evidence, each its plug-in) and "average" (the
+    same, each with its Laplace posterior: ``InverseRFT(..., prior_mean="average",
+    hyper_posterior="laplace")``; the zero-mean model is the same fit). One row per posterior."""
     truth, label = medium(case.family, case.seed)
     c = motion(case.kind, case.seed)
     f = simulate(truth, c, case.noise, case.seed)
-    model = InverseRFT(c, f, **(model_options or {}))
+    opts = dict(model_options or {})
+    average = "average" in posteriors or "average_map" in posteriors
+    if average:
+        opts["prior_mean"] = "average"
+    opts["hyper_posterior"] = "map"
+    model = InverseRFT(c, f, **opts)
     t0 = time.perf_counter()
     model.fit(n_iter=n_iter, progress=False)
     fit_s = time.perf_counter() - t0
+    companion_s = getattr(model, "companion_fit_seconds", 0.0)
+    fit_s -= companion_s  # the zero-mean model's own fit
+    weights = model.mean_average
     rows = []
-    for hp in posteriors:
+    order = sorted(posteriors, key=lambda hp: hp != "average_map")  # the plug-in average first: before any draws
+    for hp in order:
         t1 = time.perf_counter()
-        info = model.fit_hyper_posterior(hp, generator=torch.Generator().manual_seed(case.seed))
-        extra_s = time.perf_counter() - t1
+        if hp == "average_map":  # both means' plug-ins (at their modes), weighed by their evidence
+            model.mean_average = weights
+            info = None
+            extra_s = time.perf_counter() - t1 + companion_s
+        elif hp == "average":
+            model.mean_average = weights
+            if model.hyper_posterior is None or model.hyper_posterior.method != "laplace":
+                model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
+            model.companion.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
+            model._set_mean_average()
+            info = model.hyper_posterior
+            extra_s = time.perf_counter() - t1 + companion_s
+        else:
+            model.mean_average = None  # the zero-mean model alone
+            info = model.fit_hyper_posterior(hp, generator=torch.Generator().manual_seed(case.seed))
+            extra_s = time.perf_counter() - t1
         row = {"family": case.family, "motion": case.kind, "noise": case.noise, "seed": case.seed, "medium": label,
                "posterior": hp, "method": model.method, "T": len(c), "fit_s": round(fit_s, 3),
                "posterior_s": round(extra_s, 3),
                "ess": float("nan") if info is None else round(info.ess, 2),
                "khat": float("nan") if info is None else round(info.khat, 3),
-               "n_draws": 1 if info is None else info.n_draws}
+               "n_draws": 1 if info is None else info.n_draws,
+               **{f"w_physics_{a}": float("nan") if "average" not in hp else
+                  round(float(model.mean_average.weights[1, i]), 4) for i, a in enumerate("xz")}}
         row.update(score(model, truth, n_grid, draws, case.seed))
         rows.append(row)
-    return rows
+    return sorted(rows, key=lambda r: list(posteriors).index(r["posterior"]))
