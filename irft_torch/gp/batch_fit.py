@@ -273,5 +273,6 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
     for m, h in zip(models, histories):
         m.loss_history.extend(h)
         m.eval()
+        m._last_fit = (int(n_iter), float(lr))
         m._finish_fit()  # the hyperparameter posterior, as the model's own fit ends
     return histories

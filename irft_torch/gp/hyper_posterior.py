@@ -38,7 +38,7 @@ from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
-           "point_mass", "HYPER_POSTERIORS"]
+           "point_mass", "log_evidence", "HYPER_POSTERIORS"]
 
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
 
@@ -400,7 +400,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     full_cov = theta0.new_zeros(P, P)
     full_cov[idx[:, None], idx[None, :]] = cov
     return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
-                          int(n_proposals), {"log_posterior_mode": float(lp_mode)})
+                          int(n_proposals), {"log_posterior_mode": float(lp_mode),
+                                             "hessian": H.detach() if bool(mask.all()) else None})
 
 
 class _SubSpec(HyperSpec):
@@ -476,6 +477,70 @@ def nuts(backend, n_samples: int = 256, warmup: int = 512, n_draws: int = 16, nu
     ess = float(effective_sample_size(by_chain, chain_dim=0, sample_dim=1).min())
     return HyperPosterior("nuts", spec.labels, full, w, theta0.detach(), cov, ess, float("nan"), S,
                           {"all_draws": draws})
+
+
+def label_axis(label: str) -> int | None:
+    """The map (0: x, 1: z) a hyperparameter label belongs to, or None (shared by both: tied noise)."""
+    if label.startswith("lengthscale_"):
+        return "xz".index(label[len("lengthscale_")])
+    if label.endswith("_x"):
+        return 0
+    if label.endswith("_z"):
+        return 1
+    return None
+
+
+def log_prior_per_axis(hypers) -> Tensor:
+    """(2,) the log densities of the registered hyperparameter priors, summed per map (a prior on a
+    hyperparameter both maps share, a tied noise, is split evenly)."""
+    out = hypers.kernel.raw_outputscale.new_zeros(2)
+    for _, module, prior, closure, _ in hypers.named_priors():
+        lp = prior.log_prob(closure(module))
+        if lp.ndim >= 1 and lp.shape[0] == 2:
+            out = out + lp.reshape(2, -1).sum(-1)
+        else:
+            out = out + lp.sum() / 2
+    return out
+
+
+def log_evidence(backend, hessian: Tensor | None = None) -> Tensor:
+    r"""(2,) the log marginal likelihood of each map's model, log p(F_c | model) (its hyperparameters
+    integrated out), by the Laplace approximation at the backend's current hyperparameters, which must be
+    the mode of their posterior (``laplace`` polishes them there):
+
+        log p(F_c) ~ log p(F_c | theta_c) + log p(theta_c) + (d_c / 2) log 2 pi - 1/2 log |H_c|
+
+    with theta_c the d_c log-hyperparameters of map c and H_c their block of the Hessian of
+    -log p(theta | F). The two maps' models are independent (each its own hyperparameters and force
+    axis), so the evidence factorises over them; where a hyperparameter is shared (tied noise) the two
+    entries are both the joint evidence / 2. The priors must be proper (``priors="physical"``): a flat
+    prior has no evidence (ValueError). ``hessian``: H at these hyperparameters if already known (P, P)
+    (``laplace`` keeps it in ``extra["hessian"]``), else computed by autograd."""
+    hypers = backend.hypers
+    if not any(True for _ in hypers.named_priors()):
+        raise ValueError("the evidence needs proper hyperparameter priors (priors='physical'); these have none")
+    spec = hyper_spec(hypers)
+    theta = spec.theta(hypers)
+    H = _hessian(backend, spec, theta)[2] if hessian is None else hessian.to(theta)
+    was = backend.training
+    backend.train()
+    try:
+        with torch.no_grad():
+            log_lik = -backend.negative_log_likelihood() * backend.n_samples
+            lp = log_lik + log_prior_per_axis(hypers)
+    finally:
+        backend.train(was)
+    axes = [label_axis(lab) for lab in spec.labels]
+    if any(a is None for a in axes):  # a shared hyperparameter: one joint evidence
+        d = len(axes)
+        joint = lp.sum() + 0.5 * d * math.log(2 * math.pi) - 0.5 * torch.linalg.slogdet(_positive_definite(H))[1]
+        return (joint / 2).expand(2).clone()
+    out = []
+    for c in range(2):
+        idx = torch.tensor([i for i, a in enumerate(axes) if a == c], device=H.device)
+        Hc = _positive_definite(H[idx][:, idx])
+        out.append(lp[c] + 0.5 * len(idx) * math.log(2 * math.pi) - 0.5 * torch.linalg.slogdet(Hc)[1])
+    return torch.stack(out)
 
 
 def draw_hypers(hypers, spec: HyperSpec, theta: Tensor):

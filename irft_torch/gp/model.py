@@ -32,6 +32,7 @@ from .inputs import (
     _noise_scale,
     _whiten,
 )
+from .mean_average import MeanAverageMixin, check_average_options
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _psd_root
 from .priors import PRIORS, prior_centres, register_physical_priors
@@ -40,7 +41,32 @@ from .surface import LearnedSurfaceMixin, SurfaceOffset
 __all__ = ["Posterior", "InverseRFT"]
 
 
-class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
+def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts, generator) -> Tensor:
+    """Maps (2, N, n) drawn jointly over the N points of ``c``: ``counts[a][s]`` of map a's n draws from
+    backend s (its posterior mean plus its root times normals), the order shuffled across backends."""
+    out = [[], []]
+    for s, b in enumerate(backends):
+        k = max(counts[0][s], counts[1][s])
+        if k == 0:
+            continue
+        root = b.posterior_root(c)
+        post = b.posterior(c, variance=False, covariance=root is None)
+        if root is None:
+            root = _psd_root(post.covariance)  # (2, N, N)
+        eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
+        maps = post.mean[..., None] + root @ eps  # (2, N, k)
+        for a in range(2):
+            out[a].append(maps[a, :, :counts[a][s]])
+    draws = torch.stack([torch.cat(o, -1) for o in out])  # (2, N, n)
+    if sum(1 for k in counts[0] if k) > 1 or sum(1 for k in counts[1] if k) > 1:
+        # interleave the backends' maps (each backend's block is otherwise contiguous)
+        n = draws.shape[-1]
+        draws = torch.stack([draws[a][:, torch.randperm(n, generator=generator, device=draws.device)]
+                             for a in range(2)])
+    return draws
+
+
+class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -61,7 +87,10 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
         forces: (T, 2) measured (F_x, F_z) in N, finite; each axis non-zero in some sample (ValueError
             otherwise: an axis that was not measured cannot be passed as zeros).
-        prior_mean: "zero" (the paper) or "physics" (generic Li et al. shape x learned scales).
+        prior_mean: "zero" (the paper), "physics" (generic Li et al. shape x learned scales), or "average":
+            both, weighed per map by their evidence (``gp.mean_average``: the zero-mean model is this one,
+            the physics-mean model ``model.companion`` is fitted after it; ``model.mean_average`` holds
+            the weights).
         tied_noise: one noise variance for both axes (the paper) instead of one per axis.
         dtype: inference dtype (float64 by default; float32 works).
         solver: observations backend only: "cholesky" (exact, the default) or "gpytorch"
@@ -128,8 +157,10 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
             raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
-        if prior_mean not in ("zero", "physics"):
-            raise ValueError(f"prior_mean must be 'zero' or 'physics', got {prior_mean!r}")
+        if prior_mean not in ("zero", "physics", "average"):
+            raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
+        if prior_mean == "average":
+            check_average_options(priors, surface_offset or surface_groups is not None, tied_noise)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
         if method == "grid":
@@ -179,6 +210,8 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         self.hyper_method = hyper_posterior
         self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
         self._draw_backends: list[RFTBackend] | None = None
+        self._companion: list = []  # prior_mean="average": the physics-mean model (a list: not a submodule)
+        self.mean_average = None
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
@@ -215,7 +248,8 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "
                              "learns the surface (drop statistics or surface_offset)")
-        self._statistics = _check_statistics(statistics, f, noise_scale, prior_mean)
+        own_mean = "physics" if prior_mean == "physics" else "zero"  # "average": this model is the zero mean's
+        self._statistics = _check_statistics(statistics, f, noise_scale, own_mean)
         self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol,
                                                 statistics=self._statistics)
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
@@ -368,16 +402,24 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             bar.close()
             self.eval()
         self.loss_history.extend(history)
+        self._last_fit = (int(n_iter), float(lr))
+        if self.averages_means:
+            self._fit_companion(int(n_iter), float(lr), progress)
         self._finish_fit()
         return history
 
     def _finish_fit(self) -> None:
         """What ends every fit (``fit``, ``gp.fit_together``): the hyperparameter posterior at the fitted
-        hyperparameters ("laplace", "nuts"), or the plug-in ("map")."""
+        hyperparameters ("laplace", "nuts"), or the plug-in ("map"); with ``prior_mean="average"``, the
+        physics-mean companion (fitted here if ``fit`` did not: ``gp.fit_together``) and the weights."""
         if self.hyper_method != "map":
             self.fit_hyper_posterior()
         else:
             self._set_hyper_posterior(None)
+        if self.averages_means:
+            if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
+                self._fit_companion(*getattr(self, "_last_fit", (300, 0.05)), progress=False)
+            self._set_mean_average()
 
     def _adapt(self) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
@@ -419,9 +461,18 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         f = _as_forces(forces, len(c), self.dtype, device)
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
-        self.backend.add_data(c, f)
-        if self._draw_backends is not None:
-            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+
+        def add_own() -> None:
+            self.backend.add_data(c, f)
+            if self._draw_backends is not None:
+                add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+
+        if self.averages_means and self.mean_average is not None:
+            self._stream_into_average(contacts, forces, noise_scale, add_own)
+        else:
+            add_own()
+            if self.averages_means and self.companion is not None:  # not yet weighed (unfitted): keep in step
+                self.companion.add_data(contacts, forces, noise_scale)
         self._statistics = None  # no longer of all the data
         self._n_pairs = None
         self._parts.append((c, f, scale))
@@ -472,24 +523,16 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         backends, weights = self._weighted_backends()
         with torch.no_grad():
             if weights is None:
-                counts = [int(n)]
-            else:  # how many maps each hyperparameter draw supplies
+                draws = _maps_from(backends, [[int(n)], [int(n)]], c, generator)
+            elif weights.ndim == 1:  # how many maps each hyperparameter draw supplies
                 pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
                 counts = torch.bincount(pick, minlength=len(backends)).tolist()
-            out = []
-            for b, k in zip(backends, counts):
-                if k == 0:
-                    continue
-                root = b.posterior_root(c)
-                post = b.posterior(c, variance=False, covariance=root is None)
-                if root is None:
-                    root = _psd_root(post.covariance)  # (2, N, N)
-                eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
-                out.append(post.mean[..., None] + root @ eps)  # (2, N, k)
-            draws = torch.cat(out, -1)
-            if len(out) > 1:  # interleave the draws' maps (each draw's block is otherwise contiguous)
-                perm = torch.randperm(int(n), generator=generator, device=draws.device)
-                draws = draws[..., perm]
+                draws = _maps_from(backends, [counts, counts], c, generator)
+            else:  # weights per map (models averaged per map): each map's draws picked on its own
+                counts = [torch.bincount(torch.multinomial(weights[:, a], int(n), replacement=True,
+                                                           generator=generator), minlength=len(backends)).tolist()
+                          for a in range(2)]
+                draws = _maps_from(backends, counts, c, generator)
         return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
@@ -501,7 +544,8 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         backends, weights = self._weighted_backends()
         if weights is None:
             return self.backend.posterior(c, variance=False).mean.T.reshape(*S, 2)
-        mean = sum(w * b.posterior(c, variance=False).mean for b, w in zip(backends, weights))
+        w = weights if weights.ndim == 2 else weights[:, None].expand(-1, 2)  # (S, 2): per map
+        mean = sum(wi[:, None] * b.posterior(c, variance=False).mean for b, wi in zip(backends, w))
         return mean.T.reshape(*S, 2)
 
     def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False,

@@ -65,6 +65,13 @@ def save_model(model, path) -> None:
     }
     if model.hyper_posterior is not None:  # the hyperparameter draws and weights predictions average over
         payload["hyper_posterior"] = model.hyper_posterior.state()
+    if getattr(model, "mean_average", None) is not None:  # prior_mean="average": the physics-mean companion
+        comp = model.companion
+        payload["companion"] = {"hypers": {k: v.detach().cpu() for k, v in comp.hypers.state_dict().items()},
+                                "method": comp.method, "auto": bool(comp.auto)}
+        if comp.hyper_posterior is not None:
+            payload["companion"]["hyper_posterior"] = comp.hyper_posterior.state()
+        payload["mean_average"] = model.mean_average.state()
     if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
         payload["options"]["surface_offset"] = True
         payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
@@ -111,6 +118,18 @@ def load_model(cls, path, map_location=None):
         from .hyper_posterior import HyperPosterior
 
         model._set_hyper_posterior(HyperPosterior.from_state(payload["hyper_posterior"]))
+    if "companion" in payload:  # prior_mean="average"
+        from .hyper_posterior import HyperPosterior
+        from .mean_average import MeanAverage
+
+        saved = payload["companion"]
+        comp = model._new_companion(method=saved["method"])
+        comp.auto = bool(saved["auto"])
+        comp.hypers.load_state_dict(saved["hypers"])
+        comp._set_hyper_posterior(HyperPosterior.from_state(saved["hyper_posterior"]) if "hyper_posterior" in saved
+                                  else None)
+        model._set_companion(comp)
+        model.mean_average = MeanAverage.from_state(payload["mean_average"])
     model.loss_history = list(payload.get("loss_history", []))
     if "data_digest" in payload:  # the saved model's fingerprint (files before it: recomputed from the data)
         model.data_digest.copy_(payload["data_digest"].to(model.data_digest))
