@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .. import rft
 
-__all__ = ["UsageError", "MAPS", "add_toe_args", "add_path_args", "add_protocol_args", "make_toe", "make_path"]
+__all__ = ["UsageError", "warn", "MAPS", "add_toe_args", "add_path_args", "add_protocol_args", "make_toe", "make_path"]
 
 MAPS = {
     "generic": lambda sx, sz: _rft().FourierStressMap.generic(sx, sz),
@@ -32,6 +32,14 @@ class UsageError(ValueError):
 
     def __init__(self, arg: str, message: str) -> None:
         super().__init__(f"argument {arg}: {message}")
+
+
+def warn(command: str, text) -> None:
+    """Print a warning as one line on stderr: 'irft CMD: warning: TEXT' (every subcommand's warnings,
+    Python's included: ``main`` routes ``warnings.warn`` here)."""
+    import sys
+
+    print(f"irft {command}: warning: {' '.join(str(text).split())}", file=sys.stderr)
 
 
 def _opt(dest: str) -> str:

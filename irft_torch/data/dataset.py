@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .._files import atomic_write
 from ..rft.contacts import SURFACE_FIELDS, Contacts
 
 __all__ = ["Dataset", "dataset_summary", "save_dataset", "load_dataset", "STATISTICS_PREFIX"]
@@ -68,23 +69,16 @@ def save_dataset(path, ds: Dataset, **meta) -> Path:
     """npz with beta, gamma, weight_x, weight_z (T, M) (and depth, area_x, area_z where the contacts
     carry them), forces (T, 2), time, toe_position, meta, and ``ds.statistics`` (if any) as arrays
     named "statistics.<name>". ".npz" is appended when ``path`` lacks it; the file is written whole
-    or not at all (a temporary file renamed into place). Returns the path written."""
-    import os
-
+    or not at all (a temporary file, fsynced, renamed into place: ``_files.atomic_write``). Returns the
+    path written."""
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
     arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
     arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(), toe_position=ds.toe_position.numpy(),
-                     meta=np.array(repr(meta)), **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, lambda fh: np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(),
+                                          toe_position=ds.toe_position.numpy(), meta=np.array(repr(meta)), **arrays),
+                 "dataset")
     return path
 
 
