@@ -25,7 +25,9 @@ from .hyperparameters import RFTHyperparameters
 from .inputs import (
     _as_forces,
     _as_noise_scale,
+    _check_angles,
     _check_dtype,
+    _check_query,
     _check_statistics,
     _check_units,
     _data_scales,
@@ -33,11 +35,15 @@ from .inputs import (
     _whiten,
 )
 from .model_file import PersistenceMixin
-from .posterior import Posterior, _force_posterior, _psd_root
+from .posterior import Posterior, _force_posterior, _predict_chunk, _psd_root
 from .priors import PRIORS, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
-__all__ = ["Posterior", "InverseRFT"]
+__all__ = ["Posterior", "InverseRFT", "FitDivergedWarning"]
+
+
+class FitDivergedWarning(UserWarning):
+    """``InverseRFT.fit``'s loss rose well above its best (or turned NaN): the best iterate was kept."""
 
 
 class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
@@ -319,13 +325,19 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
         """Adam on the exact marginal likelihood. Returns the loss per step (the negative log
         likelihood per force sample, summed over the two axes). Ctrl-C stops early and keeps
-        what was learned."""
+        what was learned.
+
+        The model ends at the best iterate the loss saw: where the loss rose above its best (an lr
+        too large makes Adam diverge: ``fit(40, lr=5)`` climbs from -0.41 to +7.4), or turned NaN or
+        inf (the fit stops there), the hyperparameters of the best step are restored, and a rise of
+        more than 0.1 (or 10 %) of the loss is a ``FitDivergedWarning`` suggesting an lr 10x smaller."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
         params = list(self.hypers.parameters()) + ([] if self.surface is None else [self.surface.offset])
         opt = torch.optim.Adam(params, lr=lr)
         history: list[float] = []
+        best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
         self.backend.in_fit = True
@@ -333,22 +345,28 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             for step in bar:
                 opt.zero_grad(set_to_none=True)
                 loss = self.backend.loss() if self.surface is None else self._surface_loss()
+                value = loss.item()
+                if not math.isfinite(value):
+                    history.append(value)
+                    break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
+                if value < best[0]:
+                    best = (value, self._snapshot(), step)
                 loss.backward()
                 opt.step()
-                history.append(loss.item())
+                history.append(value)
                 if self.surface is None and step % 10 == 9 and (self.backend.stale() or
                                                                  (self.auto and step % 30 == 29)):
                     self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
-            if self.surface is None and self.backend.stale():
-                self._adapt()
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
+            self._keep_best(best, history, lr, quiet=True)
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
-                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64."
+                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
+                f"the best step's hyperparameters)."
             ) from e
         finally:
             self.backend.in_fit = False
@@ -356,9 +374,39 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
                 self._rebuild_backend()
             bar.close()
             self.eval()
+        self._keep_best(best, history, lr)
+        if self.surface is None and self.backend.stale():
+            self._adapt()
         self.loss_history.extend(history)
         self._finish_fit()
         return history
+
+    def _snapshot(self) -> dict:
+        """The fitted parameters' values (hyperparameters, the surface offset): a copy."""
+        out = {k: v.detach().clone() for k, v in self.hypers.state_dict().items()}
+        if self.surface is not None:
+            out["surface.offset"] = self.surface.offset.detach().clone()
+        return out
+
+    def _keep_best(self, best: tuple, history: list[float], lr: float, quiet: bool = False) -> None:
+        """Restore the best iterate where the loss ended above it (by 1e-3 of it, or at NaN / inf), and warn
+        when the loss rose by more than 0.1 (or 10 %): the lr was too large."""
+        value, state, step = best
+        if state is None or not history:
+            return
+        last = history[-1]
+        if math.isfinite(last) and last <= value + 1e-3 * max(1.0, abs(value)):
+            return
+        with torch.no_grad():
+            self.hypers.load_state_dict({k: v for k, v in state.items() if k != "surface.offset"})
+            if "surface.offset" in state:
+                self.surface.offset.copy_(state["surface.offset"])
+        if self.surface is not None:
+            self._rebuild_backend()
+        if not quiet and not (math.isfinite(last) and last - value <= max(0.1, 0.1 * abs(value))):
+            warnings.warn(f"the fit diverged: the loss rose from {value:.4g} (step {step + 1}) to {last:.4g} (step "
+                          f"{len(history)}); the model keeps step {step + 1}'s hyperparameters. lr = {lr:g} is too "
+                          f"large for these data: try lr = {lr / 10:g}", FitDivergedWarning, stacklevel=3)
 
     def _finish_fit(self) -> None:
         """What ends every fit (``fit``, ``gp.fit_together``): the hyperparameter posterior at the fitted
@@ -429,7 +477,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         """
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "stress_map")
         self.eval()
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
@@ -451,7 +499,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise ValueError(f"n must be a positive integer (the number of maps to draw), got {n!r}")
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "sample_maps")
         c = Contacts.points(beta, gamma)
         N = c.beta.shape[0]
         if N > 4096 and self.backend.posterior_root(c) is None:
@@ -485,7 +533,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "the model's map")
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
         if weights is None:
@@ -519,6 +567,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
         self.eval()
         c = contacts.to(dtype=self.dtype, device=self._device)
+        _check_query(c, self.train_contacts)
         lead, M = c.shape[:-1], c.n_segments
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
@@ -533,7 +582,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         backends, weights = self._weighted_backends()
         means, variances = [], []
         for backend in backends:
-            mean, var = _force_posterior(backend, flat, rows, variance)
+            mean, var = _force_posterior(backend, flat, rows, variance, chunk=_predict_chunk(backend))
             var = var.T.reshape(*lead, 2)
             if include_noise:
                 var = var + backend.hypers.noise * scale.pow(2)

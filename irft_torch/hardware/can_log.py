@@ -166,6 +166,12 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         warnings.warn(fault, stacklevel=2)
     if channel is None:
         _refuse_mixed_channels(data, path.name)
+    elif not data.motors:
+        others = [f"{k.split(' (')[0][len('on CAN channel '):]} ({v} frames)" for k, v in data.skipped.items()
+                  if k.startswith("on CAN channel ")]
+        if others:
+            raise ValueError(f"{path.name} holds no frames on CAN channel {channel!r}; its channels: "
+                             f"{', '.join(others)}")
     return data
 
 
@@ -223,7 +229,7 @@ def _decode_all(reader, name: str, suffix: str, data: LogData, protocol: str, fi
             continue
         ch = _channel_name(msg, suffix)
         if channel is not None and ch != str(channel):
-            data.skipped[f"on another CAN channel than {channel}"] += 1
+            data.skipped[f"on CAN channel {ch} (reading channel {channel})"] += 1
             continue
         key = _frame_key(msg)
         kind, payload = "none", None

@@ -70,6 +70,27 @@ def _previous_same(ids: np.ndarray) -> np.ndarray:
     return prev
 
 
+def _follow_on(t: np.ndarray, offset: np.ndarray, prev: np.ndarray, seg_start: int, i: int, fallback: float,
+               look: int = 64) -> float:
+    """The shift that makes each series continue across a clock step at record ``i``: for the records
+    after it (up to ``look``) whose series was heard before it, the shift that puts the record one of
+    its series' own sampling intervals after its predecessor; their median (a step shifts every series
+    alike). A break inside a burst of frames of one instant keeps that instant together this way,
+    where one shift for all (the frame spacing) would move half the burst by a sample."""
+    shifts = []
+    for j in range(i, min(len(t), i + look)):
+        p = int(prev[j])
+        if p < seg_start or p >= i:
+            continue
+        steps, q = [], p
+        while len(steps) < 10 and prev[q] >= seg_start:
+            steps.append((t[q] + offset[q]) - (t[prev[q]] + offset[prev[q]]))
+            q = int(prev[q])
+        if steps:
+            shifts.append(t[p] + offset[p] + float(np.median(steps)) - t[j])
+    return float(np.median(shifts)) if shifts else float(fallback)
+
+
 def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=None) -> ClockBreaks:
     """Find and classify the clock breaks of a log.
 
@@ -126,7 +147,7 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
                              "of its own")
                 seg, seg_start, front, first = seg + 1, i, ti, ti
                 continue
-            new_shift = shift + (front + spacing) - ti
+            new_shift = _follow_on(t, offset, prev, seg_start, i, front + spacing - t[i])
             notes.append(f"the clock steps back {front - ti:.3f} s at frame {frame[i]} (t = {_when(front)}) while the "
                          f"motors' positions continue: the clock was set, not a new recording (an NTP step?); "
                          f"the {n - i} frame(s) after it are re-timed to follow on")
@@ -139,7 +160,7 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
                 notes.append(f"the clock jumps {gap:.4g} s ahead at frame {frame[i]}{kind} while the motors' positions "
                              f"continue: the clock was set, not a pause; the {n - i} frame(s) after it are re-timed "
                              "to follow on")
-                shift += (front + spacing) - ti
+                shift = _follow_on(t, offset, prev, seg_start, i, front + spacing - t[i])
             elif gap > RECORDING_GAP or kind or cont is None:
                 notes.append(f"the clock jumps {gap:.4g} s ahead at frame {frame[i]}{kind} and the motors are "
                              "elsewhere after it: another recording appended to this one; read as a recording of "

@@ -216,11 +216,11 @@ def _check_no_rezero(node: int, t: np.ndarray, v: np.ndarray) -> None:
         near = np.abs(np.concatenate([dp[max(0, k - 10):k], dp[k + 1:k + 11]]))
         moved = 3 * max(abs(vel[k]), abs(vel[k + 1])) * dt[k]
         if len(near) and abs(dp[k]) > 10 * near.max() and abs(dp[k]) > moved:
-            raise ValueError(f"node {node}'s encoder jumps by {dp[k]:+.4f} turns between t = {t[k]:.4f} and "
-                             f"{t[k + 1]:.4f} s, where it moves at most {near.max():.4f} turns per sample before and "
-                             "after: the encoder was re-zeroed mid-recording (an index search, a controller reboot), "
-                             "so every joint angle after it is off by that much. Record the run again, or cut the log "
-                             "at that time")
+            raise ValueError(f"node {node}'s encoder jumps by {dp[k]:+.4f} turns between {t[k] - t[0]:.3f} and "
+                             f"{t[k + 1] - t[0]:.3f} s into its series, where it moves at most {near.max():.4f} turns "
+                             "per sample before and after: the encoder was re-zeroed mid-recording (an index search, "
+                             "a controller reboot), so every joint angle after it is off by that much. Record the "
+                             "run again, or cut the log at that time")
 
 
 def _not_controlling(m: MotorSeries, tb: np.ndarray) -> tuple[np.ndarray, str]:
