@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["atomic_path", "atomic_write", "StagedFiles", "SaveError"]
+__all__ = ["atomic_path", "atomic_write", "StagedFiles", "SaveError", "checked_target", "temp_name"]
 
 
 class SaveError(OSError):
@@ -44,7 +44,9 @@ def _special(path: Path) -> bool:
     return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
 
 
-def _target(path, what: str) -> Path:
+def checked_target(path, what: str) -> Path:
+    """``path`` checked as a file to write (a folder, or a missing folder, is a ``SaveError``); a
+    symlink is followed to the file it names."""
     path = Path(path)
     if path.is_symlink():  # replace the file the link points at, not the link
         path = path.resolve()
@@ -89,7 +91,8 @@ def _no_interrupt() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _temp_name(path: Path) -> Path:
+def temp_name(path: Path) -> Path:
+    """A hidden, unique temporary name beside ``path`` with the same suffix."""
     # hidden, unique, and with the same suffix (writers such as python-can pick the format by it)
     return path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(3)}.tmp{path.suffix}")
 
@@ -103,14 +106,14 @@ def atomic_path(path, what: str = "file") -> Iterator[Path]:
         >>> with atomic_path("fig.png", "figure") as tmp:
         ...     fig.savefig(tmp)
     """
-    path = _target(path, what)
+    path = checked_target(path, what)
     if _special(path):
         try:
             yield path
         except OSError as e:
             raise _fail(e, path, what, True) from None
         return
-    tmp = _temp_name(path)
+    tmp = temp_name(path)
     try:
         yield tmp
         with open(tmp, "rb+") as fh:
@@ -131,7 +134,7 @@ def atomic_write(path, write: Callable[[BinaryIO], None], what: str = "file") ->
     Example:
         >>> atomic_write("model.pt", lambda fh: torch.save(obj, fh), "model")
     """
-    path = _target(path, what)
+    path = checked_target(path, what)
     special = _special(path)
     with atomic_path(path, what) as tmp:
         try:
@@ -170,7 +173,7 @@ class StagedFiles:
     def path(self, name: str) -> Path:
         """The temporary to write ``name`` to (``name`` is a file name inside the folder)."""
         if name not in self._temps:
-            self._temps[name] = _temp_name(self.folder / name)
+            self._temps[name] = temp_name(self.folder / name)
         return self._temps[name]
 
     @contextlib.contextmanager

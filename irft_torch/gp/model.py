@@ -39,11 +39,15 @@ from .posterior import Posterior, _force_posterior, _predict_chunk, _psd_root
 from .priors import PRIORS, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
-__all__ = ["Posterior", "InverseRFT", "FitDivergedWarning"]
+__all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]
 
 
 class FitDivergedWarning(UserWarning):
     """``InverseRFT.fit``'s loss rose well above its best (or turned NaN): the best iterate was kept."""
+
+
+class FitInterruptedWarning(UserWarning):
+    """``InverseRFT.fit`` was stopped by Ctrl-C; the model keeps the steps taken."""
 
 
 class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
@@ -360,7 +364,8 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
         except KeyboardInterrupt:
-            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
+                          FitInterruptedWarning, stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
             self._keep_best(best, history, lr, quiet=True)
             raise NotPSDError(

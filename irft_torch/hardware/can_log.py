@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import time
 import warnings
 from collections import defaultdict
@@ -22,6 +23,7 @@ from pathlib import Path
 import can
 import numpy as np
 
+from .._files import checked_target, temp_name
 from .log_checks import _blf_intact, _Fault, _text_checks
 from .log_clock import clock_breaks
 from .log_data import LogData, LogReadError, MotorSeries, ResampledLog
@@ -375,8 +377,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
             a command).
         stats: if given, filled with ``frames_by_id`` (arbitration id -> frames received).
     Returns:
-        the number of frames received and written (our own polls are not counted). The file is
-        flushed and closed even on Ctrl-C.
+        the number of frames received and written (our own polls are not counted). The log is written
+        to a temporary file beside ``path`` and renamed over it when recording ends (Ctrl-C and errors
+        included: what was recorded is kept), so an older log at ``path`` is never half overwritten.
     """
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be positive seconds, got {duration}")
@@ -386,7 +389,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         raise ValueError(f"log file {path}: the suffix picks the format; use one of {', '.join(SUPPORTED_SUFFIXES)}")
     requests = [request(command, node, firmware) for command, node in poll]
     counter = _Counter()
-    logger = can.Logger(str(path))
+    path = checked_target(path, "log")
+    tmp = temp_name(path)  # an older log at ``path`` stays whole until this recording is complete
+    logger = can.Logger(str(tmp))
     notifier = can.Notifier(bus, [logger, counter])
     try:
         t_end = time.monotonic() + duration
@@ -403,6 +408,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         time.sleep(0.05)  # let the last replies arrive
         notifier.stop()
         logger.stop()
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)  # even after an error: what was recorded is a valid log, never thrown away
     if stats is not None:
         stats["frames_by_id"] = dict(counter.by_id)
     return counter.n
