@@ -17,11 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ClockBreaks", "clock_breaks", "BACK_TOLERANCE", "JUMP_TOLERANCE", "RECORDING_GAP"]
+__all__ = ["ClockBreaks", "clock_breaks", "BACK_TOLERANCE", "JUMP_TOLERANCE"]
 
 BACK_TOLERANCE = 0.1  # s: frames may arrive out of order by less (F14: sorted, reported)
-JUMP_TOLERANCE = 1.0  # s: a longer silence with the motors where they were is a clock jump, undone
-RECORDING_GAP = 60.0  # s: a longer silence after which the motors are elsewhere is another recording
+JUMP_TOLERANCE = 1.0  # s: a longer silence is a clock jump (motors where they were: undone) or a new recording
 _SUSTAINED = 8  # frames after a step back whose series must all go back (one late frame is disorder)
 _ABSOLUTE = 1e8  # s: timestamps above this are seconds since the epoch (absolute), below relative
 
@@ -104,11 +103,12 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
 
     A break is a step back by more than ``BACK_TOLERANCE`` that every series takes (the next frames
     are earlier than their own series' frames before it: one late frame, or a file written series
-    by series, is disorder, sorted), or a jump ahead by more than ``JUMP_TOLERANCE``. Back to before
-    the recording's first frame, or with the positions jumping: a new recording (a segment).
-    Otherwise (positions continuous): a clock step, undone by re-timing the frames after it to
-    follow the last one at the median frame spacing. A jump ahead with the positions jumping is a
-    gap (masked later) up to ``RECORDING_GAP``, beyond it another recording.
+    by series, is disorder, sorted), or a jump ahead by more than ``JUMP_TOLERANCE``. Where the
+    motors' positions continue across it (to within a few of their own steps), it is a clock step,
+    undone by re-timing the frames after it to follow on; where they jump (or no position tells),
+    another recording begins (a segment). A log that stopped for more than a second while the leg
+    moved on is read as two recordings: runs are lined up by the toe's path, which has a hole there
+    (shorter gaps are masked when resampling).
     """
     t = np.asarray(times, dtype=np.float64)
     n = len(t)
@@ -124,7 +124,7 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
     # candidates from the raw steps (a clock step shifts every later frame alike: their spacing stays)
     cand = np.nonzero((d < -BACK_TOLERANCE) | (d > JUMP_TOLERANCE))[0] + 1
     shift, seg, seg_start = 0.0, 0, 0
-    front = first = float(t[0])  # the latest time so far and the current recording's first (re-timed)
+    front = float(t[0])  # the latest time so far (re-timed)
     done = 0  # records before this one have their offset and segment
     for i in cand.tolist():
         offset[done:i], segment[done:i] = shift, seg
@@ -139,13 +139,12 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
             if not mine.any() or not back.all():
                 continue  # a late frame, or a file written series by series: the clock did not move (sorted later)
             cont = _continuous(positions, seg_start, i)
-            if ti <= first + BACK_TOLERANCE or not cont:
-                why = ("back to before the recording began" if ti <= first + BACK_TOLERANCE
-                       else "and the motors' positions jump")
+            if not cont:
+                why = "and the motors are elsewhere after it" if cont is False else "and no motor position tells"
                 notes.append(f"the clock restarts at frame {frame[i]}: the time goes back from {_when(front)} to "
                              f"{_when(ti)} ({why}): another recording appended to this one; read as a recording "
                              "of its own")
-                seg, seg_start, front, first = seg + 1, i, ti, ti
+                seg, seg_start, front = seg + 1, i, ti
                 continue
             new_shift = _follow_on(t, offset, prev, seg_start, i, front + spacing - t[i])
             notes.append(f"the clock steps back {front - ti:.3f} s at frame {frame[i]} (t = {_when(front)}) while the "
@@ -161,11 +160,10 @@ def clock_breaks(times: np.ndarray, positions: dict, ids=None, frame_numbers=Non
                              f"continue: the clock was set, not a pause; the {n - i} frame(s) after it are re-timed "
                              "to follow on")
                 shift = _follow_on(t, offset, prev, seg_start, i, front + spacing - t[i])
-            elif gap > RECORDING_GAP or kind or cont is None:
+            else:  # the leg moved more than a frame allows: the log was not running, this is another recording
                 notes.append(f"the clock jumps {gap:.4g} s ahead at frame {frame[i]}{kind} and the motors are "
                              "elsewhere after it: another recording appended to this one; read as a recording of "
                              "its own")
-                seg, seg_start, front, first = seg + 1, i, ti, ti
-            # else: a pause in the stream while the leg moved: a gap, masked when resampling
+                seg, seg_start, front = seg + 1, i, ti
     offset[done:], segment[done:] = shift, seg
     return ClockBreaks(offset, segment, notes)
