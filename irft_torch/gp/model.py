@@ -18,7 +18,8 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.select import cheaper_space, estimate_pairs, estimated_costs
+from .backends.select import cheaper_space, estimate_pairs, estimated_costs, spectral_step_cost
+from .fourier import FourierBasis
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
@@ -40,6 +41,10 @@ from .priors import PRIORS, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]
+
+
+NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
+HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
 
 
 class FitDivergedWarning(UserWarning):
@@ -220,6 +225,8 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
+        self._held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (_adapt)
+        self._hold_said = False
         self.eval()
 
     # ---- views -------------------------------------------------------------------------------
@@ -426,16 +433,57 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         (``method="auto"``, every 30 steps) may have made another space cheaper: with "auto", first ask
         whether another backend is now cheaper (by more than 2x) and move there instead (the
         hyperparameters are shared, nothing is lost; a lengthscale that dips below what the spectral
-        basis can hold and recovers brings the fit back to spectral); else refresh."""
+        basis can hold and recovers brings the fit back to spectral); else refresh.
+
+        Nearly noise-free data (an axis's noise below ``NOISE_FREE`` of its force power) let the noise
+        collapse and the lengthscales shrink to fit what little is left (a simulated leg: at ~step 270
+        the basis grows 4x and "auto" moved to the observations space at T = 4344, each step 30x the
+        one before). From there "auto" holds the step cost within ``HOLD_FACTOR`` of the step then: no
+        move to a costlier space, the spectral basis grown only that far (its truncation error is
+        reported and said once in a warning)."""
+        bound = self._step_bound()
         if self.auto:
             costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
             best = cheaper_space(costs, self.method)
-            if best is not None:
+            if best is not None and (bound is None or costs[best] <= bound):
                 self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
                                             solver=self.solver, tol=self.tol, statistics=self._statistics)
                 self.backend.in_fit = True
                 return
+        if bound is not None and self.method == "spectral":
+            need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
+            basis = self.backend.basis
+            grown = FourierBasis(max(need.n_beta, basis.n_beta), max(need.n_gamma, basis.n_gamma))
+            cost = spectral_step_cost(self.train_contacts, grown)
+            if cost > bound:
+                if not self._hold_said:
+                    self._hold_said = True
+                    noise = [f"{v:.2g}" for v in self.hypers.noise.detach().tolist()]
+                    warnings.warn(
+                        f"the force noise fell to {noise} N^2, below {NOISE_FREE:g} of the force power (nearly "
+                        "noise-free data), and the lengthscales shrink to fit what is left: method='auto' holds the "
+                        f"spectral basis at {basis.size} features (kernel truncation error now "
+                        f"{self.truncation_error().max().item():.1e}; {grown.size} features would cost "
+                        f"{cost / self._held_cost:.0f}x a step). method='spectral' grows it anyway", stacklevel=3)
+                return
         self.backend.refresh()
+
+    def _step_bound(self) -> float | None:
+        """With "auto" and nearly noise-free data (see ``_adapt``), the most a step may cost (in
+        ``estimated_costs``' units): ``HOLD_FACTOR`` x the step when the noise first fell that low; else None."""
+        if not self.auto or self.surface is not None:
+            return None
+        power = self.train_forces.pow(2).mean(0)
+        if not bool((self.hypers.noise.detach() < NOISE_FREE * power).any()):
+            self._held_cost = None
+            return None
+        if self._held_cost is None:
+            if self.method == "spectral":
+                self._held_cost = spectral_step_cost(self.train_contacts, self.backend.basis)
+            else:
+                self._held_cost = estimated_costs(self.train_contacts, self.hypers, self.tol,
+                                                  self._pair_count())[self.method]
+        return HOLD_FACTOR * self._held_cost
 
     def _pair_count(self) -> int:
         """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until
