@@ -341,6 +341,7 @@ def _fill(part: LogData, records: list, times: np.ndarray) -> int:
     front = -math.inf
     channels: dict = defaultdict(lambda: defaultdict(int))
     for (t0, index, key, ch, kind, payload), t in zip(records, times):
+        key = (round(float(t), 7), *key[1:])  # on the re-timed clock: a step back must not make two frames one
         if key in seen:
             part.duplicates += 1
             continue
