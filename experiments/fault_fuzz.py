@@ -203,14 +203,16 @@ def run_case(case: Case, folder: Path, medium) -> tuple[str, str]:
     return "correct", text
 
 
-def run(n: int, seed: int = 0, folder: Path | None = None, classes=CLASSES, verbose: bool = False) -> dict:
-    """{class: Counter(outcome)} over ``n`` edited logs per class (``seed`` fixes the edits)."""
+def run(n: int, seed: int = 0, folder: Path | None = None, classes=CLASSES, verbose: bool = False,
+        base: dict | None = None) -> dict:
+    """{class: Counter(outcome)} over ``n`` edited logs per class (``seed`` fixes the edits; ``base``: the
+    clean logs, default ``base_logs``)."""
     from irft_torch import rft
 
     torch.set_default_dtype(torch.float64)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(folder or tmp)
-        base = base_logs(folder)
+        base = base or base_logs(folder)
         medium = rft.FourierStressMap.generic()
         counts = {}
         for c_i, cls in enumerate(classes):

@@ -66,6 +66,17 @@ def _fail(e: OSError, path: Path, what: str, special: bool) -> SaveError:
     return SaveError(e.errno or errno.EIO, f"cannot save the {what} to {path}: {why}{keep}")
 
 
+def _os_error_in(e: BaseException) -> OSError | None:
+    """The OSError an exception was raised while handling (its context chain), if any."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, OSError):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
+
+
 def _fsync_dir(folder: Path) -> None:
     with contextlib.suppress(OSError):  # not every file system (or OS) can sync a folder
         fd = os.open(folder, os.O_RDONLY)
@@ -146,6 +157,11 @@ def atomic_write(path, write: Callable[[BinaryIO], None], what: str = "file") ->
                         os.fsync(fh.fileno())
         except OSError as e:
             raise _fail(e, path, what, special) from None
+        except Exception as e:  # a writer that turns a failed write into its own error (torch's zip writer)
+            cause = _os_error_in(e)
+            if cause is None:
+                raise
+            raise _fail(cause, path, what, special) from None
     return path
 
 

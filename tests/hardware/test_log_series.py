@@ -2,7 +2,6 @@
 early (a pulled connector), an encoder re-zeroed mid-trial, a resampling rate far from the log's; each
 refused with its real cause or handled and said, the datasets checked against the oracle."""
 
-import numpy as np
 import pytest
 
 from irft_torch.hardware import read_log
