@@ -39,14 +39,17 @@ class Dataset:
 
 
 def dataset_summary(ds: Dataset, masked: dict | None = None, n_before: int | None = None) -> list[str]:
-    """Short printable lines: duration [s], samples, time in contact, toe depth range [m], force
-    range [N] per axis, and the masked samples with their reasons."""
+    """Short printable lines: duration [s], samples, time in contact (steps over masked stretches
+    longer than 3 sampling intervals count 3: a gap is not contact), toe depth range [m], force range
+    [N] per axis, and the masked samples with their reasons."""
     t = ds.time.numpy()
     f = ds.forces.numpy()
     z = ds.toe_position[:, 1].numpy()
     contact = (ds.contacts.weight_z != 0).any(1).numpy()
     dt = np.diff(t)
     dur = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    # a step longer than 3 sampling intervals spans masked samples (a gap): what happened there is not known
+    dt = np.minimum(dt, 3 * float(np.median(dt))) if len(dt) else dt
     contact_s = float(np.sum(np.where(contact[1:] | contact[:-1], dt, 0.0))) if len(t) > 1 else 0.0
     lines = [
         f"duration {dur:.2f} s, {len(ds)} samples x {ds.contacts.n_segments} segments"
