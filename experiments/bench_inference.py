@@ -18,8 +18,14 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
   7. 8 models on the same contacts (a noise study, C-toe gait 1): ``gp.fit_together`` vs fitting each.
   8. the Laplace hyperparameter posterior (``hyper_posterior="laplace"``: fit, mode, Hessian, 128 weighed
      proposals, 16 draw backends) vs the MAP fit alone, paper scale and DEM-like (issue 30: <= 2x).
+  9. parallel environments (issue 33): ``TerrainFilter`` with B = 4096 environments of a C-toe (M = 10)
+     on the paper's gait, one update and a 16-point map query per step (windows of 8, 16 and 32 samples):
+     env-steps per second, vs a loop over one ``InverseRFT`` per environment doing the same (``add_data``
+     of the sample, ``stress_map`` of the 16 points), timed on 8 environments and scaled.
+Case 6 also reduces the 4 datasets on a local Dask cluster (2 worker processes, start-up included), beside
+the 2-process pool.
 Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
-GPU, the references too; case 6 is CPU work and is skipped there).
+GPU, the references too; cases 6 and 8 are skipped there: 6 reduces files in CPU worker processes).
 """
 
 from __future__ import annotations
@@ -223,6 +229,74 @@ def _paper_case(T: int):
     return c, f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
 
 
+def _same_hypers(dst, src):
+    """dst's hyperparameters set to src's values (their raw values are in each model's own data scales)."""
+    with torch.no_grad():
+        h, k = dst.hypers, src.hypers
+        h.lengthscale, h.outputscale, h.noise = k.lengthscale.detach(), k.outputscale.detach(), k.noise.detach()
+    return dst
+
+
+def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
+    """9. B parallel environments, one sample and a 16-point map query each per step: ``TerrainFilter``
+    vs a loop over one ``InverseRFT`` per environment (timed on ``n_ref`` of them, per env-step)."""
+    B, steps = (256, 8) if q else (4096, 20)
+    c = paper_contacts(1000)
+    f = irft.rft.forces(TRUTH, c)
+    f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(9))
+    c, f = on_device(c, f)
+    model = irft.InverseRFT(c[::10], f[::10])
+    model.fit(n_iter=30 if q else 100, progress=False)
+    g = torch.Generator().manual_seed(5)
+    e = torch.linspace(-1.2, 1.2, 4, device=DEVICE)
+    bq, gq = e.repeat_interleave(4), e.repeat(4)  # 16 map points
+    for window, dtype in ((8, torch.float64), (16, torch.float64), (32, torch.float64), (16, torch.float32)):
+        m = model if dtype == torch.float64 else irft.InverseRFT(c[::10], f[::10], dtype=dtype)
+        if m is not model:
+            _same_hypers(m, model)
+        filt = irft.TerrainFilter(m, B, window=window)
+        idx = torch.randint(0, len(c), (window + steps, B), generator=g).to(DEVICE)
+        cs, fs = [c[i] for i in idx], [f[i] for i in idx]
+
+        def step(t):
+            filt.update(cs[t], fs[t])
+            return filt.stress_map(bq, gq)
+
+        for t in range(window):  # fill the window first: the steady state
+            step(t)
+        sync()
+        t0 = time.perf_counter()
+        for t in range(window, window + steps):
+            step(t)
+        sync()
+        rate = B * steps / (time.perf_counter() - t0)
+        if window == 16 and dtype == torch.float64:  # the reference: one InverseRFT per environment
+            refs = []
+            for b in range(n_ref):
+                r = irft.InverseRFT(irft.rft.Contacts.cat([x[b:b + 1] for x in cs[:window]]),
+                                    torch.stack([x[b] for x in fs[:window]]), method="observations")
+                refs.append(_same_hypers(r, model))
+            for r in refs:  # warm: the first query builds the factor
+                r.stress_map(bq, gq)
+            sync()
+            t0 = time.perf_counter()
+            for t in range(window, window + 3):
+                for b, r in enumerate(refs):
+                    r.add_data(cs[t][b:b + 1], fs[t][b:b + 1])
+                    r.stress_map(bq, gq)
+            sync()
+            ref_rate = n_ref * 3 / (time.perf_counter() - t0)  # (each equals its filter: tests/gp/test_terrain_filter)
+        dt = "float32" if dtype == torch.float32 else "float64"
+        if window == 16 and dtype == torch.float64:
+            row(f"9. parallel environments: TerrainFilter, B = {B}, M = 10, window {window}, {dt}: one update + a "
+                f"16-point map query per step", f"{rate:,.0f} env-steps/s",
+                f"a loop over InverseRFT (add_data + stress_map; {n_ref} environments timed, scaled) "
+                f"{ref_rate:,.1f} env-steps/s", ratio(rate / ref_rate), ">= 1e5 env-steps/s, >= 100x")
+        else:
+            row(f"9. the same, window {window}, {dt}", f"{rate:,.0f} env-steps/s", "-",
+                ratio(rate / ref_rate) if window != 8 else "-", ">= 1e5 env-steps/s")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (seconds; for tests)")
@@ -324,6 +398,7 @@ def main(argv=None) -> None:
     report = out_dir / ("benchmarks.md" if DEVICE.type == "cpu" else f"benchmarks_{DEVICE.type}.md")
     if DEVICE.type != "cpu":  # case 6 reduces files in CPU worker processes
         fit_together_case(q, row)
+        terrain_filter_case(q, row)
         report.write_text("\n".join(lines) + "\n")
         print(f"wrote {report}")
         return
@@ -349,12 +424,23 @@ def main(argv=None) -> None:
             t0 = time.perf_counter()
             _reduce_statistics(paths, basis, jobs=jobs)
             times[name] = time.perf_counter() - t0
+        try:  # the same reduction on a local Dask cluster of 2 worker processes, started and stopped
+            from irft_torch.studies.fleet import reduce_on_dask
+
+            times["dask"] = reduce_on_dask(plain, basis, n_workers=2).seconds
+        except ImportError:
+            times["dask"] = None
+    dask = "not installed" if times["dask"] is None else f"{times['dask']:.1f} s"
     row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
-        f"2 worker processes {times['2 workers']:.1f} s; saved with the datasets {times['saved']:.1f} s",
+        f"2 worker processes {times['2 workers']:.1f} s; on Dask (LocalCluster, 2 worker processes, start-up "
+        f"included) {dask}; saved with the datasets {times['saved']:.1f} s",
         f"one process, every pass {times['one process']:.1f} s",
-        f"{times['one process'] / times['2 workers']:.1f}x; {times['one process'] / times['saved']:.1f}x", "-")
+        f"{times['one process'] / times['2 workers']:.1f}x; "
+        + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
+        + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
     fit_together_case(q, row)
     hyper_posterior_case(q, row)
+    terrain_filter_case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 

@@ -17,14 +17,14 @@ from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 __all__ = ["rft", "gp", "hardware", "data", "design", "studies", "metrics", "InverseRFT", "Posterior",
-           "__version__"]
+           "TerrainFilter", "__version__"]
 
 _SUBMODULES = ("rft", "gp", "hardware", "data", "design", "studies", "metrics")
-_FROM_GP = ("InverseRFT", "Posterior")
+_FROM_GP = ("InverseRFT", "Posterior", "TerrainFilter")
 
 if TYPE_CHECKING:  # what static tools and IDEs see
     from . import data, design, gp, hardware, metrics, rft, studies
-    from .gp import InverseRFT, Posterior
+    from .gp import InverseRFT, Posterior, TerrainFilter
 
 
 def __getattr__(name: str):

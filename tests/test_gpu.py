@@ -150,3 +150,67 @@ def test_sufficient_statistics_on_cuda_match_cpu():
         out.append(m.loss())
     close(out[1], out[0])
     assert math.isfinite(float(out[1].detach()))
+
+
+def test_fit_together_with_the_default_priors_on_cuda_matches_cpu():
+    """The crash issue 33 reported: gp.fit_together with the physical priors compared a CPU lengthscale
+    centre with CUDA lengthscales (gp.priors._log_lengthscale_ratio)."""
+    from irft_torch.studies.reproduce import configuration
+
+    toe, path = configuration("C-toe gait 1")
+    c = irft.rft.contacts(toe, path)
+    f = irft.rft.forces(FourierStressMap.generic(), c)
+    g = torch.Generator().manual_seed(3)
+    sets = [f * (1 + 0.05 * (i + 1) * torch.randn(f.shape, generator=g, dtype=f.dtype)) for i in range(3)]
+    out = []
+    for dev in ("cpu", CUDA):
+        models = [irft.InverseRFT(c.to(device=dev), fs.to(dev), tied_noise=True) for fs in sets]
+        assert irft.gp.shares_fit(models) is None
+        irft.gp.fit_together(models, n_iter=20, lr=0.1)
+        out.append(torch.stack([m.hypers.outputscale.detach() for m in models]))
+    assert on_cuda(out[1])
+    close(out[1], out[0], rtol=1e-6)
+
+
+def test_terrain_filter_on_cuda_matches_cpu():
+    B = 6
+    res = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        model = irft.InverseRFT(c, f, prior_mean="physics")
+        filt = irft.TerrainFilter(model, B, window=5)
+        idx = torch.arange(B * 8).reshape(8, B) % len(c)
+        for t in range(8):
+            filt.update(c[idx[t].to(c.beta.device)], f[idx[t].to(f.device)], mask=(idx[t] % 5 != 0).to(f.device))
+        b = torch.linspace(-1.2, 1.2, 5, device=dev)
+        post = filt.stress_map(b, b.flip(0))
+        filt.reset([1])
+        pred = filt.predict_forces(c[idx[:3].T.to(c.beta.device)])
+        res.append((post, pred))
+    (p_cpu, f_cpu), (p_gpu, f_gpu) = res
+    assert on_cuda(p_gpu.mean) and on_cuda(f_gpu.variance)
+    close(p_gpu.mean, p_cpu.mean, rtol=1e-7)
+    close(p_gpu.variance, p_cpu.variance, rtol=1e-6)
+    close(f_gpu.mean, f_cpu.mean, rtol=1e-7)
+    close(f_gpu.variance, f_cpu.variance, rtol=1e-6)
+
+
+def test_learned_surface_estimate_on_cuda():
+    c, f = recording(device=CUDA)
+    m = irft.InverseRFT(c, f, surface_offset=True)
+    m.fit(n_iter=5, progress=False)
+    est = m.surface_offset
+    assert est.mean.device == est.std.device
+
+
+def test_probe_design_by_gradient_on_cuda():
+    from irft_torch.design import optimize_probe
+
+    scores = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        scorer = ProbeScorer.from_model(irft.InverseRFT(c, f))
+        out = optimize_probe(scorer, IToe(0.04, 0.02, n_segments=6), length=0.2, n_iter=3)
+        scores.append(scorer.score([out.probe], "variance"))
+    assert on_cuda(scores[1])
+    close(scores[1], scores[0], rtol=1e-6)

@@ -36,8 +36,14 @@ EXPECT = {
     "01_quickstart": (4, RMSE_CODE + """
 _p = model.stress_map(_B, _G)
 _inside = ((_p.mean - truth(_B, _G)).abs() <= 1.96 * _p.variance.sqrt()).double().mean((0, 1)).tolist()
-print("KEY" + _json.dumps({"rmse": _rmse(model, truth), "inside": _inside}))
-""", lambda k: (all(v < 0.06 for v in k["rmse"]) and all(0.5 <= v <= 1.0 for v in k["inside"]))),
+_q = (_torch.tensor([0.3, -0.2]), _torch.tensor([0.5, 1.0]))  # the filter's environments at points of the test's own
+_e, _t = filt.stress_map(*_q), scale[:, :, None] * truth(*_q)  # (B, 2, 2): each environment's own medium
+_fz = ((_e.mean - _t).abs() / _t.abs())[..., 1].median().item()
+_fin = ((_e.mean - _t).abs() <= 1.96 * _e.stddev).double().mean().item()
+print("KEY" + _json.dumps({"rmse": _rmse(model, truth), "inside": _inside, "filter_z_error": _fz,
+                           "filter_inside": _fin}))
+""", lambda k: (all(v < 0.06 for v in k["rmse"]) and all(0.5 <= v <= 1.0 for v in k["inside"])
+                 and k["filter_z_error"] < 0.25 and k["filter_inside"] >= 0.8)),
     "02_hardware_pipeline": (3, RMSE_CODE + """
 _rng = ds.forces.amax(0) - ds.forces.amin(0)
 _f = ((model.predict_forces(ds.contacts).mean - ds.forces).pow(2).mean(0).sqrt() / _rng * 100).tolist()

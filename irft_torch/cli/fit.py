@@ -8,33 +8,17 @@ import os
 import warnings
 from pathlib import Path
 
-from .arguments import _out_dir, warn
+from .arguments import UsageError, _out_dir, warn
 
 
 def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> dict:
-    """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma): cut from those saved in
-    the file when they are its own and cover the basis, else one pass (a worker of ``irft fit``).
-    Returns the statistics' state and whether they came from the file."""
-    import torch
-
-    from ..gp.backends.spectral import restrict_statistics
+    """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma) (``studies.fleet.dataset_statistics``:
+    cut from those saved in the file when they are its own and cover the basis, else one pass), as a worker
+    of ``irft fit`` returns them: the statistics' state and whether they came from the file."""
     from ..gp.fourier import FourierBasis
-    from ..gp.statistics import recording_statistics, statistics_from_arrays
-    from ..hardware import load_dataset
+    from ..studies.fleet import dataset_statistics
 
-    if threads:
-        torch.set_num_threads(threads)
-    torch.set_default_dtype(torch.float64)
-    ds = load_dataset(path)
-    basis = FourierBasis(n_beta, n_gamma)
-    c, f = ds.contacts.to(dtype=torch.float64), ds.forces.to(torch.float64)
-    stats = None
-    if ds.statistics:
-        stats = statistics_from_arrays(ds.statistics, c, f, source=f"the statistics saved in {path}")
-        if stats is not None and (stats.meta["n_beta"] < n_beta or stats.meta["n_gamma"] < n_gamma):
-            stats = None
-    from_file = stats is not None
-    stats = restrict_statistics(stats, basis) if from_file else recording_statistics(c, f, basis)
+    stats, from_file = dataset_statistics(path, FourierBasis(n_beta, n_gamma), threads)
     return {"state": stats.state(), "from_file": from_file}
 
 
@@ -54,18 +38,31 @@ def _spectral_start(contacts, method: str):
     return None
 
 
-def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 0):
+def _reduce_statistics(paths: list[str], basis, jobs: int = 0, n_samples: int = 0, dask: str | None = None):
     """The summed spectral statistics of the datasets at ``paths`` in ``basis``, reduced in ``jobs``
     worker processes (0: up to half the CPU count, from 4 CPUs, when the pass, about ``n_samples`` x
     F^2 flops, is long enough to pay for starting them, a few seconds each; 1: here, where torch
-    already spreads the pass's matrix products over the cores). Statistics saved in a file are
-    used when they are that file's own and cover the basis."""
+    already spreads the pass's matrix products over the cores), or on Dask (``dask``: a scheduler
+    address, or "" for a local cluster started and stopped here; ``studies.fleet.reduce_on_dask``).
+    Statistics saved in a file are used when they are that file's own and cover the basis."""
     import time
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing import get_context
 
     from ..gp.backends.weight_space import FeatureStatistics
 
+    if dask is not None:
+        from ..studies.fleet import reduce_on_dask
+
+        try:
+            r = reduce_on_dask(paths, basis, address=dask or None)
+        except ImportError as e:  # a user error on the command line: one line, what to install
+            raise UsageError("--dask", str(e)) from None
+        where = f"on the Dask cluster at {dask}" if dask else "on a local Dask cluster"
+        print(f"spectral statistics ({basis.size} features) of {r.n_datasets} dataset(s): {r.n_from_files} read from "
+              f"the files, {r.n_datasets - r.n_from_files} computed {where} ({r.n_workers} workers); "
+              f"{r.seconds:.1f} s")
+        return r.statistics
     t0 = time.perf_counter()
     if jobs == 0:
         cpus = os.cpu_count() or 1  # one process already uses every core for the pass's matrix products
@@ -97,6 +94,12 @@ def cmd_fit(a) -> int:
     from ..hardware import load_dataset
 
     out = _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
+    if a.dask is not None:
+        if a.dask.endswith(".npz") or Path(a.dask).is_file():
+            raise UsageError("--dask", f"{a.dask!r} is a dataset file, not a scheduler address: write --dask after "
+                                       "the datasets (or give the address, tcp://host:8786)")
+        if a.jobs:
+            raise UsageError("--jobs", "reduces in local processes, --dask on Dask: give one of them")
     parts = [load_dataset(p) for p in a.dataset]
     ds = parts[0]
     if len(parts) > 1:  # one recording after another: times shifted so the time axis keeps increasing
@@ -117,7 +120,9 @@ def cmd_fit(a) -> int:
         print(f"using {a.max_samples} of {len(ds)} samples, evenly spaced (--max-samples)")
         ds = type(ds)(ds.contacts[keep], ds.forces[keep], ds.time[keep], ds.toe_position[keep])
     elif (basis := _spectral_start(ds.contacts.to(dtype=torch.float64), a.method)) is not None:
-        stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds))
+        stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds), dask=a.dask)
+    elif a.dask is not None:
+        print("--dask: nothing to reduce (the fit does not start in the spectral space: its statistics are not used)")
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
                        priors=None if a.priors == "none" else a.priors)
     print(f"backend {model.backend.describe()}")
@@ -202,6 +207,10 @@ def register(sub) -> None:
     p.add_argument("--jobs", type=int, default=0,
                    help="worker processes reducing the datasets to their spectral statistics (default 0: up to half "
                         "the CPUs, from 4, when the pass is long, over about 5 million samples; 1: in this process)")
+    p.add_argument("--dask", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="reduce the datasets on Dask instead (pip install \"irft-torch[dask]\"): at the scheduler "
+                        "ADDRESS (tcp://host:8786), or without one on a local cluster started and stopped here; "
+                        "write it after the datasets")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--replace", action="store_true",
                    help="write this fit even where --out holds a better one (a lower loss) of the same data and "

@@ -24,6 +24,7 @@ from .operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_
 from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
 from .surface_profile import profile_surface
+from .terrain_filter import TerrainFilter
 
 __all__ = [
     "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",
@@ -32,5 +33,5 @@ __all__ = [
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
-    "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface",
+    "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface", "TerrainFilter",
 ]

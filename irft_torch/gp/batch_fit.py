@@ -89,8 +89,9 @@ class _StackedHyperparameters(RFTHyperparameters):
                 continue
             prior, closure, _ = entries[0]
             centres = [e[1].keywords["c"] for e in entries]
-            c = torch.cat([torch.as_tensor(v).reshape(-1) for v in centres]) if torch.is_tensor(centres[0]) \
-                else torch.tensor(centres, dtype=self.kernel.raw_outputscale.dtype)
+            at = {"dtype": hs[0].kernel.raw_outputscale.dtype, "device": hs[0].kernel.raw_outputscale.device}
+            c = torch.cat([torch.as_tensor(v).reshape(-1).to(**at) for v in centres]) if torch.is_tensor(centres[0]) \
+                else torch.tensor(centres, **at)  # the models' dtype and device (a CPU centre met CUDA values)
             if name == "lengthscale_prior":  # one centre per model for (1, 4) lengthscales of 2 axes
                 c = c.repeat_interleave(2)[:, None, None] if c.numel() == len(hs) else c
             target.register_prior(name, prior, functools.partial(closure.func, c=c))

@@ -148,7 +148,7 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     noise = centres["noise"].to(dtype)
     log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
     os_sd = NOISE_LOG_SD if (physics_mean or learned_surface) else OUTPUTSCALE_LOG_SD
-    zero = torch.zeros((), dtype=dtype)
+    zero = torch.zeros((), dtype=dtype, device=hypers.kernel.raw_outputscale.device)
     # closures as partials of module-level functions, so that a model pickles (process pools, copies)
     hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
                                  functools.partial(_log_outputscale_ratio, c=log_os))
@@ -164,7 +164,7 @@ def _log_outputscale_ratio(m, c):
 
 
 def _log_lengthscale_ratio(m, c):
-    return m.lengthscale.log() - c
+    return m.lengthscale.log() - (c.to(m.lengthscale) if torch.is_tensor(c) else c)
 
 
 def _log_noise_ratio(m, c):

@@ -215,7 +215,7 @@ def surface_estimate(model) -> SurfaceEstimate:
         ok = torch.linalg.eigvalsh(schur).min() > 0
     except torch.linalg.LinAlgError:
         cov, ok = torch.full_like(schur, math.inf), False
-    std = torch.sqrt(torch.diagonal(cov)) if ok else torch.full((G,), math.inf, dtype=H.dtype)
+    std = torch.sqrt(torch.diagonal(cov)) if ok else torch.full((G,), math.inf, dtype=H.dtype, device=H.device)
     cond = torch.where(torch.diagonal(Hdd) > 0, cond_var, torch.full_like(cond_var, math.inf)).sqrt()
     # correlations of each offset with each raw hyperparameter (restricted inverse Hessian)
     corr = {}

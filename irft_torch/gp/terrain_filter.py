@@ -1,0 +1,473 @@
+r"""Many streaming I-RFT posteriors that share one fitted model's hyperparameters: a terrain estimate per
+parallel environment (legged-robot RL on granular terrain), updated together, with no loop over
+environments.
+
+Each environment b has its own samples i = 1..n (the last ``window`` of them, if one is set). Its
+posterior is exactly that of ``InverseRFT`` on those samples at the shared hyperparameters (the
+observations backend's W K W^T + sigma^2 I, the model's prior mean), kept per map axis a in observation
+space through the *inverse* Cholesky factor of the samples' covariance:
+
+    S = W K W^T + sigma_a^2 I = L L^T,   U = L^{-1} (n x n, lower),   z = U (y - m)   (n,)
+
+so that for any functionals q (map points, forces of other contacts) with prior cross-covariance
+K_q (n x Q): A = U K_q, mean = m_q + A^T z, variance = k_qq - sum_i A_iq^2.
+
+- **Append** a sample (one row of L): l = U k, d^2 = k_new + sigma^2 - |l|^2 (>= sigma^2), and the new
+  row of U is (e_n - l^T U) / d: O(n^2) per environment, plus the kernel row k (n M^2 kernel values).
+- **Forget the oldest** (a sliding window): removing the first row and column of S leaves
+  S' = L22 L22^T + c c^T (c = L[1:, 0]), a rank-one *update* of L22 (stable, unlike a downdate).
+  With p = L22^{-1} c = -U[1:, 0] / U[0, 0], L' = L22 Lt with Lt the Cholesky factor of I + p p^T, which
+  has a closed form (Gill, Golub, Murray & Saunders 1974): t_i = 1 + sum_{j<=i} p_j^2,
+  d_i = sqrt(t_i / t_{i-1}), Lt = diag(d) + strictly_lower(p beta^T), beta_j = p_j / sqrt(t_j t_{j-1}).
+  Its inverse applied to any x is again a prefix sum,
+      (Lt^{-1} x)_i = (x_i - p_i sum_{j<i} p_j x_j / t_{i-1}) / d_i,
+  so U' = Lt^{-1} U[1:, 1:], z' = Lt^{-1} (z[1:] + p z_0), A' = Lt^{-1} (A[1:] + p A_0): O(n^2) per
+  environment, vectorised over all of them, no factorisation.
+
+The last map query's points are *tracked*: their A is extended by one row per sample (Q M kernel values)
+and carried through the window's update, and their posterior is refreshed inside each update, so that
+a policy asking the same points every step reads it instead of evaluating n M Q kernel values.
+
+Exactness: the same numbers as each environment's own ``InverseRFT(..., method="observations")`` at
+these hyperparameters fed the same samples with ``add_data`` (``tests/gp/test_terrain_filter.py``
+checks 1e-8 against it, the pairs backend and the dense formula); a model fitted with another backend
+is the same GP, so a spectral model's own posterior differs from the filter's as it differs from the
+exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
+The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
+copied when the filter is built.
+
+Gradients: the filter's state carries none (``update`` runs without autograd: a policy does not
+differentiate through the terrain's past). ``stress_map`` and ``predict_forces`` are differentiable in
+their inputs (the query angles, the contacts' angles and weights); the hyperparameters are constants.
+
+Cost per environment and step (float64, ``window`` n): n M^2 kernel values for the new sample's row,
+O(n^2) for the factor, O(n Q) for a tracked query. ``experiments/bench_inference.py`` case 9 measures it.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import Tensor, nn
+
+from ..rft.contacts import Contacts
+from .embedding import embed_angles
+from .model import InverseRFT
+from .posterior import Posterior
+
+__all__ = ["TerrainFilter"]
+
+
+def _index(env_ids, B: int, device) -> Tensor:
+    """Environment indices (k,) from a bool mask (B,), integer indices, a list or None (all)."""
+    if env_ids is None:
+        return torch.arange(B, device=device)
+    ids = torch.as_tensor(env_ids, device=device)
+    if ids.dtype == torch.bool:
+        if ids.shape != (B,):
+            raise ValueError(f"env_ids as a mask must have shape ({B},), got {tuple(ids.shape)}")
+        return ids.nonzero()[:, 0]
+    if ids.dtype.is_floating_point or ids.dtype.is_complex:
+        raise ValueError(f"env_ids must be integer indices or a bool mask, got {ids.dtype}")
+    ids = ids.reshape(-1).long()
+    if ids.numel() and (int(ids.min()) < -B or int(ids.max()) >= B):
+        raise ValueError(f"env_ids must be in [-{B}, {B}), got values from {int(ids.min())} to {int(ids.max())}")
+    return ids % B
+
+
+def _pad_slots(t: Tensor, N: int, M: int, N2: int, M2: int) -> Tensor:
+    """(..., N * M) slot-major columns -> (..., N2 * M2), zeros in the new slots and segments."""
+    lead = t.shape[:-1]
+    t = t.reshape(*lead, N, M)
+    return torch.nn.functional.pad(t, (0, M2 - M, 0, N2 - N)).reshape(*lead, N2 * M2)
+
+
+class TerrainFilter(nn.Module):
+    r"""B streaming posteriors of the stress maps, one per environment, sharing a fitted model's
+    hyperparameters and prior mean, on the model's device and dtype.
+
+    Args:
+        model: a (fitted) ``InverseRFT``; its kernel, noise and prior mean are copied (the plug-in
+            hyperparameters; its training data are *not* part of the environments' posteriors).
+        n_envs: B, the number of environments.
+        window: keep only each environment's last ``window`` samples (a terrain that changes along the
+            way); None (default): every sample since its last ``reset`` (the capacity then doubles as
+            needed, and the cost of a step grows with the samples held).
+        capacity: initial room for samples per environment without a window (default 32).
+        block_bytes: CPU only: environments are updated in blocks whose working set is about this size,
+            so that a step reads and writes each environment's state once from memory (default 8 MiB).
+
+    Example:
+        >>> filt = irft.TerrainFilter(model, n_envs=4096, window=16)
+        >>> filt.update(contacts, forces)                 # contacts (B, M), forces (B, 2) N; mask= (B,)
+        >>> post = filt.stress_map(beta, gamma)           # .mean, .variance (B, Q, 2) in N/cm^3
+        >>> filt.reset(done)                              # those environments back to the prior
+    """
+
+    def __init__(self, model: InverseRFT, n_envs: int, window: int | None = None, capacity: int = 32,
+                 block_bytes: int = 8 << 20) -> None:
+        super().__init__()
+        if not isinstance(model, InverseRFT):
+            raise TypeError(f"model must be an irft_torch.InverseRFT (fitted), got {type(model).__name__}")
+        for name, v, low in (("n_envs", n_envs, 1), ("capacity", capacity, 1), ("block_bytes", block_bytes, 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
+            raise ValueError(f"window must be None or a positive integer number of samples, got {window!r}")
+        hypers = model.hypers
+        self.dtype = model.dtype
+        self.device = torch.device(model._device)
+        self.n_envs = B = n_envs
+        self.window = window
+        self.block_bytes = block_bytes
+        N = window or capacity
+        fk = {"dtype": self.dtype, "device": self.device}
+        with torch.no_grad():
+            self.register_buffer("lengthscale", hypers.lengthscale.detach().clone().to(**fk))  # (2, 1, 4)
+            self.register_buffer("outputscale", hypers.outputscale.detach().clone().to(**fk))  # (2,)
+            self.register_buffer("noise", hypers.noise.detach().clone().to(**fk))  # (2,)
+            scales = hypers.mean_scales
+            self.register_buffer("mean_scales", None if scales is None else scales.detach().clone().to(**fk))
+        self._shape = None if hypers.mean is None else copy.deepcopy(hypers.mean).to(**fk).requires_grad_(False)
+        # The state of environment b, map axis a (the module docstring): n = capacity sample positions
+        long = {"dtype": torch.long, "device": self.device}
+        self.register_buffer("count", torch.zeros(B, **long))  # samples held
+        self.register_buffer("start", torch.zeros(B, **long))  # ring slot of the oldest sample
+        self.register_buffer("U", torch.eye(N, **fk).expand(B, 2, N, N).clone())  # U^T, Cholesky order
+        self.register_buffer("z", torch.zeros(B, 2, N, **fk))  # U (y - m), Cholesky order
+        self.register_buffer("emb", torch.zeros(B, 5, 0, **fk))  # [phi; 1] of the samples' segments, by slot
+        self.register_buffer("cp", torch.zeros(B, 2, 0, **fk))  # -|phi / l_a|^2 / 2 of the same
+        self.register_buffer("wt", torch.zeros(B, 2, N, 0, **fk))  # their weights (x, z), by slot
+        # the tracked map points: A^T (B, 2, Q, n) and the posterior there (B, 2, Q), kept current
+        self.register_buffer("At", torch.zeros(B, 2, 0, N, **fk))
+        self.register_buffer("post_mean", torch.zeros(B, 2, 0, **fk))
+        self.register_buffer("post_var", torch.zeros(B, 2, 0, **fk))
+        self._query: dict | None = None  # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), prior mean / var (2, Q)
+        self._exported = False  # a query's autograd graph holds the state: copy it before writing in place
+
+    # ---- sizes -------------------------------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        """Sample positions per environment (the window, or the current capacity without one)."""
+        return self.U.shape[-1]
+
+    @property
+    def n_segments(self) -> int:
+        return self.wt.shape[-1]
+
+    def extra_repr(self) -> str:
+        return (f"n_envs={self.n_envs}, window={self.window}, capacity={self.capacity}, M={self.n_segments}, "
+                f"dtype={self.dtype}, device={self.device}")
+
+    # ---- the kernel pieces ------------------------------------------------------------------------
+    def _sides(self, beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Angles (..., M) -> the left side (..., 2, M, 5) = [phi / l_a^2, log s_a - |phi / l_a|^2 / 2] and
+        the right side [phi; 1] (..., 5, M), c (..., 2, 1, M) = -|phi / l_a|^2 / 2, so that
+        left . right + c = log s_a - |(phi - phi') / l_a|^2 / 2: the exponent of ``embedding.rbf``."""
+        phi = embed_angles(beta, gamma)  # (..., M, 4)
+        ls = self.lengthscale.view(2, 1, 4)
+        scaled = phi.unsqueeze(-3) / ls  # (..., 2, M, 4)
+        half = -0.5 * scaled.pow(2).sum(-1)  # (..., 2, M)
+        left = torch.cat([scaled / ls, (self.outputscale.log()[:, None] + half)[..., None]], -1)
+        right = torch.cat([phi, torch.ones_like(phi[..., :1])], -1).mT
+        return left, right, half.unsqueeze(-2)
+
+    def _prior_mean(self, c: Contacts) -> Tensor | None:
+        """The prior mean (..., 2) of the weighted sums of contacts (..., M), or None (zero mean)."""
+        if self._shape is None:
+            return None
+        lead, M = c.shape[:-1], c.n_segments
+        flat = Contacts(c.beta.reshape(-1, M), c.gamma.reshape(-1, M), c.weight_x.reshape(-1, M),
+                        c.weight_z.reshape(-1, M))
+        return (self.mean_scales[:, None] * self._shape.shape_forces(flat)).T.reshape(*lead, 2)
+
+    @staticmethod
+    def _kernel(left: Tensor, w_left: Tensor, right: Tensor, c_right: Tensor, w_right: Tensor) -> Tensor:
+        """Prior covariances of weighted sums, per item and axis: sum_{m, m'} w_left[p, m] k(p_m, r_m')
+        w_right[r, m'] from left (X, 2, P * Ml, 5), w_left (X, 2, P, Ml), right (X, 5, R * Mr),
+        c_right (X, 2, 1, R * Mr), w_right (X, 2, R, Mr) (X may be 1 on the right: shared) -> (X, 2, P, R)."""
+        X, _, PM, _ = left.shape
+        P, Ml = w_left.shape[-2:]
+        R, Mr = w_right.shape[-2:]
+        if right.shape[0] == X:
+            E = torch.bmm(left.reshape(X, 2 * PM, 5), right).view(X, 2, PM, R * Mr)
+        else:
+            E = (left.reshape(X * 2 * PM, 5) @ right[0]).view(X, 2, PM, R * Mr)
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in (left, w_left, right, c_right, w_right))
+        E = (E + c_right).exp() if grad else E.add_(c_right).exp_()
+        r = (w_left[..., None, :] @ E.view(X, 2, P, Ml, R * Mr)).view(X, 2, P, R, Mr)
+        return (r * w_right.unsqueeze(2)).sum(-1)
+
+    def _blocks(self, per_env: int) -> list[tuple[int, int]]:
+        """Ranges of environments whose working set (``per_env`` elements each) fits ``block_bytes``; one
+        range on a GPU. Blocks of many environments, each computed at once (never one environment at a time)."""
+        B = self.n_envs
+        if self.device.type != "cpu":
+            return [(0, B)]
+        size = max(1, self.block_bytes // max(1, per_env * self.U.element_size()))
+        return [(i, min(B, i + size)) for i in range(0, B, size)]
+
+    # ---- input checks -----------------------------------------------------------------------------
+    def _contacts(self, contacts, name: str, shapes: str, ndims: tuple[int, ...]) -> Contacts:
+        if not isinstance(contacts, Contacts):
+            raise TypeError(f"{name} must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
+        shape = tuple(contacts.shape)
+        if contacts.beta.ndim not in ndims or shape[0] != self.n_envs:
+            raise ValueError(f"{name} must have shape {shapes} with B = n_envs = {self.n_envs}, got {shape}")
+        return contacts.to(dtype=self.dtype, device=self.device)
+
+    # ---- updates ----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def update(self, contacts: Contacts, forces, mask=None) -> TerrainFilter:
+        """Add one sample per environment (contacts (B, M), forces (B, 2) = (F_x, F_z) in N), or t per
+        environment in time order (contacts (B, t, M), forces (B, t, 2)). ``mask`` (B,) or (B, t) bool:
+        False leaves that sample out (the environment is unchanged by it, and it does not count toward the
+        window). Returns self."""
+        c = self._contacts(contacts, "contacts", "(B, M) or (B, t, M)", (2, 3))
+        block = c.beta.ndim == 3
+        want = (self.n_envs, *(c.shape[1:2] if block else ()), 2)
+        f = torch.as_tensor(forces, dtype=self.dtype, device=self.device)
+        if tuple(f.shape) != want:
+            raise ValueError(f"forces must have shape {want} (F_x, F_z in N) for contacts of shape "
+                             f"{tuple(c.shape)}, got {tuple(f.shape)}")
+        if not torch.isfinite(f).all():
+            raise ValueError("forces contains NaN or inf: leave those samples out with mask=")
+        if mask is not None:
+            mask = torch.as_tensor(mask, device=self.device)
+            if mask.dtype != torch.bool or tuple(mask.shape) != want[:-1]:
+                raise ValueError(f"mask must be a bool tensor of shape {want[:-1]} (True: add the sample), got "
+                                 f"{mask.dtype} of shape {tuple(mask.shape)}")
+        if not block:
+            self._append(c, f, mask)
+            return self
+        for i in range(c.shape[1]):  # a block's samples in time order, each step vectorised over environments
+            self._append(c[i], f[:, i], None if mask is None else mask[:, i])  # c[i]: sample i of each
+        return self
+
+    def _state_names(self) -> tuple[str, ...]:
+        return ("U", "z", "emb", "cp", "wt", "At", "post_mean", "post_var")
+
+    def _own_state(self) -> None:
+        """Copy the state before writing it in place if a query's autograd graph may hold it."""
+        if self._exported:
+            for name in self._state_names():
+                setattr(self, name, getattr(self, name).clone())
+            self._exported = False
+
+    def _resize(self, N2: int, M2: int) -> None:
+        """Room for N2 samples of M2 segments (no window: the capacity doubles; wider samples): identity
+        rows and columns in U, zeros elsewhere."""
+        B, N, M = self.n_envs, self.capacity, self.n_segments
+        if N2 > N:
+            U = torch.eye(N2, dtype=self.dtype, device=self.device).expand(B, 2, N2, N2).clone()
+            U[..., :N, :N] = self.U
+            self.U = U
+            self.z = torch.nn.functional.pad(self.z, (0, N2 - N))
+            self.At = torch.nn.functional.pad(self.At, (0, N2 - N))
+        self.emb = _pad_slots(self.emb, N, M, N2, M2)
+        self.cp = _pad_slots(self.cp, N, M, N2, M2)
+        self.wt = torch.nn.functional.pad(self.wt, (0, M2 - M, 0, N2 - N))
+
+    def _append(self, c: Contacts, f: Tensor, mask: Tensor | None) -> None:
+        """One sample per environment (c (B, M), f (B, 2)); ``mask`` (B,) or None."""
+        self._own_state()
+        B = self.n_envs
+        add = torch.ones(B, dtype=torch.bool, device=self.device) if mask is None else mask
+        full = add & (self.count >= self.capacity)
+        any_full = bool(full.any())
+        grow = any_full and self.window is None
+        if grow or c.n_segments > self.n_segments:
+            self._resize(2 * self.capacity if grow else self.capacity, max(c.n_segments, self.n_segments))
+        if grow:
+            full, any_full = torch.zeros_like(full), False
+        N, M = self.capacity, self.n_segments
+        c = c.pad_segments(M)
+        left, right, c_right = self._sides(c.beta, c.gamma)  # (B, 2, M, 5), (B, 5, M), (B, 2, 1, M)
+        w = torch.stack([c.weight_x, c.weight_z], 1)  # (B, 2, M)
+        m = self._prior_mean(c)
+        y = f if m is None else f - m
+        # where each sample goes, after the oldest is forgotten in the full environments
+        start = torch.where(full, (self.start + 1) % N, self.start) if any_full else self.start
+        held = self.count - full.long()
+        pos = held.clamp_max(N - 1)
+        slot = (start + pos) % N
+        per_env = 2 * (2 * N * N + 2 * M * N * M + 2 * N * max(1, self.At.shape[-2])) + 8 * N * M
+        for i, j in self._blocks(per_env):
+            sl = slice(i, j)
+            self._step(sl, left[sl], right[sl], c_right[sl], w[sl], y[sl], None if mask is None else add[sl],
+                       full[sl] if any_full else None, start[sl], held[sl], pos[sl], slot[sl])
+        self.start = start
+        self.count = held + add.long()
+
+    def _step(self, sl: slice, left, right, c_right, w, y, add, full, start, held, pos, slot) -> None:
+        """The update of the environments ``sl`` (one block: everything below stays in cache)."""
+        b = left.shape[0]
+        N, M = self.capacity, self.n_segments
+        U, z, At = self.U[sl], self.z[sl], self.At[sl]
+        if full is not None and bool(full.any()):
+            self._forget_oldest(U, z, At, full)
+        w4 = w.view(b, 2, 1, M)
+        k_new = self._kernel(left, w4, right, c_right, w4).view(b, 2)
+        k = self._kernel(left, w4, self.emb[sl], self.cp[sl].unsqueeze(-2), self.wt[sl]).view(b, 2, N)
+        order = (start[:, None] + torch.arange(N, device=self.device)) % N  # Cholesky position -> ring slot
+        k = k.gather(-1, order[:, None, :].expand(b, 2, N))
+        k.mul_((torch.arange(N, device=self.device) < held[:, None])[:, None, :])  # only the samples held
+        X = 2 * b
+        Uv = U.view(X, N, N)
+        l = torch.bmm(k.view(X, 1, N), Uv).view(b, 2, N)  # U k (U is held transposed)
+        d = (k_new + self.noise - l.pow(2).sum(-1)).clamp_min(self.noise).sqrt()  # (b, 2), >= sigma
+        row = torch.bmm(Uv, l.view(X, N, 1)).view(b, 2, N).neg_()  # -(l^T U): the new row of U
+        row.scatter_(-1, pos.view(b, 1, 1).expand(b, 2, 1), 1.0).div_(d[..., None])
+        z_new = (y - (l * z).sum(-1)) / d
+        keep = None if add is None else ~add
+
+        def put(t: Tensor, dim: int, idx: Tensor, value: Tensor) -> None:
+            """t[idx] = value along dim, in the environments that add a sample."""
+            if keep is not None:
+                value = torch.where(keep.view(b, *[1] * (t.ndim - 1)), t.gather(dim, idx), value)
+            t.scatter_(dim, idx, value)
+
+        put(U, -1, pos.view(b, 1, 1, 1).expand(b, 2, N, 1), row[..., None])
+        put(z, -1, pos.view(b, 1, 1).expand(b, 2, 1), z_new[..., None])
+        cols = slot[:, None] * M + torch.arange(M, device=self.device)
+        put(self.emb[sl], -1, cols[:, None, :].expand(b, 5, M), right)
+        put(self.cp[sl], -1, cols[:, None, :].expand(b, 2, M), c_right[:, :, 0])
+        put(self.wt[sl], -2, slot.view(b, 1, 1, 1).expand(b, 2, 1, M), w4)
+        q = self._query
+        if q is not None:  # the tracked points: a new row of A, and the posterior there
+            Q = q["w"].shape[-1]
+            kq = self._kernel(left, w4, q["emb"][None], q["cp"][None], q["w"][None, :, :, None]).view(b, 2, Q)
+            a_new = torch.baddbmm(kq.view(X, Q, 1), At.view(X, Q, N), l.view(X, N, 1), alpha=-1).view(b, 2, Q)
+            put(At, -1, pos.view(b, 1, 1, 1).expand(b, 2, Q, 1), a_new.div_(d[..., None])[..., None])
+            self._posterior_into(At, z, self.post_mean[sl], self.post_var[sl])
+
+    def _posterior_into(self, At: Tensor, z: Tensor, mean: Tensor, var: Tensor) -> None:
+        """The tracked points' posterior from A^T (b, 2, Q, n) and z (b, 2, n), written into mean and var."""
+        q = self._query
+        torch.matmul(At, z[..., None], out=mean[..., None])
+        mean.add_(q["prior_mean"])
+        torch.sub(q["prior_var"], torch.linalg.vector_norm(At, dim=-1).pow_(2), out=var)
+
+    @staticmethod
+    def _forget_oldest(U: Tensor, z: Tensor, At: Tensor, full: Tensor) -> None:
+        """Remove the oldest sample of the environments ``full`` (b,) of a block, in place (U: U^T (b, 2, n, n),
+        z, A^T): the module docstring's rank-one update of the remaining factor, as a prefix sum."""
+        p = -U[..., 0, 1:] / U[..., 0, :1]  # (b, 2, n - 1): L22^{-1} c
+        p2 = p.pow(2)
+        t = 1 + p2.cumsum(-1)
+        t_prev = t - p2
+        d = (t / t_prev).sqrt()
+        coef = p / (t_prev * d)
+
+        def solve(X: Tensor) -> Tensor:
+            """Lt^{-1} X along the last (sample) axis: X d - coef cumsum(p X) (1 / d + coef p = d)."""
+            extra = X.ndim - p.ndim
+            pp, dd, cc = (v.view(*v.shape[:-1], *[1] * extra, v.shape[-1]) for v in (p, d, coef))
+            return (X * dd).addcmul_(cc, (X * pp).cumsum_(-1), value=-1)
+
+        f3, f4 = full.view(-1, 1, 1), full.view(-1, 1, 1, 1)
+        U_new = torch.nn.functional.pad(solve(U[..., 1:, 1:]), (0, 1, 0, 1))
+        U_new[..., -1, -1] = 1.0  # the freed last position: an identity row and column
+        U.copy_(torch.where(f4, U_new, U))
+        z.copy_(torch.where(f3, torch.nn.functional.pad(solve(torch.addcmul(z[..., 1:], p, z[..., :1])), (0, 1)), z))
+        if At.shape[-2]:
+            A_new = solve(torch.addcmul(At[..., 1:], At[..., :1], p[..., None, :]))
+            At.copy_(torch.where(f4, torch.nn.functional.pad(A_new, (0, 1)), At))
+
+    @torch.no_grad()
+    def reset(self, env_ids=None) -> TerrainFilter:
+        """Return environments to the prior (forget all their samples): ``env_ids`` integer indices, a bool
+        mask (B,) or None (all). Returns self."""
+        ids = _index(env_ids, self.n_envs, self.device)
+        if ids.numel() == 0:
+            return self
+        self._own_state()
+        self.U[ids] = torch.eye(self.capacity, dtype=self.dtype, device=self.device)
+        for t in (self.z, self.emb, self.cp, self.wt, self.At):
+            t[ids] = 0.0
+        if self._query is not None:  # the prior, exactly
+            self.post_mean[ids] = self._query["prior_mean"]
+            self.post_var[ids] = self._query["prior_var"]
+        self.count[ids] = 0
+        self.start[ids] = 0
+        return self
+
+    # ---- queries ----------------------------------------------------------------------------------
+    def _cross_t(self, left: Tensor, w: Tensor) -> Tensor:
+        """K^T (B, 2, P, n): the prior covariance of P functionals per environment (left sides
+        (B, 2, P * Ml, 5), weights (B, 2, P, Ml); expanded views are fine) with the samples held, in Cholesky
+        order (zero past them)."""
+        B, N, M = self.n_envs, self.capacity, self.n_segments
+        P = w.shape[-2]
+        if torch.is_grad_enabled() and (left.requires_grad or w.requires_grad):
+            self._exported = True  # the graph holds the state: the next update copies it first
+        if M == 0:
+            return left.new_zeros(B, 2, P, N)
+        per_env = 2 * P * w.shape[-1] * N * M
+        parts = [self._kernel(left[i:j], w[i:j], self.emb[i:j], self.cp[i:j].unsqueeze(-2), self.wt[i:j])
+                 for i, j in self._blocks(per_env)]
+        K = torch.cat(parts) if len(parts) > 1 else parts[0]
+        order = (self.start[:, None] + torch.arange(N, device=self.device)) % N
+        return K.gather(-1, order[:, None, None, :].expand(B, 2, P, N))
+
+    def stress_map(self, beta, gamma) -> Posterior:
+        """Each environment's posterior of (alpha_x, alpha_z) at angles (rad) of any broadcast shape S, the
+        same points for every environment (per-environment points: ``predict_forces`` of one-segment
+        contacts of unit weight, ``Contacts.points``). Returns mean and variance (B, *S, 2) in N/cm^3 and
+        (N/cm^3)^2.
+
+        The last points asked are *tracked*: every later ``update`` extends their posterior, so asking
+        them again costs nothing more. Differentiable in beta and gamma (then computed afresh)."""
+        beta = torch.as_tensor(beta, dtype=self.dtype, device=self.device)
+        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.device)
+        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        B = self.n_envs
+        grad = torch.is_grad_enabled() and (beta.requires_grad or gamma.requires_grad)
+        key = torch.stack(torch.broadcast_tensors(beta, gamma)).reshape(2, -1).detach()
+        q = self._query
+        if not grad and q is not None and q["key"].shape == key.shape and torch.equal(q["key"], key):
+            mean, var = self.post_mean, self.post_var
+        else:
+            pts = Contacts.points(beta, gamma)  # (Q, 1): canonical angles, weights (mirror sign, 1)
+            w = torch.stack([pts.weight_x[:, 0], pts.weight_z[:, 0]])  # (2, Q)
+            Q = w.shape[-1]
+            prior = self._prior_mean(pts)
+            prior = w.new_zeros(2, Q) if prior is None else prior.T
+            prior_var = self.outputscale[:, None] * w.pow(2)  # k(theta, theta) w^2 = s
+            left, right, c_right = self._sides(pts.beta[:, 0], pts.gamma[:, 0])  # (2, Q, 5), (5, Q), (2, 1, Q)
+            K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1))
+            At = K_t @ self.U
+            if grad:
+                mean = prior[..., None] + At @ self.z[..., None]
+                return Posterior((mean[..., 0]).mT.reshape(B, *S, 2),
+                                 (prior_var - At.pow(2).sum(-1)).mT.reshape(B, *S, 2))
+            self._query = {"key": key.clone(), "emb": right, "cp": c_right, "w": w, "prior_mean": prior,
+                           "prior_var": prior_var}
+            self.At = At
+            self.post_mean, self.post_var = At.new_empty(B, 2, Q), At.new_empty(B, 2, Q)
+            self._posterior_into(At, self.z, self.post_mean, self.post_var)
+            mean, var = self.post_mean, self.post_var
+        return Posterior(mean.mT.reshape(B, *S, 2).clone(), var.mT.reshape(B, *S, 2).clone())
+
+    def predict_forces(self, contacts: Contacts, include_noise: bool = False) -> Posterior:
+        """Each environment's posterior of the forces (F_x, F_z) on its own contacts (B, T, M): mean and
+        variance (B, T, 2) in N and N^2 (the exact variance w^T Sigma w, segments correlated);
+        ``include_noise`` adds the noise variance (predict a measurement). Differentiable in the contacts'
+        angles and weights."""
+        c = self._contacts(contacts, "contacts", "(B, T, M)", (3,))
+        B, T, M = c.shape
+        left, right, c_right = self._sides(c.beta, c.gamma)  # (B, T, 2, M, 5), (B, T, 5, M), (B, T, 2, 1, M)
+        w = torch.stack([c.weight_x, c.weight_z], 1)  # (B, 2, T, M)
+        At = self._cross_t(left.transpose(1, 2).reshape(B, 2, T * M, 5), w) @ self.U  # (B, 2, T, n)
+        mean = (At @ self.z[..., None])[..., 0]
+        prior = self._prior_mean(c)
+        if prior is not None:
+            mean = mean + prior.mT
+        w_own = w.transpose(1, 2).reshape(B * T, 2, 1, M)
+        own = self._kernel(left.reshape(B * T, 2, M, 5), w_own, right.reshape(B * T, 5, M),
+                           c_right.reshape(B * T, 2, 1, M), w_own).view(B, T, 2)
+        var = own - At.pow(2).sum(-1).mT
+        if include_noise:
+            var = var + self.noise
+        return Posterior(mean.mT, var)
