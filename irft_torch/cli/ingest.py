@@ -253,9 +253,10 @@ def register(sub) -> None:
     g.add_argument("--mit-quantity", choices=["torque", "current"],
                    help="override: what the 12-bit field carries (current: give --kt as output-side N m per A, "
                         "i.e. gear ratio x k_t, and keep --gear-ratio 1: MIT positions are output-side)")
-    p.add_argument("--rate", type=float, help="resampling rate, Hz (default: the logs' current rate)")
+    p.add_argument("--rate", type=float, help="resampling rate, Hz, within 10x of the logs' own (default: the logs' "
+                                              "current rate)")
     p.add_argument("--filter-window", type=int, default=5,
-                   help="zero-phase moving average, samples, odd (default 5)")
+                   help="zero-phase moving average, samples, odd, at most a tenth of a run (default 5)")
     p.add_argument("--arc-noise", type=float, default=0.0,
                    help="toe moves below this many m add no arc length when aligning the air run and trials "
                         "(encoder jitter while standing still; default 0, about 2e-4 for a jittery leg)")

@@ -43,6 +43,7 @@ from .surface import LearnedSurfaceMixin, SurfaceOffset
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]
 
 
+NOISE_FLOOR = 1e-8  # the force noise variance is at least this share of the force power (float64; float32: 1e-5)
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
 
@@ -192,7 +193,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         y = f.T
         s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
         power = y.pow(2).mean(-1)
-        rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
+        rel_floor = NOISE_FLOOR if dtype == torch.float64 else max(NOISE_FLOOR, 1e-5)
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
         # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
