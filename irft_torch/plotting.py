@@ -15,6 +15,7 @@ at a glance), and the sampled (beta, gamma) pairs are marked on the std panel.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import torch
@@ -247,9 +248,15 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None, 
 
 
 def save(fig, path) -> None:
-    """Write ``fig`` (PNG, 120 dpi) and close it."""
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    """Write ``fig`` (PNG, 120 dpi; the format follows the suffix) and close it; written to a temporary
+    file and renamed into place (``_files.atomic_path``), so a failed write leaves the old figure."""
+    from ._files import atomic_path
+
+    try:
+        with atomic_path(path, "figure") as tmp:
+            fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
 
 
 def plot_coverage_cells(observed: dict, calibrated: dict, band=(0.85, 0.99), level: float = 0.95, ax=None,

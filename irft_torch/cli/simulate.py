@@ -12,6 +12,7 @@ def cmd_simulate(a) -> int:
     import numpy as np
 
     from .. import rft
+    from .._files import atomic_path, atomic_write
 
     out = _out_file(a.out, "--out", ".npz")
     csv_out = _out_file(a.csv, "--csv") if a.csv else None
@@ -21,13 +22,15 @@ def cmd_simulate(a) -> int:
     c = rft.contacts(toe, path)
     f = rft.forces(smap, c)
     arrays = {k: v.numpy() for k, v in c.as_dict().items()}
-    # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields
-    np.savez(out, time=path.time.numpy(), position=path.position.numpy(), toe_position=path.position.numpy(),
-             heading=path.heading.numpy(), forces=f.numpy(), **arrays, map=np.array(a.map),
-             scale=np.array([a.scale_x, a.scale_z]))
+    # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields; written
+    # whole or not at all (a temporary renamed into place)
+    atomic_write(out, lambda fh: np.savez(fh, time=path.time.numpy(), position=path.position.numpy(),
+                                          toe_position=path.position.numpy(), heading=path.heading.numpy(),
+                                          forces=f.numpy(), **arrays, map=np.array(a.map),
+                                          scale=np.array([a.scale_x, a.scale_z])), "simulation")
     print(f"wrote {out} ({len(path)} samples x {toe.n_segments} segments)")
     if csv_out:
-        with open(csv_out, "w", newline="") as fh:
+        with atomic_path(csv_out, "CSV") as tmp, open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
             M = toe.n_segments
             w.writerow(["time_s", "x_m", "z_m", "heading_rad", "F_x_N", "F_z_N"]

@@ -18,14 +18,16 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.select import cheaper_space, estimate_pairs, estimated_costs
+from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
 from .inputs import (
     _as_forces,
     _as_noise_scale,
+    _check_angles,
     _check_dtype,
+    _check_query,
     _check_statistics,
     _check_units,
     _data_scales,
@@ -34,39 +36,18 @@ from .inputs import (
 )
 from .mean_average import MeanAverageMixin, check_average_options
 from .model_file import PersistenceMixin
-from .posterior import Posterior, _force_posterior, _psd_root
+from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
 from .priors import PRIORS, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
-__all__ = ["Posterior", "InverseRFT"]
+__all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
 
 
-def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts, generator) -> Tensor:
-    """Maps (2, N, n) drawn jointly over the N points of ``c``: ``counts[a][s]`` of map a's n draws from
-    backend s (its posterior mean plus its root times normals), the order shuffled across backends."""
-    out = [[], []]
-    for s, b in enumerate(backends):
-        k = max(counts[0][s], counts[1][s])
-        if k == 0:
-            continue
-        root = b.posterior_root(c)
-        post = b.posterior(c, variance=False, covariance=root is None)
-        if root is None:
-            root = _psd_root(post.covariance)  # (2, N, N)
-        eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
-        maps = post.mean[..., None] + root @ eps  # (2, N, k)
-        for a in range(2):
-            out[a].append(maps[a, :, :counts[a][s]])
-    draws = torch.stack([torch.cat(o, -1) for o in out])  # (2, N, n)
-    if sum(1 for k in counts[0] if k) > 1 or sum(1 for k in counts[1] if k) > 1:
-        # interleave the backends' maps (each backend's block is otherwise contiguous)
-        n = draws.shape[-1]
-        draws = torch.stack([draws[a][:, torch.randperm(n, generator=generator, device=draws.device)]
-                             for a in range(2)])
-    return draws
+NOISE_FLOOR = 1e-8  # the force noise variance is at least this share of the force power (float64; float32: 1e-5)
 
 
-class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
+class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, FitControlMixin,
+                 nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -221,7 +202,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         y = f.T
         s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
         power = y.pow(2).mean(-1)
-        rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
+        rel_floor = NOISE_FLOOR if dtype == torch.float64 else max(NOISE_FLOOR, 1e-5)
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
         # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
@@ -255,6 +236,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
+        self._held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (_adapt)
+        self._hold_said = False
         self.eval()
 
     # ---- views -------------------------------------------------------------------------------
@@ -364,13 +347,19 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
         """Adam on the exact marginal likelihood. Returns the loss per step (the negative log
         likelihood per force sample, summed over the two axes). Ctrl-C stops early and keeps
-        what was learned."""
+        what was learned.
+
+        The model ends at the best iterate the loss saw: where the loss rose above its best (an lr
+        too large makes Adam diverge: ``fit(40, lr=5)`` climbs from -0.41 to +7.4), or turned NaN or
+        inf (the fit stops there), the hyperparameters of the best step are restored, and a rise of
+        more than 0.1 (or 10 %) of the loss is a ``FitDivergedWarning`` suggesting an lr 10x smaller."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
         params = list(self.hypers.parameters()) + ([] if self.surface is None else [self.surface.offset])
         opt = torch.optim.Adam(params, lr=lr)
         history: list[float] = []
+        best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
         self.backend.in_fit = True
@@ -378,22 +367,29 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             for step in bar:
                 opt.zero_grad(set_to_none=True)
                 loss = self.backend.loss() if self.surface is None else self._surface_loss()
+                value = loss.item()
+                if not math.isfinite(value):
+                    history.append(value)
+                    break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
+                if value < best[0]:
+                    best = (value, self._snapshot(), step)
                 loss.backward()
                 opt.step()
-                history.append(loss.item())
+                history.append(value)
                 if self.surface is None and step % 10 == 9 and (self.backend.stale() or
                                                                  (self.auto and step % 30 == 29)):
                     self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
-            if self.surface is None and self.backend.stale():
-                self._adapt()
         except KeyboardInterrupt:
-            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
+                          FitInterruptedWarning, stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
+            self._keep_best(best, history, lr, quiet=True)
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
-                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64."
+                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
+                f"the best step's hyperparameters)."
             ) from e
         finally:
             self.backend.in_fit = False
@@ -401,6 +397,9 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                 self._rebuild_backend()
             bar.close()
             self.eval()
+        self._keep_best(best, history, lr)
+        if self.surface is None and self.backend.stale():
+            self._adapt()
         self.loss_history.extend(history)
         self._last_fit = (int(n_iter), float(lr))
         if self.averages_means:
@@ -420,29 +419,6 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
                 self._fit_companion(*getattr(self, "_last_fit", (300, 0.05)), progress=False)
             self._set_mean_average()
-
-    def _adapt(self) -> None:
-        """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
-        (``method="auto"``, every 30 steps) may have made another space cheaper: with "auto", first ask
-        whether another backend is now cheaper (by more than 2x) and move there instead (the
-        hyperparameters are shared, nothing is lost; a lengthscale that dips below what the spectral
-        basis can hold and recovers brings the fit back to spectral); else refresh."""
-        if self.auto:
-            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
-            best = cheaper_space(costs, self.method)
-            if best is not None:
-                self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
-                                            solver=self.solver, tol=self.tol, statistics=self._statistics)
-                self.backend.in_fit = True
-                return
-        self.backend.refresh()
-
-    def _pair_count(self) -> int:
-        """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until
-        ``add_data`` changes the data."""
-        if getattr(self, "_n_pairs", None) is None:
-            self._n_pairs = estimate_pairs(self.train_contacts)
-        return self._n_pairs
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
@@ -491,7 +467,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "stress_map")
         self.eval()
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
@@ -513,7 +489,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             raise ValueError(f"n must be a positive integer (the number of maps to draw), got {n!r}")
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "sample_maps")
         c = Contacts.points(beta, gamma)
         N = c.beta.shape[0]
         if N > 4096 and self.backend.posterior_root(c) is None:
@@ -539,7 +515,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "the model's map")
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
         if weights is None:
@@ -574,6 +550,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
         self.eval()
         c = contacts.to(dtype=self.dtype, device=self._device)
+        _check_query(c, self.train_contacts)
         lead, M = c.shape[:-1], c.n_segments
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
@@ -588,7 +565,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         backends, weights = self._weighted_backends()
         means, variances = [], []
         for backend in backends:
-            mean, var = _force_posterior(backend, flat, rows, variance)
+            mean, var = _force_posterior(backend, flat, rows, variance, chunk=_predict_chunk(backend))
             var = var.T.reshape(*lead, 2)
             if include_noise:
                 var = var + backend.hypers.noise * scale.pow(2)

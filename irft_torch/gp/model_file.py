@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._files import atomic_write
 from ..rft.contacts import Contacts
 
 __all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
@@ -49,7 +50,10 @@ def digest(obj) -> str:
 
 def save_model(model, path) -> None:
     """Write an ``InverseRFT``'s training data (as measured: the whitening undone), options,
-    hyperparameters and a checksum to one file (torch.save)."""
+    hyperparameters and a checksum to one file (torch.save), atomically: to a temporary file beside
+    it, fsynced, then renamed over ``path`` (``_files.atomic_write``), so a full disk, Ctrl-C or a
+    crash leaves the previous file loadable. A folder, a missing folder or a failed write is an
+    ``OSError`` naming the path."""
     contacts, forces = model._measured()
     payload = {
         "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
@@ -76,8 +80,8 @@ def save_model(model, path) -> None:
         payload["options"]["surface_offset"] = True
         payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
         payload["surface_offset"] = model.surface.offset.detach().cpu()
-    torch.save({"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload),
-                "payload": payload}, path)
+    blob = {"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload), "payload": payload}
+    atomic_write(path, lambda fh: torch.save(blob, fh), "model")
 
 
 def load_model(cls, path, map_location=None):

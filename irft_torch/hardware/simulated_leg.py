@@ -22,6 +22,7 @@ import can
 import numpy as np
 import torch
 
+from .._files import atomic_path
 from ..rft.contacts import contacts
 from ..rft.forces import forces
 from ..rft.paths import Path, pose_path
@@ -191,9 +192,15 @@ class SimulatedLeg:
         return SimulationTruth(tk, q.numpy(), p, f.numpy(), current.numpy())
 
     def run(self, path: Path, log_path, in_air: bool = False, t0: float = 1.7e9) -> SimulationTruth:
-        """Run the path once and log the bus to ``log_path`` (.log/.asc/.blf/...). ``t0`` is the
-        simulated wall-clock start (s since the epoch). Returns the simulation's truth."""
+        """Run the path once and log the bus to ``log_path`` (.log/.asc/.blf/...; written to a temporary
+        file renamed into place, so a failure leaves an older log whole). ``t0`` is the simulated
+        wall-clock start (s since the epoch). Returns the simulation's truth."""
         truth = self.truth(path, in_air)
+        with atomic_path(log_path, "log") as tmp:  # written whole or not at all: an old log stays if this fails
+            self._log(truth, tmp, in_air, t0)
+        return truth
+
+    def _log(self, truth: SimulationTruth, log_path, in_air: bool, t0: float) -> None:
         rng = np.random.default_rng(self.seed + (7919 if in_air else 0))
         # no trailing digits: BLF and ASC writers read a channel number from them (a 16-bit field)
         channel = f"irft-sim-{uuid.uuid4().hex}-bus"
@@ -227,4 +234,3 @@ class SimulatedLeg:
             host.shutdown()
             for b in ctrl_buses:
                 b.shutdown()
-        return truth
