@@ -12,6 +12,7 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -74,7 +75,7 @@ def save_dataset(path, ds: Dataset, **meta) -> Path:
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
+    arrays: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
     arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:

@@ -84,8 +84,8 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         on_error: "raise" (LogReadError with ``.partial``) or "warn" (return the partial data) when
             the file is truncated or damaged.
         protocol: "odrive" (CANSimple) or "mit" (CubeMars / T-Motor AK MIT-mode replies).
-        mit_model, master_id: the AK model (a name in ``MIT_MODELS`` or a ``MitModel``) and the host's
-            id that replies are sent to (``protocol="mit"``).
+        mit_model: the AK model, a name in ``MIT_MODELS`` or a ``MitModel`` (``protocol="mit"``).
+        master_id: the host's id that replies are sent to (``protocol="mit"``).
     Returns:
         LogData. Series groups: "encoder" (position [motor turns], velocity [turns/s]), "iq" (setpoint,
         measured [A]), "torque" (target, estimate [N m]), "heartbeat" (fault 0/1, ODrive axis state).
@@ -137,9 +137,9 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         data.issues.append(str(e))
         raise LogReadError(str(e), data) from None
     except Exception as e:  # noqa: BLE001 - a header python-can cannot parse
-        msg = f"{path.name} is not a readable {suffix} log: {type(e).__name__}: {e}"
-        data.issues.append(msg)
-        raise LogReadError(msg, data) from None
+        why = f"{path.name} is not a readable {suffix} log: {type(e).__name__}: {e}"
+        data.issues.append(why)
+        raise LogReadError(why, data) from None
     raw: list[tuple[float, int, str, tuple]] = []
     seen: set = set()
     duplicates = 0
