@@ -30,7 +30,8 @@ import torch
 from ..rft.toes import Toe
 from ..rft.wheel import profile_from_elements
 
-__all__ = ["WheelRun", "read_wheel_runs", "read_profile", "WHEEL_RADIUS", "WHEEL_WIDTH", "WHEELS", "GROUSER_PITCH"]
+__all__ = ["WheelRun", "read_wheel_runs", "read_profile", "WHEEL_RADIUS", "WHEEL_WIDTH", "WHEELS", "GROUSER_PITCH",
+           "read_wheel_mesh", "wheel_motion", "MESHES", "MESH_TO_WHEEL"]
 
 WHEEL_RADIUS = 0.0625  # m, both wheels (grouser tips for the grousered one)
 WHEEL_WIDTH = 0.060  # m
@@ -56,6 +57,7 @@ class WheelRun:
     force_std: tuple  # their standard deviations over the run, N
     lateral: float  # N
     rft_force: tuple  # the authors' RFT (longitudinal, vertical), N
+    rft_lateral: float = math.nan  # the authors' RFT lateral force (their ForceY), N
 
     @property
     def omega(self) -> float:
@@ -110,7 +112,7 @@ def read_wheel_runs(data_dir, wheel: str, slip_angle_deg: float | None = 0.0) ->
             force=(-_scalar(r["avg_Fy"]), -_scalar(r["avg_Fz"])),
             force_std=(_scalar(r["std_Fy"]), _scalar(r["std_Fz"])),
             lateral=-_scalar(r["avg_Fx"]),
-            rft_force=(_scalar(p["ForceX"]), _scalar(p["ForceZ"])),
+            rft_force=(_scalar(p["ForceX"]), _scalar(p["ForceZ"])), rft_lateral=_scalar(p["ForceY"]),
         ))
     return out
 
@@ -160,3 +162,43 @@ def read_profile(data_dir, wheel: str, angle_bins: int = 360, normal_bins: int =
     n = np.stack([np.bincount(inv, weights=length * nrm[:, j]) for j in range(2)], 1)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     return profile_from_elements(torch.as_tensor(c), torch.as_tensor(n), torch.as_tensor(wsum), WHEEL_WIDTH)
+
+
+# ---- 3-D: the wheels' meshes and each run's rigid motion (rft.contacts_3d) ------------------------------
+MESHES = {"smooth": "smooth_wheel_125.mat", "grouser": "grousered_wheel_125.mat"}
+# The meshes' own frame (x the axle, 0 to 60 mm across the width, y the heading, z up, axle centre at the
+# origin) -> this package's wheel frame (heading +x, axle along y, z up): (x, y, z) -> (y, -x, z). Entries
+# 0 and +-1, so the normals' round-off (which decides some contacts, reference/rft3d_facts.md) is kept.
+MESH_TO_WHEEL = ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def read_wheel_mesh(data_dir, wheel: str):
+    """The wheel's 3-D surface mesh as the data's authors used it (``rft.Mesh``, m, m^2), turned into this
+    package's wheel frame (``MESH_TO_WHEEL``): it rolls toward +x about the y axis, the axle at the origin.
+    Smooth: 37,526 elements (rim and one sidewall); grousered: 59,092."""
+    from ..rft.mesh import read_mesh
+
+    if wheel not in MESHES:
+        raise ValueError(f"wheel must be one of {sorted(MESHES)}, got {wheel!r}")
+    data_dir = Path(data_dir)
+    f = data_dir / MESHES[wheel]
+    if not f.is_file():
+        raise FileNotFoundError(f"no {f.name} in {data_dir} (the rover-wheel data are not shipped)")
+    return read_mesh(f, unit="mm").transformed(torch.tensor(MESH_TO_WHEEL, dtype=torch.float64))
+
+
+def wheel_motion(runs: list[WheelRun], as_commanded: bool = False, dtype=torch.float64) -> dict:
+    """Each run's rigid motion in the wheel frame (``read_wheel_mesh``), keyword arguments of
+    ``rft.contacts_3d``: carriage velocity V (cos psi, sin psi, 0) at slip angle psi (the wheel heads +x and
+    drifts toward +y, the side of the mesh's sidewall), spin (0, rim speed / radius, 0) (rolling forward),
+    surface at sinkage - radius (axle at the origin). Measured speeds (``avg_Vx``, ``avg_Vry``) by default;
+    ``as_commanded``: the authors' inputs (V = 10 mm/s and the commanded rim speed), with which their
+    predictions ``rft_force`` / ``rft_lateral`` are reproduced. The sinkage is the measured one either way."""
+    psi = torch.tensor([math.radians(r.slip_angle_deg) for r in runs], dtype=dtype)
+    V = torch.tensor([0.010 if as_commanded else r.v for r in runs], dtype=dtype)
+    rim = torch.tensor([r.commanded_rim_speed if as_commanded else r.rim_speed for r in runs], dtype=dtype)
+    sink = torch.tensor([r.sinkage for r in runs], dtype=dtype)
+    zero = torch.zeros_like(V)
+    return {"velocity": torch.stack([V * torch.cos(psi), V * torch.sin(psi), zero], -1),
+            "angular_velocity": torch.stack([zero, rim / WHEEL_RADIUS, zero], -1),
+            "surface": sink - WHEEL_RADIUS}
