@@ -30,6 +30,8 @@ def test_site_builds_strict_and_documents_the_api(tmp_path):
     expected = {"rft": "irft_torch.rft.contacts.Contacts", "backends": "irft_torch.gp.backends.SpectralBackend",
                 "design": "irft_torch.design.scoring.ProbeScorer",
                 "hardware": "irft_torch.hardware.five_bar.FiveBarLeg", "data": "irft_torch.data.dataset.Dataset"}
+    rft = (site / "api" / "rft" / "index.html").read_text()  # the 3-D contacts and forces
+    assert 'id="irft_torch.rft.contacts3d.Contacts3D"' in rft and 'id="irft_torch.rft.forces3d.forces_3d"' in rft
     for api, ident in expected.items():
         assert f'id="{ident}"' in (site / "api" / api / "index.html").read_text(), (api, ident)
     for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
