@@ -188,12 +188,12 @@ def _out_dir(path, arg: str) -> Path:
 
 def _points(text: str) -> list[tuple[float, float]]:
     try:
-        pts = [tuple(float(v) for v in p.split(",")) for p in text.split(";") if p.strip()]
+        pts = [[float(v) for v in p.split(",")] for p in text.split(";") if p.strip()]
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"control points must look like 'x,z;x,z;...' in m: {e}") from e
     if any(len(p) != 2 for p in pts):
         raise argparse.ArgumentTypeError("each control point needs two numbers 'x,z' (m)")
-    return pts
+    return [(x, z) for x, z in pts]
 
 
 def add_toe_args(p: argparse.ArgumentParser) -> None:

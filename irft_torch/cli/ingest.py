@@ -220,7 +220,7 @@ def cmd_ingest(a) -> int:
 
         ds.statistics = statistics_arrays(recording_statistics(ds.contacts, ds.forces), ds.contacts, ds.forces)
     written = save_dataset(out, ds, logs=[str(p) for p in a.logs], air=[str(p) for p in a.air])
-    masked = {}
+    masked: dict[str, int] = {}
     for t in trials:
         for k_, v_ in t.why_masked.items():
             masked[k_] = masked.get(k_, 0) + v_

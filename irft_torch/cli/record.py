@@ -80,7 +80,7 @@ def cmd_record(a) -> int:
     if a.simulate:
         return _record_simulated(a, out)
     if a.protocol == "mit":
-        poll = ()
+        poll: tuple = ()
         print("MIT mode: listening only (a poll would be a command); the motors' replies to your controller "
               "are logged")
     else:

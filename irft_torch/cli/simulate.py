@@ -4,6 +4,7 @@ reads), optionally a CSV and figures."""
 from __future__ import annotations
 
 import csv
+from typing import Any
 
 from .arguments import MAPS, _out_dir, _out_file, add_path_args, add_toe_args, make_path, make_toe
 
@@ -21,7 +22,7 @@ def cmd_simulate(a) -> int:
     smap = MAPS[a.map](a.scale_x, a.scale_z)
     c = rft.contacts(toe, path)
     f = rft.forces(smap, c)
-    arrays = {k: v.numpy() for k, v in c.as_dict().items()}
+    arrays: dict[str, Any] = {k: v.numpy() for k, v in c.as_dict().items()}
     # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields; written
     # whole or not at all (a temporary renamed into place)
     atomic_write(out, lambda fh: np.savez(fh, time=path.time.numpy(), position=path.position.numpy(),

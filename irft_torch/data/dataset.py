@@ -12,6 +12,7 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -77,7 +78,7 @@ def save_dataset(path, ds: Dataset, **meta) -> Path:
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
+    arrays: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
     arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
     atomic_write(path, lambda fh: np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(),
                                           toe_position=ds.toe_position.numpy(), meta=np.array(repr(meta)), **arrays),

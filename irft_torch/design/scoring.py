@@ -37,6 +37,7 @@ import warnings
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -299,13 +300,13 @@ class ProbeScorer:
         if region is None:
             self._square = self._square or Region.square(dtype=self.noise.dtype)
             region = self._square
-        key = id(region)  # the cache holds the region, so its id is not reused while cached
-        if key not in self._regions or self._regions[key][0] is not region:
+        rid = id(region)  # the cache holds the region, so its id is not reused while cached
+        if rid not in self._regions or self._regions[rid][0] is not region:
             r = region.contacts().to(dtype=self.noise.dtype, device=self.noise.device)
             with torch.no_grad():
                 var = self.backend.posterior(r).variance  # (2, N)
-            self._regions[key] = (region, r, var)
-        return self._regions[key]
+            self._regions[rid] = (region, r, var)
+        return self._regions[rid]
 
     def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
         """Expected integrated map variance over ``region`` (default: the whole square) after
@@ -334,7 +335,7 @@ class ProbeScorer:
         # little), each at most SCORE_ROWS rows and SCORE_ROWS^2 / 10 padded block entries: one covariance
         # product and one Cholesky per batch.
         order = sorted(range(len(cands)), key=lambda i: len(cands[i]))
-        scores = [None] * len(cands)
+        scores: list = [None] * len(cands)
         chunk: list[int] = []
         rows = 0
         for i in order + [None]:
@@ -565,7 +566,7 @@ class MixtureScorer:
 class _ForceRelative:
     """sqrt(F^2 + floor^2) of the model's predicted force (a class, not a closure: a scorer pickles)."""
 
-    model: object
+    model: Any  # an InverseRFT (design/ never imports the front door)
     floor: float
 
     def __call__(self, c: Contacts) -> Tensor:

@@ -71,7 +71,7 @@ class _StackedHyperparameters(RFTHyperparameters):
     def tied(self) -> bool:
         return self._tied
 
-    @property
+    @property  # type: ignore[misc]  # read-only here: the models' noises are set on the models
     def noise(self) -> Tensor:
         """(2B,) force noise variances, N^2 (model b: entries 2b, 2b + 1)."""
         n = self.likelihood.noise.reshape(-1)

@@ -6,18 +6,46 @@ NUTS) and keeps one backend per draw; every prediction averages over them with t
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .backends import RFTBackend, make_backend
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .hyperparameters import RFTHyperparameters
 
+if TYPE_CHECKING:
+    from ..rft.contacts import Contacts
+    from .backends.weight_space import FeatureStatistics
+    from .surface import SurfaceOffset
+
 __all__ = ["HyperMixtureMixin"]
 
 
-class HyperMixtureMixin:
+class HyperMixtureMixin(nn.Module):
     """``fit_hyper_posterior`` and the backends predictions average over (``_weighted_backends``)."""
+
+    hyper_posterior: HyperPosterior | None  # the draws and weights (None: the plug-in)
+    _draw_backends: list[RFTBackend] | None  # one backend per draw
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        hypers: RFTHyperparameters
+        backend: RFTBackend
+        surface: SurfaceOffset | None
+        _statistics: FeatureStatistics | None
+        _device: torch.device
+        dtype: torch.dtype
+        solver: str
+        tol: float
+        hyper_method: str
+
+        @property
+        def method(self) -> str: ...
+        @property
+        def train_contacts(self) -> Contacts: ...
+        @property
+        def train_forces(self) -> Tensor: ...
 
     def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
                             generator: torch.Generator | None = None, **options) -> HyperPosterior | None:

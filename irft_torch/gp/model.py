@@ -175,9 +175,9 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         scale = _as_noise_scale(noise_scale, T, dtype, device)
         _check_units(c, f)  # as measured (whitened by a small noise_scale they would look too large)
         c, f = _whiten(c, f, scale)
-        for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
+        for field, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
-                raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+                raise ValueError(f"contacts.{field} is zero everywhere: no segment is in contact, nothing to learn")
         for axis, name in enumerate(("F_x", "F_z")):
             if not (f[:, axis] != 0).any():  # each map is learned in its forces' scale (_data_scales): none here
                 raise ValueError(f"forces[:, {axis}] ({name}) is zero in every sample: no scale to learn that map in; "
@@ -196,7 +196,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
-        self._joined = None
+        self._joined: tuple[Contacts, Tensor, Tensor] | None = None
 
         # Data-scaled initial values and bounds (forces in N, maps in N/cm^3).
         y = f.T
@@ -294,7 +294,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """The training contacts (T, M), whitened by ``noise_scale`` (with a learned surface offset: at
         the current offset)."""
         c = self._join()[0]
-        return c if self.surface is None else self.surface.apply(c, detach=True)
+        return c if self.surface is None else self.surface.shifted(c, detach=True)
 
     @property
     def train_forces(self) -> Tensor:

@@ -6,14 +6,18 @@ from __future__ import annotations
 
 import hashlib
 import warnings
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._files import atomic_write
 from ..rft.contacts import Contacts
+
+if TYPE_CHECKING:
+    from .hyperparameters import RFTHyperparameters
+    from .surface import SurfaceOffset
 
 __all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
            "PersistenceMixin"]
@@ -179,10 +183,29 @@ def _load_v1(cls, d: dict, path):
 _Model = TypeVar("_Model", bound="PersistenceMixin")
 
 
-class PersistenceMixin:
+class PersistenceMixin(nn.Module):
     """An ``InverseRFT``'s state and file: its options, its training data as measured and their digest,
     ``state_dict`` / ``load_state_dict`` (hyperparameters and the data's digest, never the backend's
     entries), ``save`` / ``load`` (``save_model``, ``load_model``). A mixin of ``InverseRFT``."""
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        hypers: RFTHyperparameters
+        surface: SurfaceOffset | None
+        data_digest: Tensor
+        _digest_stale: bool
+        _device: torch.device
+        dtype: torch.dtype
+        prior_mean_kind: str
+        init_lengthscale: float
+        tol: float
+        solver: str
+        priors: str | None
+        hyper_method: str
+
+        @property
+        def noise_scale(self) -> Tensor: ...
+        def _join(self) -> tuple[Contacts, Tensor, Tensor]: ...
+        def _rebuild_backend(self) -> None: ...
 
     def _options(self) -> dict:
         """The constructor options that shape the model, beyond its data, backend and surface: what a

@@ -65,7 +65,7 @@ class FakeODrive:
         self.bus.send(msg)
 
     def _reply(self, command: str, now: float) -> can.Message | None:
-        kw = {"firmware": self.firmware, "timestamp": now}
+        kw: dict = {"firmware": self.firmware, "timestamp": now}
         if command == "get_iq":
             return encode("get_iq", self.node, iq_setpoint=self.iq, iq_measured=self.iq, **kw)
         if command == "get_encoder_estimates":
@@ -141,8 +141,8 @@ class SimulatedLeg:
     Args:
         toe: the toe geometry (rft), fixed heading.
         medium: stress map of the sand (e.g. ``FourierStressMap.generic(1.0, 1.5)``).
-        leg, motors: kinematics (default l1 = 0.15 m, l2 = 0.30 m, coaxial: it reaches the paper's
-            300 mm shear) and motor models (paper: U8-II, k_t = 0.0973 N m/A).
+        leg: kinematics (default l1 = 0.15 m, l2 = 0.30 m, coaxial: it reaches the paper's 300 mm shear).
+        motors: motor models (paper: U8-II, k_t = 0.0973 N m/A).
         hip_height: height of the motor axes above the sand surface, m.
         friction: Coulomb friction per motor, N m (opposes joint velocity).
         cogging: cogging ripple amplitude, N m; ``cogging_periods`` ripples per motor turn.

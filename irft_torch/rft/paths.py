@@ -334,7 +334,8 @@ def pose_path(time, x, z, heading=None, dtype=torch.float64) -> Path:
 
     Args:
         time: (T,) s, strictly increasing.
-        x, z: (T,) body origin, m.
+        x: (T,) body origin, horizontal, m.
+        z: (T,) body origin, vertical (up), m.
         heading: (T,) rad, default 0.
     """
     t = torch.as_tensor(time, dtype=dtype)

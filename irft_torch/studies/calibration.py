@@ -319,7 +319,8 @@ def grid(n: int = 41) -> tuple[Tensor, Tensor]:
     toward -x is the mirror image of this square, ``rft.stress_maps.mirror_to_canonical``)."""
     b = torch.linspace(-math.pi / 2, math.pi / 2, n + 1, dtype=F64)[:-1]
     gm = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=F64)
-    return torch.meshgrid(b, gm, indexing="ij")
+    B, G = torch.meshgrid(b, gm, indexing="ij")
+    return B, G
 
 
 def score(model: InverseRFT, truth, n_grid: int = 41, draws: int = 200, seed: int = 0) -> dict:

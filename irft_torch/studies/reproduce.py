@@ -121,7 +121,8 @@ def configuration(config: str, settings: StudySettings | None = None):
 def _grid(s: StudySettings) -> tuple[torch.Tensor, torch.Tensor]:
     edges = torch.linspace(-math.pi / 2, math.pi / 2, s.grid + 1, dtype=torch.float64)
     c = (edges[1:] + edges[:-1]) / 2
-    return torch.meshgrid(c, c, indexing="ij")
+    B, G = torch.meshgrid(c, c, indexing="ij")
+    return B, G
 
 
 LEVELS = (0.5, 0.9, 0.95)  # central posterior intervals whose coverage of the truth is reported
@@ -185,8 +186,9 @@ def _fit_group(specs: list, s: StudySettings, keep_model: bool = False) -> list[
         priors = s.priors if priors == "settings" else priors
         built.append((model, toe, path, c, spec, ls, priors, keep_maps, pinned))
     fit_together([b[0] for b in built], n_iter=s.n_iter, lr=s.lr)
-    return [_evaluate(model, toe, path, c, *spec[:6], s, ls, priors, keep_maps=keep_maps, pinned=pinned,
-                      keep_model=keep_model) for model, toe, path, c, spec, ls, priors, keep_maps, pinned in built]
+    return [_evaluate(model, toe, path, c, spec[0], spec[1], spec[2], spec[3], spec[4], spec[5], s, ls, priors,
+                      keep_maps=keep_maps, pinned=pinned, keep_model=keep_model)
+            for model, toe, path, c, spec, ls, priors, keep_maps, pinned in built]
 
 
 def _fit_one(config, prior_mean, noise, seed, truth_map, truth_name, s, keep_maps=False, lengthscale=None,
@@ -324,7 +326,7 @@ def study_fits(s: StudySettings) -> list:
     truth_map, truth_name, keep_maps[, lengthscale, priors, pinned])."""
     paper_truth = FourierStressMap.generic(*s.truth_scale)
     unscaled = FourierStressMap.generic()
-    jobs = []
+    jobs: list[tuple] = []
     for config in CONFIGS:
         jobs.append((config, "zero", 0.0, 0, paper_truth, "paper scale", True))
         jobs.append((config, "physics", 0.0, 0, paper_truth, "paper scale", False))

@@ -91,7 +91,8 @@ class SpectralBackend(WeightSpaceBackend):
 
     Args:
         hypers: shared hyperparameters.
-        contacts, forces: whitened training data (T, M), (T, 2).
+        contacts: whitened training contacts (T, M).
+        forces: whitened training forces (T, 2), N.
         tol: bound on the kernel's relative truncation error used to size the basis (default 1e-7).
         basis: a fixed :class:`FourierBasis` instead (then ``tol`` only triggers a warning).
         keep_data: keep the training data so that the basis can grow (default True).
@@ -102,6 +103,7 @@ class SpectralBackend(WeightSpaceBackend):
 
     name = "spectral"
     held = False  # True: the basis stays as it is (set by InverseRFT's method="auto" to hold a step's cost)
+    _basis_key: Tensor | None  # the hyperparameters the basis was last sized for (``_ensure_basis``)
 
     def __init__(self, hypers, contacts: Contacts, forces: Tensor, tol: float = 1e-7,
                  basis: FourierBasis | None = None, keep_data: bool = True,
