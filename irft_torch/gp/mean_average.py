@@ -30,12 +30,17 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import Tensor
 
 from .backends import RFTBackend
 from .hyper_posterior import _polish, hyper_spec, log_evidence
+
+if TYPE_CHECKING:
+    from ..rft.contacts import Contacts
+    from .model import InverseRFT
 
 __all__ = ["MeanAverage", "MeanAverageMixin", "MEANS"]
 
@@ -92,13 +97,29 @@ class MeanAverageMixin:
     evidence, and the weighted backends predictions average over."""
 
     mean_average: MeanAverage | None
+    companion_fit_seconds: float  # what the average adds to a fit (benchmarks)
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        _companion: list  # the companion model (a list: not a submodule)
+        _device: torch.device
+        dtype: torch.dtype
+        prior_mean_kind: str
+        _method_arg: str
+
+        @property
+        def noise_scale(self) -> Tensor: ...
+        @property
+        def train_forces(self) -> Tensor: ...
+        def _measured(self) -> tuple[Contacts, Tensor]: ...
+        def _options(self) -> dict: ...
+        def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
 
     @property
     def averages_means(self) -> bool:
         return self.prior_mean_kind == "average"
 
     @property
-    def companion(self):
+    def companion(self) -> InverseRFT | None:
         """The physics-mean model averaged with this one (``prior_mean="average"``, after ``fit``), or None."""
         return self._companion[0] if self._companion else None
 
@@ -107,15 +128,16 @@ class MeanAverageMixin:
         submodule, and its hyperparameters would enter this model's state and optimiser)."""
         self._companion[:] = [] if model is None else [model]
 
-    def _new_companion(self, method: str | None = None):
+    def _new_companion(self, method: str | None = None) -> InverseRFT:
         """The physics-mean model on this model's data, with its options (unfitted); ``method``: its
         backend (default: this model's ``method`` argument)."""
         contacts, forces = self._measured()
         opts = self._options()
         opts["prior_mean"] = "physics"
         opts.pop("dtype")
-        return type(self)(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
-                          method=method or self._method_arg, **opts)
+        model = cast("type[InverseRFT]", type(self))
+        return model(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
+                     method=method or self._method_arg, **opts)
 
     def _fit_companion(self, n_iter: int, lr: float, progress: bool) -> None:
         """Fit the physics-mean companion as this model was fitted (same steps and rate), on this model's
@@ -134,7 +156,7 @@ class MeanAverageMixin:
             self.mean_average = None
             return
         evidence = []
-        for m in (self, self.companion):
+        for m in (cast("InverseRFT", self), self.companion):  # this model is an InverseRFT (the mixin's host)
             hp = m.hyper_posterior
             if hp is None or hp.method != "laplace":  # laplace leaves them at the mode; a plug-in or NUTS does not
                 _polish_to_mode(m.backend)
