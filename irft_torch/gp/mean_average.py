@@ -30,17 +30,16 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from .backends import RFTBackend
-from .hyper_posterior import _polish, hyper_spec, log_evidence
+from .hyper_posterior import HyperPosterior, _polish, hyper_spec, log_evidence
 
 if TYPE_CHECKING:
     from ..rft.contacts import Contacts
-    from .model import InverseRFT
 
 __all__ = ["MeanAverage", "MeanAverageMixin", "MEANS"]
 
@@ -105,6 +104,8 @@ class MeanAverageMixin:
         dtype: torch.dtype
         prior_mean_kind: str
         _method_arg: str
+        hyper_posterior: HyperPosterior | None
+        backend: RFTBackend
 
         @property
         def noise_scale(self) -> Tensor: ...
@@ -113,13 +114,16 @@ class MeanAverageMixin:
         def _measured(self) -> tuple[Contacts, Tensor]: ...
         def _options(self) -> dict: ...
         def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
+        def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None: ...
+        def train(self, mode: bool = True) -> Any: ...  # nn.Module's
+        def eval(self) -> Any: ...
 
     @property
     def averages_means(self) -> bool:
         return self.prior_mean_kind == "average"
 
     @property
-    def companion(self) -> InverseRFT | None:
+    def companion(self):
         """The physics-mean model averaged with this one (``prior_mean="average"``, after ``fit``), or None."""
         return self._companion[0] if self._companion else None
 
@@ -128,14 +132,14 @@ class MeanAverageMixin:
         submodule, and its hyperparameters would enter this model's state and optimiser)."""
         self._companion[:] = [] if model is None else [model]
 
-    def _new_companion(self, method: str | None = None) -> InverseRFT:
+    def _new_companion(self, method: str | None = None):
         """The physics-mean model on this model's data, with its options (unfitted); ``method``: its
         backend (default: this model's ``method`` argument)."""
         contacts, forces = self._measured()
         opts = self._options()
         opts["prior_mean"] = "physics"
         opts.pop("dtype")
-        model = cast("type[InverseRFT]", type(self))
+        model: Any = type(self)  # the mixin's host: an InverseRFT (its constructor's arguments)
         return model(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
                      method=method or self._method_arg, **opts)
 
@@ -156,7 +160,7 @@ class MeanAverageMixin:
             self.mean_average = None
             return
         evidence = []
-        for m in (cast("InverseRFT", self), self.companion):  # this model is an InverseRFT (the mixin's host)
+        for m in (self, self.companion):
             hp = m.hyper_posterior
             if hp is None or hp.method != "laplace":  # laplace leaves them at the mode; a plug-in or NUTS does not
                 _polish_to_mode(m.backend)
