@@ -110,7 +110,7 @@ def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance
 def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts, generator) -> Tensor:
     """Maps (2, N, n) drawn jointly over the N points of ``c``: ``counts[a][s]`` of map a's n draws from
     backend s (its posterior mean plus its root times normals), the order shuffled across backends."""
-    out = [[], []]
+    out: list[list[Tensor]] = [[], []]
     for s, b in enumerate(backends):
         k = max(counts[0][s], counts[1][s])
         if k == 0:

@@ -234,6 +234,7 @@ def _decode_all(reader, name: str, suffix: str, data: LogData, protocol: str, fi
             data.skipped[f"on CAN channel {ch} (reading channel {channel})"] += 1
             continue
         key = _frame_key(msg)
+        payload: object  # a frame's data, or what the record says instead (see ``_decode_all``)
         kind, payload = "none", None
         if msg.is_error_frame:
             kind, payload = "skip", "error frame"
