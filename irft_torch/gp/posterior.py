@@ -36,14 +36,12 @@ class Posterior:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
+        _check_level(level)
         if self.components is not None:
             means, variances, weights = self.components
             return (mixture_quantile(0.5 - level / 2, means, variances, weights),
                     mixture_quantile(0.5 + level / 2, means, variances, weights))
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
+        return normal_interval(self.mean, self.stddev, level)
 
     @classmethod
     def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
@@ -130,3 +128,16 @@ def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts,
         draws = torch.stack([draws[a][:, torch.randperm(n, generator=generator, device=draws.device)]
                              for a in range(2)])
     return draws
+
+
+def _check_level(level: float) -> None:
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+
+
+def normal_interval(mean: Tensor, stddev: Tensor, level: float) -> tuple[Tensor, Tensor]:
+    """Central interval (lower, upper) of independent Gaussian marginals at ``level`` in (0, 1):
+    mean -+ sqrt(2) erfinv(level) stddev (what ``Posterior.interval`` and the 3-D posterior use)."""
+    _check_level(level)
+    z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+    return mean - z * stddev, mean + z * stddev
