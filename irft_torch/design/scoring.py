@@ -470,7 +470,7 @@ class MixtureScorer:
     def _build(model, method, noise_scale, tol) -> tuple[list[ProbeScorer], Tensor]:
         backends, weights = model._weighted_backends()
         scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
-        return scorers, weights if weights is not None else torch.ones(1)
+        return scorers, weights if weights is not None else torch.ones(1, device=scorers[0].noise.device)
 
     @staticmethod
     def _state(model) -> tuple:

@@ -43,6 +43,15 @@ class Posterior:
                     mixture_quantile(0.5 + level / 2, means, variances, weights))
         return normal_interval(self.mean, self.stddev, level)
 
+    def to(self, *args, **kwargs) -> Posterior:
+        """The same posterior with every tensor moved as ``Tensor.to(*args, **kwargs)`` moves it (a
+        device, a dtype or both): ``model.stress_map(b, g).to("cpu")`` for plotting a GPU model's map."""
+        comp = None
+        if self.components is not None:
+            means, variances, weights = self.components
+            comp = (means.to(*args, **kwargs), variances.to(*args, **kwargs), weights.to(*args, **kwargs))
+        return Posterior(self.mean.to(*args, **kwargs), self.variance.to(*args, **kwargs), comp)
+
     @classmethod
     def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
         """The mixture over draws: ``means``, ``variances`` (S, ..., 2), ``weights`` (S,); one draw is a

@@ -58,7 +58,7 @@ def _pack(c: Contacts3D, parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Te
     for block, (m, s) in zip(BLOCKS, parts):
         A = len(block.axes)
         mean[:, list(block.axes)] = m.reshape(A, T).T
-        idx = torch.tensor(block.axes)
+        idx = torch.tensor(block.axes, device=cov.device)
         cov[:, idx[:, None], idx[None, :]] = s
     return mean, cov
 
@@ -467,7 +467,7 @@ def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
             priors = priors + s * ws[i].sum(-1)[:, None] * ws[i].sum(-1)[None, :]
             continue
         ls, s = backend.hypers.lengthscale[m:m + 1].detach(), backend.hypers.outputscale[m:m + 1].detach()
-        ones = torch.ones(U, 1, dtype=tb.dtype)
+        ones = torch.ones(U, 1, dtype=tb.dtype, device=tb.device)
         st = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], tb[None, :, None],
                                                        tg[None, :, None], ones[None], ONE)
         cols.append(RFTKernelLinearOperator.from_structure(st, ls, s, ONE).to_dense()[0])

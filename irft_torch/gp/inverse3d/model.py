@@ -276,7 +276,7 @@ class InverseRFT3D(nn.Module):
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
         the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere."""
-        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype)
+        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
         prior = self.hypers.outputscale.detach().sqrt()
