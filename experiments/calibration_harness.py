@@ -29,19 +29,31 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from irft_torch.studies.calibration import HELD_OUT_MEDIA, HELD_OUT_MOTIONS, MEDIA, MOTIONS, Case, run_case
+from irft_torch.studies.calibration import (
+    HELD_OUT_MEDIA,
+    HELD_OUT_MEDIA_2,
+    HELD_OUT_MOTIONS,
+    HELD_OUT_MOTIONS_2,
+    MEDIA,
+    MOTIONS,
+    Case,
+    run_case,
+)
 
 NOISES = (0.01, 0.05)
-POSTERIORS = ("map", "laplace")
+POSTERIORS = ("map", "laplace", "average_map", "average")
 
 
-def cases(held_out: bool, seeds: int, quick: bool) -> list[Case]:
-    media = HELD_OUT_MEDIA + ("scaled",) if held_out else MEDIA
-    motions = MOTIONS if not held_out else HELD_OUT_MOTIONS + ("turning",)
+def cases(held_out: bool, seeds: int, quick: bool, held_out_2: bool = False) -> list[Case]:
+    held_media, held_motions = (HELD_OUT_MEDIA_2, HELD_OUT_MOTIONS_2) if held_out_2 else (HELD_OUT_MEDIA,
+                                                                                       HELD_OUT_MOTIONS)
+    held = held_out or held_out_2
+    media = held_media + ("scaled",) if held else MEDIA
+    motions = MOTIONS if not held else held_motions + ("turning",)
     out = []
     for family in media:
         for kind in motions:
-            if held_out and family not in HELD_OUT_MEDIA and kind not in HELD_OUT_MOTIONS:
+            if held and family not in held_media and kind not in held_motions:
                 continue  # held-out runs pair each held-out family with the other axis' known one
             for seed in range(seeds):
                 out.append(Case(family, kind, NOISES[seed % len(NOISES)], seed))
@@ -67,44 +79,59 @@ def summarise(rows: list[dict]) -> dict:
 
 def write_report(rows: list[dict], out: Path, suffix: str) -> None:
     table = summarise(rows)
+    posts = [hp for hp in POSTERIORS if any(r["posterior"] == hp for r in rows)]
     title = " (held-out families)" if "held_out" in suffix else ""
     title += ", prior_mean='physics'" if "physics" in suffix else ""
     lines = [f"# Calibration harness{title}", "",
-             f"{len(rows) // len(POSTERIORS)} fits, each scored as the MAP plug-in and with the Laplace "
+             f"{len(rows) // len(posts)} fits, each scored as the MAP plug-in and with the Laplace "
              "hyperparameter posterior. Cells: mean coverage at 50 / 90 / 95 % over the 41 x 41 grid; `over`: "
              "share of fits whose 95 % coverage is below the 2.5th percentile of their own posterior draws' "
              "(overconfident beyond chance). Bar: 95 % coverage in 0.90-0.98, over <= 10 %.", ""]
     for by in ("family", "motion"):
-        lines += [f"## By {by}", "", "| " + by + " | n | map x | map z | laplace x | laplace z |",
-                  "|---|---|---|---|---|---|"]
+        lines += [f"## By {by}", "", "| " + by + " | n | " + " | ".join(f"{hp} {a}" for hp in posts for a in "xz")
+                  + " |", "|---|---|" + "---|" * (2 * len(posts))]
         groups = sorted({k[1] for k in table if k[0] == by})
         for g in groups:
             cells = []
-            for hp in POSTERIORS:
+            for hp in posts:
                 for a in "xz":
                     n, c50, c90, c95, over = table[(by, g, hp, a)]
                     ok = 0.90 <= c95 <= 0.98 and over <= 0.10
                     cells.append(f"{c50:.2f} / {c90:.2f} / **{c95:.3f}**, over {over:.0%}{'' if ok else ' ✗'}")
-            lines.append(f"| {g} | {table[(by, g, POSTERIORS[0], 'x')][0]} | " + " | ".join(cells) + " |")
+            lines.append(f"| {g} | {table[(by, g, posts[0], 'x')][0]} | " + " | ".join(cells) + " |")
         lines.append("")
-    times = {hp: [float(r["fit_s"]) + float(r["posterior_s"]) for r in rows if r["posterior"] == hp]
-             for hp in POSTERIORS}
-    fit = [float(r["fit_s"]) for r in rows if r["posterior"] == "map"]
-    lines += ["## Cost", "", f"MAP fit: median {statistics.median(fit):.2f} s; Laplace after it: median "
-              f"{statistics.median([t - f for t, f in zip(times['laplace'], fit)]):.2f} s "
-              f"(ratio of totals {sum(times['laplace']) / sum(fit):.2f}x).", ""]
-    lap = [r for r in rows if r["posterior"] == "laplace"]
-    ess = [float(r["ess"]) for r in lap if not math.isnan(float(r["ess"]))]
-    khat = [float(r["khat"]) for r in lap if not math.isnan(float(r["khat"]))]
-    if ess:
-        lines += [f"Laplace importance weights: median ESS {statistics.median(ess):.1f} of 128 proposals; Pareto "
-                  f"k-hat median {statistics.median(khat):.2f}, above 0.7 in {sum(k > 0.7 for k in khat)} of "
-                  f"{len(khat)} fits.", ""]
+    fit = {(r["family"], r["motion"], r["noise"], r["seed"]): float(r["fit_s"]) for r in rows
+           if r["posterior"] == "map"}
+    lines += ["## Cost", "", f"Zero-mean MAP fit: median {statistics.median(fit.values()):.2f} s."]
+    for hp in posts[1:]:
+        extra = [float(r["posterior_s"]) for r in rows if r["posterior"] == hp]
+        total = sum(float(r["fit_s"]) + float(r["posterior_s"]) for r in rows if r["posterior"] == hp)
+        note = ", the physics-mean model's fit and posterior included" if hp == "average" else ""
+        lines.append(f"{hp}: median {statistics.median(extra):.2f} s after the fit (total "
+                     f"{total / sum(fit.values()):.2f}x the MAP fits){note}.")
+    lines.append("")
+    for hp in posts[1:]:
+        lap = [r for r in rows if r["posterior"] == hp]
+        ess = [float(r["ess"]) for r in lap if not math.isnan(float(r["ess"]))]
+        khat = [float(r["khat"]) for r in lap if not math.isnan(float(r["khat"]))]
+        if ess:
+            lines += [f"{hp} (zero-mean model's) importance weights: median ESS {statistics.median(ess):.1f} of "
+                      f"128 "
+                      f"proposals; Pareto k-hat median {statistics.median(khat):.2f}, above 0.7 in "
+                      f"{sum(k > 0.7 for k in khat)} of {len(khat)} fits.", ""]
+    avg = [r for r in rows if r["posterior"] == "average"]
+    if avg:
+        for a in "xz":
+            w = [float(r[f"w_physics_{a}"]) for r in avg]
+            lines.append(f"average, alpha_{a}: weight of the physics mean median {statistics.median(w):.2f}; above 0.5 "
+                         f"in {sum(v > 0.5 for v in w)} of {len(w)} fits.")
+        lines.append("")
     (out / f"calibration_harness{suffix}.md").write_text("\n".join(lines))
     figure(rows, out / f"calibration_harness{suffix}.png")
 
 
 def figure(rows: list[dict], path: Path) -> None:
+    posts = [hp for hp in POSTERIORS if any(r["posterior"] == hp for r in rows)]
     import matplotlib
 
     matplotlib.use("Agg")
@@ -112,25 +139,25 @@ def figure(rows: list[dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
     levels = (0.5, 0.9, 0.95)
-    colours = {"map": "tab:red", "laplace": "tab:blue"}
+    colours = {"map": "tab:red", "laplace": "tab:blue", "average_map": "tab:orange", "average": "tab:green"}
     for a, ax in zip("xz", axes[:2]):
-        for hp in POSTERIORS:
+        for hp in posts:
             rs = [r for r in rows if r["posterior"] == hp]
             obs = [statistics.fmean(float(r[f"cover{round(lv * 100)}_{a}"]) for r in rs) for lv in levels]
             ax.plot(levels, obs, "o-", color=colours[hp], label=f"{hp} (mean of {len(rs)} fits)")
             for lv in levels:
                 vals = [float(r[f"cover{round(lv * 100)}_{a}"]) for r in rs]
-                ax.scatter([lv + (0.006 if hp == "laplace" else -0.006)] * len(vals), vals, s=6, alpha=0.25,
-                           color=colours[hp])
+                shift = {"map": -0.009, "laplace": -0.003, "average_map": 0.003, "average": 0.009}[hp]
+                ax.scatter([lv + shift] * len(vals), vals, s=6, alpha=0.25, color=colours[hp])
         ax.plot([0.4, 1], [0.4, 1], "k--", lw=1, label="calibrated")
         ax.set(xlabel="nominal level", ylabel="share of the grid inside the interval",
                title=f"alpha_{a}: coverage per fit (dots) and mean", xlim=(0.4, 1.0), ylim=(0, 1.02))
         ax.legend(loc="lower right", fontsize=8)
     ax = axes[2]
-    for hp in POSTERIORS:
+    for hp in posts:
         pct = [float(r[f"pct95_{a}"]) for r in rows if r["posterior"] == hp for a in "xz"]
         ax.hist(pct, bins=20, range=(0, 1), histtype="step", lw=2, color=colours[hp], label=hp)
-    n = sum(r["posterior"] == POSTERIORS[0] for r in rows) * 2
+    n = sum(r["posterior"] == posts[0] for r in rows) * 2
     ax.axhline(n / 20, color="k", ls="--", lw=1, label="uniform (calibrated)")
     ax.set(xlabel="percentile of the 95 % coverage among the fit's own draws", ylabel="fits x maps",
            title="where each fit's coverage falls (left: overconfident)")
@@ -148,21 +175,31 @@ def main(argv=None) -> None:
     p.add_argument("--prior-mean", choices=("zero", "physics"), default="zero",
                    help="the model's prior mean (files get the suffix _physics)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--held-out-2", action="store_true", help="the second held-out set (tilted and blended media, "
+                   "scoop and drag motions)")
+    p.add_argument("--case", type=int, default=None, help="run only case number N of the list (0-based; for "
+                   "running the cases one per process), then write the report")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    suffix = ("_held_out" if args.held_out else "") + ("_physics" if args.prior_mean == "physics" else "")
+    suffix = ("_held_out" if args.held_out else "") + ("_held_out_2" if args.held_out_2 else "") + \
+        ("_physics" if args.prior_mean == "physics" else "")
     path = args.out / f"calibration_harness{suffix}.csv"
     rows: list[dict] = []
     if path.exists():
         with path.open() as fh:
             rows = list(csv.DictReader(fh))
     done = {(r["family"], r["motion"], float(r["noise"]), int(r["seed"])) for r in rows}
-    todo = [c for c in cases(args.held_out, args.seeds, args.quick)
-            if (c.family, c.kind, c.noise, c.seed) not in done]
+    every = cases(args.held_out, args.seeds, args.quick, args.held_out_2)
+    if args.case is not None:
+        if not 0 <= args.case < len(every):
+            raise SystemExit(f"--case must be in [0, {len(every)}): there are {len(every)} cases")
+        every = every[args.case:args.case + 1]
+    todo = [c for c in every if (c.family, c.kind, c.noise, c.seed) not in done]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # spectral truncation notes at extreme draws; diagnostics
         for case in tqdm(todo, desc="calibration cases"):
-            new = run_case(case, POSTERIORS, model_options={"prior_mean": args.prior_mean})
+            opts = {} if args.prior_mean == "zero" else {"prior_mean": args.prior_mean}
+            new = run_case(case, POSTERIORS if args.prior_mean == "zero" else ("map", "laplace"), model_options=opts)
             write_header = not path.exists() or path.stat().st_size == 0
             with path.open("a", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=list(new[0]))

@@ -13,9 +13,12 @@ imports first, beside its own).
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-__version__ = "0.1.0"
+from ._version import package_version
+
+__version__ = package_version(Path(__file__).parent)
 __all__ = ["rft", "gp", "hardware", "data", "design", "studies", "metrics", "InverseRFT", "Posterior",
            "TerrainFilter", "__version__"]
 

@@ -1,7 +1,9 @@
 """Map and force metrics, sampling coverage and redundancy, calibration.
 
 All functions take tensors of equal shape (an estimate and the ground truth over an evaluation
-grid or a time series) and return Python floats (``percentile_among``: a tensor of percentiles).
+grid or a time series; shapes that differ beyond dimensions of size 1, such as (H, W, 2) against
+(2, H, W), are a ValueError: flattened they would be compared out of order) and return Python floats
+(``percentile_among``: a tensor of percentiles).
 Percentages are in percent (0-100).
 """
 
@@ -20,11 +22,28 @@ __all__ = [
 ]
 
 
+def _same_layout(e: Tensor, t: Tensor) -> None:
+    """ValueError where two tensors of one size hold their values in different layouts ((H, W, 2) and
+    (2, H, W)): flattened, they would be compared element by element out of order. Shapes that differ
+    only by dimensions of size 1 ((N,) and (N, 1)) are one layout."""
+    se = tuple(d for d in e.shape if d != 1)
+    st = tuple(d for d in t.shape if d != 1)
+    if se == st:
+        return
+    hint = ""
+    if sorted(se) == sorted(st) and len(set(st)) == len(st):
+        hint = f" (truth.permute{tuple(st.index(d) for d in se)} has the estimate's)"
+    raise ValueError(f"estimate has shape {tuple(e.shape)} but truth {tuple(t.shape)}: the same number of values in "
+                     f"another layout, which would be compared out of order; give both in one layout{hint}")
+
+
 def _pair(estimate: Tensor, truth: Tensor) -> tuple[Tensor, Tensor]:
-    e = torch.as_tensor(estimate, dtype=torch.float64).reshape(-1)
-    t = torch.as_tensor(truth, dtype=torch.float64).reshape(-1)
+    e0 = torch.as_tensor(estimate, dtype=torch.float64)
+    t0 = torch.as_tensor(truth, dtype=torch.float64)
+    e, t = e0.reshape(-1), t0.reshape(-1)
     if e.shape != t.shape:
         raise ValueError(f"estimate has {e.numel()} values, truth has {t.numel()}")
+    _same_layout(e0, t0)
     if e.numel() == 0:
         raise ValueError("empty estimate")
     if not (torch.isfinite(e).all() and torch.isfinite(t).all()):

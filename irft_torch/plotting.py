@@ -15,6 +15,7 @@ at a glance), and the sampled (beta, gamma) pairs are marked on the std panel.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import torch
@@ -34,7 +35,8 @@ def angle_grid(n: int = 64, dtype=torch.float64) -> tuple[torch.Tensor, torch.Te
     """
     edges = torch.linspace(-P / 2, P / 2, n + 1, dtype=dtype)
     centres = (edges[1:] + edges[:-1]) / 2
-    return torch.meshgrid(centres, centres, indexing="ij")
+    B, G = torch.meshgrid(centres, centres, indexing="ij")
+    return B, G
 
 
 def sampled_angles(contacts) -> tuple[torch.Tensor, torch.Tensor]:
@@ -88,7 +90,9 @@ def plot_map_comparison(truth, mean, std, points=None, title: str = "", truth_la
     """truth | estimate | error (estimate - truth, signed) | std, for alpha_x (top) and alpha_z (bottom).
 
     Args:
-        truth, mean, std: (n, n, 2) maps over ``angle_grid(n)`` (N/cm^3).
+        truth: (n, n, 2) map over ``angle_grid(n)`` (N/cm^3).
+        mean: (n, n, 2) the estimate, likewise.
+        std: (n, n, 2) its posterior standard deviation, likewise.
         points: optional sequence of (beta, gamma) point sets, drawn on the std panel (the first
             as dots: the sampled pairs, e.g. ``sampled_angles(contacts)``; a second as stars).
         truth_label: what the truth is ("truth", "simulated sand", ...).
@@ -247,9 +251,15 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None, 
 
 
 def save(fig, path) -> None:
-    """Write ``fig`` (PNG, 120 dpi) and close it."""
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    """Write ``fig`` (PNG, 120 dpi; the format follows the suffix) and close it; written to a temporary
+    file and renamed into place (``_files.atomic_path``), so a failed write leaves the old figure."""
+    from ._files import atomic_path
+
+    try:
+        with atomic_path(path, "figure") as tmp:
+            fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
 
 
 def plot_coverage_cells(observed: dict, calibrated: dict, band=(0.85, 0.99), level: float = 0.95, ax=None,
@@ -309,7 +319,7 @@ def plot_reliability(observed: dict, levels, ax=None, title: str = "reliability"
     lv = [100 * float(v) for v in levels]
     ax.plot([0, 100], [0, 100], "k--", lw=1, label="calibrated (observed = nominal)")
     many = len(observed) > 10
-    colors = plt.get_cmap("tab20" if many else "tab10").colors
+    colors = plt.get_cmap("tab20" if many else "tab10").colors  # type: ignore[attr-defined]  # a ListedColormap
     for i, (label, shares) in enumerate(observed.items()):  # beyond the palette: another marker, never a repeat
         ax.plot(lv, [100 * float(v) for v in shares], "-", marker="os^Dv"[(i // len(colors)) % 5],
                 lw=0.8 if many else 1.5, ms=3.5 if many else 5, alpha=0.75 if many else 1.0,

@@ -150,3 +150,15 @@ def test_percentile_among_counts_ties_half():
         M.percentile_among(2.5, torch.tensor([1.0, float("nan"), 3.0]))
     with pytest.raises(ValueError, match="samples"):
         M.percentile_among(2.5, torch.zeros(0))
+
+
+def test_two_layouts_of_one_size_are_refused():
+    """(was: rmse of an (H, W, 2) mean against a (2, H, W) truth compared out of order: 0.29 for 0.10)
+    a constant error of 0.1 by hand; (N,) against (N, 1) is one layout."""
+    truth = torch.linspace(-1, 1, 5 * 7 * 2).reshape(5, 7, 2)
+    est = truth + 0.1
+    assert M.rmse(est, truth) == pytest.approx(0.1)
+    with pytest.raises(ValueError, match=r"estimate has shape \(5, 7, 2\) but truth \(2, 5, 7\).*"
+                                         r"truth.permute\(1, 2, 0\) has the estimate's"):
+        M.rmse(est, truth.permute(2, 0, 1))
+    assert M.mae(torch.ones(4, 1), torch.zeros(4)) == pytest.approx(1.0)

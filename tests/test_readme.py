@@ -1,5 +1,6 @@
-"""The README runs as written: every Python block (in order, in one namespace, as a reader pasting
-them would), every shell command, in a temporary directory, with the times the README states.
+"""The README and the guide pages it sends readers to run as written: every Python block (in order,
+in one namespace, as a reader pasting them would: the guides continue the README's quick start),
+every shell command, in a temporary directory, with the times the pages state.
 
 Each fenced block may be preceded by a marker comment ``<!-- test: KIND [SECONDS] ... -->``:
   run      execute it (the default); SECONDS, where given, is the time the README states for this
@@ -25,6 +26,8 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+# the pages whose code blocks run, in the order a reader meets them (moved out of the README in 0.3)
+PAGES = [README, ROOT / "docs" / "design.md", ROOT / "docs" / "hardware.md"]
 MARKER = re.compile(r"<!--\s*test:\s*(\w+)\s*(\d+)?[^>]*-->")
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 
@@ -43,19 +46,22 @@ def blocks(text: str):
     return out
 
 
-BLOCKS = blocks(README.read_text())
+PAGE_BLOCKS = {page: blocks(page.read_text()) for page in PAGES}
+BLOCKS = PAGE_BLOCKS[README]
 
 
 def groups():
-    """Consecutive blocks timed together: a block stating seconds starts a group, explicitly marked
-    'run' blocks without seconds join it; an unmarked block is a group of its own."""
+    """Consecutive blocks of one page timed together: a block stating seconds starts a group, explicitly
+    marked 'run' blocks without seconds join it; an unmarked block is a group of its own. (page, blocks)."""
     out = []
-    for b in BLOCKS:
-        k, lang, code, kind, secs, heading, marked = b
-        if out and marked and kind == "run" and secs is None and out[-1][0][3] == "run":
-            out[-1].append(b)
-        else:
-            out.append([b])
+    for page, page_blocks in PAGE_BLOCKS.items():
+        first = len(out)
+        for b in page_blocks:
+            k, lang, code, kind, secs, heading, marked = b
+            if len(out) > first and marked and kind == "run" and secs is None and out[-1][1][0][3] == "run":
+                out[-1][1].append(b)
+            else:
+                out.append((page, [b]))
     return out
 
 
@@ -63,13 +69,16 @@ GROUPS = groups()
 
 
 def test_readme_has_the_blocks_the_issue_asks_for():
-    kinds = {(b[1], b[3]) for b in BLOCKS}
+    kinds = {(b[1], b[3]) for page in PAGES for b in PAGE_BLOCKS[page]}
     assert ("python", "run") in kinds and ("bash", "run") in kinds and ("bash", "parse") in kinds
     text = README.read_text()
     assert "DESIGN.md" not in text  # nothing the README refers to lives outside the repository
-    for must in ("pip install torch --index-url https://download.pytorch.org/whl/cpu", 'pip install -e ".[dev]"',
-                 "irft record --simulate", "Science 339", "1408-1412", "Shipeng Liu", "Feifei Qian"):
+    # one set-up command per kind of user, then `irft reproduce` and `pytest`, each one command
+    for must in ('pip install -e ".[dev]" --extra-index-url https://download.pytorch.org/whl/cpu',
+                 'pip install -e ".[dev]"\n', "irft reproduce", "\npytest\n", "Science 339", "1408-1412",
+                 "Shipeng Liu", "Feifei Qian"):
         assert must in text, must
+    assert "irft record --simulate" in (ROOT / "docs" / "hardware.md").read_text()
 
 
 @pytest.fixture(scope="module")
@@ -104,8 +113,9 @@ def _parse_only(code: str) -> None:
     assert lines
 
 
-@pytest.mark.parametrize("group", GROUPS, ids=[f"block{g[0][0]}-{g[0][1] or 'text'}-{g[0][3]}" for g in GROUPS])
-def test_readme_block_runs_as_written(group, namespace, workdir, monkeypatch):
+@pytest.mark.parametrize("page, group", GROUPS,
+                         ids=[f"{p.stem}-block{g[0][0]}-{g[0][1] or 'text'}-{g[0][3]}" for p, g in GROUPS])
+def test_readme_block_runs_as_written(page, group, namespace, workdir, monkeypatch):
     kind, secs = group[0][3], group[0][4]
     if kind == "skip":
         for b in group:
@@ -123,18 +133,18 @@ def test_readme_block_runs_as_written(group, namespace, workdir, monkeypatch):
     t0 = time.perf_counter()
     for k, lang, code, *_ in group:
         if lang == "python":
-            exec(compile(code, f"README block {k}", "exec"), namespace)  # noqa: S102
+            exec(compile(code, f"{page.name} block {k}", "exec"), namespace)  # noqa: S102
         elif lang == "bash":
             _run_bash(code, workdir)
         else:
-            pytest.fail(f"README block {k}: unknown language {lang!r}")
+            pytest.fail(f"{page.name} block {k}: unknown language {lang!r}")
     elapsed = time.perf_counter() - t0
     import matplotlib.pyplot as plt
 
     plt.close("all")
-    print(f"README block {group[0][0]} ({group[0][5]}): {elapsed:.1f} s, stated {secs} s")
+    print(f"{page.name} block {group[0][0]} ({group[0][5]}): {elapsed:.1f} s, stated {secs} s")
     if secs is not None and elapsed > 2 * secs + 5:  # reported, not a failure: run times depend on the machine
-        warnings.warn(f"README block {group[0][0]} took {elapsed:.0f} s; the README states about {secs} s",
+        warnings.warn(f"{page.name} block {group[0][0]} took {elapsed:.0f} s; the page states about {secs} s",
                       stacklevel=1)
 
 
@@ -179,9 +189,9 @@ def test_active_probing_block_refines_its_probe(namespace):
 
 
 def test_links_point_inside_the_repository():
-    docs = sorted((ROOT / "docs").glob("*.md"))
+    docs = sorted((ROOT / "docs").rglob("*.md"))
     assert docs, "docs/ is missing"
-    for page in [README, *docs]:
+    for page in [README, ROOT / "CHANGELOG.md", *docs]:
         for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", page.read_text()):
             if re.match(r"[a-z]+://", target):
                 continue

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .. import rft
 
-__all__ = ["UsageError", "MAPS", "add_toe_args", "add_path_args", "add_protocol_args", "make_toe", "make_path"]
+__all__ = ["UsageError", "warn", "MAPS", "add_toe_args", "add_path_args", "add_protocol_args", "make_toe", "make_path"]
 
 MAPS = {
     "generic": lambda sx, sz: _rft().FourierStressMap.generic(sx, sz),
@@ -34,6 +34,14 @@ class UsageError(ValueError):
         super().__init__(f"argument {arg}: {message}")
 
 
+def warn(command: str, text) -> None:
+    """Print a warning as one line on stderr: 'irft CMD: warning: TEXT' (every subcommand's warnings,
+    Python's included: ``main`` routes ``warnings.warn`` here)."""
+    import sys
+
+    print(f"irft {command}: warning: {' '.join(str(text).split())}", file=sys.stderr)
+
+
 def _opt(dest: str) -> str:
     return "--" + dest.replace("_", "-")
 
@@ -45,6 +53,35 @@ _POSITIVE = ("duration", "rate", "l1", "l2", "kt", "kv", "gear_ratio", "max_cond
 _POSITIVE_INT = ("segments", "n_steps", "filter_window", "n_iter", "bitrate", "trials")
 _NONNEG = ("hip_spacing", "extension", "arc_noise", "current_noise", "friction", "cogging", "penetration", "shear",
            "extraction")
+
+
+# dest -> (lowest, highest) plausible value in the option's unit, and the unit: a value beyond is a unit slip
+# (cm typed in a metre field, degrees in a radian field, mN m/A ...), refused with the likely meaning
+_RANGES = {
+    "width": (5e-4, 0.3, "m"), "length": (5e-4, 0.3, "m"), "radius": (5e-4, 0.3, "m"),
+    "l1": (5e-3, 2.0, "m"), "l2": (5e-3, 2.0, "m"), "hip_spacing": (0.0, 2.0, "m"), "extension": (0.0, 1.0, "m"),
+    "hip_height": (5e-3, 2.0, "m"), "max_depth": (1e-3, 1.0, "m"), "path_tol": (1e-4, 0.1, "m"),
+    "arc_noise": (0.0, 0.01, "m"), "penetration": (0.0, 1.0, "m"), "shear": (0.0, 2.0, "m"),
+    "extraction": (0.0, 1.0, "m"), "speed": (1e-4, 10.0, "m/s"),
+    "kt": (1e-3, 10.0, "N m/A"), "kv": (1.0, 1e4, "rpm/V"), "gear_ratio": (0.1, 1000.0, "motor turns per joint turn"),
+}
+
+
+def _unit_slip(dest: str, v: float) -> str | None:
+    """Why ``v`` is implausible for option ``dest`` (a unit slip named), or None."""
+    lo, hi, unit = _RANGES[dest]
+    if lo <= v <= hi:
+        return None
+    side = "above" if v > hi else "below"
+    if unit == "m":
+        guess = (f"did you mean {v:g} cm = {v / 100:g} m, or {v:g} mm = {v / 1000:g} m?" if v > hi
+                 else f"that is {v * 1000:g} mm" if v > 0 else "")
+    elif unit == "N m/A":
+        guess = f"mN m/A? ({v:g} mN m/A = {v / 1000:g} N m/A)" if v > hi else f"that is {v * 1000:g} mN m/A"
+    else:
+        guess = ""
+    return (f"is in {unit}: {v:g} is {side} any plausible value ({lo:g} to {hi:g} {unit})"
+            + (f"; {guess}" if guess else ""))
 
 
 def _validate(a) -> None:
@@ -77,6 +114,10 @@ def _validate(a) -> None:
         v = ns.get(dest)
         if v is not None and not math.isfinite(v):
             raise UsageError(_opt(dest), f"must be finite, got {v}")
+    for dest in _RANGES:  # two-sided: a value beyond what any leg, toe or motor has is a unit slip
+        v = ns.get(dest)
+        if isinstance(v, (int, float)) and math.isfinite(v) and (why := _unit_slip(dest, float(v))) is not None:
+            raise UsageError(_opt(dest), why)
     for dest in ("tilt", "heading"):  # angles in rad: beyond pi they add nothing, and 30 or 90 are degrees
         v = ns.get(dest)
         if isinstance(v, float) and abs(v) > math.pi:
@@ -84,6 +125,15 @@ def _validate(a) -> None:
                                          f"{v:g} deg = {math.radians(v):.4g} rad)")
     if ns.get("zero_offsets") is not None and not all(math.isfinite(v) for v in a.zero_offsets):
         raise UsageError("--zero-offsets", f"must be finite angles (rad), got {a.zero_offsets}")
+    if ns.get("zero_offsets") is not None and any(abs(v) > 2 * math.pi for v in a.zero_offsets):
+        big = max(a.zero_offsets, key=abs)
+        raise UsageError("--zero-offsets", f"are joint angles in rad, within a turn (|q| <= 2 pi); got "
+                                           f"{' '.join(f'{v:g}' for v in a.zero_offsets)} (degrees? {big:g} deg = "
+                                           f"{math.radians(big):.4g} rad)")
+    for x, z in ns.get("control_points") or []:
+        if abs(x) > 2 or abs(z) > 2:
+            raise UsageError("--control-points", f"are in m: ({x:g}, {z:g}) is more than 2 m from the start (cm? "
+                                                 f"({x / 100:g}, {z / 100:g}) m)")
     if ns.get("directions") is not None and any(d not in (1, -1) for d in a.directions):
         raise UsageError("--directions", f"each must be +1 or -1, got {a.directions}")
     nodes = ns.get("nodes")
@@ -138,12 +188,12 @@ def _out_dir(path, arg: str) -> Path:
 
 def _points(text: str) -> list[tuple[float, float]]:
     try:
-        pts = [tuple(float(v) for v in p.split(",")) for p in text.split(";") if p.strip()]
+        pts = [[float(v) for v in p.split(",")] for p in text.split(";") if p.strip()]
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"control points must look like 'x,z;x,z;...' in m: {e}") from e
     if any(len(p) != 2 for p in pts):
         raise argparse.ArgumentTypeError("each control point needs two numbers 'x,z' (m)")
-    return pts
+    return [(x, z) for x, z in pts]
 
 
 def add_toe_args(p: argparse.ArgumentParser) -> None:

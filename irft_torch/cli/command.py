@@ -9,9 +9,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 from . import fit, ingest, record, reproduce, simulate
-from .arguments import _validate
+from .arguments import _validate, warn
 
 __all__ = ["build_parser", "main"]
 
@@ -23,6 +24,15 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _one_line(command: str):
+    """A ``warnings.showwarning`` that prints each warning as ``warn`` does."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        warn(command, message)
+
+    return show
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,8 +58,11 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_default_dtype(torch.float64)
     debug = os.environ.get("IRFT_DEBUG") == "1"
     try:
-        _validate(a)
-        return a.func(a)
+        with warnings.catch_warnings():
+            if not debug:  # one line per warning, 'irft CMD: warning: ...', not Python's file/line/source format
+                warnings.showwarning = _one_line(a.command)
+            _validate(a)
+            return a.func(a)
     except KeyboardInterrupt:
         print(f"irft {a.command}: interrupted", file=sys.stderr)
         return 130

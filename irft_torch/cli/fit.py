@@ -5,9 +5,10 @@ forces."""
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
-from .arguments import UsageError, _out_dir
+from .arguments import UsageError, _out_dir, warn
 
 
 def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> dict:
@@ -87,10 +88,12 @@ def cmd_fit(a) -> int:
     import torch
 
     from .. import plotting
+    from .._files import StagedFiles
     from ..gp import InverseRFT
+    from ..gp.model import FitInterruptedWarning
     from ..hardware import load_dataset
 
-    _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
+    out = _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
     if a.dask is not None:
         if a.dask.endswith(".npz") or Path(a.dask).is_file():
             raise UsageError("--dask", f"{a.dask!r} is a dataset file, not a scheduler address: write --dask after "
@@ -123,22 +126,66 @@ def cmd_fit(a) -> int:
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
                        priors=None if a.priors == "none" else a.priors)
     print(f"backend {model.backend.describe()}")
-    model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        history = model.fit(n_iter=a.n_iter, lr=a.lr, progress=not a.no_progress)
+    interrupted = any(issubclass(w.category, FitInterruptedWarning) for w in caught)
+    for w in caught:
+        warn("fit", w.message)
+    if interrupted and not history:
+        warn("fit", f"interrupted before the first step: nothing written (what is in {out} is as it was)")
+        return 130
     print(model.diagnostics(warn=False))
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    model.save(out / "model.pt")
-    fig = plotting.plot_posterior_map(model)
-    plotting.save(fig, out / "stress_map.png")
-    pred = model.predict_forces(ds.contacts)
-    meas = model.predict_forces(ds.contacts, include_noise=True)  # a new measurement: mean +- noise too
-    plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, meas.stddev, labels=("dataset", "I-RFT fit"),
-                                       band_label=r"$\pm 2\sigma$ of a measurement"), out / "forces.png")
+    with StagedFiles(out) as staged:  # all three or none, never one run's model beside another's figures
+        model.save(staged.path("model.pt"))
+        plotting.save(plotting.plot_posterior_map(model), staged.path("stress_map.png"))
+        pred = model.predict_forces(ds.contacts)
+        meas = model.predict_forces(ds.contacts, include_noise=True)  # a new measurement: mean +- noise too
+        plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, meas.stddev,
+                                           labels=("dataset", "I-RFT fit"),
+                                           band_label=r"$\pm 2\sigma$ of a measurement"), staged.path("forces.png"))
+        kept: list[float] = []  # the two losses, where the file's model is kept
+        if not staged.commit(check=lambda: _better_than_before(out / "model.pt", model, a.replace, kept)):
+            warn("fit", f"{out}/model.pt holds a better fit of these data with these options (loss {kept[0]:.5g} "
+                        f"against {kept[1]:.5g} now): it is kept and nothing is written (--replace writes this fit "
+                        "anyway)")
+            return 1
     rng = (ds.forces.amax(0) - ds.forces.amin(0)).clamp_min(1e-12)
     nrmse = ((pred.mean - ds.forces).pow(2).mean(0).sqrt() / rng * 100).tolist()
     print(f"wrote {out}/model.pt, stress_map.png, forces.png; force RMSE {nrmse[0]:.2f} % (x), "
-          f"{nrmse[1]:.2f} % (z) of range")
-    return 0
+          f"{nrmse[1]:.2f} % (z) of range" + (f" (interrupted after {len(history)} of {a.n_iter} steps)"
+                                              if interrupted else ""))
+    return 130 if interrupted else 0
+
+
+def _better_than_before(path: Path, model, replace: bool, kept: list) -> bool:
+    """Whether ``model`` may replace the model file at ``path``: always with ``replace``, or when there is
+    none, or it is damaged, or of other data or options (said so); else when its loss on these data is
+    not lower than ``model``'s (``kept`` gets the two losses when it is)."""
+    import torch
+
+    from ..gp import InverseRFT
+    from ..gp.model_file import ModelFileError
+
+    if replace or not path.exists():
+        return True
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            old = InverseRFT.load(path)
+    except (ModelFileError, OSError, ValueError, RuntimeError) as e:
+        print(f"replacing {path}: it is not a model this version reads ({' '.join(str(e).split())[:120]})")
+        return True
+    same_data = torch.equal(old.state_dict()["data_digest"], model.state_dict()["data_digest"])
+    if not same_data or old._options() != model._options():
+        print(f"replacing {path} (a fit of {'other data' if not same_data else 'other options'})")
+        return True
+    with torch.no_grad():
+        before, now = float(old.loss()), float(model.loss())
+    if before < now - 1e-4 * max(1.0, abs(before)):
+        kept.extend([before, now])
+        return False
+    return True
 
 
 def register(sub) -> None:
@@ -165,4 +212,7 @@ def register(sub) -> None:
                         "ADDRESS (tcp://host:8786), or without one on a local cluster started and stopped here; "
                         "write it after the datasets")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--replace", action="store_true",
+                   help="write this fit even where --out holds a better one (a lower loss) of the same data and "
+                        "options; by default that one is kept")
     p.set_defaults(func=cmd_fit)

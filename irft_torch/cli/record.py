@@ -45,14 +45,20 @@ def _record_simulated(a, out: Path) -> int:
     air = _out_file(a.air_out, "--air-out") if a.air_out else out.with_name(f"{out.stem}_air{out.suffix}")
     if air.suffix.lower() != out.suffix.lower():
         raise UsageError("--air-out", f"use the same log format as --out ({out.suffix})")
+    outs = [_numbered(out, k, a.trials) for k in range(a.trials)]
+    for o in outs:  # the air run would overwrite a trial (or the other way round): refuse before writing anything
+        if o.resolve() == air.resolve():
+            raise UsageError("--air-out", f"{air} is also a trial's log (--out {out}"
+                                          + (f", trial {outs.index(o) + 1}" if a.trials > 1 else "")
+                                          + "): the run in air would overwrite it; give the air run its own name "
+                                            f"(default {out.stem}_air{out.suffix})")
     toe, path = make_toe(a), make_path(a)
     sim = SimulatedLeg(toe, MAPS[a.map](a.scale_x, a.scale_z), motors=(MotorModel.u8_ii(), MotorModel.u8_ii()),
                        friction=a.friction, cogging=a.cogging, current_noise=a.current_noise,
                        frame_drop=a.frame_drop, rate=a.rate, nodes=tuple(a.nodes), firmware=a.firmware, seed=a.seed)
-    outs = [_numbered(out, k, a.trials) for k in range(a.trials)]
     for k, o in enumerate(outs):
         sim.seed = a.seed + 101 * k
-        truth = sim.run(path, o)
+        truth = sim.run(path, o)  # written whole or not at all (SimulatedLeg.run: a temporary renamed)
         print(f"wrote {o} (simulated trial in sand, {truth.time[-1]:.1f} s at {a.rate:g} Hz)")
     sim.seed = a.seed
     sim.run(path, air, in_air=True)
@@ -74,7 +80,7 @@ def cmd_record(a) -> int:
     if a.simulate:
         return _record_simulated(a, out)
     if a.protocol == "mit":
-        poll = ()
+        poll: tuple = ()
         print("MIT mode: listening only (a poll would be a command); the motors' replies to your controller "
               "are logged")
     else:

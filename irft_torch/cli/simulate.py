@@ -4,6 +4,7 @@ reads), optionally a CSV and figures."""
 from __future__ import annotations
 
 import csv
+from typing import Any
 
 from .arguments import MAPS, _out_dir, _out_file, add_path_args, add_toe_args, make_path, make_toe
 
@@ -12,6 +13,7 @@ def cmd_simulate(a) -> int:
     import numpy as np
 
     from .. import rft
+    from .._files import atomic_path, atomic_write
 
     out = _out_file(a.out, "--out", ".npz")
     csv_out = _out_file(a.csv, "--csv") if a.csv else None
@@ -20,14 +22,16 @@ def cmd_simulate(a) -> int:
     smap = MAPS[a.map](a.scale_x, a.scale_z)
     c = rft.contacts(toe, path)
     f = rft.forces(smap, c)
-    arrays = {k: v.numpy() for k, v in c.as_dict().items()}
-    # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields
-    np.savez(out, time=path.time.numpy(), position=path.position.numpy(), toe_position=path.position.numpy(),
-             heading=path.heading.numpy(), forces=f.numpy(), **arrays, map=np.array(a.map),
-             scale=np.array([a.scale_x, a.scale_z]))
+    arrays: dict[str, Any] = {k: v.numpy() for k, v in c.as_dict().items()}
+    # a dataset (hardware.load_dataset: ``irft fit sim.npz`` reads it), with the simulation's own fields; written
+    # whole or not at all (a temporary renamed into place)
+    atomic_write(out, lambda fh: np.savez(fh, time=path.time.numpy(), position=path.position.numpy(),
+                                          toe_position=path.position.numpy(), heading=path.heading.numpy(),
+                                          forces=f.numpy(), **arrays, map=np.array(a.map),
+                                          scale=np.array([a.scale_x, a.scale_z])), "simulation")
     print(f"wrote {out} ({len(path)} samples x {toe.n_segments} segments)")
     if csv_out:
-        with open(csv_out, "w", newline="") as fh:
+        with atomic_path(csv_out, "CSV") as tmp, open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
             M = toe.n_segments
             w.writerow(["time_s", "x_m", "z_m", "heading_rad", "F_x_N", "F_z_N"]

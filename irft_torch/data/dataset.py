@@ -12,10 +12,12 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from .._files import atomic_write
 from ..rft.contacts import SURFACE_FIELDS, Contacts
 
 __all__ = ["Dataset", "dataset_summary", "save_dataset", "load_dataset", "STATISTICS_PREFIX"]
@@ -38,14 +40,17 @@ class Dataset:
 
 
 def dataset_summary(ds: Dataset, masked: dict | None = None, n_before: int | None = None) -> list[str]:
-    """Short printable lines: duration [s], samples, time in contact, toe depth range [m], force
-    range [N] per axis, and the masked samples with their reasons."""
+    """Short printable lines: duration [s], samples, time in contact (steps over masked stretches
+    longer than 3 sampling intervals count 3: a gap is not contact), toe depth range [m], force range
+    [N] per axis, and the masked samples with their reasons."""
     t = ds.time.numpy()
     f = ds.forces.numpy()
     z = ds.toe_position[:, 1].numpy()
     contact = (ds.contacts.weight_z != 0).any(1).numpy()
     dt = np.diff(t)
     dur = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    # a step longer than 3 sampling intervals spans masked samples (a gap): what happened there is not known
+    dt = np.minimum(dt, 3 * float(np.median(dt))) if len(dt) else dt
     contact_s = float(np.sum(np.where(contact[1:] | contact[:-1], dt, 0.0))) if len(t) > 1 else 0.0
     lines = [
         f"duration {dur:.2f} s, {len(ds)} samples x {ds.contacts.n_segments} segments"
@@ -68,23 +73,16 @@ def save_dataset(path, ds: Dataset, **meta) -> Path:
     """npz with beta, gamma, weight_x, weight_z (T, M) (and depth, area_x, area_z where the contacts
     carry them), forces (T, 2), time, toe_position, meta, and ``ds.statistics`` (if any) as arrays
     named "statistics.<name>". ".npz" is appended when ``path`` lacks it; the file is written whole
-    or not at all (a temporary file renamed into place). Returns the path written."""
-    import os
-
+    or not at all (a temporary file, fsynced, renamed into place: ``_files.atomic_write``). Returns the
+    path written."""
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    arrays = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
+    arrays: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
     arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(), toe_position=ds.toe_position.numpy(),
-                     meta=np.array(repr(meta)), **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, lambda fh: np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(),
+                                          toe_position=ds.toe_position.numpy(), meta=np.array(repr(meta)), **arrays),
+                 "dataset")
     return path
 
 

@@ -103,41 +103,51 @@ def _blocks(path: Path, width: int, report: DEMReadReport) -> dict[tuple[float, 
     key = None
     named = re.match(r"beta_(-?\d+(?:\.\d+)?)_", path.name)
     file_beta = float(named.group(1)) if named else None
-    with open(path) as fh:
-        for line_no, line in enumerate(fh, 1):
-            text = line.strip().rstrip(",").strip()
-            if not text:
+    try:
+        content = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a text CSV file (byte {e.start} is not UTF-8 text): is it a DEM plate "
+                         "file (beta_<B>_plate_forces.csv / _positions.csv)?") from None
+    for line_no, line in enumerate(content.splitlines(), 1):
+        text = line.strip().rstrip(",").strip()
+        if not text:
+            continue
+        if not _ROW.match(line.strip()):
+            report.skipped_rows.append((path.name, line_no, "not numbers"))
+            continue
+        values = [float(v) for v in text.split(",") if v.strip()]
+        if len(values) == 2 and file_beta is not None and values[1] != file_beta:
+            report.skipped_rows.append((path.name, line_no, f"2 values, expected {width} (not a header: beta "
+                                                            f"{values[1]:g} is not the file's {file_beta:g})"))
+            continue
+        if len(values) == 2:  # a header row: gamma, beta
+            key = (values[0], values[1])
+            if key in runs:  # a repeated header continues the same run (a split block)
                 continue
-            if not _ROW.match(line.strip()):
-                report.skipped_rows.append((path.name, line_no, "not numbers"))
-                continue
-            values = [float(v) for v in text.split(",") if v.strip()]
-            if len(values) == 2 and file_beta is not None and values[1] != file_beta:
-                report.skipped_rows.append((path.name, line_no, f"2 values, expected {width} (not a header: beta "
-                                                                f"{values[1]:g} is not the file's {file_beta:g})"))
-                continue
-            if len(values) == 2:  # a header row: gamma, beta
-                key = (values[0], values[1])
-                if key in runs:  # a repeated header continues the same run (a split block)
-                    continue
-                runs[key] = []
-                continue
-            if key is None:
-                report.skipped_rows.append((path.name, line_no, "data before any header"))
-                continue
-            if len(values) != width:
-                report.skipped_rows.append((path.name, line_no, f"{len(values)} values, expected {width}"))
-                continue
-            if not all(math.isfinite(v) for v in values):
-                report.skipped_rows.append((path.name, line_no, "non-finite value"))
-                continue
-            runs[key].append(values)
+            runs[key] = []
+            continue
+        if key is None:
+            report.skipped_rows.append((path.name, line_no, "data before any header"))
+            continue
+        if len(values) != width:
+            report.skipped_rows.append((path.name, line_no, f"{len(values)} values, expected {width}"))
+            continue
+        if not all(math.isfinite(v) for v in values):
+            report.skipped_rows.append((path.name, line_no, "non-finite value"))
+            continue
+        runs[key].append(values)
+    if not runs:
+        raise ValueError(f"{path}: no run in it (no 'gamma,beta' header row followed by rows of {width} numbers): is "
+                         "it a DEM plate file (beta_<B>_plate_forces.csv / _positions.csv)?")
     return {k: np.asarray(v, dtype=np.float64).reshape(-1, width) for k, v in runs.items()}
 
 
 def read_runs(directory) -> tuple[list[DEMRun], DEMReadReport]:
     """All runs under ``directory``, forces and positions matched by time (to the millisecond)."""
     directory = Path(directory)
+    if directory.is_file():
+        raise NotADirectoryError(f"{directory} is a file: read_runs takes the folder that holds the "
+                                 f"beta_<B>_plate_forces.csv and _positions.csv files (e.g. {directory.parent})")
     if not directory.is_dir():
         raise FileNotFoundError(f"no DEM data directory at {directory}")
     report = DEMReadReport()

@@ -72,12 +72,32 @@ def _scalar(x) -> float:
     return float(a[0])
 
 
-def _loadmat(path: Path, key: str):
+def _read_mat(path: Path) -> dict:
+    """scipy's loadmat of ``path``; a file that is not MATLAB's is a ValueError naming it."""
     from scipy.io import loadmat  # scipy is a dependency of the experiments only
 
     if not path.is_file():
         raise FileNotFoundError(f"no file {path.name} in {path.parent} (the rover-wheel data are not shipped)")
-    m = loadmat(path)
+    try:
+        return loadmat(path)
+    except Exception as e:  # noqa: BLE001 - scipy raises many kinds for a damaged or foreign file
+        raise ValueError(f"{path}: not a readable MATLAB .mat file ({type(e).__name__}: {e}); is it the rover-wheel "
+                         "data's file of that name?") from None
+
+
+def _data_dir(data_dir) -> Path:
+    data_dir = Path(data_dir)
+    if data_dir.is_file():
+        raise NotADirectoryError(f"{data_dir} is a file: give the folder that holds the rover-wheel data "
+                                 f"({', '.join(sorted({f for w in WHEELS.values() for f in w}))}), e.g. "
+                                 f"{data_dir.parent}")
+    if not data_dir.is_dir():
+        raise FileNotFoundError(f"no rover-wheel data directory at {data_dir}")
+    return data_dir
+
+
+def _loadmat(path: Path, key: str):
+    m = _read_mat(path)
     if key not in m:
         raise KeyError(f"{path}: no variable {key!r}; has {sorted(k for k in m if not k.startswith('__'))}")
     return m[key].reshape(-1)
@@ -85,20 +105,22 @@ def _loadmat(path: Path, key: str):
 
 def read_wheel_runs(data_dir, wheel: str, slip_angle_deg: float | None = 0.0) -> list[WheelRun]:
     """Runs of one wheel ("smooth" or "grouser"), with the authors' RFT prediction matched element
-    by element (their slip and slip angle are checked to agree). ``slip_angle_deg=None``: all."""
+    by element (their slip and slip angle are checked to agree). ``slip_angle_deg=None``: all; a slip
+    angle no run has is a ValueError listing the file's. A file that is not MATLAB's, or a file given
+    for the folder, is an error naming it."""
     if wheel not in WHEELS:
         raise ValueError(f"wheel must be one of {sorted(WHEELS)}, got {wheel!r}")
-    data_dir = Path(data_dir)
-    if not data_dir.is_dir():
-        raise FileNotFoundError(f"no rover-wheel data directory at {data_dir}")
+    data_dir = _data_dir(data_dir)
     runs_file, rft_file = WHEELS[wheel]
     runs = _loadmat(data_dir / runs_file, "all_results")
     rft = _loadmat(data_dir / rft_file, "RFToutput")
     if len(runs) != len(rft):
         raise ValueError(f"{runs_file} has {len(runs)} runs but {rft_file} {len(rft)} predictions")
     out = []
+    angles = set()
     for i, (r, p) in enumerate(zip(runs, rft)):
         angle, slip = _scalar(r["beta"]), _scalar(r["slip"])
+        angles.add(angle)
         if abs(_scalar(p["beta"]) - angle) > 1e-6 or abs(_scalar(p["slip"]) - slip) > 1e-6:
             raise ValueError(f"{wheel} run {i}: the RFT file's slip/slip angle ({_scalar(p['slip'])}, "
                              f"{_scalar(p['beta'])}) do not match the run's ({slip}, {angle})")
@@ -114,6 +136,9 @@ def read_wheel_runs(data_dir, wheel: str, slip_angle_deg: float | None = 0.0) ->
             lateral=-_scalar(r["avg_Fx"]),
             rft_force=(_scalar(p["ForceX"]), _scalar(p["ForceZ"])), rft_lateral=_scalar(p["ForceY"]),
         ))
+    if not out and slip_angle_deg is not None:
+        raise ValueError(f"no {wheel} run at slip angle {slip_angle_deg:g} deg: {runs_file} holds slip angles "
+                         f"{', '.join(f'{x:g}' for x in sorted(angles))} deg (slip_angle_deg=None: all)")
     return out
 
 
@@ -127,14 +152,12 @@ def read_profile(data_dir, wheel: str, angle_bins: int = 360, normal_bins: int =
     per (position-angle bin, normal-direction bin) into one segment (area-weighted centre and normal,
     summed length), which keeps the rim, the grouser faces and the tips apart.
     """
-    from scipy.io import loadmat
-
-    data_dir = Path(data_dir)
+    data_dir = _data_dir(data_dir)
     if wheel == "smooth":
         f = data_dir / "smooth_wheel_125_2D.mat"
         if not f.is_file():
             raise FileNotFoundError(f"no {f.name} in {data_dir}")
-        m = loadmat(f)
+        m = _read_mat(f)
         pts, nrm, area = m["Points"].T / 1000, m["Normals"].T, m["Area"].reshape(-1) / 1000
         return profile_from_elements(pts, nrm, area, WHEEL_WIDTH)
     if wheel != "grouser":
@@ -142,7 +165,7 @@ def read_profile(data_dir, wheel: str, angle_bins: int = 360, normal_bins: int =
     f = data_dir / "grousered_wheel_125.mat"
     if not f.is_file():
         raise FileNotFoundError(f"no {f.name} in {data_dir}")
-    m = loadmat(f)
+    m = _read_mat(f)
     P, N, A = m["Points"], m["Normals"], m["Area"].reshape(-1)
     keep = (np.abs(N[0]) < 0.5) & (np.hypot(P[1], P[2]) > 500 * WHEEL_RADIUS)  # rim and grousers, not the hub
     pts = P[1:, keep].T / 1000  # (x, z) in m
@@ -180,7 +203,7 @@ def read_wheel_mesh(data_dir, wheel: str):
 
     if wheel not in MESHES:
         raise ValueError(f"wheel must be one of {sorted(MESHES)}, got {wheel!r}")
-    data_dir = Path(data_dir)
+    data_dir = _data_dir(data_dir)
     f = data_dir / MESHES[wheel]
     if not f.is_file():
         raise FileNotFoundError(f"no {f.name} in {data_dir} (the rover-wheel data are not shipped)")

@@ -4,8 +4,10 @@ gradient-based gait/toe design. Uses ``gp`` through a backend's posterior interf
 botorch's acquisition/ and optim/ on a model's posterior) and ``make_backend`` to score in another
 space; neither ``gp`` nor ``rft`` imports it."""
 
+from .greedy import DesignStep, greedy_design
 from .optimize import DesignedProbe, default_spec, optimize_probe
-from .scoring import DesignStep, ProbeScorer, Region, force_relative, greedy_design
+from .scoring import MixtureScorer, ProbeScorer, Region, force_relative
+from .scoring3d import ProbeScorer3D
 
-__all__ = ["ProbeScorer", "Region", "DesignStep", "greedy_design", "force_relative", "optimize_probe",
+__all__ = ["ProbeScorer", "ProbeScorer3D", "MixtureScorer", "Region", "DesignStep", "greedy_design", "force_relative", "optimize_probe",
            "DesignedProbe", "default_spec"]

@@ -117,7 +117,7 @@ def optimize_probe(scorer: ProbeScorer, toe: Toe | None = None, init: Probe | No
 
     opt = torch.optim.Adam(params, lr=lr)
     history: list[float] = []
-    best = None  # (value, course, heading, gradients) of the best iterate inside the bounds
+    best: tuple | None = None  # (value, course, heading, gradients) of the best iterate inside the bounds
     bar = tqdm(range(int(n_iter) + 1), desc="probe design", disable=not progress, leave=False)
     for step in bar:
         opt.zero_grad(set_to_none=True)

@@ -26,6 +26,8 @@ Example:
     >>> scorer = ProbeScorer.from_model(model)              # or ProbeScorer.prior(...)
     >>> scores = scorer.score([p.contacts() for p in probes], criterion="variance")
     >>> steps = greedy_design(scorer, probes, budget=3)
+
+A model with a hyperparameter posterior gives a ``MixtureScorer``: the same scores averaged over its draws.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import warnings
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -46,73 +49,13 @@ from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
-from ..rft.stress_maps import mirror_to_canonical
+from .region import Region, _as_contacts
 
-__all__ = ["Region", "ProbeScorer", "DesignStep", "greedy_design", "force_relative", "SCORING_TOL"]
+if TYPE_CHECKING:
+    from ..gp.backends.spectral import SpectralBackend
+    from .scoring3d import ProbeScorer3D
 
-
-# ---- regions of interest -------------------------------------------------------------------
-@dataclass
-class Region:
-    """Points of the (beta, gamma) square with weights, over which the map variance is integrated.
-
-    Attributes:
-        beta, gamma: (N,) angles in rad (mapped into the canonical square on construction).
-        weight: (N,) non-negative weights, normalized to sum to 1 on construction.
-    The dtype is that of the first floating tensor given (else torch's default).
-    """
-
-    beta: Tensor
-    gamma: Tensor
-    weight: Tensor
-
-    def __post_init__(self) -> None:
-        dtype = next((v.dtype for v in (self.beta, self.gamma, self.weight)
-                      if isinstance(v, Tensor) and v.dtype.is_floating_point), torch.get_default_dtype())
-        b, g, w = (torch.as_tensor(v, dtype=dtype) for v in (self.beta, self.gamma, self.weight))
-        if b.ndim != 1 or b.shape != g.shape or b.shape != w.shape or b.numel() == 0:
-            raise ValueError(f"Region needs beta, gamma, weight of one shape (N,), got {tuple(b.shape)}, "
-                             f"{tuple(g.shape)}, {tuple(w.shape)}")
-        for name, v in (("beta", b), ("gamma", g), ("weight", w)):
-            if not torch.isfinite(v).all():
-                raise ValueError(f"Region.{name} contains NaN or inf")
-        if (w < 0).any() or w.sum() <= 0:
-            raise ValueError("Region.weight must be >= 0 with a positive sum")
-        self.beta, self.gamma, _ = mirror_to_canonical(b, g)
-        self.weight = w / w.sum()
-
-    @classmethod
-    def square(cls, n: int = 16, dtype=torch.float64) -> Region:
-        """An n x n grid of cell centres over the canonical square, equal weights."""
-        e = torch.linspace(-math.pi / 2, math.pi / 2, n + 1, dtype=dtype)
-        c = (e[1:] + e[:-1]) / 2
-        B, G = torch.meshgrid(c, c, indexing="ij")
-        return cls(B.reshape(-1), G.reshape(-1), torch.ones(n * n, dtype=dtype))
-
-    @classmethod
-    def sign_change(cls, n: int = 16, gamma_min: float = math.pi / 3, dtype=torch.float64) -> Region:
-        """The region the I-RFT paper calls informative: gamma > ``gamma_min`` (default pi/3), where
-        alpha_x changes sign with beta."""
-        sq = cls.square(n, dtype)
-        return cls(sq.beta, sq.gamma, (sq.gamma > gamma_min).to(dtype))
-
-    def contacts(self) -> Contacts:
-        """The region's points as (N, 1) point evaluations (weight 1 on both axes)."""
-        one = torch.ones_like(self.beta)[:, None]
-        return Contacts(self.beta[:, None], self.gamma[:, None], one, one)
-
-
-def _as_contacts(c) -> Contacts:
-    """A Contacts, or anything with a ``contacts()`` method (an ``rft.Probe``)."""
-    if isinstance(c, Contacts):
-        out = c
-    elif hasattr(c, "contacts"):
-        out = c.contacts()
-    else:
-        raise TypeError(f"a candidate must be a Contacts or have a contacts() method (a Probe), got {type(c).__name__}")
-    if out.beta.ndim != 2:
-        raise ValueError(f"a candidate's contacts must be (T, M), got {tuple(out.shape)}")
-    return out
+__all__ = ["Region", "ProbeScorer", "MixtureScorer", "force_relative", "SCORING_TOL"]
 
 
 def _plus_noise(S: Tensor, noise: Tensor) -> Tensor:
@@ -195,10 +138,11 @@ class ProbeScorer:
                 and (stats is None if state[2] is None else state[2]() is stats))
 
     @staticmethod
-    def _derive(model, method: str | None, tol) -> RFTBackend:
-        """The backend a scorer of ``model`` uses (see ``from_model``), from the model's current one."""
-        own = model.backend
-        own_tol = own.tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
+    def _derive(model, method: str | None, tol, own: RFTBackend | None = None) -> RFTBackend:
+        """The backend a scorer of ``model`` uses (see ``from_model``), from the model's current one (or from
+        ``own``, one of its hyperparameter draws' backends, on the model's data)."""
+        own = model.backend if own is None else own
+        own_tol = cast("SpectralBackend", own).tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
         target = "spectral" if isinstance(tol, float) else ALIASES.get(method or own.name, method or own.name)
         if tol == "auto":
             tol = max(own_tol, SCORING_TOL)
@@ -208,7 +152,7 @@ class ProbeScorer:
             return own
         # a spectral model's statistics serve any basis they cover (a coarser one: no pass over the data)
         stats = own.stats if own.name == "spectral" else None
-        return make_backend(target, model.hypers, model.train_contacts, model.train_forces, tol=tol, statistics=stats)
+        return make_backend(target, own.hypers, model.train_contacts, model.train_forces, tol=tol, statistics=stats)
 
     @property
     def method(self) -> str:
@@ -225,7 +169,7 @@ class ProbeScorer:
     # ---- construction ----------------------------------------------------------------------
     @classmethod
     def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
-                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer:
+                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer | MixtureScorer | ProbeScorer3D:
         """The posterior of a (fitted) ``InverseRFT``, with its hyperparameters fixed.
 
         Args:
@@ -246,11 +190,22 @@ class ProbeScorer:
                 A float: a spectral basis sized for this truncation error (``method`` becomes
                 "spectral"). The bound reached is ``scorer.backend.truncation_error()``.
 
+        A model with a hyperparameter posterior (``InverseRFT(..., hyper_posterior="laplace")``) gives a
+        ``design.MixtureScorer``: every score is the weighted average of the scores at its draws.
+
         The scorer follows the model: after ``model.add_data`` or a refit (which may grow the basis or
         move to another backend) it scores the model's current belief, derived the same way. Its
         current map variance (``map_variance``, ``integrated_variance()``) is that of its own basis,
         within the truncation error of the model's (6e-4 relative at 1e-4 in one check).
         """
+        from ..gp.inverse3d import InverseRFT3D
+
+        if isinstance(model, InverseRFT3D):  # a 3-D model: design.scoring3d (its own backend, fixed hyperparameters)
+            if method is not None or noise_scale is not None or tol != "auto":
+                raise ValueError("a 3-D model is scored in its own backend: method, noise_scale and tol do not apply")
+            from .scoring3d import ProbeScorer3D
+
+            return ProbeScorer3D.from_model(model)
         if grid_size is not None:
             warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
         if method == "grid":
@@ -265,7 +220,10 @@ class ProbeScorer:
             if method not in (None, "spectral"):
                 raise ValueError(f"tol= sizes a spectral basis: method must be None or 'spectral', got {method!r}")
             tol = float(tol)
-        out = cls(cls._derive(model, method, tol), cls._model_noise_scale(model, noise_scale))
+        noise_scale = cls._model_noise_scale(model, noise_scale)
+        if model._weighted_backends()[1] is not None:  # hyperparameter draws or averaged means: average over them
+            return MixtureScorer.from_model(model, method, noise_scale, tol)
+        out = cls(cls._derive(model, method, tol), noise_scale)
         out._recipe, out._derived_from = (model, method, tol), cls._state_of(model.backend)
         return out
 
@@ -354,13 +312,13 @@ class ProbeScorer:
         if region is None:
             self._square = self._square or Region.square(dtype=self.noise.dtype)
             region = self._square
-        key = id(region)  # the cache holds the region, so its id is not reused while cached
-        if key not in self._regions or self._regions[key][0] is not region:
+        rid = id(region)  # the cache holds the region, so its id is not reused while cached
+        if rid not in self._regions or self._regions[rid][0] is not region:
             r = region.contacts().to(dtype=self.noise.dtype, device=self.noise.device)
             with torch.no_grad():
                 var = self.backend.posterior(r).variance  # (2, N)
-            self._regions[key] = (region, r, var)
-        return self._regions[key]
+            self._regions[rid] = (region, r, var)
+        return self._regions[rid]
 
     def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
         """Expected integrated map variance over ``region`` (default: the whole square) after
@@ -373,9 +331,10 @@ class ProbeScorer:
             iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
 
-    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
+              per_axis: bool = False) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
-        better) or its information gain ("eig", nats, higher is better)."""
+        better) or its information gain ("eig", nats, higher is better); ``per_axis``: (n, 2), per map."""
         if criterion not in ("variance", "eig"):
             raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
         if criterion == "eig" and region is not None:
@@ -383,19 +342,19 @@ class ProbeScorer:
                              "information about the forces of the probe itself: pass region=None")
         cands = [self._cast(c) for c in candidates]
         if not cands:
-            return torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
+            return torch.zeros((0, 2) if per_axis else 0, dtype=self.noise.dtype, device=self.noise.device)
         # Batches of candidates of similar length (shortest first, so that padding to the longest wastes
         # little), each at most SCORE_ROWS rows and SCORE_ROWS^2 / 10 padded block entries: one covariance
         # product and one Cholesky per batch.
         order = sorted(range(len(cands)), key=lambda i: len(cands[i]))
-        scores = [None] * len(cands)
+        scores: list = [None] * len(cands)
         chunk: list[int] = []
         rows = 0
         for i in order + [None]:
             n = 0 if i is None else len(cands[i])  # the longest so far: the candidates come sorted
             if chunk and (i is None or rows + n > SCORE_ROWS or (len(chunk) + 1) * n**2 > SCORE_ROWS**2 // 10):
                 for j, v in zip(chunk, self._score_batch([cands[j] for j in chunk], criterion, region)):
-                    scores[j] = v.sum()
+                    scores[j] = v if per_axis else v.sum()
                 chunk, rows = [], 0
             if i is not None:
                 chunk.append(i)
@@ -473,11 +432,153 @@ class ProbeScorer:
         return v.T.reshape(*S, 2)
 
 
+# ---- averaged over a hyperparameter posterior ------------------------------------------------
+class MixtureScorer:
+    """Probe scores averaged over a hyperparameter posterior: one ``ProbeScorer`` per draw theta_s of a model
+    fitted with ``hyper_posterior="laplace"`` (or ``"nuts"``), weights w_s, and
+
+        EIG = sum_s w_s EIG(c | theta_s),    IV = sum_s w_s IV(c | theta_s),
+
+    as botorch averages an acquisition function over a fully Bayesian GP's draws. Neither adds the
+    information a probe carries about the hyperparameters themselves (BALD's extra term).
+
+    It answers what a ``ProbeScorer`` answers (``score``, ``rank``, ``information_gain``,
+    ``integrated_variance``, ``condition``, ``map_variance``, ``covariance``), so ``greedy_design`` and
+    ``optimize_probe`` take it as they take a ``ProbeScorer``.
+
+    Args:
+        scorers: one ``ProbeScorer`` per draw.
+        weights: (S,) non-negative, summing to 1.
+    """
+
+    def __init__(self, scorers: Sequence[ProbeScorer], weights) -> None:
+        scorers = list(scorers)
+        if not scorers:
+            raise ValueError("a MixtureScorer needs at least one scorer")
+        w = torch.as_tensor(weights, dtype=scorers[0].noise.dtype, device=scorers[0].noise.device)
+        w = w.reshape(-1) if w.ndim < 2 else w
+        if (w.shape[0] != len(scorers) or w.ndim > 2 or (w.ndim == 2 and w.shape[1] != 2)
+                or not torch.isfinite(w).all() or (w < 0).any() or (w.sum(0) <= 0).any()):
+            raise ValueError(f"weights must be {len(scorers)} non-negative finite numbers (or {len(scorers)} x 2, per "
+                             f"map) with a positive sum, got shape {tuple(w.shape)}: {w.tolist()}")
+        self.scorers, self.weights = scorers, w / w.sum(0)
+        self._recipe: tuple | None = None  # (model, method, noise_scale, tol) of ``from_model``
+        self._draws_of: tuple | None = None  # the model's draws the scorers were built for (``_state``)
+
+    @classmethod
+    def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
+                   tol: float | str | None = "auto") -> MixtureScorer:
+        """One ``ProbeScorer`` per draw of ``model``'s hyperparameter posterior, each derived from that
+        draw's backend as ``ProbeScorer.from_model`` derives from a plug-in model's (``method``, ``tol``).
+        The scorer follows the model: when its draws change (a refit, ``add_data``) it is built again."""
+        out = cls(*cls._build(model, method, noise_scale, tol))
+        out._recipe, out._draws_of = (model, method, noise_scale, tol), cls._state(model)
+        return out
+
+    @staticmethod
+    def _build(model, method, noise_scale, tol) -> tuple[list[ProbeScorer], Tensor]:
+        backends, weights = model._weighted_backends()
+        scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
+        return scorers, weights if weights is not None else torch.ones(1, device=scorers[0].noise.device)
+
+    @staticmethod
+    def _state(model) -> tuple:
+        draws = getattr(model, "_draw_backends", None)
+        return (id(draws), None if draws is None else tuple(b.n_samples for b in draws))
+
+    def _current(self) -> list[ProbeScorer]:
+        if self._recipe is not None and self._state(self._recipe[0]) != self._draws_of:
+            self.scorers, w = self._build(*self._recipe)
+            self.weights = w.to(self.scorers[0].noise) / w.sum(0)
+            self._draws_of = self._state(self._recipe[0])
+        return self.scorers
+
+    def _per_map(self) -> Tensor:
+        """(S, 2) the draws' weights per map (one weight for both maps where they are not per map)."""
+        return self.weights[:, None].expand(-1, 2) if self.weights.ndim == 1 else self.weights
+
+    def _average(self, values: list[Tensor], per_axis: bool = True) -> Tensor:
+        """The weighted average of per-map values (..., 2) (each map with its own weights); with
+        ``per_axis`` False the average is summed over the maps."""
+        w = self._per_map().to(values[0])
+        out = sum(wi * v for wi, v in zip(w, values))
+        return out if per_axis else out.sum(-1)
+
+    # ---- what a ProbeScorer answers ---------------------------------------------------------------
+    @property
+    def method(self) -> str:
+        return self._current()[0].method
+
+    @property
+    def noise(self) -> Tensor:
+        """(2,) the draws' force noise variances, weighted mean per map, N^2."""
+        return self._average([s.noise for s in self._current()])
+
+    @property
+    def outputscale(self) -> Tensor:
+        """(2,) the draws' prior map variances, weighted mean per map, (N/cm^3)^2."""
+        return self._average([s.outputscale for s in self._current()])
+
+    @property
+    def n_draws(self) -> int:
+        return len(self._current())
+
+    def covariance(self, contacts) -> Tensor:
+        """(2, T, T) the draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2
+        (the spread of the draws' means is not included: scores depend on the covariances only)."""
+        covs = [s.covariance(contacts) for s in self._current()]
+        w = self._per_map().to(covs[0])
+        return sum(wi[:, None, None] * v for wi, v in zip(w, covs))
+
+    def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
+        """Expected information gain averaged over the draws, nats (scalar, or (2,) per map)."""
+        return self._average([s.information_gain(contacts, True) for s in self._current()], per_axis)
+
+    def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
+        """Expected integrated map variance after the candidate (now, if None), averaged over the draws
+        (each draw's map variance divided by its own prior variance: 2 = the prior, 0 = known)."""
+        return self._average([s.integrated_variance(contacts, region, True) for s in self._current()], per_axis)
+
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
+              per_axis: bool = False) -> Tensor:
+        """Scores (n,) averaged over the draws (see ``ProbeScorer.score``); ``per_axis``: (n, 2)."""
+        candidates = list(candidates)
+        return self._average([s.score(candidates, criterion, region, per_axis=True) for s in self._current()],
+                             per_axis)
+
+    def rank(self, candidates: Sequence, criterion: str = "variance",
+             region: Region | None = None) -> list[tuple[int, float]]:
+        """(index, score) pairs, best first."""
+        with torch.no_grad():
+            s = self.score(candidates, criterion, region).tolist()
+        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
+        return [(i, s[i]) for i in order]
+
+    def condition(self, contacts) -> MixtureScorer:
+        """The belief after the candidate's forces (whatever their values) under every draw, same weights
+        (values unseen: nothing to reweight the draws by); this scorer and the model are unchanged."""
+        return MixtureScorer([s.condition(contacts) for s in self._current()], self.weights)
+
+    def map_variance(self, beta, gamma) -> Tensor:
+        """Current posterior variance of (alpha_x, alpha_z) at angles of broadcast shape S: the mixture's
+        total variance (the draws' variances and the spread of their means), S + (2,)."""
+        scorers = self._current()
+        pts = Contacts.points(beta, gamma, dtype=scorers[0].noise.dtype, device=scorers[0].noise.device)
+        S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
+        with torch.no_grad():
+            posts = [s.backend.posterior(pts) for s in scorers]
+        w = self._per_map().to(posts[0].mean)[:, :, None]  # (S, 2, 1) against (S, 2, N)
+        means = torch.stack([p.mean for p in posts])
+        second = (w * (torch.stack([p.variance for p in posts]) + means.pow(2))).sum(0)
+        mean = (w * means).sum(0)
+        return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, 2)
+
+
 @dataclass
 class _ForceRelative:
     """sqrt(F^2 + floor^2) of the model's predicted force (a class, not a closure: a scorer pickles)."""
 
-    model: object
+    model: Any  # an InverseRFT (design/ never imports the front door)
     floor: float
 
     def __call__(self, c: Contacts) -> Tensor:
@@ -493,41 +594,3 @@ def force_relative(model, floor: float) -> Callable[[Contacts], Tensor]:
     if not (math.isfinite(floor) and floor > 0):
         raise ValueError(f"floor must be a positive force in N, got {floor}")
     return _ForceRelative(model, float(floor))
-
-
-@dataclass
-class DesignStep:
-    """One pick of ``greedy_design``: the candidate's index, its score when picked, and the
-    integrated variance over the region once it is observed (2 = prior, 0 = known)."""
-
-    index: int
-    score: float
-    integrated_variance: float
-
-
-def greedy_design(scorer: ProbeScorer, candidates: Sequence, budget: int, criterion: str = "variance",
-                  region: Region | None = None) -> list[DesignStep]:
-    """Pick ``budget`` probes one after another, each the best given the ones before (the belief is
-    conditioned on every pick; the posterior variance does not depend on the values). Neither the
-    scorer nor any model is changed.
-
-    With criterion "eig", the scores add up to the information of the whole sequence (chain rule).
-    With fewer candidates than ``budget``, every candidate is picked (a warning says so).
-    """
-    if int(budget) != budget or budget < 0:
-        raise ValueError(f"budget must be an integer >= 0, got {budget}")
-    cands = [_as_contacts(c) for c in candidates]
-    if budget > len(cands):
-        warnings.warn(f"budget {budget} is more than the {len(cands)} candidate(s): the design has {len(cands)} "
-                      f"step(s)", stacklevel=2)
-    left = list(range(len(cands)))
-    steps: list[DesignStep] = []
-    current = scorer
-    for _ in range(min(int(budget), len(cands))):
-        j, score = current.rank([cands[i] for i in left], criterion, region)[0]
-        idx = left.pop(j)
-        current = current.condition(cands[idx])
-        with torch.no_grad():
-            iv = float(current.integrated_variance(region=region))
-        steps.append(DesignStep(idx, score, iv))
-    return steps

@@ -28,7 +28,8 @@ def decode_rows(rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """(..., T, 3M) -> beta, gamma, weight, each (..., T, M)."""
     if rows.shape[-1] % 3:
         raise ValueError(f"composite rows must have width 3M, got {rows.shape[-1]}")
-    return rows.tensor_split(3, dim=-1)
+    beta, gamma, weight = rows.tensor_split(3, dim=-1)
+    return beta, gamma, weight
 
 
 def encode_contacts(contacts: Contacts, M: int | None = None) -> Tensor:

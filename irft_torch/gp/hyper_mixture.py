@@ -6,18 +6,48 @@ NUTS) and keeps one backend per draw; every prediction averages over them with t
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .backends import RFTBackend, make_backend
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .hyperparameters import RFTHyperparameters
 
+if TYPE_CHECKING:
+    from ..rft.contacts import Contacts
+    from .backends.weight_space import FeatureStatistics
+    from .surface import SurfaceOffset
+
 __all__ = ["HyperMixtureMixin"]
 
 
-class HyperMixtureMixin:
+class HyperMixtureMixin(nn.Module):
     """``fit_hyper_posterior`` and the backends predictions average over (``_weighted_backends``)."""
+
+    hyper_posterior: HyperPosterior | None  # the draws and weights (None: the plug-in)
+    _draw_backends: list[RFTBackend] | None  # one backend per draw
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        hypers: RFTHyperparameters
+        backend: RFTBackend
+        surface: SurfaceOffset | None
+        _statistics: FeatureStatistics | None
+        _device: torch.device
+        dtype: torch.dtype
+        solver: str
+        tol: float
+        hyper_method: str
+
+        @property
+        def method(self) -> str: ...
+        @property
+        def train_contacts(self) -> Contacts: ...
+        @property
+        def train_forces(self) -> Tensor: ...
+        def _set_mean_average(self) -> None: ...  # gp.mean_average
+        def _model_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
 
     def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
                             generator: torch.Generator | None = None, **options) -> HyperPosterior | None:
@@ -34,7 +64,8 @@ class HyperMixtureMixin:
             options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
                 ``qmc``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
         Returns:
-            the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map".
+            the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With
+            ``prior_mean="average"`` the physics-mean companion gets the same and the weights are taken again.
         """
         method = self.hyper_method if method is None else method
         if method not in HYPER_POSTERIORS:
@@ -43,17 +74,22 @@ class HyperMixtureMixin:
             raise NotImplementedError("a hyperparameter posterior with a learned surface offset is not supported")
         if method == "map":
             self._set_hyper_posterior(None)
-            return None
-        self.train()
-        try:
-            if method == "laplace":
-                hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
-            else:
-                hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
-        finally:
-            self.eval()
-        self._set_hyper_posterior(hp)
-        return hp
+        else:
+            self.train()
+            try:
+                if method == "laplace":
+                    hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
+                                 **options)
+                else:
+                    hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+            finally:
+                self.eval()
+            self._set_hyper_posterior(hp)
+        companion = getattr(self, "companion", None)
+        if companion is not None and getattr(self, "mean_average", None) is not None:  # both means, weighed again
+            companion.fit_hyper_posterior(method, n_proposals, n_draws, generator, **options)
+            self._set_mean_average()
+        return self.hyper_posterior
 
     def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
         """Keep ``hp`` and build one backend per draw (sharing nothing with ``self.backend`` but the data)."""
@@ -82,7 +118,14 @@ class HyperMixtureMixin:
                             tol=self.tol, statistics=stats if self.method == "spectral" else None)
 
     def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
-        """The backends predictions average over and their weights (None: the one plug-in backend)."""
+        """The backends predictions average over and their weights: None (the one plug-in backend), (S,)
+        (hyperparameter draws) or (S, 2) per map (prior means averaged, ``gp.mean_average``)."""
+        if getattr(self, "mean_average", None) is not None:
+            return self._model_weighted_backends()
+        return self._own_weighted_backends()
+
+    def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
+        """This model's own backends (its draws, or the plug-in) and their weights (S,) or None."""
         if self._draw_backends is None:
             return [self.backend], None
         return self._draw_backends, self.hyper_posterior.weights.to(self._device, self.dtype)

@@ -66,18 +66,52 @@ def _whiten(c: Contacts, f: Tensor, s: Tensor) -> tuple[Contacts, Tensor]:
 
 
 def _check_units(c: Contacts, f: Tensor) -> None:
-    """Warn where the data look off by 1000 or in degrees (the fit itself is unit-free)."""
-    fmax = float(f.abs().max())
-    if fmax > 1e4:
-        warnings.warn(f"forces reach {fmax:.3g}: above 1e4 N on a toe; are they in mN? (forces are in N)", stacklevel=3)
-    wmax = float(torch.maximum(c.weight_x.abs().sum(-1).max(), c.weight_z.sum(-1).max()))
-    if wmax > 1e5:
-        warnings.warn(f"segment weights reach {wmax:.3g} per sample: above 1e5 cm^3; are they in mm^3? (weights are "
-                      f"depth [cm] x area [cm^2])", stacklevel=3)
+    """Warn where the data look off by a unit, in degrees, or not like a granular medium's forces at
+    these contacts (``rft.force_checks``: the generic map's forces as the yardstick, two-sided: mN or
+    kN, weights in mm^3 or m^3, a flipped sign, swapped columns). The fit itself is unit-free."""
+    from ..rft.force_checks import force_faults
+
     amax = float(torch.maximum(c.beta.abs().max(), c.gamma.abs().max()))
     if amax > math.pi + 1e-6:
         warnings.warn(f"angles reach {amax:.3g}: outside [-pi, pi]; are they in degrees? (angles are in rad)",
                       stacklevel=3)
+        return  # in degrees the generic map's forces say nothing
+    for fault in force_faults(c, f):
+        if fault.kind == "outside":
+            continue  # rows out of contact carry noise only: the model reads them as such
+        warnings.warn(f"{fault} (forces (T, 2) = (F_x, F_z) in N on the toe; weights depth [cm] x area [cm^2])",
+                      stacklevel=3)
+
+
+def _check_query(c: Contacts, train: Contacts) -> None:
+    """Warn where contacts to predict at look like another unit than the training ones: angles in
+    degrees, or weights 100x larger or 1e4x smaller than any training sample's (mm^3, m^3)."""
+    amax = float(torch.maximum(c.beta.abs().max(), c.gamma.abs().max())) if c.beta.numel() else 0.0
+    if amax > 2 * math.pi + 1e-6:
+        warnings.warn(f"contact angles reach {amax:.3g}: more than a turn; are they in degrees? (angles are in rad)",
+                      stacklevel=3)
+    w_new = float((c.weight_x.abs() + c.weight_z.abs()).sum(-1).max()) if c.beta.numel() else 0.0
+    w_old = float((train.weight_x.abs() + train.weight_z.abs()).sum(-1).max())
+    if w_new > 0 and w_old > 0 and not 1e-4 <= w_new / w_old <= 100:
+        warnings.warn(f"the contacts' weights reach {w_new:.3g}, {w_new / w_old:.3g}x the training data's largest "
+                      f"({w_old:.3g}): another unit? (weights are depth [cm] x area [cm^2]: mm^3 read 1000x, m^3 "
+                      "1e-6x)", stacklevel=3)
+
+
+def _check_angles(beta: Tensor, gamma: Tensor, where: str) -> tuple[int, ...]:
+    """The broadcast shape of map-query angles (rad); ValueError naming both shapes when they do not
+    broadcast, a warning when an angle is more than a turn (degrees?)."""
+    try:
+        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+    except RuntimeError:
+        raise ValueError(f"{where}: beta of shape {tuple(beta.shape)} and gamma of shape {tuple(gamma.shape)} do not "
+                         "broadcast: give angles of one shape, or a grid (torch.meshgrid(beta, gamma, "
+                         "indexing='ij'))") from None
+    amax = max(float(beta.abs().max()) if beta.numel() else 0.0, float(gamma.abs().max()) if gamma.numel() else 0.0)
+    if amax > 2 * math.pi + 1e-6:
+        warnings.warn(f"{where}: angles reach {amax:.3g}, more than a turn: are they in degrees? (angles are in rad: "
+                      f"{amax:.3g} deg = {math.radians(amax):.4g} rad)", stacklevel=3)
+    return tuple(S)
 
 
 def _check_statistics(stats, f: Tensor, noise_scale, prior_mean: str):

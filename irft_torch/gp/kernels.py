@@ -105,7 +105,8 @@ class RFTCompositeKernel(Kernel):
     def __init__(self, base_kernel: AngleKernel, **kwargs) -> None:
         super().__init__(batch_shape=base_kernel.batch_shape, **kwargs)
         self.base_kernel = base_kernel
-        self._structure_key, self._structure = None, None
+        self._structure_key: tuple | None = None
+        self._structure: dict | None = None
 
     def forward(self, x1: Tensor, x2: Tensor, diag: bool = False, last_dim_is_batch: bool = False, **params):
         if last_dim_is_batch:

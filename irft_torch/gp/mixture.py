@@ -8,6 +8,10 @@ for its fully Bayesian GPs). Its mean and total variance are
 
 and its quantiles come from the mixture CDF F(x) = sum_s w_s Phi((x - mu_s) / sigma_s), inverted by
 bisection (a mixture's quantile is not mu + z sigma: that would be the moment-matched Gaussian).
+
+The weights are (S,), one per draw, or (S, K) with K the outputs' last dimension (the two maps or force
+axes): a mixture per axis, for draws whose weight differs between the maps (models averaged per map,
+``InverseRFT(..., prior_mean="average")``).
 """
 
 from __future__ import annotations
@@ -17,13 +21,24 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["mixture_moments", "mixture_quantile"]
+__all__ = ["mixture_moments", "mixture_quantile", "broadcast_weights"]
+
+
+def broadcast_weights(weights: Tensor, means: Tensor) -> Tensor:
+    """Weights (S,) or (S, K) shaped to broadcast against components (S, ..., K): (S, 1, ..., 1) or
+    (S, 1, ..., 1, K)."""
+    w = weights.to(means)
+    if w.ndim == 1 and w.shape[0] == means.shape[0]:
+        return w.reshape(-1, *([1] * (means.ndim - 1)))
+    if w.ndim == 2 and w.shape[0] == means.shape[0] and means.ndim >= 2 and w.shape[1] == means.shape[-1]:
+        return w.reshape(w.shape[0], *([1] * (means.ndim - 2)), w.shape[1])
+    raise ValueError(f"weights must be (S,) or (S, K) for components {tuple(means.shape)}, got {tuple(w.shape)}")
 
 
 def mixture_moments(means: Tensor, variances: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     """Mean and total variance of the mixture: ``means``, ``variances`` (S, ...) per draw, ``weights``
-    (S,) summing to 1. Returns two tensors of shape (...)."""
-    w = weights.to(means).reshape(-1, *([1] * (means.ndim - 1)))
+    (S,) (or (S, K), see the module docstring) summing to 1 over S. Returns two tensors of shape (...)."""
+    w = broadcast_weights(weights, means)
     mean = (w * means).sum(0)
     # sum_s w_s (mu_s - mu)^2 rather than E[mu^2] - mu^2: no cancellation when the draws agree
     var = (w * (variances.clamp_min(0) + (means - mean).pow(2))).sum(0)
@@ -33,7 +48,7 @@ def mixture_moments(means: Tensor, variances: Tensor, weights: Tensor) -> tuple[
 def mixture_cdf(x: Tensor, means: Tensor, stds: Tensor, weights: Tensor) -> Tensor:
     """F(x) = sum_s w_s Phi((x - mu_s) / sigma_s), x of shape (...), components (S, ...). A component of
     zero std is a step at its mean."""
-    w = weights.to(means).reshape(-1, *([1] * (means.ndim - 1)))
+    w = broadcast_weights(weights, means)
     z = (x - means) / stds.clamp_min(torch.finfo(means.dtype).tiny)
     return (w * 0.5 * torch.special.erfc(-z / math.sqrt(2))).sum(0)
 
@@ -47,7 +62,7 @@ def mixture_quantile(q: float, means: Tensor, variances: Tensor, weights: Tensor
     stds = variances.clamp_min(0).sqrt()
     z = math.sqrt(2) * torch.special.erfinv(torch.tensor(2 * q - 1, dtype=torch.float64)).item()
     own = means + z * stds
-    live = weights.to(means).reshape(-1, *([1] * (means.ndim - 1))) > 0
+    live = broadcast_weights(weights, means) > 0
     big = torch.finfo(means.dtype).max
     lo = torch.where(live, own, torch.full_like(own, big)).amin(0)
     hi = torch.where(live, own, torch.full_like(own, -big)).amax(0)

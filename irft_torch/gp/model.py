@@ -18,29 +18,36 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .backends.select import cheaper_space, estimate_pairs, estimated_costs
+from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
 from .inputs import (
     _as_forces,
     _as_noise_scale,
+    _check_angles,
     _check_dtype,
+    _check_query,
     _check_statistics,
     _check_units,
     _data_scales,
     _noise_scale,
     _whiten,
 )
+from .mean_average import MeanAverageMixin, check_average_options
 from .model_file import PersistenceMixin
-from .posterior import Posterior, _force_posterior, _psd_root
+from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
 from .priors import PRIORS, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
-__all__ = ["Posterior", "InverseRFT"]
+__all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
 
 
-class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Module):
+NOISE_FLOOR = 1e-8  # the force noise variance is at least this share of the force power (float64; float32: 1e-5)
+
+
+class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, FitControlMixin,
+                 nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -61,7 +68,10 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
         forces: (T, 2) measured (F_x, F_z) in N, finite; each axis non-zero in some sample (ValueError
             otherwise: an axis that was not measured cannot be passed as zeros).
-        prior_mean: "zero" (the paper) or "physics" (generic Li et al. shape x learned scales).
+        prior_mean: "zero" (the paper), "physics" (generic Li et al. shape x learned scales), or "average":
+            both, weighed per map by their evidence (``gp.mean_average``: the zero-mean model is this one,
+            the physics-mean model ``model.companion`` is fitted after it; ``model.mean_average`` holds
+            the weights).
         tied_noise: one noise variance for both axes (the paper) instead of one per axis.
         dtype: inference dtype (float64 by default; float32 works).
         solver: observations backend only: "cholesky" (exact, the default) or "gpytorch"
@@ -128,8 +138,10 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
             raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
-        if prior_mean not in ("zero", "physics"):
-            raise ValueError(f"prior_mean must be 'zero' or 'physics', got {prior_mean!r}")
+        if prior_mean not in ("zero", "physics", "average"):
+            raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
+        if prior_mean == "average":
+            check_average_options(priors, surface_offset or surface_groups is not None, tied_noise)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
         if method == "grid":
@@ -163,9 +175,9 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         scale = _as_noise_scale(noise_scale, T, dtype, device)
         _check_units(c, f)  # as measured (whitened by a small noise_scale they would look too large)
         c, f = _whiten(c, f, scale)
-        for axis, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
+        for field, w in (("weight_x", c.weight_x), ("weight_z", c.weight_z)):
             if not (w != 0).any():
-                raise ValueError(f"contacts.{axis} is zero everywhere: no segment is in contact, nothing to learn")
+                raise ValueError(f"contacts.{field} is zero everywhere: no segment is in contact, nothing to learn")
         for axis, name in enumerate(("F_x", "F_z")):
             if not (f[:, axis] != 0).any():  # each map is learned in its forces' scale (_data_scales): none here
                 raise ValueError(f"forces[:, {axis}] ({name}) is zero in every sample: no scale to learn that map in; "
@@ -179,16 +191,18 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         self.hyper_method = hyper_posterior
         self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
         self._draw_backends: list[RFTBackend] | None = None
+        self._companion: list = []  # prior_mean="average": the physics-mean model (a list: not a submodule)
+        self.mean_average = None
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
-        self._joined = None
+        self._joined: tuple[Contacts, Tensor, Tensor] | None = None
 
         # Data-scaled initial values and bounds (forces in N, maps in N/cm^3).
         y = f.T
         s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
         power = y.pow(2).mean(-1)
-        rel_floor = 1e-8 if dtype == torch.float64 else 1e-5
+        rel_floor = NOISE_FLOOR if dtype == torch.float64 else max(NOISE_FLOOR, 1e-5)
         noise_floor = max(float(power.min()) * rel_floor, 1e-12)
         # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
@@ -215,12 +229,15 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "
                              "learns the surface (drop statistics or surface_offset)")
-        self._statistics = _check_statistics(statistics, f, noise_scale, prior_mean)
+        own_mean = "physics" if prior_mean == "physics" else "zero"  # "average": this model is the zero mean's
+        self._statistics = _check_statistics(statistics, f, noise_scale, own_mean)
         self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol,
                                                 statistics=self._statistics)
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
+        self._held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (_adapt)
+        self._hold_said = False
         self.eval()
 
     # ---- views -------------------------------------------------------------------------------
@@ -277,7 +294,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         """The training contacts (T, M), whitened by ``noise_scale`` (with a learned surface offset: at
         the current offset)."""
         c = self._join()[0]
-        return c if self.surface is None else self.surface.apply(c, detach=True)
+        return c if self.surface is None else self.surface.shifted(c, detach=True)
 
     @property
     def train_forces(self) -> Tensor:
@@ -330,13 +347,19 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
         """Adam on the exact marginal likelihood. Returns the loss per step (the negative log
         likelihood per force sample, summed over the two axes). Ctrl-C stops early and keeps
-        what was learned."""
+        what was learned.
+
+        The model ends at the best iterate the loss saw: where the loss rose above its best (an lr
+        too large makes Adam diverge: ``fit(40, lr=5)`` climbs from -0.41 to +7.4), or turned NaN or
+        inf (the fit stops there), the hyperparameters of the best step are restored, and a rise of
+        more than 0.1 (or 10 %) of the loss is a ``FitDivergedWarning`` suggesting an lr 10x smaller."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
         params = list(self.hypers.parameters()) + ([] if self.surface is None else [self.surface.offset])
         opt = torch.optim.Adam(params, lr=lr)
         history: list[float] = []
+        best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
         self.backend.in_fit = True
@@ -344,22 +367,29 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             for step in bar:
                 opt.zero_grad(set_to_none=True)
                 loss = self.backend.loss() if self.surface is None else self._surface_loss()
+                value = loss.item()
+                if not math.isfinite(value):
+                    history.append(value)
+                    break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
+                if value < best[0]:
+                    best = (value, self._snapshot(), step)
                 loss.backward()
                 opt.step()
-                history.append(loss.item())
+                history.append(value)
                 if self.surface is None and step % 10 == 9 and (self.backend.stale() or
                                                                  (self.auto and step % 30 == 29)):
                     self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}")
-            if self.surface is None and self.backend.stale():
-                self._adapt()
         except KeyboardInterrupt:
-            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
+                          FitInterruptedWarning, stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
+            self._keep_best(best, history, lr, quiet=True)
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
-                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64."
+                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
+                f"the best step's hyperparameters)."
             ) from e
         finally:
             self.backend.in_fit = False
@@ -367,40 +397,29 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
                 self._rebuild_backend()
             bar.close()
             self.eval()
+        self._keep_best(best, history, lr)
+        if self.surface is None and self.backend.stale():
+            self._adapt()
         self.loss_history.extend(history)
+        self._last_fit = (int(n_iter), float(lr))
+        if self.averages_means:
+            self._fit_companion(int(n_iter), float(lr), progress)
         self._finish_fit()
         return history
 
     def _finish_fit(self) -> None:
         """What ends every fit (``fit``, ``gp.fit_together``): the hyperparameter posterior at the fitted
-        hyperparameters ("laplace", "nuts"), or the plug-in ("map")."""
+        hyperparameters ("laplace", "nuts"), or the plug-in ("map"); with ``prior_mean="average"``, the
+        physics-mean companion (fitted here if ``fit`` did not: ``gp.fit_together``) and the weights."""
         if self.hyper_method != "map":
             self.fit_hyper_posterior()
         else:
             self._set_hyper_posterior(None)
-
-    def _adapt(self) -> None:
-        """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
-        (``method="auto"``, every 30 steps) may have made another space cheaper: with "auto", first ask
-        whether another backend is now cheaper (by more than 2x) and move there instead (the
-        hyperparameters are shared, nothing is lost; a lengthscale that dips below what the spectral
-        basis can hold and recovers brings the fit back to spectral); else refresh."""
-        if self.auto:
-            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
-            best = cheaper_space(costs, self.method)
-            if best is not None:
-                self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
-                                            solver=self.solver, tol=self.tol, statistics=self._statistics)
-                self.backend.in_fit = True
-                return
-        self.backend.refresh()
-
-    def _pair_count(self) -> int:
-        """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until
-        ``add_data`` changes the data."""
-        if getattr(self, "_n_pairs", None) is None:
-            self._n_pairs = estimate_pairs(self.train_contacts)
-        return self._n_pairs
+        if self.averages_means:
+            if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
+                n_iter, lr = getattr(self, "_last_fit", (300, 0.05))
+                self._fit_companion(n_iter, lr, progress=False)
+            self._set_mean_average()
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
@@ -419,9 +438,18 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         f = _as_forces(forces, len(c), self.dtype, device)
         scale = _as_noise_scale(noise_scale, len(c), self.dtype, device)
         c, f = _whiten(c, f, scale)
-        self.backend.add_data(c, f)
-        if self._draw_backends is not None:
-            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+
+        def add_own() -> None:
+            self.backend.add_data(c, f)
+            if self._draw_backends is not None:
+                add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+
+        if self.averages_means and self.mean_average is not None:
+            self._stream_into_average(contacts, forces, noise_scale, add_own)
+        else:
+            add_own()
+            if self.averages_means and self.companion is not None:  # not yet weighed (unfitted): keep in step
+                self.companion.add_data(contacts, forces, noise_scale)
         self._statistics = None  # no longer of all the data
         self._n_pairs = None
         self._parts.append((c, f, scale))
@@ -440,7 +468,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         """
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "stress_map")
         self.eval()
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
@@ -462,7 +490,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise ValueError(f"n must be a positive integer (the number of maps to draw), got {n!r}")
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "sample_maps")
         c = Contacts.points(beta, gamma)
         N = c.beta.shape[0]
         if N > 4096 and self.backend.posterior_root(c) is None:
@@ -472,36 +500,29 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         backends, weights = self._weighted_backends()
         with torch.no_grad():
             if weights is None:
-                counts = [int(n)]
-            else:  # how many maps each hyperparameter draw supplies
+                draws = _maps_from(backends, [[int(n)], [int(n)]], c, generator)
+            elif weights.ndim == 1:  # how many maps each hyperparameter draw supplies
                 pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
                 counts = torch.bincount(pick, minlength=len(backends)).tolist()
-            out = []
-            for b, k in zip(backends, counts):
-                if k == 0:
-                    continue
-                root = b.posterior_root(c)
-                post = b.posterior(c, variance=False, covariance=root is None)
-                if root is None:
-                    root = _psd_root(post.covariance)  # (2, N, N)
-                eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
-                out.append(post.mean[..., None] + root @ eps)  # (2, N, k)
-            draws = torch.cat(out, -1)
-            if len(out) > 1:  # interleave the draws' maps (each draw's block is otherwise contiguous)
-                perm = torch.randperm(int(n), generator=generator, device=draws.device)
-                draws = draws[..., perm]
+                draws = _maps_from(backends, [counts, counts], c, generator)
+            else:  # weights per map (models averaged per map): each map's draws picked on its own
+                counts = [torch.bincount(torch.multinomial(weights[:, a], int(n), replacement=True,
+                                                           generator=generator), minlength=len(backends)).tolist()
+                          for a in range(2)]
+                draws = _maps_from(backends, counts, c, generator)
         return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = _check_angles(beta, gamma, "the model's map")
         c = Contacts.points(beta, gamma)
         backends, weights = self._weighted_backends()
         if weights is None:
             return self.backend.posterior(c, variance=False).mean.T.reshape(*S, 2)
-        mean = sum(w * b.posterior(c, variance=False).mean for b, w in zip(backends, weights))
+        w = weights if weights.ndim == 2 else weights[:, None].expand(-1, 2)  # (S, 2): per map
+        mean = sum(wi[:, None] * b.posterior(c, variance=False).mean for b, wi in zip(backends, w))
         return mean.T.reshape(*S, 2)
 
     def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False,
@@ -530,6 +551,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
             raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
         self.eval()
         c = contacts.to(dtype=self.dtype, device=self._device)
+        _check_query(c, self.train_contacts)
         lead, M = c.shape[:-1], c.n_segments
         flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
@@ -544,7 +566,7 @@ class InverseRFT(PersistenceMixin, HyperMixtureMixin, LearnedSurfaceMixin, nn.Mo
         backends, weights = self._weighted_backends()
         means, variances = [], []
         for backend in backends:
-            mean, var = _force_posterior(backend, flat, rows, variance)
+            mean, var = _force_posterior(backend, flat, rows, variance, chunk=_predict_chunk(backend))
             var = var.T.reshape(*lead, 2)
             if include_noise:
                 var = var + backend.hypers.noise * scale.pow(2)

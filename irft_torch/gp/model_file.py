@@ -6,13 +6,18 @@ from __future__ import annotations
 
 import hashlib
 import warnings
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from .._files import atomic_write
 from ..rft.contacts import Contacts
+
+if TYPE_CHECKING:
+    from .hyperparameters import RFTHyperparameters
+    from .surface import SurfaceOffset
 
 __all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
            "PersistenceMixin"]
@@ -49,7 +54,10 @@ def digest(obj) -> str:
 
 def save_model(model, path) -> None:
     """Write an ``InverseRFT``'s training data (as measured: the whitening undone), options,
-    hyperparameters and a checksum to one file (torch.save)."""
+    hyperparameters and a checksum to one file (torch.save), atomically: to a temporary file beside
+    it, fsynced, then renamed over ``path`` (``_files.atomic_write``), so a full disk, Ctrl-C or a
+    crash leaves the previous file loadable. A folder, a missing folder or a failed write is an
+    ``OSError`` naming the path."""
     contacts, forces = model._measured()
     payload = {
         "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
@@ -65,12 +73,19 @@ def save_model(model, path) -> None:
     }
     if model.hyper_posterior is not None:  # the hyperparameter draws and weights predictions average over
         payload["hyper_posterior"] = model.hyper_posterior.state()
+    if getattr(model, "mean_average", None) is not None:  # prior_mean="average": the physics-mean companion
+        comp = model.companion
+        payload["companion"] = {"hypers": {k: v.detach().cpu() for k, v in comp.hypers.state_dict().items()},
+                                "method": comp.method, "auto": bool(comp.auto)}
+        if comp.hyper_posterior is not None:
+            payload["companion"]["hyper_posterior"] = comp.hyper_posterior.state()
+        payload["mean_average"] = model.mean_average.state()
     if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
         payload["options"]["surface_offset"] = True
         payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
         payload["surface_offset"] = model.surface.offset.detach().cpu()
-    torch.save({"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload),
-                "payload": payload}, path)
+    blob = {"format": FILE_FORMAT, "version": FILE_VERSION, "checksum": digest(payload), "payload": payload}
+    atomic_write(path, lambda fh: torch.save(blob, fh), "model")
 
 
 def load_model(cls, path, map_location=None):
@@ -111,6 +126,18 @@ def load_model(cls, path, map_location=None):
         from .hyper_posterior import HyperPosterior
 
         model._set_hyper_posterior(HyperPosterior.from_state(payload["hyper_posterior"]))
+    if "companion" in payload:  # prior_mean="average"
+        from .hyper_posterior import HyperPosterior
+        from .mean_average import MeanAverage
+
+        saved = payload["companion"]
+        comp = model._new_companion(method=saved["method"])
+        comp.auto = bool(saved["auto"])
+        comp.hypers.load_state_dict(saved["hypers"])
+        comp._set_hyper_posterior(HyperPosterior.from_state(saved["hyper_posterior"]) if "hyper_posterior" in saved
+                                  else None)
+        model._set_companion(comp)
+        model.mean_average = MeanAverage.from_state(payload["mean_average"])
     model.loss_history = list(payload.get("loss_history", []))
     if "data_digest" in payload:  # the saved model's fingerprint (files before it: recomputed from the data)
         model.data_digest.copy_(payload["data_digest"].to(model.data_digest))
@@ -156,10 +183,29 @@ def _load_v1(cls, d: dict, path):
 _Model = TypeVar("_Model", bound="PersistenceMixin")
 
 
-class PersistenceMixin:
+class PersistenceMixin(nn.Module):
     """An ``InverseRFT``'s state and file: its options, its training data as measured and their digest,
     ``state_dict`` / ``load_state_dict`` (hyperparameters and the data's digest, never the backend's
     entries), ``save`` / ``load`` (``save_model``, ``load_model``). A mixin of ``InverseRFT``."""
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        hypers: RFTHyperparameters
+        surface: SurfaceOffset | None
+        data_digest: Tensor
+        _digest_stale: bool
+        _device: torch.device
+        dtype: torch.dtype
+        prior_mean_kind: str
+        init_lengthscale: float
+        tol: float
+        solver: str
+        priors: str | None
+        hyper_method: str
+
+        @property
+        def noise_scale(self) -> Tensor: ...
+        def _join(self) -> tuple[Contacts, Tensor, Tensor]: ...
+        def _rebuild_backend(self) -> None: ...
 
     def _options(self) -> dict:
         """The constructor options that shape the model, beyond its data, backend and surface: what a

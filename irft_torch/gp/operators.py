@@ -160,10 +160,13 @@ class RowSeparableRFTOperator(LinearOperator):
     toe; see :func:`row_separable`), in O(T1 T2 n_b) with no per-segment kernel evaluation.
 
     Args:
-        zb1, zb2: (*B, n1, 2), (*B, n2, 2) the distinct betas' (sin 2beta, cos 2beta) / lengthscales.
-        zg1, zg2: (*B, T1, 2), (*B, T2, 2) each row's (sin gamma, cos gamma) / lengthscales.
+        zb1: (*B, n1, 2) the first side's distinct betas' (sin 2beta, cos 2beta) / lengthscales.
+        zb2: (*B, n2, 2) the same for the second side.
+        zg1: (*B, T1, 2) each first-side row's (sin gamma, cos gamma) / lengthscales.
+        zg2: (*B, T2, 2) the same for the second side.
         outputscale: (*B, 1, 1).
-        L1, L2: (*B, T1, n1), (*B, T2, n2) the weights summed per distinct beta.
+        L1: (*B, T1, n1) the first side's weights summed per distinct beta.
+        L2: (*B, T2, n2) the same for the second side.
     """
 
     def __init__(self, zb1: Tensor, zb2: Tensor, zg1: Tensor, zg2: Tensor, outputscale: Tensor, L1: Tensor,
@@ -232,7 +235,8 @@ class RFTKernelLinearOperator(LinearOperator):
         outputscale: (*B, 1, 1) signal variance s.
         left_index: (*B, T1, M1) long, rows of ``x1``.
         left_weight: (*B, T1, M1) weights (0 for padding).
-        right_index, right_weight: (*B, T2, M2).
+        right_index: (*B, T2, M2).
+        right_weight: (*B, T2, M2).
 
     Shape: (*B, T1, T2). Gradients reach ``x1``, ``x2``, ``outputscale`` and the weights.
     """

@@ -36,14 +36,21 @@ class Posterior:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
+        _check_level(level)
         if self.components is not None:
             means, variances, weights = self.components
             return (mixture_quantile(0.5 - level / 2, means, variances, weights),
                     mixture_quantile(0.5 + level / 2, means, variances, weights))
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
+        return normal_interval(self.mean, self.stddev, level)
+
+    def to(self, *args, **kwargs) -> Posterior:
+        """The same posterior with every tensor moved as ``Tensor.to(*args, **kwargs)`` moves it (a
+        device, a dtype or both): ``model.stress_map(b, g).to("cpu")`` for plotting a GPU model's map."""
+        comp = None
+        if self.components is not None:
+            means, variances, weights = self.components
+            comp = (means.to(*args, **kwargs), variances.to(*args, **kwargs), weights.to(*args, **kwargs))
+        return Posterior(self.mean.to(*args, **kwargs), self.variance.to(*args, **kwargs), comp)
 
     @classmethod
     def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
@@ -70,10 +77,23 @@ def _psd_root(cov: Tensor) -> Tensor:
     return V * lam.clamp_min(0).sqrt()[..., None, :]
 
 
-def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance: str) -> tuple[Tensor, Tensor]:
+def _predict_chunk(backend: RFTBackend) -> int:
+    """Rows of contacts predicted at a time: a backend's query costs memory in proportion to the rows
+    times its training samples (a cross-covariance) or features, so 2^24 / T rows (256 to 8192) keep
+    each piece to a few hundred MB whatever the number of rows asked for (T = 10^6: 1.2 GB in all
+    instead of 10.7 GB at once)."""
+    return max(256, min(8192, 2**24 // max(1, int(getattr(backend, "n_samples", 1)))))
+
+
+def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance: str,
+                     chunk: int | None = None) -> tuple[Tensor, Tensor]:
     """Mean and variance (2, N) of the forces of contacts (N, M) from one backend; rows with no segment
-    in contact (``rows`` False) have force exactly 0, mean and variance."""
+    in contact (``rows`` False) have force exactly 0, mean and variance. With ``chunk``, the rows are
+    predicted ``chunk`` at a time (the same numbers, bounded memory)."""
     N = flat.shape[0]
+    if chunk is not None and N > chunk:
+        parts = [_force_posterior(backend, flat[i:i + chunk], rows[i:i + chunk], variance) for i in range(0, N, chunk)]
+        return torch.cat([p[0] for p in parts], -1), torch.cat([p[1] for p in parts], -1)
     mean = flat.beta.new_zeros(2, N)
     var = flat.beta.new_zeros(2, N)
     if rows.any():
@@ -92,3 +112,41 @@ def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance
         mean = mean.masked_scatter(rows.expand(2, N), post.mean)
         var = var.masked_scatter(rows.expand(2, N), v_sub)
     return mean, var
+
+
+def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts, generator) -> Tensor:
+    """Maps (2, N, n) drawn jointly over the N points of ``c``: ``counts[a][s]`` of map a's n draws from
+    backend s (its posterior mean plus its root times normals), the order shuffled across backends."""
+    out: list[list[Tensor]] = [[], []]
+    for s, b in enumerate(backends):
+        k = max(counts[0][s], counts[1][s])
+        if k == 0:
+            continue
+        root = b.posterior_root(c)
+        post = b.posterior(c, variance=False, covariance=root is None)
+        if root is None:
+            root = _psd_root(post.covariance)  # (2, N, N)
+        eps = torch.randn(2, root.shape[-1], k, generator=generator, dtype=root.dtype, device=root.device)
+        maps = post.mean[..., None] + root @ eps  # (2, N, k)
+        for a in range(2):
+            out[a].append(maps[a, :, :counts[a][s]])
+    draws = torch.stack([torch.cat(o, -1) for o in out])  # (2, N, n)
+    if sum(1 for k in counts[0] if k) > 1 or sum(1 for k in counts[1] if k) > 1:
+        # interleave the backends' maps (each backend's block is otherwise contiguous)
+        n = draws.shape[-1]
+        draws = torch.stack([draws[a][:, torch.randperm(n, generator=generator, device=draws.device)]
+                             for a in range(2)])
+    return draws
+
+
+def _check_level(level: float) -> None:
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+
+
+def normal_interval(mean: Tensor, stddev: Tensor, level: float) -> tuple[Tensor, Tensor]:
+    """Central interval (lower, upper) of independent Gaussian marginals at ``level`` in (0, 1):
+    mean -+ sqrt(2) erfinv(level) stddev (what ``Posterior.interval`` and the 3-D posterior use)."""
+    _check_level(level)
+    z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+    return mean - z * stddev, mean + z * stddev

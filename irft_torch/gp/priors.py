@@ -41,6 +41,9 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   is the centre: the map keeps correlation exp(-4 / (2 * 1.5^2)) = 0.41 between beta = 0 and
   beta = +-pi/2 (exp(-1/4.5) = 0.80 at +-pi/4), so it extrapolates part of what it saw and reverts
   to the prior's variance beyond, and that is what the posterior std then says.
+- **mean scale** (with the physics mean, ``prior_mean="physics"`` or ``"average"``): the generic shape's
+  scale per axis, centre the medium's zeta (as above), log-sd ln 2. A proper prior, so that a model with
+  the physics mean has a marginal likelihood (evidence) to weigh against the zero mean's.
 - **noise** variance of each force axis: centre 1e-2 of the mean squared force of that axis (a noise
   std of 10 % of the force; the I-RFT paper's Table II studies relative noise variances of 0.05 and
   0.2, i.e. 22 % and 45 %), log-sd ln 10 (a factor 10 per standard deviation): a noise-free
@@ -76,6 +79,7 @@ OUTPUTSCALE_LOG_SD = math.log(2.0)  # of sigma^2: sigma within a factor 2 at two
 JOINT_FRACTION = 0.5  # an axis' centre is at least this share of what the other axis' data scale implies
 NOISE_RELATIVE = 1e-2
 NOISE_LOG_SD = math.log(10.0)
+MEAN_SCALE_LOG_SD = math.log(2.0)  # the physics mean's scale per axis, around the medium's zeta
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
 
 
@@ -157,6 +161,12 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
                                              functools.partial(_log_lengthscale_ratio, c=log_ls))
     hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
                                                  functools.partial(_log_noise_ratio, c=log_noise))
+    if physics_mean and hypers.mean is not None:
+        # a proper prior on the generic shape's scale per axis (a model's evidence needs one: ``prior_mean=
+        # "average"`` weighs the physics mean against the zero mean by it): around the medium's zeta, a factor 2
+        # per standard deviation (real media's axes stray from one zeta by a factor 1.2-1.5, see above)
+        hypers.mean.register_prior("scales_prior", _stateless(NormalPrior(zero.clone(), MEAN_SCALE_LOG_SD)),
+                                   functools.partial(_log_scale_ratio, c=math.log(max(float(centres["zeta"]), 1e-300))))
 
 
 def _log_outputscale_ratio(m, c):
@@ -165,6 +175,10 @@ def _log_outputscale_ratio(m, c):
 
 def _log_lengthscale_ratio(m, c):
     return m.lengthscale.log() - (c.to(m.lengthscale) if torch.is_tensor(c) else c)
+
+
+def _log_scale_ratio(m, c):
+    return m.scales.log() - c
 
 
 def _log_noise_ratio(m, c):

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -44,6 +45,10 @@ from ..rft.contacts import M_TO_CM, Contacts
 from .backends import make_backend
 from .backends.pairs import distinct_pairs
 from .kernels import angle_covariance
+
+if TYPE_CHECKING:
+    from .backends import RFTBackend
+    from .hyperparameters import RFTHyperparameters
 
 __all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate",
            "LearnedSurfaceMixin"]
@@ -130,7 +135,7 @@ class SurfaceOffset(nn.Module):
     def n_groups(self) -> int:
         return self.offset.shape[0]
 
-    def apply(self, contacts: Contacts, detach: bool = False) -> Contacts:
+    def shifted(self, contacts: Contacts, detach: bool = False) -> Contacts:
         """``contacts`` (the training ones, T rows) at the current offsets."""
         delta = self.offset.detach() if detach else self.offset
         return contacts.with_depth_shift_cm(delta, self.groups)
@@ -144,8 +149,9 @@ def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, 
         hypers: the shared ``RFTHyperparameters``.
         contacts: (T, M) contacts at the offset being evaluated (whitened).
         forces: (T, 2) whitened forces.
-        table, index: distinct angle pairs (U, 2) covering every segment of non-zero weight, and each
-            segment's row in them (T, M) (``distinct_pairs`` of the contacts' areas).
+        table: distinct angle pairs (U, 2) covering every segment of non-zero weight (``distinct_pairs``
+            of the contacts' areas).
+        index: each segment's row in ``table`` (T, M).
     """
     T, U = len(contacts), table.shape[0]
     w = torch.stack([contacts.weight_x, contacts.weight_z])  # (2, T, M)
@@ -235,11 +241,28 @@ def surface_estimate(model) -> SurfaceEstimate:
                            cov.detach() * k**2, corr)
 
 
-class LearnedSurfaceMixin:
+class LearnedSurfaceMixin(nn.Module):
     """What the front door needs to learn the surface with the maps (its ``surface``: a
     ``SurfaceOffset`` or None): the offsets with their Laplace uncertainty (``surface_offset``), a start
     by grid search (``init_surface``), the loss while the offsets move (``_surface_loss``) and the
     backend rebuilt at the fitted offsets (``_rebuild_backend``). A mixin of ``InverseRFT``."""
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        surface: SurfaceOffset | None
+        hypers: RFTHyperparameters
+        backend: RFTBackend
+        _n_pairs: int | None
+        _method_arg: str
+        _device: torch.device
+        dtype: torch.dtype
+        solver: str
+        tol: float
+
+        @property
+        def train_contacts(self) -> Contacts: ...
+        @property
+        def train_forces(self) -> Tensor: ...
+        def _join(self) -> tuple[Contacts, Tensor, Tensor]: ...
 
     @property
     def surface_offset(self):
@@ -271,7 +294,7 @@ class LearnedSurfaceMixin:
 
     def _surface_loss(self) -> Tensor:
         c, f, _ = self._join()
-        nll = surface_negative_log_likelihood(self.hypers, self.surface.apply(c), f, self.surface.table,
+        nll = surface_negative_log_likelihood(self.hypers, self.surface.shifted(c), f, self.surface.table,
                                               self.surface.index)
         return nll.sum() - self.backend.log_prior() / max(len(f), 1)
 

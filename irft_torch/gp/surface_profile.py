@@ -30,17 +30,17 @@ def profile_surface(contacts: Contacts, forces, offsets, n_iter: int = 300, lr: 
     at least that far). Independent of the Laplace approximation, and of the model's own offset.
     """
     offsets = torch.as_tensor(offsets, dtype=torch.float64).reshape(-1)
-    nll = []
+    losses = []
     for d in offsets.tolist():
         c = contacts.with_surface_offset(d)
         if not bool((c.weight_z != 0).any()):
-            nll.append(math.nan)  # nothing in contact at this offset: no map to fit (left out)
+            losses.append(math.nan)  # nothing in contact at this offset: no map to fit (left out)
             continue
         m = InverseRFT(c, forces, **kwargs)
         m.fit(n_iter, lr, progress=False)
         with torch.no_grad():
-            nll.append(float(m.loss()) * len(m.train_forces))
-    nll = torch.tensor(nll, dtype=torch.float64)
+            losses.append(float(m.loss()) * len(m.train_forces))
+    nll = torch.tensor(losses, dtype=torch.float64)
     if not torch.isfinite(nll).any():
         raise ValueError("profile_surface: no offset of the grid puts any segment in contact")
     nll = nll - nll[torch.isfinite(nll)].min()

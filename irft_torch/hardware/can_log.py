@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import time
 import warnings
 from collections import defaultdict
@@ -22,7 +23,9 @@ from pathlib import Path
 import can
 import numpy as np
 
+from .._files import checked_target, temp_name
 from .log_checks import _blf_intact, _Fault, _text_checks
+from .log_clock import clock_breaks
 from .log_data import LogData, LogReadError, MotorSeries, ResampledLog
 from .mit_can import decode_mit
 from .mit_can import mit_model as _mit_model
@@ -74,7 +77,7 @@ def _frame_key(msg: can.Message) -> tuple:
 
 
 def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", protocol: str = "odrive",
-             mit_model="AK80-9", master_id: int = 0) -> LogData:
+             mit_model="AK80-9", master_id: int = 0, channel=None) -> LogData:
     """Read a python-can log file into per-motor series.
 
     Args:
@@ -84,8 +87,11 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         on_error: "raise" (LogReadError with ``.partial``) or "warn" (return the partial data) when
             the file is truncated or damaged.
         protocol: "odrive" (CANSimple) or "mit" (CubeMars / T-Motor AK MIT-mode replies).
-        mit_model, master_id: the AK model (a name in ``MIT_MODELS`` or a ``MitModel``) and the host's
-            id that replies are sent to (``protocol="mit"``).
+        mit_model: the AK model, a name in ``MIT_MODELS`` or a ``MitModel`` (``protocol="mit"``).
+        master_id: the host's id that replies are sent to (``protocol="mit"``).
+        channel: read only the frames of this CAN channel (as the file names it: "can0" in a candump
+            log, the channel number in .asc / .blf). Needed when the log holds several buses whose
+            node ids collide (``candump -L any``): without it that is a ValueError naming the channels.
     Returns:
         LogData. Series groups: "encoder" (position [motor turns], velocity [turns/s]), "iq" (setpoint,
         measured [A]), "torque" (target, estimate [N m]), "heartbeat" (fault 0/1, ODrive axis state).
@@ -95,9 +101,13 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
     Every fault is reported, never passed over: malformed frames are skipped and counted in
     ``issues``; exact duplicates (same time, id and data) are dropped and counted; a file that is
     empty, not a log, cut short or damaged raises LogReadError (``.partial`` keeps every frame read
-    before the fault). What cannot be detected: a .log/.csv cut exactly at a line end reads as a
-    shorter recording (ingest's trial coverage check catches it), and a changed hex digit inside a
-    text frame is a valid frame (text logs carry no checksum; BLF's compressed containers do).
+    before the fault). The logger's clock is read in file order (``log_clock``): a clock stepped back
+    or ahead while the motors' positions continue is undone (the frames after it re-timed) and said
+    so in ``issues``; a clock that restarts (two recordings appended) splits the log into recordings,
+    ``LogData.segments``, each read on its own (``resample`` then asks for one). What cannot be
+    detected: a .log/.csv cut exactly at a line end reads as a shorter recording (ingest's trial
+    coverage check catches it), and a changed hex digit inside a text frame is a valid frame (text
+    logs carry no checksum; BLF's compressed containers do).
     """
     if on_error not in ("raise", "warn"):
         raise ValueError(f"on_error must be 'raise' or 'warn', got {on_error!r}")
@@ -140,89 +150,14 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         msg = f"{path.name} is not a readable {suffix} log: {type(e).__name__}: {e}"
         data.issues.append(msg)
         raise LogReadError(msg, data) from None
-    raw: list[tuple[float, int, str, tuple]] = []
-    seen: set = set()
-    duplicates = 0
-    last_t = -math.inf
-    disorder = 0
-    fault = None
-    first_of_kind: dict[str, str] = {}
-    it = iter(reader)
-    index = 0
-    while True:
-        try:
-            msg = next(it)
-        except StopIteration:
-            break
-        except Exception as e:  # noqa: BLE001 - any reader fault means the file is damaged here
-            fault = (f"{path.name}: truncated or corrupted after frame {index} "
-                     f"(last good timestamp {last_t if raw else 'none'}): {type(e).__name__}: {e}")
-            break
-        index += 1
-        data.n_frames += 1
-        if not math.isfinite(msg.timestamp):
-            data.skipped["non-finite timestamp"] += 1
-            continue
-        key = _frame_key(msg)
-        if key in seen:
-            duplicates += 1
-            continue
-        seen.add(key)
-        if msg.is_error_frame:
-            data.skipped["error frame"] += 1
-            continue
-        if protocol == "odrive" and msg.is_remote_frame:
-            continue  # our own polling requests: not data
-        try:
-            if protocol == "odrive":
-                frame = decode(msg, firmware)
-            else:
-                frame = decode_mit(msg, mit_model, master_id)
-        except FrameError as e:
-            if e.reason == "command frame":
-                data.other_ids[msg.arbitration_id] += 1  # the host's commands to the motors (or replies elsewhere)
-                continue
-            key_ = first_of_kind.setdefault(e.reason, f"{e.reason} (first at frame {index}: {e})")
-            data.skipped[key_] += 1
-            continue
-        if nodes is not None and frame.node not in nodes:
-            data.skipped["node not requested"] += 1
-            continue
-        if protocol == "mit":
-            if frame.values["saturated"]:
-                data.skipped["saturated (a field at the end of its range)"] += 1
-                continue
-            v = frame.values
-            group_values = [("encoder", (v["position"] / (2 * math.pi), v["velocity"] / (2 * math.pi)))]
-            third = "torque" if mit_model.quantity == "torque" else "iq"
-            group_values.append((third, (v[mit_model.quantity],) * 2))
-        else:
-            if frame.command == "heartbeat":  # the motor's state: samples while it is not controlling are masked
-                group_values = [("heartbeat", _heartbeat_status(frame.values))]
-            elif frame.command not in _FIELDS:
-                continue  # other replies: decoded and valid, not part of the force series
-            else:
-                group, names = _FIELDS[frame.command]
-                group_values = [(group, tuple(frame.values[n] for n in names))]
-        if msg.timestamp < last_t:
-            disorder += 1
-        last_t = max(last_t, msg.timestamp)
-        for group, vals in group_values:
-            raw.append((msg.timestamp, frame.node, group, vals))
+    records, fault = _decode_all(reader, path.name, suffix, data, protocol, firmware, mit_model, master_id,
+                                 nodes, channel)
     if hasattr(reader, "stop"):
         reader.stop()
-    data.duplicates = duplicates
-    raw.sort(key=lambda r: r[0])
-    for t, node, group, vals in raw:
-        m = data.motors.setdefault(node, MotorSeries(node))
-        m.times[group].append(t)
-        m.values[group].append(vals)
-    if duplicates:
-        data.issues.append(f"dropped {duplicates} duplicate frame(s) (same time, id and data as an earlier one)")
-    _summarize(data, disorder)
+    kept = _assemble(data, records, path.name)
     if structural:
-        kept = f"kept {len(raw)} sample(s) from {data.n_frames - duplicates} frame(s) read before the fault"
-        text_fault = f"{path.name}: damaged or truncated: {'; '.join(structural)}; {kept}"
+        where = f"kept {kept} sample(s) from {data.n_frames - data.duplicates} frame(s) read before the fault"
+        text_fault = f"{path.name}: damaged or truncated: {'; '.join(structural)}; {where}"
         fault = f"{fault}; {text_fault}" if fault else text_fault
     if fault is None and data.n_frames == 0:
         fault = f"{path.name} holds no CAN frames"
@@ -231,7 +166,205 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         if on_error == "raise":
             raise LogReadError(fault, data)
         warnings.warn(fault, stacklevel=2)
+    if channel is None:
+        _refuse_mixed_channels(data, path.name)
+    elif not data.motors:
+        others = [f"{k.split(' (')[0][len('on CAN channel '):]} ({v} frames)" for k, v in data.skipped.items()
+                  if k.startswith("on CAN channel ")]
+        if others:
+            raise ValueError(f"{path.name} holds no frames on CAN channel {channel!r}; its channels: "
+                             f"{', '.join(others)}")
     return data
+
+
+def _refuse_mixed_channels(data: LogData, name: str) -> None:
+    """ValueError where one node id sends on several CAN channels within a recording: two buses logged
+    together (``candump -L any``) whose node ids collide would be read as one motor."""
+    for part in data.recordings():
+        mixed = {node: c for node, c in part.channels.items() if len(c) > 1}
+        if mixed:
+            node, c = sorted(mixed.items())[0]
+            where = ", ".join(f"{k}: {v} samples" for k, v in sorted(c.items(), key=str))
+            pick = sorted(c, key=lambda k: -c[k])[0]
+            raise ValueError(f"{name}: node {node} sends on {len(c)} CAN channels ({where}): the log holds several "
+                             f"buses with the same node ids (candump -L any?), which would be read as one motor; pick "
+                             f"the leg's channel: read_log(..., channel={pick!r}) (irft ingest --channel {pick})")
+
+
+def _channel_name(msg: can.Message, suffix: str) -> str | None:
+    """The frame's CAN channel as the file writes it: candump's interface name (.log), the channel
+    number of .asc / .blf (python-can counts those from 0, the files from 1); None where the format
+    has none (.csv)."""
+    ch = msg.channel
+    if ch is None:
+        return None
+    if suffix in (".asc", ".blf") and isinstance(ch, int):
+        return str(ch + 1)
+    return str(ch)
+
+
+def _decode_all(reader, name: str, suffix: str, data: LogData, protocol: str, firmware: str, mit_model,
+                master_id: int, nodes, channel) -> tuple[list, str | None]:
+    """Every frame of the file in file order as a record (time, frame number, dedup key, channel, kind,
+    payload): kind "data" (payload: [(node, group, values)]), "skip" (payload: the reason), "other"
+    (payload: the id; MIT mode: a frame the host sent) or "none" (our own polls, replies outside the
+    force series). Frames on another channel than ``channel`` and non-finite timestamps are counted
+    in ``data.skipped`` here. Returns the records and the reader's fault (None: read to the end)."""
+    records: list = []
+    first_of_kind: dict[str, str] = {}
+    it = iter(reader)
+    index = 0
+    last_t = None
+    while True:
+        try:
+            msg = next(it)
+        except StopIteration:
+            return records, None
+        except Exception as e:  # noqa: BLE001 - any reader fault means the file is damaged here
+            return records, (f"{name}: truncated or corrupted after frame {index} "
+                             f"(last good timestamp {last_t if last_t is not None else 'none'}): "
+                             f"{type(e).__name__}: {e}")
+        index += 1
+        data.n_frames += 1
+        if not math.isfinite(msg.timestamp):
+            data.skipped["non-finite timestamp"] += 1
+            continue
+        ch = _channel_name(msg, suffix)
+        if channel is not None and ch != str(channel):
+            data.skipped[f"on CAN channel {ch} (reading channel {channel})"] += 1
+            continue
+        key = _frame_key(msg)
+        payload: object  # a frame's data, or what the record says instead (see ``_decode_all``)
+        kind, payload = "none", None
+        if msg.is_error_frame:
+            kind, payload = "skip", "error frame"
+        elif protocol == "odrive" and msg.is_remote_frame:
+            pass  # our own polling requests: not data
+        else:
+            try:
+                frame = decode(msg, firmware) if protocol == "odrive" else decode_mit(msg, mit_model, master_id)
+            except FrameError as e:
+                if e.reason == "command frame":
+                    kind, payload = "other", msg.arbitration_id  # the host's commands (or replies elsewhere)
+                else:
+                    kind, payload = "skip", first_of_kind.setdefault(
+                        e.reason, f"{e.reason} (first at frame {index}: {e})")
+            else:
+                kind, payload = _payload(frame, protocol, mit_model, nodes)
+        if kind == "data":
+            last_t = msg.timestamp
+        records.append((msg.timestamp, index, key, ch, kind, payload))
+
+
+def _payload(frame, protocol: str, mit_model, nodes) -> tuple[str, object]:
+    """(kind, payload) of a decoded frame (see ``_decode_all``)."""
+    if nodes is not None and frame.node not in nodes:
+        return "skip", "node not requested"
+    if protocol == "mit":
+        v = frame.values
+        if v["saturated"]:
+            return "skip", "saturated (a field at the end of its range)"
+        third = "torque" if mit_model.quantity == "torque" else "iq"
+        return "data", [(frame.node, "encoder", (v["position"] / (2 * math.pi), v["velocity"] / (2 * math.pi))),
+                        (frame.node, third, (v[mit_model.quantity],) * 2)]
+    if frame.command == "heartbeat":  # the motor's state: samples while it is not controlling are masked
+        return "data", [(frame.node, "heartbeat", _heartbeat_status(frame.values))]
+    if frame.command not in _FIELDS:
+        return "none", None  # other replies: decoded and valid, not part of the force series
+    group, names = _FIELDS[frame.command]
+    return "data", [(frame.node, group, tuple(frame.values[n] for n in names))]
+
+
+def _assemble(data: LogData, records: list, name: str) -> int:
+    """Fill ``data`` from the records: the clock's breaks found (``log_clock``: steps undone, a new
+    recording a segment of its own), then per recording exact duplicates dropped, skips counted,
+    the series sorted by time, and what was found reported in ``issues``. Returns the number of
+    samples kept."""
+    if not records:
+        _summarize(data, 0)
+        return 0
+    early = dict(data.skipped)  # counted while decoding (non-finite times, other channels): the whole file's
+    times = np.array([r[0] for r in records])
+    enc: dict = defaultdict(lambda: ([], []))
+    for k, r in enumerate(records):
+        if r[4] == "data":
+            for node, group, vals in r[5]:
+                if group == "encoder":
+                    enc[node][0].append(k)
+                    enc[node][1].append(vals[0])
+    positions = {n: (np.asarray(i), np.asarray(p, dtype=float)) for n, (i, p) in enc.items()}
+    ids = np.array([r[2][1] | r[2][2] << 29 | r[2][3] << 30 for r in records], dtype=np.int64)
+    breaks = clock_breaks(times, positions, ids, np.array([r[1] for r in records]))
+    parts = [LogData() for _ in range(breaks.n_segments)]
+    kept = 0
+    for seg, part in enumerate(parts):
+        sel = np.nonzero(breaks.segment == seg)[0]
+        kept += _fill(part, [records[k] for k in sel], times[sel] + breaks.offset[sel])
+    data.issues.extend(breaks.notes)
+    if len(parts) == 1:
+        one = parts[0]
+        data.motors, data.duplicates, data.other_ids = one.motors, one.duplicates, one.other_ids
+        data.channels = one.channels
+        for k, v in one.skipped.items():
+            data.skipped[k] += v
+        if data.duplicates:
+            data.issues.append(f"dropped {data.duplicates} duplicate frame(s) (same time, id and data as an earlier "
+                               "one)")
+        _summarize(data, one.disorder)
+        data.issues.extend(one.issues)
+        return kept
+    # several recordings: each its own LogData (``segments``); the whole holds their totals
+    data.issues.extend(f"skipped {count} frame(s): {reason}" for reason, count in sorted(early.items()))
+    for k, part in enumerate(parts):
+        part.n_frames = int((breaks.segment == k).sum())
+        _summarize(part, part.disorder)
+        data.duplicates += part.duplicates
+        for key, v in part.skipped.items():
+            data.skipped[key] += v
+        for key, v in part.other_ids.items():
+            data.other_ids[key] += v
+        for node, m in part.motors.items():
+            whole = data.motors.setdefault(node, MotorSeries(node))
+            for group in m.times:
+                whole.times[group].extend(m.times[group])
+                whole.values[group].extend(m.values[group])
+        data.issues.extend(f"recording {k + 1}: {issue}" for issue in part.issues)
+    data.segments = parts
+    data.issues.append(f"{name} holds {len(parts)} recordings (the clock restarts between them); each is read "
+                       "as a run of its own (LogData.segments)")
+    return kept
+
+
+def _fill(part: LogData, records: list, times: np.ndarray) -> int:
+    """One recording's records (file order, re-timed ``times``) into ``part``."""
+    seen: set = set()
+    raw = []
+    front = -math.inf
+    channels: dict = defaultdict(lambda: defaultdict(int))
+    for (t0, index, key, ch, kind, payload), t in zip(records, times):
+        key = (round(float(t), 7), *key[1:])  # on the re-timed clock: a step back must not make two frames one
+        if key in seen:
+            part.duplicates += 1
+            continue
+        seen.add(key)
+        if kind == "skip":
+            part.skipped[payload] += 1
+        elif kind == "other":
+            part.other_ids[payload] += 1
+        elif kind == "data":
+            if t < front:
+                part.disorder += 1
+            front = max(front, t)
+            for node, group, vals in payload:
+                raw.append((float(t), node, group, vals))
+                channels[node][ch] += 1
+    part.channels = {node: dict(c) for node, c in channels.items()}
+    raw.sort(key=lambda r: r[0])
+    for t, node, group, vals in raw:
+        m = part.motors.setdefault(node, MotorSeries(node))
+        m.times[group].append(t)
+        m.values[group].append(vals)
+    return len(raw)
 
 
 def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0), ("get_iq", 1)),
@@ -246,8 +379,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
             a command).
         stats: if given, filled with ``frames_by_id`` (arbitration id -> frames received).
     Returns:
-        the number of frames received and written (our own polls are not counted). The file is
-        flushed and closed even on Ctrl-C.
+        the number of frames received and written (our own polls are not counted). The log is written
+        to a temporary file beside ``path`` and renamed over it when recording ends (Ctrl-C and errors
+        included: what was recorded is kept), so an older log at ``path`` is never half overwritten.
     """
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be positive seconds, got {duration}")
@@ -257,7 +391,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         raise ValueError(f"log file {path}: the suffix picks the format; use one of {', '.join(SUPPORTED_SUFFIXES)}")
     requests = [request(command, node, firmware) for command, node in poll]
     counter = _Counter()
-    logger = can.Logger(str(path))
+    path = checked_target(path, "log")
+    tmp = temp_name(path)  # an older log at ``path`` stays whole until this recording is complete
+    logger = can.Logger(str(tmp))
     notifier = can.Notifier(bus, [logger, counter])
     try:
         t_end = time.monotonic() + duration
@@ -274,6 +410,9 @@ def record(bus: can.BusABC, path, duration: float, poll: tuple = (("get_iq", 0),
         time.sleep(0.05)  # let the last replies arrive
         notifier.stop()
         logger.stop()
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)  # even after an error: what was recorded is a valid log, never thrown away
     if stats is not None:
         stats["frames_by_id"] = dict(counter.by_id)
     return counter.n

@@ -48,6 +48,15 @@ class LogData:
     skipped: dict = field(default_factory=lambda: defaultdict(int))
     duplicates: int = 0
     other_ids: dict = field(default_factory=lambda: defaultdict(int))  # MIT: frames not sent to the master id, by id
+    # node -> {CAN channel (as the file names it) -> samples}
+    channels: dict = field(default_factory=dict)
+    # the recordings of a log whose clock restarts (two or more, each a LogData); empty for one recording
+    segments: list = field(default_factory=list)
+    disorder: int = 0  # frames earlier than the one before (sorted)
+
+    def recordings(self) -> list[LogData]:
+        """The recordings this log holds: ``segments`` when its clock restarts, else [self]."""
+        return list(self.segments) if self.segments else [self]
 
     def resample(self, nodes=(0, 1), rate: float | None = None, max_gap: float | None = None,
                  max_current: float | None = None, max_torque: float | None = None) -> ResampledLog:
@@ -63,12 +72,20 @@ class LogData:
             max_current: measured currents with |I| above this [A] are outliers (beyond what the
                 motor can carry): dropped before interpolation and counted in ``masked``.
             max_torque: the same for torque series [N m] (MIT-mode replies, ODrive Get_Torques).
+        Raises:
+            ValueError: a log of several recordings (``segments``); a rate more than ``RATE_RANGE``
+                times below or above the log's own; an encoder re-zeroed mid-recording (its position
+                jumps between two samples, ``_check_no_rezero``).
         Returns:
-            ResampledLog over the span all series share, with a ``valid`` mask: False inside gaps and
+            ResampledLog over the span all series share (a series that stops early or starts late
+            is named in ``masked`` with the samples that cuts off), with a ``valid`` mask: False inside gaps and
             wherever a motor's heartbeats (ODrive) say it was not in closed-loop control or had an
             error, from its last good heartbeat to its next (counted in ``masked``). It carries ``iq``
             (T, 2) when both motors sent currents, else ``torque`` (T, 2) N m when they sent torques.
         """
+        if self.segments:
+            raise ValueError(f"this log holds {len(self.segments)} recordings (its clock restarts between them): "
+                             "resample each of LogData.segments (irft ingest reads each as a run of its own)")
         nodes = tuple(nodes)
         if len(nodes) != 2 or nodes[0] == nodes[1]:
             raise ValueError(f"nodes must be two different node ids (motor 1, motor 2), got {list(nodes)}")
@@ -108,16 +125,28 @@ class LogData:
                 dt = np.diff(t)
                 if not float(np.median(dt)) > 0:
                     raise ValueError(f"node {node} {group}: timestamps do not advance (median step 0 s)")
+                if group == "encoder":
+                    _check_no_rezero(node, t, v)
                 series.append((node, group, t, v))
         start = max(s[2][0] for s in series)
         stop = min(s[2][-1] for s in series)
         if stop <= start:
             raise ValueError("the motors' series do not overlap in time")
+        native = min(1.0 / np.median(np.diff(s[2])) for s in series if s[1] == load)
         if rate is None:
-            rate = min(1.0 / np.median(np.diff(s[2])) for s in series if s[1] == load)
+            rate = native
+        elif not native / RATE_RANGE <= rate <= native * RATE_RANGE:
+            raise ValueError(
+                f"rate {rate:g} Hz is {'below' if rate < native else 'above'} the log's own {native:.4g} Hz by "
+                f"{max(rate / native, native / rate):.3g}x: resampling by interpolation "
+                + ("keeps one sample in that many and drops the rest (no anti-aliasing): the forces between them are "
+                   "lost" if rate < native else "invents that many samples between two measured ones")
+                + f"; use a rate within {RATE_RANGE:g}x of {native:.4g} Hz, or leave it out (the log's rate)")
+        masked.update(_cropped(series, start, stop, rate))
         n = int(math.floor((stop - start) * rate)) + 1
         if n > 50_000_000:
-            raise ValueError(f"rate {rate:g} Hz over {stop - start:.1f} s would give {n} samples; lower the rate")
+            raise ValueError(f"the motors' series span {stop - start:.4g} s: at {rate:g} Hz that is {n} samples "
+                             "(a clock jump inside the log?); split the log, or lower the rate")
         tb = start + np.arange(n) / rate
         valid = np.ones(n, dtype=bool)
         out = {}
@@ -144,6 +173,54 @@ class LogData:
             torque=third if load == "torque" else None,
             masked=masked,
         )
+
+
+RATE_RANGE = 10.0  # resample within this factor of the log's own rate (interpolation, no anti-aliasing filter)
+REZERO_MIN = 0.01  # turns: a jump between two samples smaller than this is not called a re-zero
+
+
+def _cropped(series: list, start: float, stop: float, rate: float) -> dict:
+    """Series that start or end well inside the others' span (an encoder that stopped early: a pulled
+    connector, a controller that stopped sending): reason -> the samples lost at ``rate`` (the span
+    kept is where every series has data). Within 5 sampling intervals of each other (or 50 ms) the
+    series end together, as interleaved frames do."""
+    first = min(s[2][0] for s in series)
+    last = max(s[2][-1] for s in series)
+    out = {}
+    for node, group, t, _ in series:
+        tol = max(5 * float(np.median(np.diff(t))), 0.05)
+        what = "encoder" if group == "encoder" else "current" if group == "iq" else group
+        if t[-1] == stop and last - stop > tol:
+            out[f"node {node} {what} stops {last - stop:.3f} s before the other series end (a pulled connector, or "
+                f"the controller stopped sending): the log is cut there"] = int(round((last - stop) * rate))
+        if t[0] == start and start - first > tol:
+            out[f"node {node} {what} starts {start - first:.3f} s after the other series: the log starts "
+                "there"] = int(round((start - first) * rate))
+    return out
+
+
+def _check_no_rezero(node: int, t: np.ndarray, v: np.ndarray) -> None:
+    """ValueError where an encoder position jumps between two consecutive samples (not across a gap)
+    by more than its own motion explains: the encoder was re-zeroed mid-recording (an index search, a
+    controller reboot), so the joint angles after it are off by the jump. A jump: at least
+    ``REZERO_MIN`` turns, 10x the largest step among the 10 samples on either side, and 3x what the
+    velocity estimate at its ends covers in that time."""
+    p, vel = v[:, 0], v[:, 1]
+    if len(p) < 4:
+        return
+    dt = np.diff(t)
+    dp = np.diff(p)
+    med = float(np.median(dt))
+    big = np.nonzero((np.abs(dp) > REZERO_MIN) & (dt <= 3 * med))[0]
+    for k in big:
+        near = np.abs(np.concatenate([dp[max(0, k - 10):k], dp[k + 1:k + 11]]))
+        moved = 3 * max(abs(vel[k]), abs(vel[k + 1])) * dt[k]
+        if len(near) and abs(dp[k]) > 10 * near.max() and abs(dp[k]) > moved:
+            raise ValueError(f"node {node}'s encoder jumps by {dp[k]:+.4f} turns between {t[k] - t[0]:.3f} and "
+                             f"{t[k + 1] - t[0]:.3f} s into its series, where it moves at most {near.max():.4f} turns "
+                             "per sample before and after: the encoder was re-zeroed mid-recording (an index search, "
+                             "a controller reboot), so every joint angle after it is off by that much. Record the "
+                             "run again, or cut the log at that time")
 
 
 def _not_controlling(m: MotorSeries, tb: np.ndarray) -> tuple[np.ndarray, str]:

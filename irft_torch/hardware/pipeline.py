@@ -81,15 +81,15 @@ def progress(toe: np.ndarray, time: np.ndarray, noise: float = 0.0) -> np.ndarra
         return np.zeros(T)
     step = np.linalg.norm(np.diff(toe, axis=0), axis=1)
     raw = np.concatenate([[0.0], np.cumsum(np.where(np.isfinite(step), step, 0.0))])
-    at, dist = [int(ok[0])], [0.0]
+    moves, lengths = [int(ok[0])], [0.0]
     anchor = toe[ok[0]]
     for i in ok[1:]:
         d = float(np.hypot(*(toe[i] - anchor)))
         if d > noise:
-            at.append(int(i))
-            dist.append(dist[-1] + d)
+            moves.append(int(i))
+            lengths.append(lengths[-1] + d)
             anchor = toe[i]
-    at, dist = np.array(at), np.array(dist)
+    at, dist = np.array(moves), np.array(lengths)
     k = np.clip(np.searchsorted(at, np.arange(T), side="right") - 1, 0, len(at) - 1)  # last counted move <= i
     s = dist[k].copy()
     inside = k < len(at) - 1
@@ -131,8 +131,8 @@ def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel
         masked["joint angles out of the leg's reach (check --l1/--l2)"] = int((~reach).sum())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SingularConfigurationWarning)
-        force, ok = leg.ground_force(q, tau, warn=False)
-    ok = ok.numpy()
+        ground, ok_t = leg.ground_force(q, tau, warn=False)
+    ok = ok_t.numpy()
     sing = reach & ~ok
     if sing.any():
         warnings.warn(f"{int(sing.sum())} of {len(ok)} samples are near a singular leg configuration "
@@ -143,7 +143,7 @@ def forces_from_log(log: ResampledLog, leg: FiveBarLeg, motors: tuple[MotorModel
     if gaps.any():
         masked["inside a gap in the log"] = int(gaps.sum())
     valid = np.asarray(log.valid) & ok
-    force = force.numpy().copy()
+    force = ground.numpy().copy()
     force[~valid] = np.nan
     return ForceTrace(np.asarray(log.time), q.numpy(), toe.numpy(), tau.numpy(), force, valid, masked, float(arc_noise))
 

@@ -22,6 +22,7 @@ import can
 import numpy as np
 import torch
 
+from .._files import atomic_path
 from ..rft.contacts import contacts
 from ..rft.forces import forces
 from ..rft.paths import Path, pose_path
@@ -64,7 +65,7 @@ class FakeODrive:
         self.bus.send(msg)
 
     def _reply(self, command: str, now: float) -> can.Message | None:
-        kw = {"firmware": self.firmware, "timestamp": now}
+        kw: dict = {"firmware": self.firmware, "timestamp": now}
         if command == "get_iq":
             return encode("get_iq", self.node, iq_setpoint=self.iq, iq_measured=self.iq, **kw)
         if command == "get_encoder_estimates":
@@ -140,8 +141,8 @@ class SimulatedLeg:
     Args:
         toe: the toe geometry (rft), fixed heading.
         medium: stress map of the sand (e.g. ``FourierStressMap.generic(1.0, 1.5)``).
-        leg, motors: kinematics (default l1 = 0.15 m, l2 = 0.30 m, coaxial: it reaches the paper's
-            300 mm shear) and motor models (paper: U8-II, k_t = 0.0973 N m/A).
+        leg: kinematics (default l1 = 0.15 m, l2 = 0.30 m, coaxial: it reaches the paper's 300 mm shear).
+        motors: motor models (paper: U8-II, k_t = 0.0973 N m/A).
         hip_height: height of the motor axes above the sand surface, m.
         friction: Coulomb friction per motor, N m (opposes joint velocity).
         cogging: cogging ripple amplitude, N m; ``cogging_periods`` ripples per motor turn.
@@ -191,9 +192,15 @@ class SimulatedLeg:
         return SimulationTruth(tk, q.numpy(), p, f.numpy(), current.numpy())
 
     def run(self, path: Path, log_path, in_air: bool = False, t0: float = 1.7e9) -> SimulationTruth:
-        """Run the path once and log the bus to ``log_path`` (.log/.asc/.blf/...). ``t0`` is the
-        simulated wall-clock start (s since the epoch). Returns the simulation's truth."""
+        """Run the path once and log the bus to ``log_path`` (.log/.asc/.blf/...; written to a temporary
+        file renamed into place, so a failure leaves an older log whole). ``t0`` is the simulated
+        wall-clock start (s since the epoch). Returns the simulation's truth."""
         truth = self.truth(path, in_air)
+        with atomic_path(log_path, "log") as tmp:  # written whole or not at all: an old log stays if this fails
+            self._log(truth, tmp, in_air, t0)
+        return truth
+
+    def _log(self, truth: SimulationTruth, log_path, in_air: bool, t0: float) -> None:
         rng = np.random.default_rng(self.seed + (7919 if in_air else 0))
         # no trailing digits: BLF and ASC writers read a channel number from them (a 16-bit field)
         channel = f"irft-sim-{uuid.uuid4().hex}-bus"
@@ -227,4 +234,3 @@ class SimulatedLeg:
             host.shutdown()
             for b in ctrl_buses:
                 b.shutdown()
-        return truth

@@ -157,7 +157,7 @@ def read_traveler_log(path) -> TravelerLog:
     columns = [c.strip() for c in header.split(",")]
     if any(isinstance(_number(c), float) for c in columns):
         raise TravelerLogError(f"{path}: line {ln3} should be the column names, got numbers: {header[:80]!r}")
-    rows = []
+    rows: list[list[float]] = []
 
     def fail(message: str):
         partial = None

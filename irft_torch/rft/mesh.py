@@ -101,9 +101,10 @@ class Mesh:
 
     def transformed(self, rotation=None, translation=None) -> Mesh:
         """The same body with every point p -> R p + t and normal n -> R n (R (3, 3) a rotation, t (3,) m)."""
-        dt = self.points.dtype
-        R = torch.eye(3, dtype=dt) if rotation is None else torch.as_tensor(rotation, dtype=dt)
-        t = torch.zeros(3, dtype=dt) if translation is None else torch.as_tensor(translation, dtype=dt)
+        dt, dev = self.points.dtype, self.points.device
+        R = torch.eye(3, dtype=dt, device=dev) if rotation is None else torch.as_tensor(rotation, dtype=dt, device=dev)
+        t = torch.zeros(3, dtype=dt, device=dev) if translation is None else torch.as_tensor(translation, dtype=dt,
+                                                                                            device=dev)
         if R.shape != (3, 3) or t.shape != (3,):
             raise ValueError(f"rotation must be (3, 3) and translation (3,), got {tuple(R.shape)}, {tuple(t.shape)}")
         _check_rotation(R[None], "rotation")
@@ -258,14 +259,22 @@ def read_mesh(path, unit: str | None = None, dtype=torch.float64) -> Mesh:
         raise ValueError(f"unit must be one of {sorted(_UNITS)} (the file's length unit), got {unit!r}")
     s = _UNITS[unit]
     if suffix == ".stl":
-        tri = _read_stl_triangles(path)
+        try:
+            tri = _read_stl_triangles(path)
+        except ImportError:
+            raise
+        except Exception as e:  # noqa: BLE001 - the STL readers raise many kinds for a file that is not one
+            raise ValueError(f"{path}: not a readable STL file ({type(e).__name__}: {e})") from None
         p, n, a = triangle_elements(torch.as_tensor(tri, dtype=dtype) * s)
         return Mesh(p, n, a)
     if suffix == ".mat":
         import numpy as np
         from scipy.io import loadmat
 
-        m = loadmat(path)
+        try:
+            m = loadmat(path)
+        except Exception as e:  # noqa: BLE001 - scipy raises many kinds for a file that is not MATLAB's
+            raise ValueError(f"{path}: not a readable MATLAB .mat file ({type(e).__name__}: {e})") from None
         missing = [k for k in ("Points", "Normals", "Area") if k not in m]
         if missing:
             raise KeyError(f"{path}: no variable(s) {missing}; has {sorted(k for k in m if not k.startswith('__'))}")

@@ -300,8 +300,10 @@ def rotating_leg_path(
 
 
 def _rate(values: Tensor, time: Tensor) -> Tensor:
-    """d values / d time by finite differences: second order inside (non-uniform steps allowed), first order
-    (one-sided) at the first and last sample."""
+    """d values / d time by finite differences, second order everywhere (non-uniform steps allowed): central
+    inside, one-sided over three samples at the first and last (first order with two samples). A run cut
+    short mid-motion ends with a velocity as good as its inside's (a first-order end put the direction of
+    motion, and so a force, a sample's worth of curvature off)."""
     if values.ndim == 1:
         return _rate(values[:, None], time)[:, 0]
     T = time.shape[0]
@@ -314,21 +316,26 @@ def _rate(values: Tensor, time: Tensor) -> Tensor:
     out[1:-1] = (h1**2 * values[2:] - h2**2 * values[:-2] + (h2**2 - h1**2) * values[1:-1]) / (
         h1 * h2 * (h1 + h2)
     )
-    out[0] = (values[1] - values[0]) / (time[1] - time[0])
-    out[-1] = (values[-1] - values[-2]) / (time[-1] - time[-2])
+    a, b = time[1] - time[0], time[2] - time[1]  # numpy.gradient's edge_order=2
+    out[0] = (-(2 * a + b) / (a * (a + b)) * values[0] + (a + b) / (a * b) * values[1]
+              - a / (b * (a + b)) * values[2])
+    a, b = time[-2] - time[-3], time[-1] - time[-2]
+    out[-1] = (b / (a * (a + b)) * values[-3] - (a + b) / (a * b) * values[-2]
+               + (2 * b + a) / (b * (a + b)) * values[-1])
     return out
 
 
 def pose_path(time, x, z, heading=None, dtype=torch.float64) -> Path:
     """A path from sampled poses, e.g. a leg's forward kinematics over a joint log.
 
-    Velocities and the angular velocity come from finite differences in time (second order inside, one-sided
-    first order at the ends);
+    Velocities and the angular velocity come from finite differences in time (second order: central inside,
+    one-sided at the ends);
     headings are unwrapped first.
 
     Args:
         time: (T,) s, strictly increasing.
-        x, z: (T,) body origin, m.
+        x: (T,) body origin, horizontal, m.
+        z: (T,) body origin, vertical (up), m.
         heading: (T,) rad, default 0.
     """
     t = torch.as_tensor(time, dtype=dtype)

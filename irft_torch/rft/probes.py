@@ -121,14 +121,13 @@ def _waypoint_course(g: torch.Generator, start_x: float, length: float, bounds: 
         total += math.hypot(nx - x, nz - z)
         x, z = nx, nz
         pts.append((x, z))
-    p = torch.tensor(pts, dtype=torch.float64)
-    leg = p.diff(dim=0)
+    leg = torch.tensor(pts, dtype=torch.float64).diff(dim=0)
     cum = torch.cat([leg.new_zeros(1), torch.linalg.vector_norm(leg, dim=-1).cumsum(0)])
     s = torch.linspace(0.0, length, n_knots, dtype=torch.float64)
     k = torch.clamp(torch.searchsorted(cum, s, right=True) - 1, 0, len(leg) - 1)
     angle = torch.atan2(leg[k, 1], leg[k, 0])
-    step = torch.remainder(angle.diff() + math.pi, 2 * math.pi) - math.pi  # unwrap: no 2 pi jumps
-    return torch.cat([angle[:1], angle[:1] + step.cumsum(0)])
+    turn = torch.remainder(angle.diff() + math.pi, 2 * math.pi) - math.pi  # unwrap: no 2 pi jumps
+    return torch.cat([angle[:1], angle[:1] + turn.cumsum(0)])
 
 
 def random_probes(toes: Mapping[str, Toe], n: int, length: float, bounds: ProbeBounds | None = None,

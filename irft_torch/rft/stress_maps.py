@@ -11,6 +11,7 @@ are in N/cm^3: force [N] = alpha x depth [cm] x area [cm^2].
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -19,19 +20,19 @@ __all__ = ["FourierStressMap", "GENERIC", "POPPY_LOOSE", "POPPY_CLOSE", "mirror_
 
 # Coefficients keyed by (m, n), from Table S2 of Li et al. 2013 (see shared/reference/rft_facts.md).
 # Only the non-zero terms are listed; every other (m, n) coefficient is 0.
-GENERIC = {
+GENERIC: dict[str, Any] = {
     "A": {(0, 0): 0.206, (1, 0): 0.169},
     "B": {(1, 1): 0.212, (0, 1): 0.358, (-1, 1): 0.055},
     "C": {(1, 1): -0.124, (0, 1): 0.253, (-1, 1): 0.007},
     "D": {(1, 0): 0.088},
 }
-POPPY_LOOSE = {
+POPPY_LOOSE: dict[str, Any] = {
     "A": {(0, 0): 0.051, (1, 0): 0.047},
     "B": {(1, 1): 0.053, (0, 1): 0.083, (-1, 1): 0.020},
     "C": {(1, 1): -0.026, (0, 1): 0.057, (-1, 1): 0.0},
     "D": {(1, 0): 0.025},
 }
-POPPY_CLOSE = {
+POPPY_CLOSE: dict[str, Any] = {
     "A": {(0, 0): 0.094, (1, 0): 0.092},
     "B": {(1, 1): 0.092, (0, 1): 0.151, (-1, 1): 0.035},
     "C": {(1, 1): -0.039, (0, 1): 0.086, (-1, 1): 0.018},
@@ -88,10 +89,13 @@ class FourierStressMap(nn.Module):
     """A stress-per-depth map alpha(beta, gamma) = (alpha_x, alpha_z) in the Li et al. Fourier form.
 
     Args:
-        A, B: coefficients of alpha_z, keyed by (m, n) with m in {-1, 0, 1}, n in {0, 1}
-            (cos and sin terms), in N/cm^3. Missing keys are 0.
-        C, D: coefficients of alpha_x, likewise.
-        scale_x, scale_z: multiply alpha_x and alpha_z (the "zeta" of RFT).
+        A: cos coefficients of alpha_z, keyed by (m, n) with m in {-1, 0, 1}, n in {0, 1}, in N/cm^3.
+            Missing keys are 0.
+        B: sin coefficients of alpha_z, likewise.
+        C: cos coefficients of alpha_x, likewise.
+        D: sin coefficients of alpha_x, likewise.
+        scale_x: multiplies alpha_x (the "zeta" of RFT).
+        scale_z: multiplies alpha_z.
 
     Calling the map broadcasts ``beta`` and ``gamma`` (radians, any shape ``S``) and returns a tensor
     of shape ``S + (2,)``: ``(alpha_x, alpha_z)``. It is differentiable in both angles (and in the
@@ -104,6 +108,11 @@ class FourierStressMap(nn.Module):
         >>> smap(torch.tensor(0.0), torch.tensor(0.0))   # float32 in, float32 out: a plate dragged toward +x
         tensor([0.1360, 0.3750])
     """
+
+    A: Tensor  # buffers (registered in __init__): Fourier coefficient tables
+    B: Tensor
+    C: Tensor
+    D: Tensor
 
     def __init__(
         self,

@@ -384,12 +384,12 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed, calibra
                   "| config | " + " | ".join(f"lengthscale {v}" for v in (s.lengthscale, *s.lengthscale_sensitivity))
                   + " | paper |", "|---|" + "---|" * (len(s.lengthscale_sensitivity) + 2)]
         for config in CONFIGS[:2]:
-            cells = []
+            by_ls = []
             for v in (s.lengthscale, *s.lengthscale_sensitivity):
                 r = pick(config, ls=v, priors=None)[0]
-                cells.append(f"{_fmt(r.metrics['X']['rmse'])} / {_fmt(r.metrics['Z']['rmse'])}")
-            p = PAPER_TABLE1[(config, "X")][0], PAPER_TABLE1[(config, "Z")][0]
-            lines.append(f"| {config} | " + " | ".join(cells) + f" | {p[0]} / {p[1]} |")
+                by_ls.append(f"{_fmt(r.metrics['X']['rmse'])} / {_fmt(r.metrics['Z']['rmse'])}")
+            px, pz = PAPER_TABLE1[(config, "X")][0], PAPER_TABLE1[(config, "Z")][0]
+            lines.append(f"| {config} | " + " | ".join(by_ls) + f" | {px} / {pz} |")
     lines += _pinning_rows(s)
     lines += ["", "## Sampling coverage", "",
               "Coverage: share of the 50 x 50 cells of the square holding a segment sample in contact; redundancy: "

@@ -126,7 +126,7 @@ def test_simulate_c_toe_opening(tmp_path, opening):
     (["ingest", "LOG", "--out", "OUT", "--rate", "0"], "argument --rate: must be a positive number"),
     (["ingest", "LOG", "--out", "OUT", "--hip-height", "-0.25"], "argument --hip-height"),
     (["ingest", "LOG", "--out", "OUT", "--kt", "0.1", "--kv", "85"], "argument --kt: give --kt or --kv"),
-    (["ingest", "LOG", "--out", "OUT", "--l1", "150"], "argument --l1/--l2: l1=150.0 m"),
+    (["ingest", "LOG", "--out", "OUT", "--l1", "150"], "argument --l1: is in m: 150 is above any plausible value"),
     (["ingest", "LOG", "--out", "OUT", "--directions", "1", "2"], "argument --directions"),
     (["ingest", "LOG", "--out", "OUT", "--filter-window", "0"], "argument --filter-window"),
     (["ingest", "LOG", "--out", "OUT", "--filter-window", "4"], "argument --filter-window: must be odd"),

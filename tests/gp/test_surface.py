@@ -117,3 +117,18 @@ def test_predictions_after_init_surface_are_at_the_chosen_offset(tmp_path):
             torch.testing.assert_close(post.variance[:, a], var, rtol=1e-7, atol=1e-12)
             mu_f, _ = force_posterior(q, (q.weight_x, q.weight_z)[a])
             torch.testing.assert_close(pred.mean[:, a], mu_f, rtol=1e-7, atol=1e-9)
+
+
+def test_module_apply_reaches_the_surface_offset():
+    """``model.apply(fn)`` (torch's recursive visit) reaches the ``SurfaceOffset`` like any submodule;
+    its own method was named ``apply`` and shadowed torch's, so the visit called it with ``fn``."""
+    c = plates()
+    m = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs", priors=None)
+    seen = []
+    m.apply(lambda module: seen.append(type(module).__name__))
+    assert "SurfaceOffset" in seen and seen[-1] == "InverseRFT"
+    with torch.no_grad():
+        m.surface.offset.fill_(1.0)  # cm: the surface 1 cm higher than stated = the path 1 cm lower
+    moved, direct = m.surface.shifted(c), plates(shift_m=-0.01)
+    for k in ("weight_x", "weight_z"):
+        torch.testing.assert_close(getattr(moved, k), getattr(direct, k), rtol=1e-9, atol=1e-9)

@@ -24,7 +24,7 @@ def test_fourier_medium_of_li_equals_the_published_generic_map_and_mirrors():
         pytest.approx(1.3, rel=1e-12)
 
 
-@pytest.mark.parametrize("family", cal.MEDIA + cal.HELD_OUT_MEDIA)
+@pytest.mark.parametrize("family", cal.MEDIA + cal.HELD_OUT_MEDIA + cal.HELD_OUT_MEDIA_2)
 def test_every_medium_is_finite_reproducible_and_mirror_consistent(family):
     truth, label = cal.medium(family, 3)
     again, _ = cal.medium(family, 3)
@@ -40,7 +40,7 @@ def test_every_medium_is_finite_reproducible_and_mirror_consistent(family):
     torch.testing.assert_close(m[..., 1], a[..., 1], rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("kind", cal.MOTIONS + cal.HELD_OUT_MOTIONS)
+@pytest.mark.parametrize("kind", cal.MOTIONS + cal.HELD_OUT_MOTIONS + cal.HELD_OUT_MOTIONS_2)
 def test_every_motion_touches_the_medium(kind):
     c = cal.motion(kind, 0)
     T = {"short": 40, "long": 400}.get(kind)
@@ -84,10 +84,12 @@ def test_the_percentile_statistic_is_uniform_on_truths_drawn_from_the_model_itse
     assert float((pct < 0.025).double().mean()) <= 0.1
 
 
-def test_one_case_scores_the_plug_in_and_the_laplace_mixture_from_one_fit():
-    rows = cal.run_case(cal.Case("gp", "short", 0.05, 0), n_iter=80, n_grid=15, draws=60)
-    assert [r["posterior"] for r in rows] == ["map", "laplace"]
-    assert rows[0]["fit_s"] == rows[1]["fit_s"]  # one fit, two ways to predict
+def test_one_case_scores_the_plug_in_the_laplace_mixture_and_the_average_from_one_fit():
+    rows = cal.run_case(cal.Case("gp", "short", 0.05, 0), ("map", "laplace", "average"), n_iter=80, n_grid=15,
+                        draws=60)
+    assert [r["posterior"] for r in rows] == ["map", "laplace", "average"]
+    assert rows[0]["fit_s"] == rows[1]["fit_s"] == rows[2]["fit_s"]  # one fit of the zero mean, three predictions
+    assert 0 <= rows[2]["w_physics_x"] <= 1 and 0 <= rows[2]["w_physics_z"] <= 1
     for r in rows:
         for k in ("cover50_x", "cover90_z", "cover95_x", "pct95_z"):
             assert 0.0 <= r[k] <= 1.0

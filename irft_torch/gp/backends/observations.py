@@ -44,7 +44,8 @@ class ObservationsBackend(RFTBackend):
 
     Args:
         hypers: shared hyperparameters (their kernel, likelihood and mean become the GP's).
-        contacts, forces: whitened training data (T, M), (T, 2).
+        contacts: whitened training contacts (T, M).
+        forces: whitened training forces (T, 2), N.
         solver: "cholesky" (exact, the default) or "gpytorch" (gpytorch's own settings: CG/Lanczos
             above ``gpytorch.settings.max_cholesky_size``).
     """

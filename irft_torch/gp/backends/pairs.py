@@ -35,7 +35,8 @@ class PairsBackend(WeightSpaceBackend):
 
     Args:
         hypers: shared hyperparameters.
-        contacts, forces: whitened training data (T, M), (T, 2).
+        contacts: whitened training contacts (T, M).
+        forces: whitened training forces (T, 2), N.
     """
 
     name = "pairs"
@@ -125,7 +126,7 @@ class PairsBackend(WeightSpaceBackend):
     def with_hypers(self, hypers) -> PairsBackend:
         """The same pairs, statistics and data factor (none depends on the hyperparameters) at ``hypers``."""
         new = PairsBackend.__new__(PairsBackend)
-        WeightSpaceBackend.__init__(new, hypers, self.table, None)  # the sample count comes with the statistics
+        WeightSpaceBackend.__init__(new, hypers, self.table, None)  # type: ignore[arg-type]  # no data: the statistics hold it
         new.table = self.table
         new._set_stats(self.stats)
         new._data_factor = self._factor()

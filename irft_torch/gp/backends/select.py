@@ -12,7 +12,7 @@ from .observations import ObservationsBackend
 from .pairs import PairsBackend, distinct_pairs
 from .spectral import SpectralBackend
 
-__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs", "estimate_pairs"]
+__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs", "estimate_pairs", "spectral_step_cost"]
 
 METHODS = ("observations", "pairs", "spectral")
 ALIASES = {"exact": "observations"}
@@ -57,11 +57,22 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
         obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
     r = min(T, U)
     pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
-    r = min(T, F)
-    spectral = (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
+    spectral = _spectral_flops(T, F, Fb, Fg)
     spectral = float("inf") if capped else float(spectral * SPECTRAL_PENALTY)
     costs = {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
     return {m: v + STEP_OVERHEAD[m] for m, v in costs.items()}
+
+
+def _spectral_flops(T: int, F: int, Fb: int, Fg: int) -> float:
+    r = min(T, F)
+    return (r**3 / 3 + r**2 * F + r * F * (Fb + Fg)) + (T * F**2 + F**3) / N_ITER
+
+
+def spectral_step_cost(contacts: Contacts, basis: FourierBasis) -> float:
+    """The spectral backend's estimated step cost in ``basis`` (``estimated_costs``' units), finite even
+    where the basis is capped below the tolerance (what a fit held in that basis pays per step)."""
+    T = int(touching(contacts).sum())
+    return float(_spectral_flops(T, basis.size, *basis.sizes) * SPECTRAL_PENALTY + STEP_OVERHEAD["spectral"])
 
 
 def estimate_pairs(c: Contacts, sample: int = 50_000) -> int:

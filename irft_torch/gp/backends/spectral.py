@@ -91,7 +91,8 @@ class SpectralBackend(WeightSpaceBackend):
 
     Args:
         hypers: shared hyperparameters.
-        contacts, forces: whitened training data (T, M), (T, 2).
+        contacts: whitened training contacts (T, M).
+        forces: whitened training forces (T, 2), N.
         tol: bound on the kernel's relative truncation error used to size the basis (default 1e-7).
         basis: a fixed :class:`FourierBasis` instead (then ``tol`` only triggers a warning).
         keep_data: keep the training data so that the basis can grow (default True).
@@ -101,6 +102,8 @@ class SpectralBackend(WeightSpaceBackend):
     """
 
     name = "spectral"
+    held = False  # True: the basis stays as it is (set by InverseRFT's method="auto" to hold a step's cost)
+    _basis_key: Tensor | None  # the hyperparameters the basis was last sized for (``_ensure_basis``)
 
     def __init__(self, hypers, contacts: Contacts, forces: Tensor, tol: float = 1e-7,
                  basis: FourierBasis | None = None, keep_data: bool = True,
@@ -333,12 +336,15 @@ class SpectralBackend(WeightSpaceBackend):
         self._stored = None
 
     def stale(self) -> bool:
+        if self.held:  # the basis is held (method="auto" on nearly noise-free data, gp.model): nothing to adapt
+            return False
         return not bool((self.truncation_error() <= self.tol).all())
 
     def refresh(self) -> bool:
         """Grow the basis if the current lengthscales need more harmonics than it has for ``tol``
-        (recomputing the statistics from the kept data). Returns whether it grew."""
-        if bool((self.truncation_error() <= self.tol).all()):  # the cheap check: the current basis only
+        (recomputing the statistics from the kept data). Returns whether it grew. A held basis
+        (``held``) never grows."""
+        if self.held or bool((self.truncation_error() <= self.tol).all()):  # the cheap check: this basis only
             return False
         need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
         if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:

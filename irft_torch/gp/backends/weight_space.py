@@ -198,6 +198,10 @@ class WeightSpaceBackend(RFTBackend):
         self._data_factor: _DataFactor | None = None
         self._post_cache: tuple | None = None
 
+    def _with_data(self, c: Contacts, f: Tensor) -> WeightSpaceBackend:
+        """A copy with more observations (each subclass's own)."""
+        raise NotImplementedError
+
     # ---- statistics -----------------------------------------------------------------------------
     def _set_stats(self, stats: FeatureStatistics) -> None:
         self.stats = stats

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import TYPE_CHECKING, cast
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -58,7 +59,7 @@ def _pack(c: Contacts3D, parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Te
     for block, (m, s) in zip(BLOCKS, parts):
         A = len(block.axes)
         mean[:, list(block.axes)] = m.reshape(A, T).T
-        idx = torch.tensor(block.axes)
+        idx = torch.tensor(block.axes, device=cov.device)
         cov[:, idx[:, None], idx[None, :]] = s
     return mean, cov
 
@@ -129,12 +130,12 @@ class Backend3D(nn.Module):
 
     def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
         """Prior covariance (n_q, n_t) of two row sets of block b (``block_rows``: beta, gamma, weights per map)."""
-        out = 0
+        out: Tensor | int = 0
         for i, c in enumerate(BLOCKS[b].maps):
             s = None if self.hypers.constant_map(c) else \
                 self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
             out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
-        return out
+        return cast(Tensor, out)  # a block has at least one map
 
     # ---- streaming and hyperparameter draws ------------------------------------------------------------------------
     def add_data(self, contacts: Contacts3D, forces: Tensor) -> None:
@@ -201,7 +202,7 @@ class Observations3D(Backend3D):
 
     def _train_cov(self, b: int, detach: bool) -> Tensor:
         block, (_, _, ws) = BLOCKS[b], self._train[b]
-        K = sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws))
+        K = cast(Tensor, sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws)))
         noise = self.hypers.noise.detach() if detach else self.hypers.noise
         d = torch.cat([noise[a].expand(self.n_samples) for a in block.axes])
         return 0.5 * (K + K.mT) + torch.diag(d)
@@ -254,10 +255,16 @@ class WeightSpace3D(Backend3D):
     """Shared algebra of the weight-space backends (module doc). Subclasses give the features of rows,
     ``_features(c, b)`` -> Phi (n, F_b) (the maps' features side by side), and ``_sigma(b, X, detach)`` -> X Sigma_b."""
 
+    if TYPE_CHECKING:  # what the subclasses provide
+        def _features(self, c: Contacts3D, b: int) -> Tensor: ...
+        def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor: ...
+
     def __init__(self, hypers, contacts, forces) -> None:
         super().__init__(hypers, contacts, forces)
-        self._factors = None
-        self._post_cache = None
+        # per block, per force axis: the data factor (R, c_y, rho)
+        self._factors: list[list[tuple[Tensor, Tensor, Tensor]]] | None = None
+        # (the factors, the hyperparameters' key, per block (H, H^T z)): the posterior's terms
+        self._post_cache: tuple[list, Tensor, list[tuple[Tensor, Tensor]]] | None = None
 
     def _reset(self) -> None:
         self._post_cache = None
@@ -282,7 +289,8 @@ class WeightSpace3D(Backend3D):
 
     def _set_features(self) -> None:
         """(Re)compute the training rows' data factors, hyperparameter-free."""
-        self._factors, self._post_cache = [], None
+        factors: list[list[tuple[Tensor, Tensor, Tensor]]] = []
+        self._factors, self._post_cache = factors, None
         T = self.n_samples
         with torch.no_grad():
             for b, block in enumerate(BLOCKS):

@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
 from .backends import Backend3D
+from .hyperparameters import RFT3DHyperparameters
 
 __all__ = ["HyperMixture3DMixin", "mixture_covariance"]
 
@@ -37,7 +38,7 @@ class HyperMixture3DMixin:
     """``fit_hyper_posterior`` and the backends predictions average over (``_weighted_backends``) for
     ``InverseRFT3D`` (it uses the model's ``hypers``, ``backend``, ``hyper_method``, device and dtype)."""
 
-    hypers: torch.nn.Module
+    hypers: RFT3DHyperparameters
     backend: Backend3D
     hyper_method: str
     hyper_posterior: HyperPosterior | None

@@ -118,9 +118,9 @@ class RFT3DHyperparameters(Module):
             return []
         return self.hyper_labels("kernel.base_kernel.raw_lengthscale", torch.Size([12]))[4:8]
 
-    def as_dict(self) -> dict[str, list]:
+    def as_dict(self) -> dict[str, list | str]:
         ls = self.lengthscale.detach()
-        out = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),
+        out: dict[str, list | str] = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),
                "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist(), "alpha_y": self.alpha_y}
         if self.alpha_y == "map":
             out["lengthscale_y"] = ls[1, 0].tolist()

@@ -18,7 +18,9 @@ from tqdm.auto import tqdm
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
+from ..inputs import _check_dtype
 from ..mixture import mixture_quantile
+from ..posterior import _check_level, normal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
@@ -50,14 +52,12 @@ class Posterior3D:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
+        _check_level(level)
         if self.components is not None:
             means, variances, weights = self.components
             return (mixture_quantile(0.5 - level / 2, means, variances, weights),
                     mixture_quantile(0.5 + level / 2, means, variances, weights))
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
+        return normal_interval(self.mean, self.stddev, level)
 
     @classmethod
     def mixture(cls, means: Tensor, covariances: Tensor, weights: Tensor | None) -> Posterior3D:
@@ -145,8 +145,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
-        if dtype not in (torch.float32, torch.float64):
-            raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
+        _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
         T = len(contacts)
@@ -374,7 +373,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
         the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere."""
-        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype)
+        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
         prior = self.hypers.outputscale.detach().sqrt()
