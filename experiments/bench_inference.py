@@ -17,11 +17,18 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
      the datasets (``irft ingest`` saves them), vs one process making every pass;
   7. 8 models on the same contacts (a noise study, C-toe gait 1): ``gp.fit_together`` vs fitting each.
   8. the Laplace hyperparameter posterior (``hyper_posterior="laplace"``: fit, mode, Hessian, 128 weighed
-     proposals, 16 draw backends) vs the MAP fit alone, paper scale and DEM-like (issue 30: <= 2x).
+     proposals, 16 draw backends) vs today's MAP fit alone (autograd steps), paper scale and DEM-like
+     (issue 30: <= 2x);
   9. parallel environments (issue 33): ``TerrainFilter`` with B = 4096 environments of a C-toe (M = 10)
      on the paper's gait, one update and a 16-point map query per step (windows of 8, 16 and 32 samples):
      env-steps per second, vs a loop over one ``InverseRFT`` per environment doing the same (``add_data``
      of the sample, ``stress_map`` of the 16 points), timed on 8 environments and scaled.
+ 10. a turning C-toe (T = 200 x M = 12, the calibration harness' ``turning`` motion): Adam steps of the
+     default fit, closed form vs autograd (issue 30: < 3.3 ms);
+ 11. NUTS (pyro) on C-toe gait 2 (the paper study's configuration, tied noise): 4 chains x 500 draws after
+     500 warm-up, and a short chain in both engines for the ratio (issue 30: < 60 s).
+"Today's engine" (the reference in cases 2, 8, 10, 11) is the autograd path, run in the same process
+(``gp.backends.closed_form.autograd_only``).
 Case 6 also reduces the 4 datasets on a local Dask cluster (2 worker processes, start-up included), beside
 the 2-process pool.
 Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
@@ -31,6 +38,7 @@ GPU, the references too; cases 6 and 8 are skipped there: 6 reduces files in CPU
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import resource
@@ -42,6 +50,7 @@ from pathlib import Path
 import torch
 
 import irft_torch as irft
+from irft_torch.gp.backends.closed_form import autograd_only
 
 TRUTH = irft.rft.FourierStressMap.generic(0.452, 0.417)
 DEVICE = torch.device("cpu")
@@ -91,12 +100,31 @@ def dem_like(T: int = 810, M: int = 5, seed: int = 0):
 
 
 def step(model) -> float:
+    """One likelihood + gradient step as ``InverseRFT.fit`` takes it (closed form where the backend has
+    one; inside ``autograd_only``, today's autograd step)."""
     model.train()
     for p in model.hypers.parameters():
         p.grad = None
-    loss = model.loss()
-    loss.backward()
-    return loss.item()
+    loss = model.backend.loss_and_grad()
+    if loss is None:
+        loss = model.loss()
+        loss.backward()
+        loss = loss.item()
+    return loss
+
+
+def fit_time(c, f, n: int, repeats: int, **options) -> tuple[float, irft.InverseRFT]:
+    """Seconds per Adam step of ``InverseRFT(c, f, **options).fit(n)``, best of ``repeats`` fits, and the
+    last model."""
+    best = float("inf")
+    for _ in range(repeats):
+        model = irft.InverseRFT(c, f, **options)
+        sync()
+        t0 = time.perf_counter()
+        model.fit(n_iter=n, progress=False)
+        sync()
+        best = min(best, (time.perf_counter() - t0) / n)
+    return best, model
 
 
 def dense_step(model, c, f) -> float:
@@ -203,24 +231,83 @@ def fit_together_case(q: bool, row) -> None:
 
 
 def hyper_posterior_case(q: bool, row) -> None:
-    """8. The Laplace hyperparameter posterior (fit + Laplace + 16 draw backends) against the MAP fit alone
-    (``hyper_posterior="map"``), the same data and steps, on paper-scale and DEM-like data."""
+    """8. The Laplace hyperparameter posterior (fit + Laplace + 16 draw backends) against today's MAP fit
+    alone (``hyper_posterior="map"``, autograd steps), the same data and steps, on paper-scale and DEM-like
+    data; today's Laplace fit beside it."""
     n_iter = 60 if q else 300
     for name, (c, f) in (("paper scale, C-toe T = 200 x M = 10", _paper_case(60 if q else 200)),
                          ("DEM-like, T = 810 x M = 5", dem_like())):
         c, f = on_device(c, f)
         times = {}
-        for hp in ("map", "laplace"):
+        for engine, hp in (("new", "map"), ("new", "laplace"), ("old", "map"), ("old", "laplace")):
             model = irft.InverseRFT(c, f, hyper_posterior=hp)
-            sync()
-            t0 = time.perf_counter()
-            model.fit(n_iter=n_iter, progress=False)
-            sync()
-            times[hp] = time.perf_counter() - t0
-        hp = model.hyper_posterior
+            with autograd_only() if engine == "old" else contextlib.nullcontext():
+                sync()
+                t0 = time.perf_counter()
+                model.fit(n_iter=n_iter, progress=False)
+                sync()
+            times[engine, hp] = time.perf_counter() - t0
+            if (engine, hp) == ("new", "laplace"):
+                hpost = model.hyper_posterior
         row(f"8. hyperparameter posterior, {name} ({model.method}): fit + Laplace ({n_iter} steps, ESS "
-            f"{hp.ess:.0f} of {hp.n_proposals}, k-hat {hp.khat:.2f})", f"{times['laplace']:.2f} s",
-            f"MAP fit alone {times['map']:.2f} s", f"{times['laplace'] / times['map']:.2f}x slower", "<= 2x")
+            f"{hpost.ess:.0f} of {hpost.n_proposals}, k-hat {hpost.khat:.2f})",
+            f"{times['new', 'laplace']:.2f} s (MAP fit {times['new', 'map']:.2f} s)",
+            f"today's MAP fit {times['old', 'map']:.2f} s; today's fit + Laplace {times['old', 'laplace']:.2f} s",
+            f"{times['new', 'laplace'] / times['old', 'map']:.2f}x today's MAP fit", "<= 2x")
+
+
+def turning_case(q: bool, row) -> None:
+    """9. Adam steps of the default fit on a turning C-toe (the calibration harness' motion, T = 200 x 12),
+    best of 3, closed form vs autograd."""
+    from irft_torch.studies.calibration import _rng, _turning, medium, simulate
+
+    T = 80 if q else 200
+    c = _turning(_rng("motion", "turning", 0), T)
+    truth, _ = medium("perturbed", 0)
+    c, f = on_device(c, simulate(truth, c, 0.02, 0))
+    n = 20 if q else 60
+    t_new, model = fit_time(c, f, n, 3)
+    with autograd_only():
+        t_old, _ = fit_time(c, f, n, 3)
+    row(f"9. turning C-toe T = {T} x M = 12, Adam ({model.backend.describe()} after {n} steps; best of 3)",
+        f"{t_new * 1e3:.2f} ms/step", f"today's engine (autograd) {t_old * 1e3:.2f} ms/step", ratio(t_old / t_new),
+        "< 3.3 ms/step")
+
+
+def nuts_case(q: bool, row) -> None:
+    """10. NUTS (pyro) on the hyperparameters of C-toe gait 2 (the paper study's configuration: tied noise,
+    5 % relative force noise), started at the fitted ones: 4 chains x 500 draws after 500 warm-up; a short
+    chain in both engines gives the ratio (today's engine takes minutes for the full run)."""
+    try:
+        import pyro  # noqa: F401
+    except ImportError:
+        row("10. NUTS", "skipped: pyro not installed", "-", "-", "< 60 s")
+        return
+    from irft_torch.gp.hyper_posterior import nuts
+    from irft_torch.studies.reproduce import configuration
+
+    toe, path = configuration("C-toe gait 2")
+    c = irft.rft.contacts(toe, path)
+    f = irft.rft.forces(TRUTH, c)
+    f = f * (1 + math.sqrt(0.05) * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype))
+    c, f = on_device(c, f)
+    model = irft.InverseRFT(c, f, tied_noise=True)
+    model.fit(n_iter=300, progress=False)
+    short = (10, 10) if q else (50, 50)
+    times = {}
+    for engine in ("new", "old"):
+        with autograd_only() if engine == "old" else contextlib.nullcontext():
+            t0 = time.perf_counter()
+            nuts(model.backend, n_samples=short[1], warmup=short[0], num_chains=1, seed=1)
+            times[engine] = time.perf_counter() - t0
+    chains, draws = (2, 20) if q else (4, 500)
+    t0 = time.perf_counter()
+    hp = nuts(model.backend, n_samples=draws, warmup=draws, num_chains=chains)
+    t_full = time.perf_counter() - t0
+    row(f"10. NUTS on C-toe gait 2 ({model.method}, {len(hp.labels)} hyperparameters): {chains} chains x {draws} "
+        f"draws after {draws} warm-up (ESS {hp.ess:.0f})", f"{t_full:.1f} s",
+        f"one chain of {sum(short)} iterations: {times['new']:.1f} s, today's engine {times['old']:.1f} s",
+        ratio(times["old"] / times["new"]), "< 60 s")
 
 
 def _paper_case(T: int):
@@ -331,23 +418,27 @@ def main(argv=None) -> None:
     ours, ref = step(model), dense_step(model, c, f)
     assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
     t_ours = best_time(lambda: step(model), a.repeats)
+    with autograd_only():
+        t_autograd = best_time(lambda: step(model), a.repeats)
     t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
     row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
-        f"{t_ours * 1e3:.2f} ms", f"dense formula {t_dense * 1e3:.1f} ms", ratio(t_dense / t_ours), ">= 100x")
+        f"{t_ours * 1e3:.2f} ms (autograd {t_autograd * 1e3:.2f} ms)", f"dense formula {t_dense * 1e3:.1f} ms",
+        ratio(t_dense / t_ours), ">= 100x")
 
-    # 2. DEM-like
+    # 2. DEM-like: Adam steps of the default fit, best of 3 x 60 (issue 30's protocol), both engines
     c, f = on_device(*dem_like())
-    model = irft.InverseRFT(c, f)
-    sync()
-    t0 = time.perf_counter()
-    n = 50 if q else 200
-    model.fit(n_iter=n, progress=False)
-    sync()
-    per_s = n / (time.perf_counter() - t0)
+    n = 20 if q else 60
+    t_new, model = fit_time(c, f, n, 3)
+    with autograd_only():
+        t_old, _ = fit_time(c, f, n, 3)
     obs = irft.InverseRFT(c, f, method="observations")
-    t_obs = best_time(lambda: step(obs), 2)
-    row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method})", f"{per_s:.0f} steps/s",
-        f"observations backend {1 / t_obs:.1f} steps/s", ratio(per_s * t_obs), ">= 50 steps/s")
+    with autograd_only():
+        t_obs = best_time(lambda: step(obs), 2)
+    row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method}, best of 3 x {n} steps)",
+        f"{1 / t_new:.0f} steps/s ({t_new * 1e3:.2f} ms/step)",
+        f"today's engine (autograd) {1 / t_old:.0f} steps/s ({t_old * 1e3:.2f} ms); observations backend "
+        f"{1 / t_obs:.1f} steps/s", f"{ratio(t_old / t_new)} (vs observations {ratio(t_obs / t_new)})",
+        "< 1 ms/step; >= 50 steps/s")
 
     # 3. T = 10^4
     T3 = 2000 if q else 10_000
@@ -441,6 +532,8 @@ def main(argv=None) -> None:
     fit_together_case(q, row)
     hyper_posterior_case(q, row)
     terrain_filter_case(q, row)
+    turning_case(q, row)
+    nuts_case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 
