@@ -133,7 +133,7 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
         batch = log_posterior_batch(model.backend, sp, pts)  # grows the spectral basis for all draws first
         with autograd_only():
             one_by_one = torch.stack([log_posterior(model.backend, sp, p) for p in pts])
-        torch.testing.assert_close(batch, one_by_one, rtol=1e-11, atol=0)
+        torch.testing.assert_close(batch, one_by_one, rtol=1e-9, atol=0)  # summation order differs
         for p in pts[:2]:
             t = p.clone().requires_grad_(True)
             (g,) = torch.autograd.grad(log_posterior(model.backend, sp, t), t)
