@@ -324,6 +324,25 @@ def _same_hypers(dst, src):
     return dst
 
 
+def backend_steps_case(q: bool, row, repeats: int) -> None:
+    """2b. Like for like: one likelihood + gradient step (no optimiser, no fit bookkeeping) in each
+    backend on the same data, DEM-like and paper scale: which space is fastest on this device."""
+    cases = (("DEM-like, T = 810 x M = 5", dem_like()), ("paper scale, C-toe T = 200 x M = 10", _paper_case(
+        60 if q else 200)))
+    for name, (c, f) in cases:
+        c, f = on_device(c, f)
+        times = {}
+        for method in ("observations", "pairs", "spectral"):
+            m = irft.InverseRFT(c, f, method=method)
+            times[method] = best_time(lambda: step(m), max(2, repeats))
+        auto = irft.InverseRFT(c, f).method
+        row(f"2b. {name}: one likelihood + gradient step per backend (auto picks {auto})",
+            f"pairs {times['pairs'] * 1e3:.2f} ms, spectral {times['spectral'] * 1e3:.2f} ms",
+            f"observations {times['observations'] * 1e3:.2f} ms",
+            f"{times['observations'] / times['pairs']:.2f}x, {times['observations'] / times['spectral']:.2f}x",
+            "pairs and spectral >= 1x on a GPU")
+
+
 def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
     """9. B parallel environments, one sample and a 16-point map query each per step: ``TerrainFilter``
     vs a loop over one ``InverseRFT`` per environment (timed on ``n_ref`` of them, per env-step)."""
@@ -439,6 +458,7 @@ def main(argv=None) -> None:
         f"today's engine (autograd) {1 / t_old:.0f} steps/s ({t_old * 1e3:.2f} ms); observations backend "
         f"{1 / t_obs:.1f} steps/s", f"{ratio(t_old / t_new)} (vs observations {ratio(t_obs / t_new)})",
         "< 1 ms/step; >= 50 steps/s")
+    backend_steps_case(q, row, a.repeats)
 
     # 3. T = 10^4
     T3 = 2000 if q else 10_000

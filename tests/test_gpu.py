@@ -204,13 +204,135 @@ def test_learned_surface_estimate_on_cuda():
 
 
 def test_probe_design_by_gradient_on_cuda():
+    """The design objective and its gradient in the course knots agree with the CPU; the optimiser then runs
+    on the GPU scorer and improves its start. (Its trajectories are not compared: Adam's first step is about
+    lr * sign(gradient) per knot, so a knot whose gradient is ~1e-17 may step either way on either device.)"""
     from irft_torch.design import optimize_probe
+    from irft_torch.design.optimize import default_spec
+    from irft_torch.rft import ProbeBounds, course_path
 
-    scores = []
+    toe = IToe(0.04, 0.02, n_segments=6)
+    out = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
         scorer = ProbeScorer.from_model(irft.InverseRFT(c, f))
-        out = optimize_probe(scorer, IToe(0.04, 0.02, n_segments=6), length=0.2, n_iter=3)
-        scores.append(scorer.score([out.probe], "variance"))
-    assert on_cuda(scores[1])
-    close(scores[1], scores[0], rtol=1e-6)
+        spec = default_spec(0.2, ProbeBounds())
+        course = spec.pop("course").clone().requires_grad_(True)
+        value = scorer.integrated_variance(irft.rft.contacts(toe, course_path(course, **spec)))
+        (grad,) = torch.autograd.grad(value, [course])
+        out.append((value, grad, scorer))
+    (v_cpu, g_cpu, _), (v_gpu, g_gpu, scorer) = out
+    assert on_cuda(v_gpu)
+    close(v_gpu, v_cpu, rtol=1e-7)
+    close(g_gpu, g_cpu, rtol=1e-6, atol=1e-9 * float(g_cpu.abs().max()))
+    designed = optimize_probe(scorer, toe, length=0.2, n_iter=3)
+    assert math.isfinite(designed.score) and designed.score <= designed.initial_score
+
+
+def test_hyper_posterior_laplace_on_cuda_matches_cpu():
+    """The Laplace hyperparameter posterior (mode, Hessian, weighed proposals) on the GPU: the same mixture
+    as on the CPU (the proposals drawn on the CPU generator's stream, so the same draws)."""
+    out = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        torch.manual_seed(0)  # the proposals are drawn from the CPU's default generator on either device
+        m = irft.InverseRFT(c, f, hyper_posterior="laplace")
+        m.fit(n_iter=20, lr=0.1, progress=False)
+        b = torch.linspace(-1.2, 1.2, 5, device=dev)
+        out.append((m, m.stress_map(b, b.flip(0))))
+    (cpu, p_cpu), (gpu, p_gpu) = out
+    assert on_cuda(p_gpu.mean) and p_gpu.components is not None and on_cuda(p_gpu.components[2])
+    close(gpu.hyper_posterior.weights, cpu.hyper_posterior.weights, rtol=1e-4, atol=1e-8)
+    close(p_gpu.mean, p_cpu.mean, rtol=1e-5, atol=1e-8)
+    close(p_gpu.variance, p_cpu.variance, rtol=1e-4, atol=1e-10)
+    lo_g, hi_g = p_gpu.interval(0.95)
+    lo_c, hi_c = p_cpu.interval(0.95)
+    close(lo_g, lo_c, rtol=1e-4, atol=1e-8)
+    back = p_gpu.to("cpu")
+    assert back.mean.device.type == "cpu" and back.components is not None
+
+
+def test_average_prior_mean_on_cuda_matches_cpu():
+    out = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        m = irft.InverseRFT(c, f, prior_mean="average")
+        m.fit(n_iter=15, lr=0.1, progress=False)
+        b = torch.linspace(-1.0, 1.0, 4, device=dev)
+        out.append(m.stress_map(b, b))
+    assert on_cuda(out[1].mean)
+    # 15 Adam steps on either device, then evidence weights (exponentials of the two means' evidences):
+    # equal to the fit's own floating-point drift, about 1e-3 of the largest variance here
+    close(out[1].mean, out[0].mean, rtol=1e-5, atol=1e-8)
+    close(out[1].variance, out[0].variance, rtol=1e-3, atol=1e-3 * float(out[0].variance.max()))
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_inverse_3d_on_cuda_matches_cpu(method):
+    """3-D RFT forward (a turning C-toe mesh) and the 3-D inverse model on the GPU against the CPU."""
+    from irft_torch.rft import Mesh, contacts_3d, forces_3d
+
+    T = 16
+    t = torch.linspace(0, 1, T)
+    yaw = 0.9 * t
+    co, si, z, o = torch.cos(yaw), torch.sin(yaw), torch.zeros(T), torch.ones(T)
+    R = torch.stack([torch.stack([co, -si, z], -1), torch.stack([si, co, z], -1), torch.stack([z, z, o], -1)], -2)
+    v = torch.stack([0.02 * o, 0.01 * torch.sin(3 * t), -0.01 * torch.cos(2 * t)], -1)
+    w = torch.stack([z, z, 0.9 * o], -1)
+    x0 = torch.stack([0.02 * t, z, -0.015 - 0.01 * t], -1)
+    mesh = Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2)
+    out = []
+    for dev in ("cpu", CUDA):
+        cc = contacts_3d(mesh.to(device=dev), v.to(dev), w.to(dev), surface=0.0, position=x0.to(dev),
+                         rotation=R.to(dev))
+        f = forces_3d(FourierStressMap.generic(0.5, 0.6).to(dev), cc, alpha_y=0.1)
+        f = f + 0.02 * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype).to(dev)
+        m = irft.InverseRFT(cc, f, method=method)
+        loss = m.loss()
+        params = [p for p in m.hypers.parameters() if p.requires_grad]
+        grads = torch.autograd.grad(loss, params)
+        with torch.no_grad():
+            pred = m.predict_forces(cc[:5])
+            b = torch.linspace(-1.0, 1.0, 4, device=dev)
+            sm = m.stress_map(b, b)
+        out.append((f, loss, grads, pred, sm))
+    (f_c, l_c, g_c, p_c, s_c), (f_g, l_g, g_g, p_g, s_g) = out
+    assert on_cuda(f_g) and on_cuda(p_g.covariance) and on_cuda(s_g.mean)
+    close(f_g, f_c)
+    close(l_g, l_c)
+    for a, b in zip(g_g, g_c):
+        close(a, b, rtol=1e-6, atol=1e-10)
+    close(p_g.mean, p_c.mean, rtol=1e-7)
+    close(p_g.covariance, p_c.covariance, rtol=1e-6, atol=1e-10)
+    close(s_g.mean, s_c.mean, rtol=1e-7)
+
+
+def test_reproduce_fits_on_cuda_like_the_cpu():
+    """``irft reproduce --device cuda``: one of the study's fits (quick settings) on the GPU gives the CPU's
+    Table I metrics; the data, metrics and maps come back on the CPU."""
+    from dataclasses import replace
+
+    from irft_torch.studies.reproduce import StudySettings, _fit_one
+
+    s = replace(StudySettings.quick_settings(), n_iter=30)
+    truth = FourierStressMap.generic(*s.truth_scale)
+    res = [_fit_one("C-toe gait 1", "physics", 0.05, 0, truth, "paper", replace(s, device=str(d)), keep_maps=True)
+           for d in ("cpu", CUDA)]
+    assert res[1].maps["mean"].device.type == "cpu"
+    for axis in "XZ":
+        for k, v in res[0].metrics[axis].items():
+            assert res[1].metrics[axis][k] == pytest.approx(v, rel=1e-4, abs=1e-6), (axis, k)
+
+
+def test_nuts_hyper_posterior_runs_on_cuda():
+    """NUTS (pyro) on the GPU model's potential: draws and weights on the GPU, predictions a mixture there."""
+    pytest.importorskip("pyro")
+    c, f = recording(device=CUDA)
+    m = irft.InverseRFT(c, f, method="pairs")
+    m.fit(n_iter=15, lr=0.1, progress=False)
+    hp = m.fit_hyper_posterior("nuts", n_draws=8, free=["outputscale_z", "noise_z"], n_samples=40, warmup=40)
+    assert on_cuda(hp.theta) and on_cuda(hp.weights)
+    assert torch.isfinite(hp.theta).all() and float(hp.weights.sum()) == pytest.approx(1.0)
+    b = torch.linspace(-1.0, 1.0, 4, device=CUDA)
+    post = m.stress_map(b, b)
+    assert on_cuda(post.mean) and torch.isfinite(post.variance).all()

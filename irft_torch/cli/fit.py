@@ -144,7 +144,7 @@ def cmd_fit(a) -> int:
         plotting.save(plotting.plot_forces(ds.time, ds.forces, pred.mean, meas.stddev,
                                            labels=("dataset", "I-RFT fit"),
                                            band_label=r"$\pm 2\sigma$ of a measurement"), staged.path("forces.png"))
-        kept = []
+        kept: list[float] = []  # the two losses, where the file's model is kept
         if not staged.commit(check=lambda: _better_than_before(out / "model.pt", model, a.replace, kept)):
             warn("fit", f"{out}/model.pt holds a better fit of these data with these options (loss {kept[0]:.5g} "
                         f"against {kept[1]:.5g} now): it is kept and nothing is written (--replace writes this fit "

@@ -7,8 +7,13 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .arguments import UsageError, _out_file, add_protocol_args, add_toe_args, make_toe, warn
+
+if TYPE_CHECKING:
+    from ..hardware.log_data import ResampledLog
+    from ..hardware.pipeline import ForceTrace
 
 
 def add_leg_args(p) -> None:
@@ -137,9 +142,9 @@ def cmd_ingest(a) -> int:
         model = None
     read_kw = ({"protocol": "mit", "mit_model": model, "master_id": a.mit_master_id} if model
                else {"firmware": a.firmware})
-    first_log = []  # the first run's resampled log: what the leg-option hints are worked out on
+    first_log: list[ResampledLog] = []  # the first run's resampled log: what the leg-option hints are worked out on
 
-    def runs(path) -> list[tuple[str, object]]:
+    def runs(path) -> list[tuple[str, ForceTrace]]:
         """(name, ForceTrace) of every recording in the log at ``path`` (a log whose clock restarts
         holds several: each is a run of its own)."""
         data = read_log(path, nodes=set(a.nodes), on_error=a.on_error, channel=a.channel, **read_kw)

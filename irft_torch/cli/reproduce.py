@@ -22,6 +22,18 @@ def cmd_reproduce(a) -> int:
     if a.jobs < 0:
         raise UsageError("--jobs", f"must be 0 (one per CPU) or a positive number of processes, got {a.jobs}")
     workers = default_workers() if a.jobs == 0 else a.jobs
+    if a.device != "cpu":
+        import torch
+
+        try:
+            dev = torch.device(a.device)
+        except RuntimeError as e:
+            raise UsageError("--device", f"{a.device!r} is not a torch device ({e})") from None
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise UsageError("--device", f"{a.device!r}: no CUDA device is visible here (torch "
+                                         f"{torch.__version__}); leave --device out to fit on the CPU")
+        settings = replace(settings, device=str(dev))
+        workers = 1  # one process drives the GPU (the fits are batched there by gp.fit_together)
     r = run_study(a.out, settings, progress=not a.no_progress, workers=workers)
     print(f"wrote tables, figures and report.md to {r['out_dir']}/ in {r['elapsed_s']:.0f} s")
     return 0
@@ -39,5 +51,8 @@ def register(sub) -> None:
     p.add_argument("--priors", choices=["physical", "none"], default="physical",
                    help="hyperparameter priors of every fit: the library's physical priors (MAP, default) or none "
                         "(the paper's plain marginal likelihood; its Table I rows are in every run)")
+    p.add_argument("--device", default="cpu",
+                   help="where the models are fitted: cpu (default) or cuda[:N] (one process; needs a CUDA build "
+                        "of torch); the data, metrics and figures stay on the CPU")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_reproduce)

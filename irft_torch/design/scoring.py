@@ -37,7 +37,7 @@ import warnings
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -50,6 +50,9 @@ from ..gp.backends.select import ALIASES
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from .region import Region, _as_contacts
+
+if TYPE_CHECKING:
+    from ..gp.backends.spectral import SpectralBackend
 
 __all__ = ["Region", "ProbeScorer", "MixtureScorer", "force_relative", "SCORING_TOL"]
 
@@ -138,7 +141,7 @@ class ProbeScorer:
         """The backend a scorer of ``model`` uses (see ``from_model``), from the model's current one (or from
         ``own``, one of its hyperparameter draws' backends, on the model's data)."""
         own = model.backend if own is None else own
-        own_tol = own.tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
+        own_tol = cast("SpectralBackend", own).tol if own.name == "spectral" else float(getattr(model, "tol", 1e-7))
         target = "spectral" if isinstance(tol, float) else ALIASES.get(method or own.name, method or own.name)
         if tol == "auto":
             tol = max(own_tol, SCORING_TOL)
@@ -165,7 +168,7 @@ class ProbeScorer:
     # ---- construction ----------------------------------------------------------------------
     @classmethod
     def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
-                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer:
+                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer | MixtureScorer:
         """The posterior of a (fitted) ``InverseRFT``, with its hyperparameters fixed.
 
         Args:
@@ -451,7 +454,7 @@ class MixtureScorer:
                              f"map) with a positive sum, got shape {tuple(w.shape)}: {w.tolist()}")
         self.scorers, self.weights = scorers, w / w.sum(0)
         self._recipe: tuple | None = None  # (model, method, noise_scale, tol) of ``from_model``
-        self._draws_of = None
+        self._draws_of: tuple | None = None  # the model's draws the scorers were built for (``_state``)
 
     @classmethod
     def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
@@ -467,7 +470,7 @@ class MixtureScorer:
     def _build(model, method, noise_scale, tol) -> tuple[list[ProbeScorer], Tensor]:
         backends, weights = model._weighted_backends()
         scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
-        return scorers, weights if weights is not None else torch.ones(1)
+        return scorers, weights if weights is not None else torch.ones(1, device=scorers[0].noise.device)
 
     @staticmethod
     def _state(model) -> tuple:

@@ -237,6 +237,8 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
     T = max(backend.n_samples, 1)
     opt = torch.optim.Adam(list(hypers.parameters()), lr=lr)
     histories: list[list[float]] = [[] for _ in range(B)]
+    # each model's best iterate (loss, its raw hyperparameters, step), kept as its own fit keeps it (fit_control)
+    best: list[tuple[float, dict | None, int]] = [(math.inf, None, -1)] * B
     failed = False
     bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit x {B} (pairs)", disable=not progress, leave=False)
     try:
@@ -245,9 +247,13 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
             per_model = backend.negative_log_likelihood().reshape(B, 2).sum(-1)
             for _, module, prior, closure, _ in hypers.named_priors():
                 per_model = per_model - prior.log_prob(closure(module)).reshape(B, -1).sum(-1) / T
+            values = per_model.tolist()
+            for i, v in enumerate(values):
+                if v < best[i][0]:
+                    best[i] = (v, _raw_slices(hypers, i), step)
             per_model.sum().backward()
             opt.step()
-            for h, v in zip(histories, per_model.tolist()):
+            for h, v in zip(histories, values):
                 h.append(v)
     except KeyboardInterrupt:
         warnings.warn(f"fit interrupted after {len(histories[0])} steps; the models keep those steps", stacklevel=2)
@@ -270,9 +276,24 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
     if failed:  # each model's own fit: the one that breaks down raises its own NotPSDError (naming its
         # hyperparameters), the ones before it end fitted, as in a loop of InverseRFT.fit
         return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
-    for m, h in zip(models, histories):
+    for i, (m, h) in enumerate(zip(models, histories)):
+        value, raw, step = best[i]
+        if raw is not None:  # the best iterate restored where the loss ended above it, as InverseRFT.fit does
+            own = m.hypers.likelihood.noise_covar.raw_noise
+            raw["likelihood.noise_covar.raw_noise"] = raw["likelihood.noise_covar.raw_noise"].reshape(own.shape)
+            m._keep_best((value, {**m._snapshot(), **raw}, step), h, lr)
         m.loss_history.extend(h)
         m.eval()
         m._last_fit = (int(n_iter), float(lr))
         m._finish_fit()  # the hyperparameter posterior, as the model's own fit ends
     return histories
+
+
+def _raw_slices(hypers: _StackedHyperparameters, i: int) -> dict[str, Tensor]:
+    """Model i's raw hyperparameters in the stacked ones, keyed as its own ``hypers.state_dict()``: a copy."""
+    k = 1 if hypers.tied else 2
+    return {"kernel.raw_outputscale": hypers.kernel.raw_outputscale[2 * i:2 * i + 2].detach().clone(),
+            "kernel.base_kernel.raw_lengthscale":
+                hypers.kernel.base_kernel.raw_lengthscale[2 * i:2 * i + 2].detach().clone(),
+            "likelihood.noise_covar.raw_noise":
+                hypers.likelihood.noise_covar.raw_noise[k * i:k * i + k].detach().clone()}

@@ -7,12 +7,21 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import TYPE_CHECKING, cast
 
 import torch
+from torch import Tensor
 
-from .backends import make_backend
+from .backends import RFTBackend, make_backend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs, spectral_step_cost
 from .fourier import FourierBasis
+
+if TYPE_CHECKING:
+    from ..rft.contacts import Contacts
+    from .backends.spectral import SpectralBackend
+    from .backends.weight_space import FeatureStatistics
+    from .hyperparameters import RFTHyperparameters
+    from .surface import SurfaceOffset
 
 __all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR"]
 
@@ -30,6 +39,28 @@ class FitInterruptedWarning(UserWarning):
 
 class FitControlMixin:
     """The fit's adaptation and guards (see the module); needs an ``InverseRFT``'s hypers, backend, data."""
+
+    _held_cost: float | None  # the step cost "auto" holds with nearly noise-free data (_adapt)
+    _hold_said: bool  # the hold's warning was given
+    _n_pairs: int | None  # the training contacts' distinct angle pairs (_pair_count)
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        hypers: RFTHyperparameters
+        backend: RFTBackend
+        surface: SurfaceOffset | None
+        _statistics: FeatureStatistics | None
+        auto: bool
+        solver: str
+        tol: float
+
+        @property
+        def method(self) -> str: ...
+        @property
+        def train_contacts(self) -> Contacts: ...
+        @property
+        def train_forces(self) -> Tensor: ...
+        def truncation_error(self) -> Tensor: ...
+        def _rebuild_backend(self) -> None: ...
 
     def _snapshot(self) -> dict:
         """The fitted parameters' values (hyperparameters, the surface offset): a copy."""
@@ -83,11 +114,11 @@ class FitControlMixin:
                 return
         if bound is not None and self.method == "spectral":
             need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
-            basis = self.backend.basis
+            basis = cast("SpectralBackend", self.backend).basis
             grown = FourierBasis(max(need.n_beta, basis.n_beta), max(need.n_gamma, basis.n_gamma))
             cost = spectral_step_cost(self.train_contacts, grown)
             if cost > bound:
-                self.backend.held = True  # predictions after the fit keep it too
+                cast("SpectralBackend", self.backend).held = True  # predictions after the fit keep it too
                 if not self._hold_said:
                     self._hold_said = True
                     noise = [f"{v:.2g}" for v in self.hypers.noise.detach().tolist()]
@@ -109,11 +140,11 @@ class FitControlMixin:
         if not bool((self.hypers.noise.detach() < NOISE_FREE * power).any()):
             self._held_cost = None
             if getattr(self.backend, "held", False):
-                self.backend.held = False  # the noise came back: the basis may grow again
+                cast("SpectralBackend", self.backend).held = False  # the noise came back: the basis may grow again
             return None
         if self._held_cost is None:
             if self.method == "spectral":
-                self._held_cost = spectral_step_cost(self.train_contacts, self.backend.basis)
+                self._held_cost = spectral_step_cost(self.train_contacts, cast("SpectralBackend", self.backend).basis)
             else:
                 self._held_cost = estimated_costs(self.train_contacts, self.hypers, self.tol,
                                                   self._pair_count())[self.method]

@@ -305,13 +305,20 @@ def pareto_khat(log_weights: Tensor) -> float:
         return float("nan")
     w = (lw - lw.max()).exp().sort().values
     tail, cut = w[-M:], w[-M - 1]
-    excess = (tail - cut).numpy()
+    excess = (tail - cut).cpu().numpy()
     if excess.max() <= 0:
         return 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         k, _, _ = genpareto.fit(excess, floc=0)
     return float(k)
+
+
+def _generator_device(generator: torch.Generator | None) -> torch.device:
+    """Where random numbers are drawn: on the generator's device (the CPU's default generator when None),
+    then moved to the data, so a model on the GPU draws the same proposals as on the CPU and a CPU
+    ``generator`` works with either."""
+    return torch.device("cpu") if generator is None else generator.device
 
 
 def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: bool = True) -> tuple[Tensor, Tensor]:
@@ -323,14 +330,15 @@ def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: boo
     P = mean.numel()
     L = torch.linalg.cholesky(cov)
     if qmc:
-        seed = int(torch.randint(0, 2**31 - 1, (), generator=generator))
+        seed = int(torch.randint(0, 2**31 - 1, (), generator=generator, device=_generator_device(generator)))
         u = torch.quasirandom.SobolEngine(P + 1, scramble=True, seed=seed).draw(n, dtype=torch.float64)
         u = u.clamp(1e-12, 1 - 1e-12)
         z = (math.sqrt(2) * torch.special.erfinv(2 * u[:, :P] - 1)).to(mean)
         v = torch.as_tensor(chi2.ppf(u[:, P].numpy(), df), dtype=mean.dtype, device=mean.device)
     else:
-        z = torch.randn(n, P, generator=generator, dtype=mean.dtype, device=mean.device)
-        v = torch.randn(n, int(df), generator=generator, dtype=mean.dtype, device=mean.device).pow(2).sum(-1)
+        gd = _generator_device(generator)
+        z = torch.randn(n, P, generator=generator, dtype=mean.dtype, device=gd).to(mean.device)
+        v = torch.randn(n, int(df), generator=generator, dtype=mean.dtype, device=gd).pow(2).sum(-1).to(mean.device)
     x = mean + (z @ L.mT) * (df / v).sqrt()[:, None]
     d = torch.linalg.solve_triangular(L, (x - mean).mT, upper=False).pow(2).sum(0)
     logdet = 2 * torch.log(torch.diagonal(L)).sum()
@@ -342,7 +350,8 @@ def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: boo
 def _systematic(weights: Tensor, n: int, generator) -> Tensor:
     """Indices (n,) of a systematic resample of ``weights`` (low variance: each index appears
     floor(n w) or ceil(n w) times)."""
-    u0 = torch.rand((), generator=generator, dtype=weights.dtype, device=weights.device)
+    u0 = torch.rand((), generator=generator, dtype=weights.dtype, device=_generator_device(generator))
+    u0 = u0.to(weights.device)
     pos = (u0 + torch.arange(n, dtype=weights.dtype, device=weights.device)) / n
     return torch.searchsorted(weights.cumsum(0).clamp_max(1.0), pos).clamp_max(len(weights) - 1)
 
@@ -493,10 +502,10 @@ def nuts(backend, n_samples: int = 256, warmup: int = 512, n_draws: int = 16, nu
     by_chain = torch.stack(chains)  # (C, n, P_free)
     draws = by_chain.reshape(-1, len(idx))
     S = draws.shape[0]
-    pick = torch.linspace(0, S - 1, min(int(n_draws), S)).round().long()
+    pick = torch.linspace(0, S - 1, min(int(n_draws), S)).round().long().to(draws.device)
     full = theta0.detach().expand(len(pick), -1).clone()
     full[:, idx] = draws[pick]
-    w = torch.full((len(pick),), 1 / len(pick), dtype=full.dtype)
+    w = torch.full((len(pick),), 1 / len(pick), dtype=full.dtype, device=full.device)
     c = draws - draws.mean(0)
     cov = theta0.new_zeros(spec.size, spec.size)
     cov[idx[:, None], idx[None, :]] = c.mT @ c / max(S - 1, 1)

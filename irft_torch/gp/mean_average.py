@@ -30,12 +30,16 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from .backends import RFTBackend
-from .hyper_posterior import _polish, hyper_spec, log_evidence
+from .hyper_posterior import HyperPosterior, _polish, hyper_spec, log_evidence
+
+if TYPE_CHECKING:
+    from ..rft.contacts import Contacts
 
 __all__ = ["MeanAverage", "MeanAverageMixin", "MEANS"]
 
@@ -92,6 +96,27 @@ class MeanAverageMixin:
     evidence, and the weighted backends predictions average over."""
 
     mean_average: MeanAverage | None
+    companion_fit_seconds: float  # what the average adds to a fit (benchmarks)
+
+    if TYPE_CHECKING:  # what the front door provides (gp.model)
+        _companion: list  # the companion model (a list: not a submodule)
+        _device: torch.device
+        dtype: torch.dtype
+        prior_mean_kind: str
+        _method_arg: str
+        hyper_posterior: HyperPosterior | None
+        backend: RFTBackend
+
+        @property
+        def noise_scale(self) -> Tensor: ...
+        @property
+        def train_forces(self) -> Tensor: ...
+        def _measured(self) -> tuple[Contacts, Tensor]: ...
+        def _options(self) -> dict: ...
+        def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
+        def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None: ...
+        def train(self, mode: bool = True) -> Any: ...  # nn.Module's
+        def eval(self) -> Any: ...
 
     @property
     def averages_means(self) -> bool:
@@ -114,8 +139,9 @@ class MeanAverageMixin:
         opts = self._options()
         opts["prior_mean"] = "physics"
         opts.pop("dtype")
-        return type(self)(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
-                          method=method or self._method_arg, **opts)
+        model: Any = type(self)  # the mixin's host: an InverseRFT (its constructor's arguments)
+        return model(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
+                     method=method or self._method_arg, **opts)
 
     def _fit_companion(self, n_iter: int, lr: float, progress: bool) -> None:
         """Fit the physics-mean companion as this model was fitted (same steps and rate), on this model's

@@ -422,7 +422,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             self._set_hyper_posterior(None)
         if self.averages_means:
             if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
-                self._fit_companion(*getattr(self, "_last_fit", (300, 0.05)), progress=False)
+                n_iter, lr = getattr(self, "_last_fit", (300, 0.05))
+                self._fit_companion(n_iter, lr, progress=False)
             self._set_mean_average()
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:

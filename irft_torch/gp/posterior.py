@@ -36,14 +36,21 @@ class Posterior:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
+        _check_level(level)
         if self.components is not None:
             means, variances, weights = self.components
             return (mixture_quantile(0.5 - level / 2, means, variances, weights),
                     mixture_quantile(0.5 + level / 2, means, variances, weights))
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
+        return normal_interval(self.mean, self.stddev, level)
+
+    def to(self, *args, **kwargs) -> Posterior:
+        """The same posterior with every tensor moved as ``Tensor.to(*args, **kwargs)`` moves it (a
+        device, a dtype or both): ``model.stress_map(b, g).to("cpu")`` for plotting a GPU model's map."""
+        comp = None
+        if self.components is not None:
+            means, variances, weights = self.components
+            comp = (means.to(*args, **kwargs), variances.to(*args, **kwargs), weights.to(*args, **kwargs))
+        return Posterior(self.mean.to(*args, **kwargs), self.variance.to(*args, **kwargs), comp)
 
     @classmethod
     def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
@@ -110,7 +117,7 @@ def _force_posterior(backend: RFTBackend, flat: Contacts, rows: Tensor, variance
 def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts, generator) -> Tensor:
     """Maps (2, N, n) drawn jointly over the N points of ``c``: ``counts[a][s]`` of map a's n draws from
     backend s (its posterior mean plus its root times normals), the order shuffled across backends."""
-    out = [[], []]
+    out: list[list[Tensor]] = [[], []]
     for s, b in enumerate(backends):
         k = max(counts[0][s], counts[1][s])
         if k == 0:
@@ -130,3 +137,16 @@ def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts,
         draws = torch.stack([draws[a][:, torch.randperm(n, generator=generator, device=draws.device)]
                              for a in range(2)])
     return draws
+
+
+def _check_level(level: float) -> None:
+    if not 0 < level < 1:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+
+
+def normal_interval(mean: Tensor, stddev: Tensor, level: float) -> tuple[Tensor, Tensor]:
+    """Central interval (lower, upper) of independent Gaussian marginals at ``level`` in (0, 1):
+    mean -+ sqrt(2) erfinv(level) stddev (what ``Posterior.interval`` and the 3-D posterior use)."""
+    _check_level(level)
+    z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+    return mean - z * stddev, mean + z * stddev

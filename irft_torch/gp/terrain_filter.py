@@ -105,6 +105,22 @@ class TerrainFilter(nn.Module):
         >>> filt.reset(done)                              # those environments back to the prior
     """
 
+    # buffers (register_buffer): the hyperparameters and each environment's state (see __init__)
+    lengthscale: Tensor
+    outputscale: Tensor
+    noise: Tensor
+    mean_scales: Tensor | None
+    count: Tensor
+    start: Tensor
+    U: Tensor
+    z: Tensor
+    emb: Tensor
+    cp: Tensor
+    wt: Tensor
+    At: Tensor
+    post_mean: Tensor
+    post_var: Tensor
+
     def __init__(self, model: InverseRFT, n_envs: int, window: int | None = None, capacity: int = 32,
                  block_bytes: int = 8 << 20) -> None:
         super().__init__()
@@ -122,27 +138,32 @@ class TerrainFilter(nn.Module):
         self.window = window
         self.block_bytes = block_bytes
         N = window or capacity
-        fk = {"dtype": self.dtype, "device": self.device}
+        dt, dev = self.dtype, self.device
         with torch.no_grad():
-            self.register_buffer("lengthscale", hypers.lengthscale.detach().clone().to(**fk))  # (2, 1, 4)
-            self.register_buffer("outputscale", hypers.outputscale.detach().clone().to(**fk))  # (2,)
-            self.register_buffer("noise", hypers.noise.detach().clone().to(**fk))  # (2,)
+            self.register_buffer("lengthscale",
+                                 hypers.lengthscale.detach().clone().to(dtype=dt, device=dev))  # (2, 1, 4)
+            self.register_buffer("outputscale",
+                                 hypers.outputscale.detach().clone().to(dtype=dt, device=dev))  # (2,)
+            self.register_buffer("noise", hypers.noise.detach().clone().to(dtype=dt, device=dev))  # (2,)
             scales = hypers.mean_scales
-            self.register_buffer("mean_scales", None if scales is None else scales.detach().clone().to(**fk))
-        self._shape = None if hypers.mean is None else copy.deepcopy(hypers.mean).to(**fk).requires_grad_(False)
+            self.register_buffer("mean_scales",
+                                 None if scales is None else scales.detach().clone().to(dtype=dt, device=dev))
+        self._shape = (None if hypers.mean is None
+                       else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
         # The state of environment b, map axis a (the module docstring): n = capacity sample positions
-        long = {"dtype": torch.long, "device": self.device}
-        self.register_buffer("count", torch.zeros(B, **long))  # samples held
-        self.register_buffer("start", torch.zeros(B, **long))  # ring slot of the oldest sample
-        self.register_buffer("U", torch.eye(N, **fk).expand(B, 2, N, N).clone())  # U^T, Cholesky order
-        self.register_buffer("z", torch.zeros(B, 2, N, **fk))  # U (y - m), Cholesky order
-        self.register_buffer("emb", torch.zeros(B, 5, 0, **fk))  # [phi; 1] of the samples' segments, by slot
-        self.register_buffer("cp", torch.zeros(B, 2, 0, **fk))  # -|phi / l_a|^2 / 2 of the same
-        self.register_buffer("wt", torch.zeros(B, 2, N, 0, **fk))  # their weights (x, z), by slot
+        self.register_buffer("count", torch.zeros(B, dtype=torch.long, device=dev))  # samples held
+        self.register_buffer("start", torch.zeros(B, dtype=torch.long, device=dev))  # ring slot of oldest sample
+        # U^T, Cholesky order
+        self.register_buffer("U", torch.eye(N, dtype=dt, device=dev).expand(B, 2, N, N).clone())
+        self.register_buffer("z", torch.zeros(B, 2, N, dtype=dt, device=dev))  # U (y - m), Cholesky order
+        # [phi; 1] of the samples' segments, by slot
+        self.register_buffer("emb", torch.zeros(B, 5, 0, dtype=dt, device=dev))
+        self.register_buffer("cp", torch.zeros(B, 2, 0, dtype=dt, device=dev))  # -|phi / l_a|^2 / 2 of the same
+        self.register_buffer("wt", torch.zeros(B, 2, N, 0, dtype=dt, device=dev))  # their weights (x, z), by slot
         # the tracked map points: A^T (B, 2, Q, n) and the posterior there (B, 2, Q), kept current
-        self.register_buffer("At", torch.zeros(B, 2, 0, N, **fk))
-        self.register_buffer("post_mean", torch.zeros(B, 2, 0, **fk))
-        self.register_buffer("post_var", torch.zeros(B, 2, 0, **fk))
+        self.register_buffer("At", torch.zeros(B, 2, 0, N, dtype=dt, device=dev))
+        self.register_buffer("post_mean", torch.zeros(B, 2, 0, dtype=dt, device=dev))
+        self.register_buffer("post_var", torch.zeros(B, 2, 0, dtype=dt, device=dev))
         self._query: dict | None = None  # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), prior mean / var (2, Q)
         self._exported = False  # a query's autograd graph holds the state: copy it before writing in place
 

@@ -87,8 +87,8 @@ def read_log(path, firmware: str = "0.5", nodes=None, on_error: str = "raise", p
         on_error: "raise" (LogReadError with ``.partial``) or "warn" (return the partial data) when
             the file is truncated or damaged.
         protocol: "odrive" (CANSimple) or "mit" (CubeMars / T-Motor AK MIT-mode replies).
-        mit_model, master_id: the AK model (a name in ``MIT_MODELS`` or a ``MitModel``) and the host's
-            id that replies are sent to (``protocol="mit"``).
+        mit_model: the AK model, a name in ``MIT_MODELS`` or a ``MitModel`` (``protocol="mit"``).
+        master_id: the host's id that replies are sent to (``protocol="mit"``).
         channel: read only the frames of this CAN channel (as the file names it: "can0" in a candump
             log, the channel number in .asc / .blf). Needed when the log holds several buses whose
             node ids collide (``candump -L any``): without it that is a ValueError naming the channels.
@@ -234,6 +234,7 @@ def _decode_all(reader, name: str, suffix: str, data: LogData, protocol: str, fi
             data.skipped[f"on CAN channel {ch} (reading channel {channel})"] += 1
             continue
         key = _frame_key(msg)
+        payload: object  # a frame's data, or what the record says instead (see ``_decode_all``)
         kind, payload = "none", None
         if msg.is_error_frame:
             kind, payload = "skip", "error frame"

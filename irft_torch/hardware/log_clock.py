@@ -81,7 +81,8 @@ def _follow_on(t: np.ndarray, offset: np.ndarray, prev: np.ndarray, seg_start: i
         p = int(prev[j])
         if p < seg_start or p >= i:
             continue
-        steps, q = [], p
+        steps: list[float] = []
+        q = p
         while len(steps) < 10 and prev[q] >= seg_start:
             steps.append((t[q] + offset[q]) - (t[prev[q]] + offset[prev[q]]))
             q = int(prev[q])

@@ -313,7 +313,8 @@ def _element_terms(n: Tensor, vh: Tensor, wgt: Tensor):
     hv = torch.stack([vh[:, 0] + _TIE, vh[:, 1]], -1)
     h = torch.where(near[:, None], hv, n[:, :2])
     hn = torch.linalg.vector_norm(h, dim=-1, keepdim=True)
-    e2 = torch.where(hn > 0, h / hn.clamp_min(torch.finfo(h.dtype).tiny), torch.tensor([1.0, 0.0], dtype=h.dtype))
+    x_axis = torch.tensor([1.0, 0.0], dtype=h.dtype, device=h.device)
+    e2 = torch.where(hn > 0, h / hn.clamp_min(torch.finfo(h.dtype).tiny), x_axis)
     e1 = torch.stack([e2[:, 1], -e2[:, 0]], -1)  # e2 x z (both horizontal)
     s1 = (vh[:, :2] * e1).sum(-1)  # v^ . e1
     v23 = torch.cat([vh[:, :2] - s1[:, None] * e1, vh[:, 2:]], -1)

@@ -94,7 +94,7 @@ def force_faults(contacts: Contacts, forces, scale_range: tuple[float, float] = 
     where the stated geometry has the toe out of the sand, as large as those in it). Empty when nothing
     is found or fewer than 3 samples are in contact.
 
-    Example:
+    Examples:
         >>> [str(f) for f in force_faults(c, 1000 * f)]
         ['F_z is 1e+03x what the generic granular medium gives at these depths (...): are the forces in mN, ...']
     """

@@ -101,9 +101,10 @@ class Mesh:
 
     def transformed(self, rotation=None, translation=None) -> Mesh:
         """The same body with every point p -> R p + t and normal n -> R n (R (3, 3) a rotation, t (3,) m)."""
-        dt = self.points.dtype
-        R = torch.eye(3, dtype=dt) if rotation is None else torch.as_tensor(rotation, dtype=dt)
-        t = torch.zeros(3, dtype=dt) if translation is None else torch.as_tensor(translation, dtype=dt)
+        dt, dev = self.points.dtype, self.points.device
+        R = torch.eye(3, dtype=dt, device=dev) if rotation is None else torch.as_tensor(rotation, dtype=dt, device=dev)
+        t = torch.zeros(3, dtype=dt, device=dev) if translation is None else torch.as_tensor(translation, dtype=dt,
+                                                                                            device=dev)
         if R.shape != (3, 3) or t.shape != (3,):
             raise ValueError(f"rotation must be (3, 3) and translation (3,), got {tuple(R.shape)}, {tuple(t.shape)}")
         _check_rotation(R[None], "rotation")

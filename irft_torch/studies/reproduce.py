@@ -75,6 +75,7 @@ class StudySettings:
     lengthscale_sensitivity: tuple[float, ...] = (2.0, 4.0)  # extra I-toe fits in the report
     priors: str | None = "physical"  # ours: hyperparameter priors (gp.priors); None: the paper's plain likelihood
     hyper_posterior: str = "map"  # ours: "laplace" predicts with the hyperparameter posterior (gp.hyper_posterior)
+    device: str = "cpu"  # where the models are fitted ("cuda": the GPU); data, metrics and figures stay on the CPU
     seed: int = 0
     quick: bool = False
 
@@ -143,8 +144,9 @@ def _build(config, prior_mean, noise, seed, truth_map, s, lengthscale=None, prio
     torch.manual_seed(s.seed)
     ls = s.lengthscale if lengthscale is None else lengthscale
     priors = s.priors if priors == "settings" else priors
-    model = InverseRFT(c, f, prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors,
-                       hyper_posterior=s.hyper_posterior)
+    dev = torch.device(s.device)
+    model = InverseRFT(c.to(device=dev), f.to(dev), prior_mean=prior_mean, tied_noise=s.tied_noise,
+                       lengthscale=ls, priors=priors, hyper_posterior=s.hyper_posterior)
     return model, toe, path, c
 
 
@@ -153,7 +155,7 @@ def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, t
     """The fitted model's map against the truth on the study's grid (Table I / II metrics, calibration)."""
     B, G = _grid(s)
     with torch.no_grad():
-        post = model.stress_map(B, G)
+        post = model.stress_map(B, G).to("cpu")
         true = truth_map(B, G)
     res = FitResult(config, prior_mean, noise, seed, truth_name, lengthscale, priors, pinned)
     for a, axis in enumerate("XZ"):
@@ -165,7 +167,7 @@ def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, t
     if keep_maps:
         res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
                     "truth": true, "B": B, "G": G, "coverage": metrics.coverage_area(c),
-                    "prior_std": model.hypers.outputscale.detach().sqrt(),  # (2,) N/cm^3, the map prior's sd
+                    "prior_std": model.hypers.outputscale.detach().sqrt().cpu(),  # (2,) N/cm^3, the map prior's sd
                     "redundancy": metrics.redundancy(c)}
     if keep_model:  # in this process only (a fitted model is not sent back from a worker)
         res.maps["model"] = model

@@ -406,7 +406,7 @@ def test_a_scorer_follows_its_model_across_backend_switches_whatever_its_recipe(
     """Every scorer from ``from_model`` (default, the model's own basis, a coarser or finer tolerance,
     another backend) scores the model's current data after a refit moves the model spectral ->
     observations -> spectral and after ``add_data``: the same scores as a scorer made afresh."""
-    import irft_torch.gp.model as gp_model
+    import irft_torch.gp.fit_control as gp_model  # where auto asks for the costs
 
     toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
     probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=40, seed=7)

@@ -389,14 +389,14 @@ def test_units_off_by_1000_or_degrees_are_named(gait1):
     c, f = gait1
     # the checks read the data as measured: a small relative noise scale (whitening divides by it) is no unit error
     with warnings.catch_warnings():
-        warnings.filterwarnings("error", message=".*are they in")
+        warnings.filterwarnings("error", message=".*are the forces in")
         irft.InverseRFT(c, f, noise_scale=torch.full((len(c),), 1e-4))
     deg = Contacts(c.beta * 180 / P, c.gamma * 180 / P, c.weight_x, c.weight_z)
     with pytest.warns(UserWarning, match="degrees"):
         irft.InverseRFT(deg, f)
-    with pytest.warns(UserWarning, match="are they in mN"):
+    with pytest.warns(UserWarning, match="forces in mN"):
         irft.InverseRFT(c, f * 1e4)
-    with pytest.warns(UserWarning, match="are they in mm"):
+    with pytest.warns(UserWarning, match=r"weights in mm\^3"):
         irft.InverseRFT(Contacts(c.beta, c.gamma, c.weight_x * 1e6, c.weight_z * 1e6), f)
 
 

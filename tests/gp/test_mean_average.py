@@ -192,9 +192,9 @@ def test_a_medium_of_the_generic_shape_seen_through_a_slice_takes_the_physics_me
     from irft_torch.studies.calibration import medium, motion, simulate
 
     truth, _ = medium("scaled", 0)
-    c = motion("rotating", 0)
+    c = motion("rotating", 0)[::3]  # every third sample: the same slice of the square, a third of the cost
     f = simulate(truth, c, 0.01, 0)
     m = irft.InverseRFT(c, f, prior_mean="average", hyper_posterior="map")
-    m.fit(n_iter=150, progress=False)
+    m.fit(n_iter=100, progress=False)
     assert (m.mean_average.weights[1] > 0.9).all()
     assert hyper_spec(m.companion.hypers).labels[-2:] == ["mean_scale_x", "mean_scale_z"]

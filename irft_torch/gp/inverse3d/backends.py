@@ -27,6 +27,7 @@ v = H^T L^{-1} c~, covariance Phi_q Sigma Phi_q^T - (H Sigma Phi_q^T)^T (H Sigma
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, cast
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -57,7 +58,7 @@ def _pack(c: Contacts3D, parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Te
     for block, (m, s) in zip(BLOCKS, parts):
         A = len(block.axes)
         mean[:, list(block.axes)] = m.reshape(A, T).T
-        idx = torch.tensor(block.axes)
+        idx = torch.tensor(block.axes, device=cov.device)
         cov[:, idx[:, None], idx[None, :]] = s
     return mean, cov
 
@@ -157,7 +158,7 @@ class Observations3D(Backend3D):
 
     def _train_cov(self, b: int, detach: bool) -> Tensor:
         block, (_, _, ws) = BLOCKS[b], self._train[b]
-        K = sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws))
+        K = cast(Tensor, sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws)))
         noise = self.hypers.noise.detach() if detach else self.hypers.noise
         d = torch.cat([noise[a].expand(self.n_samples) for a in block.axes])
         return 0.5 * (K + K.mT) + torch.diag(d)
@@ -187,11 +188,11 @@ class Observations3D(Backend3D):
 
     def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
         block = BLOCKS[b]
-        out = 0
+        out: Tensor | int = 0
         for i, c in enumerate(block.maps):
             s = self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
             out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
-        return out
+        return cast(Tensor, out)  # a block has at least one map
 
     def _block_posterior(self, b, c, full):
         L, alpha = self._factor()[b]
@@ -218,14 +219,21 @@ class WeightSpace3D(Backend3D):
     """Shared algebra of the weight-space backends (module doc). Subclasses give the features of rows,
     ``_features(c, b)`` -> Phi (n, F_b) (the maps' features side by side), and ``_sigma(b, X, detach)`` -> X Sigma_b."""
 
+    if TYPE_CHECKING:  # what the subclasses provide
+        def _features(self, c: Contacts3D, b: int) -> Tensor: ...
+        def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor: ...
+
     def __init__(self, hypers, contacts, forces) -> None:
         super().__init__(hypers, contacts, forces)
-        self._factors = None
-        self._post_cache = None
+        # per block, per force axis: the data factor (R, c_y, rho)
+        self._factors: list[list[tuple[Tensor, Tensor, Tensor]]] | None = None
+        # (the factors, the hyperparameters' key, per block (H, H^T z)): the posterior's terms
+        self._post_cache: tuple[list, Tensor, list[tuple[Tensor, Tensor]]] | None = None
 
     def _set_features(self) -> None:
         """(Re)compute the training rows' data factors, hyperparameter-free."""
-        self._factors, self._post_cache = [], None
+        factors: list[list[tuple[Tensor, Tensor, Tensor]]] = []
+        self._factors, self._post_cache = factors, None
         T = self.n_samples
         with torch.no_grad():
             for b, block in enumerate(BLOCKS):
@@ -449,7 +457,8 @@ def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
     H, v = backend._terms(b)
     beta, gamma, ws = block_rows(c, block)
     U = backend.table.shape[0]
-    cols, priors = [], 0
+    cols: list[Tensor] = []
+    priors: Tensor | int = 0
     tb, tg = backend.table[:, 0], backend.table[:, 1]
     for i, m in enumerate(block.maps):
         if backend.hypers.constant_map(m):
@@ -458,7 +467,7 @@ def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
             priors = priors + s * ws[i].sum(-1)[:, None] * ws[i].sum(-1)[None, :]
             continue
         ls, s = backend.hypers.lengthscale[m:m + 1].detach(), backend.hypers.outputscale[m:m + 1].detach()
-        ones = torch.ones(U, 1, dtype=tb.dtype)
+        ones = torch.ones(U, 1, dtype=tb.dtype, device=tb.device)
         st = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], tb[None, :, None],
                                                        tg[None, :, None], ones[None], ONE)
         cols.append(RFTKernelLinearOperator.from_structure(st, ls, s, ONE).to_dense()[0])

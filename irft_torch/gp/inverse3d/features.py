@@ -72,7 +72,7 @@ def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, const
         return phi
     Fb, Fg = big.sizes
     fb, fg = small.sizes
-    sel = (torch.arange(fb)[:, None] * Fg + torch.arange(fg)[None, :]).reshape(-1)
+    sel = (torch.arange(fb, device=phi.device)[:, None] * Fg + torch.arange(fg, device=phi.device)[None, :]).reshape(-1)
     out, start = [], 0
     for m in BLOCKS[b].maps:
         if m == 1 and constant_y:

@@ -98,9 +98,9 @@ class RFT3DHyperparameters(Module):
         """Whether map c is a constant (alpha_y with ``alpha_y="constant"``)."""
         return c == 1 and self.alpha_y == "constant"
 
-    def as_dict(self) -> dict[str, list]:
+    def as_dict(self) -> dict[str, list | str]:
         ls = self.lengthscale.detach()
-        out = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),
+        out: dict[str, list | str] = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),
                "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist(), "alpha_y": self.alpha_y}
         if self.alpha_y == "map":
             out["lengthscale_y"] = ls[1, 0].tolist()

@@ -17,6 +17,8 @@ from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
+from ..inputs import _check_dtype
+from ..posterior import normal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
@@ -40,10 +42,8 @@ class Posterior3D:
         return self.variance.clamp_min(0).sqrt()
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
-        if not 0 < level < 1:
-            raise ValueError(f"level must be in (0, 1), got {level}")
-        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
-        return self.mean - z * self.stddev, self.mean + z * self.stddev
+        """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
+        return normal_interval(self.mean, self.stddev, level)
 
 
 def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
@@ -104,8 +104,7 @@ class InverseRFT3D(nn.Module):
             raise ValueError(f"method must be one of {METHODS_3D}, got {method!r}")
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
-        if dtype not in (torch.float32, torch.float64):
-            raise ValueError(f"dtype must be torch.float64 (default) or torch.float32, got {dtype}")
+        _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
         T = len(contacts)
@@ -277,7 +276,7 @@ class InverseRFT3D(nn.Module):
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
         the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere."""
-        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype)
+        b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
         prior = self.hypers.outputscale.detach().sqrt()

@@ -76,8 +76,8 @@ def prior_centres_3d(c: Contacts3D, f: Tensor, map_scale: Tensor, noise_floor: f
 
 def register_priors_3d(hypers, centres: dict) -> None:
     """Register the three priors on ``RFT3DHyperparameters`` (gpytorch ``register_prior``)."""
-    dtype = hypers.kernel.raw_outputscale.dtype
-    zero = torch.zeros((), dtype=dtype)
+    dtype, device = hypers.kernel.raw_outputscale.dtype, hypers.kernel.raw_outputscale.device
+    zero = torch.zeros((), dtype=dtype, device=device)
     log_os = centres["outputscale"].to(dtype).log().detach().clone()
     log_noise = centres["noise"].to(dtype).log().detach().clone()
     hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), OUTPUTSCALE_LOG_SD)),
