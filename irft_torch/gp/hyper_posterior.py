@@ -145,9 +145,8 @@ def _swapped(hypers, raw: dict[str, Tensor]):
 def log_posterior(backend, spec: HyperSpec, theta: Tensor, exact_graph: bool = False) -> Tensor:
     """Unnormalised log p(theta | F) at theta (P,) (differentiable): -T x the backend's negative log
     likelihood per sample (both axes) plus the log prior; -inf where theta is impossible (a value below its
-    bound, a covariance that is not positive definite). In closed form where the backend has one
-    (``gp.hyper_density``: first derivatives only); ``exact_graph``: through autograd, differentiable twice
-    (the Laplace Hessian)."""
+    bound, a covariance that is not positive definite). In closed form where the backend has one (``gp.hyper_density``:
+    first derivatives only); ``exact_graph``: through autograd, differentiable twice (the Laplace Hessian)."""
     if not exact_graph:
         fast = closed_form_log_posterior(backend, spec, theta)
         if fast is not None:
@@ -404,8 +403,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     x, logq = _student_t(mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
     with torch.no_grad():
         logp = log_posterior_batch(backend, sub_spec, x)  # one call for all (closed form), else one by one
-        if logp is None:
-            logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x])
+        logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x]) if logp is None else logp
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
     logw = logp - logq
     ok = torch.isfinite(logw)

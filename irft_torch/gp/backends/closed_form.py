@@ -94,7 +94,8 @@ class ClosedForm:
 
     Args:
         R: (2, r, F), or None (A = Sigma: the observations' space).
-        c_y, c_g: (2, r) the forces' and the physics mean's shape forces' coordinates (c_g None: no mean).
+        c_y: (2, r) the forces' coordinates.
+        c_g: (2, r) the physics mean's shape forces' coordinates (None: no mean).
         rho: (2, 3) residuals (rho_yy, rho_yg, rho_gg) outside R's range (zeros in the observations' space).
         n: force samples (the per-sample normalization; rows that never touch count).
         terms: the ``CovarianceTerm`` s of Sigma.
