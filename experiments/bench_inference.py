@@ -257,7 +257,7 @@ def hyper_posterior_case(q: bool, row) -> None:
 
 
 def turning_case(q: bool, row) -> None:
-    """9. Adam steps of the default fit on a turning C-toe (the calibration harness' motion, T = 200 x 12),
+    """10. Adam steps of the default fit on a turning C-toe (the calibration harness' motion, T = 200 x 12),
     best of 3, closed form vs autograd."""
     from irft_torch.studies.calibration import _rng, _turning, medium, simulate
 
@@ -269,19 +269,19 @@ def turning_case(q: bool, row) -> None:
     t_new, model = fit_time(c, f, n, 3)
     with autograd_only():
         t_old, _ = fit_time(c, f, n, 3)
-    row(f"9. turning C-toe T = {T} x M = 12, Adam ({model.backend.describe()} after {n} steps; best of 3)",
+    row(f"10. turning C-toe T = {T} x M = 12, Adam ({model.backend.describe()} after {n} steps; best of 3)",
         f"{t_new * 1e3:.2f} ms/step", f"today's engine (autograd) {t_old * 1e3:.2f} ms/step", ratio(t_old / t_new),
         "< 3.3 ms/step")
 
 
 def nuts_case(q: bool, row) -> None:
-    """10. NUTS (pyro) on the hyperparameters of C-toe gait 2 (the paper study's configuration: tied noise,
+    """11. NUTS (pyro) on the hyperparameters of C-toe gait 2 (the paper study's configuration: tied noise,
     5 % relative force noise), started at the fitted ones: 4 chains x 500 draws after 500 warm-up; a short
     chain in both engines gives the ratio (today's engine takes minutes for the full run)."""
     try:
         import pyro  # noqa: F401
     except ImportError:
-        row("10. NUTS", "skipped: pyro not installed", "-", "-", "< 60 s")
+        row("11. NUTS", "skipped: pyro not installed", "-", "-", "< 60 s")
         return
     from irft_torch.gp.hyper_posterior import nuts
     from irft_torch.studies.reproduce import configuration
@@ -304,7 +304,7 @@ def nuts_case(q: bool, row) -> None:
     t0 = time.perf_counter()
     hp = nuts(model.backend, n_samples=draws, warmup=draws, num_chains=chains)
     t_full = time.perf_counter() - t0
-    row(f"10. NUTS on C-toe gait 2 ({model.method}, {len(hp.labels)} hyperparameters): {chains} chains x {draws} "
+    row(f"11. NUTS on C-toe gait 2 ({model.method}, {len(hp.labels)} hyperparameters): {chains} chains x {draws} "
         f"draws after {draws} warm-up (ESS {hp.ess:.0f})", f"{t_full:.1f} s",
         f"one chain of {sum(short)} iterations: {times['new']:.1f} s, today's engine {times['old']:.1f} s",
         ratio(times["old"] / times["new"]), "< 60 s")
@@ -409,6 +409,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="experiments/results")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda: data, model and references there")
+    ap.add_argument("--only", default="", help="comma-separated case numbers to run (default: all), e.g. 1,2,8,10")
     ap.add_argument("--_child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--_iters", type=int, default=100, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -418,6 +419,10 @@ def main(argv=None) -> None:
         return big_child(a._child, a._iters)
     torch.set_default_dtype(torch.float64)
     q = a.quick
+    only = {int(x) for x in a.only.split(",") if x.strip()}
+
+    def want(k: int) -> bool:
+        return not only or k in only
     lines = [f"# Inference benchmarks (`python experiments/bench_inference.py{' --quick' if q else ''}`)", "",
              f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, device "
              f"{torch.cuda.get_device_name() if DEVICE.type == 'cuda' else 'cpu'}.", "",
@@ -427,133 +432,140 @@ def main(argv=None) -> None:
         lines.append("| " + " | ".join(cells) + " |")
         print("  ".join(cells), flush=True)
 
-    # 1. paper scale
-    T1 = 60 if q else 200
-    c = paper_contacts(T1)
-    f = irft.rft.forces(TRUTH, c)
-    f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
-    c, f = on_device(c, f)
-    model = irft.InverseRFT(c, f, priors=None)  # the dense formula is the plain marginal likelihood
-    ours, ref = step(model), dense_step(model, c, f)
-    assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
-    t_ours = best_time(lambda: step(model), a.repeats)
-    with autograd_only():
-        t_autograd = best_time(lambda: step(model), a.repeats)
-    t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
-    row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
-        f"{t_ours * 1e3:.2f} ms (autograd {t_autograd * 1e3:.2f} ms)", f"dense formula {t_dense * 1e3:.1f} ms",
-        ratio(t_dense / t_ours), ">= 100x")
+    if want(1):
+        # 1. paper scale
+        T1 = 60 if q else 200
+        c = paper_contacts(T1)
+        f = irft.rft.forces(TRUTH, c)
+        f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
+        c, f = on_device(c, f)
+        model = irft.InverseRFT(c, f, priors=None)  # the dense formula is the plain marginal likelihood
+        ours, ref = step(model), dense_step(model, c, f)
+        assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
+        t_ours = best_time(lambda: step(model), a.repeats)
+        with autograd_only():
+            t_autograd = best_time(lambda: step(model), a.repeats)
+        t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
+        row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
+            f"{t_ours * 1e3:.2f} ms (autograd {t_autograd * 1e3:.2f} ms)", f"dense formula {t_dense * 1e3:.1f} ms",
+            ratio(t_dense / t_ours), ">= 100x")
 
-    # 2. DEM-like: Adam steps of the default fit, best of 3 x 60 (issue 30's protocol), both engines
-    c, f = on_device(*dem_like())
-    n = 20 if q else 60
-    t_new, model = fit_time(c, f, n, 3)
-    with autograd_only():
-        t_old, _ = fit_time(c, f, n, 3)
-    obs = irft.InverseRFT(c, f, method="observations")
-    with autograd_only():
-        t_obs = best_time(lambda: step(obs), 2)
-    row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method}, best of 3 x {n} steps)",
-        f"{1 / t_new:.0f} steps/s ({t_new * 1e3:.2f} ms/step)",
-        f"today's engine (autograd) {1 / t_old:.0f} steps/s ({t_old * 1e3:.2f} ms); observations backend "
-        f"{1 / t_obs:.1f} steps/s", f"{ratio(t_old / t_new)} (vs observations {ratio(t_obs / t_new)})",
-        "< 1 ms/step; >= 50 steps/s")
-    backend_steps_case(q, row, a.repeats)
+    if want(2):
+        # 2. DEM-like: Adam steps of the default fit, best of 3 x 60 (issue 30's protocol), both engines
+        c, f = on_device(*dem_like())
+        n = 20 if q else 60
+        t_new, model = fit_time(c, f, n, 3)
+        with autograd_only():
+            t_old, _ = fit_time(c, f, n, 3)
+        obs = irft.InverseRFT(c, f, method="observations")
+        with autograd_only():
+            t_obs = best_time(lambda: step(obs), 2)
+        row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method}, best of 3 x {n} steps)",
+            f"{1 / t_new:.0f} steps/s ({t_new * 1e3:.2f} ms/step)",
+            f"today's engine (autograd) {1 / t_old:.0f} steps/s ({t_old * 1e3:.2f} ms); observations backend "
+            f"{1 / t_obs:.1f} steps/s", f"{ratio(t_old / t_new)} (vs observations {ratio(t_obs / t_new)})",
+            "< 1 ms/step; >= 50 steps/s")
+        backend_steps_case(q, row, a.repeats)
 
-    # 3. T = 10^4
-    T3 = 2000 if q else 10_000
-    c, f = on_device(*recording(T3))
-    sync()
-    t0 = time.perf_counter()
-    model = irft.InverseRFT(c, f)
-    model.fit(n_iter=300, progress=False)
-    model.stress_map(*grid())
-    sync()
-    t3 = time.perf_counter() - t0
-    ref = irft.InverseRFT(c[:1000], f[:1000], method="observations")
-    t_ref = best_time(lambda: step(ref), 1)
-    row(f"3. C-toe T = {T3} x M = 10 (all pairs distinct): build + 300 steps + 50 x 50 map ({model.method}, "
-        f"F = {getattr(model.backend, 'basis', None) and model.backend.basis.size})", f"{t3:.1f} s",
-        f"one observations step at T = 1,000: {t_ref:.2f} s", f"{t_ref * 300 / t3:.0f}x (vs 300 such steps)",
-        "<= 60 s")
+    if want(3):
+        # 3. T = 10^4
+        T3 = 2000 if q else 10_000
+        c, f = on_device(*recording(T3))
+        sync()
+        t0 = time.perf_counter()
+        model = irft.InverseRFT(c, f)
+        model.fit(n_iter=300, progress=False)
+        model.stress_map(*grid())
+        sync()
+        t3 = time.perf_counter() - t0
+        ref = irft.InverseRFT(c[:1000], f[:1000], method="observations")
+        t_ref = best_time(lambda: step(ref), 1)
+        row(f"3. C-toe T = {T3} x M = 10 (all pairs distinct): build + 300 steps + 50 x 50 map ({model.method}, "
+            f"F = {getattr(model.backend, 'basis', None) and model.backend.basis.size})", f"{t3:.1f} s",
+            f"one observations step at T = 1,000: {t_ref:.2f} s", f"{t_ref * 300 / t3:.0f}x (vs 300 such steps)",
+            "<= 60 s")
 
-    # 4. 10^6 (a fresh process)
-    T4 = 50_000 if q else 1_000_000
-    out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100", "--device", a.device],
-                         capture_output=True, text=True, check=True)
-    r = json.loads(out.stdout.strip().splitlines()[-1])
-    total = r["build_s"] + r["fit_s"] + r["map_s"]
-    row(f"4. T = {T4:,} x M = 10: one pass + 100 steps + map ({r['backend']})",
-        f"{total:.1f} s (pass {r['build_s']:.1f}, fit {r['fit_s']:.1f}, map {r['map_s']:.2f}); "
-        f"peak {r['peak_gb']:.2f} GB", f"import {r['import_gb']:.2f} GB, the recording itself "
-        f"{r['data_gb']:.2f} GB" + (f"; GPU peak {r['gpu_peak_gb']:.2f} GB" if r["gpu_peak_gb"] else ""),
-        "-", "<= 20 s, peak < 2 GB")
+    if want(4):
+        # 4. 10^6 (a fresh process)
+        T4 = 50_000 if q else 1_000_000
+        out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100", "--device", a.device],
+                             capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        total = r["build_s"] + r["fit_s"] + r["map_s"]
+        row(f"4. T = {T4:,} x M = 10: one pass + 100 steps + map ({r['backend']})",
+            f"{total:.1f} s (pass {r['build_s']:.1f}, fit {r['fit_s']:.1f}, map {r['map_s']:.2f}); "
+            f"peak {r['peak_gb']:.2f} GB", f"import {r['import_gb']:.2f} GB, the recording itself "
+            f"{r['data_gb']:.2f} GB" + (f"; GPU peak {r['gpu_peak_gb']:.2f} GB" if r["gpu_peak_gb"] else ""),
+            "-", "<= 20 s, peak < 2 GB")
 
-    # 5. streaming
-    T5 = 2000 if q else 10_000
-    c, f = on_device(*recording(T5 + 2000, seed=3))
-    model = irft.InverseRFT(c[:T5], f[:T5], method="spectral")
-    sync()
-    t0 = time.perf_counter()
-    for i in range(T5, T5 + 2000, 100):
-        model.add_data(c[i:i + 100], f[i:i + 100])
-    z = torch.zeros(1, device=DEVICE)
-    model.stress_map(z, z)
-    sync()
-    per = (time.perf_counter() - t0) / 2000
-    t_step = best_time(lambda: step(model), 1)
-    row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
-        f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
+    if want(5):
+        # 5. streaming
+        T5 = 2000 if q else 10_000
+        c, f = on_device(*recording(T5 + 2000, seed=3))
+        model = irft.InverseRFT(c[:T5], f[:T5], method="spectral")
+        sync()
+        t0 = time.perf_counter()
+        for i in range(T5, T5 + 2000, 100):
+            model.add_data(c[i:i + 100], f[i:i + 100])
+        z = torch.zeros(1, device=DEVICE)
+        model.stress_map(z, z)
+        sync()
+        per = (time.perf_counter() - t0) / 2000
+        t_step = best_time(lambda: step(model), 1)
+        row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
+            f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
     out_dir = Path(a.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     report = out_dir / ("benchmarks.md" if DEVICE.type == "cpu" else f"benchmarks_{DEVICE.type}.md")
     if DEVICE.type != "cpu":  # case 6 reduces files in CPU worker processes
-        fit_together_case(q, row)
-        terrain_filter_case(q, row)
+        if want(7):
+            fit_together_case(q, row)
+        if want(9):
+            terrain_filter_case(q, row)
         report.write_text("\n".join(lines) + "\n")
         print(f"wrote {report}")
         return
-    # 6. a fleet of datasets
-    import tempfile
+    if want(6):
+        # 6. a fleet of datasets
+        import tempfile
 
-    from irft_torch.cli.fit import _reduce_statistics
-    from irft_torch.data import Dataset, save_dataset
-    from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
+        from irft_torch.cli.fit import _reduce_statistics
+        from irft_torch.data import Dataset, save_dataset
+        from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
 
-    T6 = 20_000 if q else 250_000
-    basis = initial_basis()
-    with tempfile.TemporaryDirectory() as tmp:
-        plain, saved = [], []
-        for i in range(4):
-            c, f = recording(T6, seed=10 + i)
-            ds = Dataset(c, f, torch.arange(T6, dtype=torch.float64), torch.zeros(T6, 2))
-            plain.append(save_dataset(Path(tmp) / f"plain{i}.npz", ds))
-            ds.statistics = statistics_arrays(recording_statistics(c, f, basis), c, f)
-            saved.append(save_dataset(Path(tmp) / f"saved{i}.npz", ds))
-        times = {}
-        for name, paths, jobs in (("one process", plain, 1), ("2 workers", plain, 2), ("saved", saved, 1)):
-            t0 = time.perf_counter()
-            _reduce_statistics(paths, basis, jobs=jobs)
-            times[name] = time.perf_counter() - t0
-        try:  # the same reduction on a local Dask cluster of 2 worker processes, started and stopped
-            from irft_torch.studies.fleet import reduce_on_dask
+        T6 = 20_000 if q else 250_000
+        basis = initial_basis()
+        with tempfile.TemporaryDirectory() as tmp:
+            plain, saved = [], []
+            for i in range(4):
+                c, f = recording(T6, seed=10 + i)
+                ds = Dataset(c, f, torch.arange(T6, dtype=torch.float64), torch.zeros(T6, 2))
+                plain.append(save_dataset(Path(tmp) / f"plain{i}.npz", ds))
+                ds.statistics = statistics_arrays(recording_statistics(c, f, basis), c, f)
+                saved.append(save_dataset(Path(tmp) / f"saved{i}.npz", ds))
+            times = {}
+            for name, paths, jobs in (("one process", plain, 1), ("2 workers", plain, 2), ("saved", saved, 1)):
+                t0 = time.perf_counter()
+                _reduce_statistics(paths, basis, jobs=jobs)
+                times[name] = time.perf_counter() - t0
+            try:  # the same reduction on a local Dask cluster of 2 worker processes, started and stopped
+                from irft_torch.studies.fleet import reduce_on_dask
 
-            times["dask"] = reduce_on_dask(plain, basis, n_workers=2).seconds
-        except ImportError:
-            times["dask"] = None
-    dask = "not installed" if times["dask"] is None else f"{times['dask']:.1f} s"
-    row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
-        f"2 worker processes {times['2 workers']:.1f} s; on Dask (LocalCluster, 2 worker processes, start-up "
-        f"included) {dask}; saved with the datasets {times['saved']:.1f} s",
-        f"one process, every pass {times['one process']:.1f} s",
-        f"{times['one process'] / times['2 workers']:.1f}x; "
-        + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
-        + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
-    fit_together_case(q, row)
-    hyper_posterior_case(q, row)
-    terrain_filter_case(q, row)
-    turning_case(q, row)
-    nuts_case(q, row)
+                times["dask"] = reduce_on_dask(plain, basis, n_workers=2).seconds
+            except ImportError:
+                times["dask"] = None
+        dask = "not installed" if times["dask"] is None else f"{times['dask']:.1f} s"
+        row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
+            f"2 worker processes {times['2 workers']:.1f} s; on Dask (LocalCluster, 2 worker processes, start-up "
+            f"included) {dask}; saved with the datasets {times['saved']:.1f} s",
+            f"one process, every pass {times['one process']:.1f} s",
+            f"{times['one process'] / times['2 workers']:.1f}x; "
+            + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
+            + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
+    for k, case in ((7, fit_together_case), (8, hyper_posterior_case), (9, terrain_filter_case), (10, turning_case),
+                    (11, nuts_case)):
+        if want(k):
+            case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 
