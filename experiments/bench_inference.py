@@ -17,11 +17,18 @@ Cases (float64, this machine's threads, default settings: ``InverseRFT(contacts,
      the datasets (``irft ingest`` saves them), vs one process making every pass;
   7. 8 models on the same contacts (a noise study, C-toe gait 1): ``gp.fit_together`` vs fitting each.
   8. the Laplace hyperparameter posterior (``hyper_posterior="laplace"``: fit, mode, Hessian, 128 weighed
-     proposals, 16 draw backends) vs the MAP fit alone, paper scale and DEM-like (issue 30: <= 2x).
+     proposals, 16 draw backends) vs today's MAP fit alone (autograd steps), paper scale and DEM-like
+     (issue 30: <= 2x);
   9. parallel environments (issue 33): ``TerrainFilter`` with B = 4096 environments of a C-toe (M = 10)
      on the paper's gait, one update and a 16-point map query per step (windows of 8, 16 and 32 samples):
      env-steps per second, vs a loop over one ``InverseRFT`` per environment doing the same (``add_data``
      of the sample, ``stress_map`` of the 16 points), timed on 8 environments and scaled.
+ 10. a turning C-toe (T = 200 x M = 12, the calibration harness' ``turning`` motion): Adam steps of the
+     default fit, closed form vs autograd (issue 30: < 3.3 ms);
+ 11. NUTS (pyro) on C-toe gait 2 (the paper study's configuration, tied noise): 4 chains x 500 draws after
+     500 warm-up, and a short chain in both engines for the ratio (issue 30: < 60 s).
+"Today's engine" (the reference in cases 2, 8, 10, 11) is the autograd path, run in the same process
+(``gp.backends.closed_form.autograd_only``).
 Case 6 also reduces the 4 datasets on a local Dask cluster (2 worker processes, start-up included), beside
 the 2-process pool.
 Writes benchmarks.md under --out (benchmarks_cuda.md with ``--device cuda``: the data and the model on the
@@ -31,6 +38,7 @@ GPU, the references too; cases 6 and 8 are skipped there: 6 reduces files in CPU
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import resource
@@ -42,6 +50,7 @@ from pathlib import Path
 import torch
 
 import irft_torch as irft
+from irft_torch.gp.backends.closed_form import autograd_only
 
 TRUTH = irft.rft.FourierStressMap.generic(0.452, 0.417)
 DEVICE = torch.device("cpu")
@@ -91,12 +100,31 @@ def dem_like(T: int = 810, M: int = 5, seed: int = 0):
 
 
 def step(model) -> float:
+    """One likelihood + gradient step as ``InverseRFT.fit`` takes it (closed form where the backend has
+    one; inside ``autograd_only``, today's autograd step)."""
     model.train()
     for p in model.hypers.parameters():
         p.grad = None
-    loss = model.loss()
-    loss.backward()
-    return loss.item()
+    loss = model.backend.loss_and_grad()
+    if loss is None:
+        loss = model.loss()
+        loss.backward()
+        loss = loss.item()
+    return loss
+
+
+def fit_time(c, f, n: int, repeats: int, **options) -> tuple[float, irft.InverseRFT]:
+    """Seconds per Adam step of ``InverseRFT(c, f, **options).fit(n)``, best of ``repeats`` fits, and the
+    last model."""
+    best = float("inf")
+    for _ in range(repeats):
+        model = irft.InverseRFT(c, f, **options)
+        sync()
+        t0 = time.perf_counter()
+        model.fit(n_iter=n, progress=False)
+        sync()
+        best = min(best, (time.perf_counter() - t0) / n)
+    return best, model
 
 
 def dense_step(model, c, f) -> float:
@@ -203,24 +231,83 @@ def fit_together_case(q: bool, row) -> None:
 
 
 def hyper_posterior_case(q: bool, row) -> None:
-    """8. The Laplace hyperparameter posterior (fit + Laplace + 16 draw backends) against the MAP fit alone
-    (``hyper_posterior="map"``), the same data and steps, on paper-scale and DEM-like data."""
+    """8. The Laplace hyperparameter posterior (fit + Laplace + 16 draw backends) against today's MAP fit
+    alone (``hyper_posterior="map"``, autograd steps), the same data and steps, on paper-scale and DEM-like
+    data; today's Laplace fit beside it."""
     n_iter = 60 if q else 300
     for name, (c, f) in (("paper scale, C-toe T = 200 x M = 10", _paper_case(60 if q else 200)),
                          ("DEM-like, T = 810 x M = 5", dem_like())):
         c, f = on_device(c, f)
         times = {}
-        for hp in ("map", "laplace"):
+        for engine, hp in (("new", "map"), ("new", "laplace"), ("old", "map"), ("old", "laplace")):
             model = irft.InverseRFT(c, f, hyper_posterior=hp)
-            sync()
-            t0 = time.perf_counter()
-            model.fit(n_iter=n_iter, progress=False)
-            sync()
-            times[hp] = time.perf_counter() - t0
-        hp = model.hyper_posterior
+            with autograd_only() if engine == "old" else contextlib.nullcontext():
+                sync()
+                t0 = time.perf_counter()
+                model.fit(n_iter=n_iter, progress=False)
+                sync()
+            times[engine, hp] = time.perf_counter() - t0
+            if (engine, hp) == ("new", "laplace"):
+                hpost = model.hyper_posterior
         row(f"8. hyperparameter posterior, {name} ({model.method}): fit + Laplace ({n_iter} steps, ESS "
-            f"{hp.ess:.0f} of {hp.n_proposals}, k-hat {hp.khat:.2f})", f"{times['laplace']:.2f} s",
-            f"MAP fit alone {times['map']:.2f} s", f"{times['laplace'] / times['map']:.2f}x slower", "<= 2x")
+            f"{hpost.ess:.0f} of {hpost.n_proposals}, k-hat {hpost.khat:.2f})",
+            f"{times['new', 'laplace']:.2f} s (MAP fit {times['new', 'map']:.2f} s)",
+            f"today's MAP fit {times['old', 'map']:.2f} s; today's fit + Laplace {times['old', 'laplace']:.2f} s",
+            f"{times['new', 'laplace'] / times['old', 'map']:.2f}x today's MAP fit", "<= 2x")
+
+
+def turning_case(q: bool, row) -> None:
+    """10. Adam steps of the default fit on a turning C-toe (the calibration harness' motion, T = 200 x 12),
+    best of 3, closed form vs autograd."""
+    from irft_torch.studies.calibration import _rng, _turning, medium, simulate
+
+    T = 80 if q else 200
+    c = _turning(_rng("motion", "turning", 0), T)
+    truth, _ = medium("perturbed", 0)
+    c, f = on_device(c, simulate(truth, c, 0.02, 0))
+    n = 20 if q else 60
+    t_new, model = fit_time(c, f, n, 3)
+    with autograd_only():
+        t_old, _ = fit_time(c, f, n, 3)
+    row(f"10. turning C-toe T = {T} x M = 12, Adam ({model.backend.describe()} after {n} steps; best of 3)",
+        f"{t_new * 1e3:.2f} ms/step", f"today's engine (autograd) {t_old * 1e3:.2f} ms/step", ratio(t_old / t_new),
+        "< 3.3 ms/step")
+
+
+def nuts_case(q: bool, row) -> None:
+    """11. NUTS (pyro) on the hyperparameters of C-toe gait 2 (the paper study's configuration: tied noise,
+    5 % relative force noise), started at the fitted ones: 4 chains x 500 draws after 500 warm-up; a short
+    chain in both engines gives the ratio (today's engine takes minutes for the full run)."""
+    try:
+        import pyro  # noqa: F401
+    except ImportError:
+        row("11. NUTS", "skipped: pyro not installed", "-", "-", "< 60 s")
+        return
+    from irft_torch.gp.hyper_posterior import nuts
+    from irft_torch.studies.reproduce import configuration
+
+    toe, path = configuration("C-toe gait 2")
+    c = irft.rft.contacts(toe, path)
+    f = irft.rft.forces(TRUTH, c)
+    f = f * (1 + math.sqrt(0.05) * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype))
+    c, f = on_device(c, f)
+    model = irft.InverseRFT(c, f, tied_noise=True)
+    model.fit(n_iter=300, progress=False)
+    short = (10, 10) if q else (50, 50)
+    times = {}
+    for engine in ("new", "old"):
+        with autograd_only() if engine == "old" else contextlib.nullcontext():
+            t0 = time.perf_counter()
+            nuts(model.backend, n_samples=short[1], warmup=short[0], num_chains=1, seed=1)
+            times[engine] = time.perf_counter() - t0
+    chains, draws = (2, 20) if q else (4, 500)
+    t0 = time.perf_counter()
+    hp = nuts(model.backend, n_samples=draws, warmup=draws, num_chains=chains)
+    t_full = time.perf_counter() - t0
+    row(f"11. NUTS on C-toe gait 2 ({model.method}, {len(hp.labels)} hyperparameters): {chains} chains x {draws} "
+        f"draws after {draws} warm-up (ESS {hp.ess:.0f})", f"{t_full:.1f} s",
+        f"one chain of {sum(short)} iterations: {times['new']:.1f} s, today's engine {times['old']:.1f} s",
+        ratio(times["old"] / times["new"]), "< 60 s")
 
 
 def _paper_case(T: int):
@@ -322,6 +409,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="experiments/results")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda: data, model and references there")
+    ap.add_argument("--only", default="", help="comma-separated case numbers to run (default: all), e.g. 1,2,8,10")
     ap.add_argument("--_child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--_iters", type=int, default=100, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -331,6 +419,10 @@ def main(argv=None) -> None:
         return big_child(a._child, a._iters)
     torch.set_default_dtype(torch.float64)
     q = a.quick
+    only = {int(x) for x in a.only.split(",") if x.strip()}
+
+    def want(k: int) -> bool:
+        return not only or k in only
     lines = [f"# Inference benchmarks (`python experiments/bench_inference.py{' --quick' if q else ''}`)", "",
              f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64, device "
              f"{torch.cuda.get_device_name() if DEVICE.type == 'cuda' else 'cpu'}.", "",
@@ -340,127 +432,140 @@ def main(argv=None) -> None:
         lines.append("| " + " | ".join(cells) + " |")
         print("  ".join(cells), flush=True)
 
-    # 1. paper scale
-    T1 = 60 if q else 200
-    c = paper_contacts(T1)
-    f = irft.rft.forces(TRUTH, c)
-    f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
-    c, f = on_device(c, f)
-    model = irft.InverseRFT(c, f, priors=None)  # the dense formula is the plain marginal likelihood
-    ours, ref = step(model), dense_step(model, c, f)
-    assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
-    t_ours = best_time(lambda: step(model), a.repeats)
-    t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
-    row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
-        f"{t_ours * 1e3:.2f} ms", f"dense formula {t_dense * 1e3:.1f} ms", ratio(t_dense / t_ours), ">= 100x")
+    if want(1):
+        # 1. paper scale
+        T1 = 60 if q else 200
+        c = paper_contacts(T1)
+        f = irft.rft.forces(TRUTH, c)
+        f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
+        c, f = on_device(c, f)
+        model = irft.InverseRFT(c, f, priors=None)  # the dense formula is the plain marginal likelihood
+        ours, ref = step(model), dense_step(model, c, f)
+        assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
+        t_ours = best_time(lambda: step(model), a.repeats)
+        with autograd_only():
+            t_autograd = best_time(lambda: step(model), a.repeats)
+        t_dense = best_time(lambda: dense_step(model, c, f), max(1, a.repeats // 2))
+        row(f"1. paper scale, C-toe T = {T1} x M = 10, one likelihood + gradient step ({model.method})",
+            f"{t_ours * 1e3:.2f} ms (autograd {t_autograd * 1e3:.2f} ms)", f"dense formula {t_dense * 1e3:.1f} ms",
+            ratio(t_dense / t_ours), ">= 100x")
 
-    # 2. DEM-like
-    c, f = on_device(*dem_like())
-    model = irft.InverseRFT(c, f)
-    sync()
-    t0 = time.perf_counter()
-    n = 50 if q else 200
-    model.fit(n_iter=n, progress=False)
-    sync()
-    per_s = n / (time.perf_counter() - t0)
-    obs = irft.InverseRFT(c, f, method="observations")
-    t_obs = best_time(lambda: step(obs), 2)
-    row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method})", f"{per_s:.0f} steps/s",
-        f"observations backend {1 / t_obs:.1f} steps/s", ratio(per_s * t_obs), ">= 50 steps/s")
-    backend_steps_case(q, row, a.repeats)
+    if want(2):
+        # 2. DEM-like: Adam steps of the default fit, best of 3 x 60 (issue 30's protocol), both engines
+        c, f = on_device(*dem_like())
+        n = 20 if q else 60
+        t_new, model = fit_time(c, f, n, 3)
+        with autograd_only():
+            t_old, _ = fit_time(c, f, n, 3)
+        obs = irft.InverseRFT(c, f, method="observations")
+        with autograd_only():
+            t_obs = best_time(lambda: step(obs), 2)
+        row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method}, best of 3 x {n} steps)",
+            f"{1 / t_new:.0f} steps/s ({t_new * 1e3:.2f} ms/step)",
+            f"today's engine (autograd) {1 / t_old:.0f} steps/s ({t_old * 1e3:.2f} ms); observations backend "
+            f"{1 / t_obs:.1f} steps/s", f"{ratio(t_old / t_new)} (vs observations {ratio(t_obs / t_new)})",
+            "< 1 ms/step; >= 50 steps/s")
+        backend_steps_case(q, row, a.repeats)
 
-    # 3. T = 10^4
-    T3 = 2000 if q else 10_000
-    c, f = on_device(*recording(T3))
-    sync()
-    t0 = time.perf_counter()
-    model = irft.InverseRFT(c, f)
-    model.fit(n_iter=300, progress=False)
-    model.stress_map(*grid())
-    sync()
-    t3 = time.perf_counter() - t0
-    ref = irft.InverseRFT(c[:1000], f[:1000], method="observations")
-    t_ref = best_time(lambda: step(ref), 1)
-    row(f"3. C-toe T = {T3} x M = 10 (all pairs distinct): build + 300 steps + 50 x 50 map ({model.method}, "
-        f"F = {getattr(model.backend, 'basis', None) and model.backend.basis.size})", f"{t3:.1f} s",
-        f"one observations step at T = 1,000: {t_ref:.2f} s", f"{t_ref * 300 / t3:.0f}x (vs 300 such steps)",
-        "<= 60 s")
+    if want(3):
+        # 3. T = 10^4
+        T3 = 2000 if q else 10_000
+        c, f = on_device(*recording(T3))
+        sync()
+        t0 = time.perf_counter()
+        model = irft.InverseRFT(c, f)
+        model.fit(n_iter=300, progress=False)
+        model.stress_map(*grid())
+        sync()
+        t3 = time.perf_counter() - t0
+        ref = irft.InverseRFT(c[:1000], f[:1000], method="observations")
+        t_ref = best_time(lambda: step(ref), 1)
+        row(f"3. C-toe T = {T3} x M = 10 (all pairs distinct): build + 300 steps + 50 x 50 map ({model.method}, "
+            f"F = {getattr(model.backend, 'basis', None) and model.backend.basis.size})", f"{t3:.1f} s",
+            f"one observations step at T = 1,000: {t_ref:.2f} s", f"{t_ref * 300 / t3:.0f}x (vs 300 such steps)",
+            "<= 60 s")
 
-    # 4. 10^6 (a fresh process)
-    T4 = 50_000 if q else 1_000_000
-    out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100", "--device", a.device],
-                         capture_output=True, text=True, check=True)
-    r = json.loads(out.stdout.strip().splitlines()[-1])
-    total = r["build_s"] + r["fit_s"] + r["map_s"]
-    row(f"4. T = {T4:,} x M = 10: one pass + 100 steps + map ({r['backend']})",
-        f"{total:.1f} s (pass {r['build_s']:.1f}, fit {r['fit_s']:.1f}, map {r['map_s']:.2f}); "
-        f"peak {r['peak_gb']:.2f} GB", f"import {r['import_gb']:.2f} GB, the recording itself "
-        f"{r['data_gb']:.2f} GB" + (f"; GPU peak {r['gpu_peak_gb']:.2f} GB" if r["gpu_peak_gb"] else ""),
-        "-", "<= 20 s, peak < 2 GB")
+    if want(4):
+        # 4. 10^6 (a fresh process)
+        T4 = 50_000 if q else 1_000_000
+        out = subprocess.run([sys.executable, __file__, "--_child", str(T4), "--_iters", "100", "--device", a.device],
+                             capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        total = r["build_s"] + r["fit_s"] + r["map_s"]
+        row(f"4. T = {T4:,} x M = 10: one pass + 100 steps + map ({r['backend']})",
+            f"{total:.1f} s (pass {r['build_s']:.1f}, fit {r['fit_s']:.1f}, map {r['map_s']:.2f}); "
+            f"peak {r['peak_gb']:.2f} GB", f"import {r['import_gb']:.2f} GB, the recording itself "
+            f"{r['data_gb']:.2f} GB" + (f"; GPU peak {r['gpu_peak_gb']:.2f} GB" if r["gpu_peak_gb"] else ""),
+            "-", "<= 20 s, peak < 2 GB")
 
-    # 5. streaming
-    T5 = 2000 if q else 10_000
-    c, f = on_device(*recording(T5 + 2000, seed=3))
-    model = irft.InverseRFT(c[:T5], f[:T5], method="spectral")
-    sync()
-    t0 = time.perf_counter()
-    for i in range(T5, T5 + 2000, 100):
-        model.add_data(c[i:i + 100], f[i:i + 100])
-    z = torch.zeros(1, device=DEVICE)
-    model.stress_map(z, z)
-    sync()
-    per = (time.perf_counter() - t0) / 2000
-    t_step = best_time(lambda: step(model), 1)
-    row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
-        f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
+    if want(5):
+        # 5. streaming
+        T5 = 2000 if q else 10_000
+        c, f = on_device(*recording(T5 + 2000, seed=3))
+        model = irft.InverseRFT(c[:T5], f[:T5], method="spectral")
+        sync()
+        t0 = time.perf_counter()
+        for i in range(T5, T5 + 2000, 100):
+            model.add_data(c[i:i + 100], f[i:i + 100])
+        z = torch.zeros(1, device=DEVICE)
+        model.stress_map(z, z)
+        sync()
+        per = (time.perf_counter() - t0) / 2000
+        t_step = best_time(lambda: step(model), 1)
+        row("5. streaming: add_data in batches of 100 samples, then a map query", f"{per * 1e3:.3f} ms/sample",
+            f"one Adam step {t_step * 1e3:.1f} ms", "-", "<= 0.1 ms/sample")
     out_dir = Path(a.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     report = out_dir / ("benchmarks.md" if DEVICE.type == "cpu" else f"benchmarks_{DEVICE.type}.md")
     if DEVICE.type != "cpu":  # case 6 reduces files in CPU worker processes
-        fit_together_case(q, row)
-        terrain_filter_case(q, row)
+        if want(7):
+            fit_together_case(q, row)
+        if want(9):
+            terrain_filter_case(q, row)
         report.write_text("\n".join(lines) + "\n")
         print(f"wrote {report}")
         return
-    # 6. a fleet of datasets
-    import tempfile
+    if want(6):
+        # 6. a fleet of datasets
+        import tempfile
 
-    from irft_torch.cli.fit import _reduce_statistics
-    from irft_torch.data import Dataset, save_dataset
-    from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
+        from irft_torch.cli.fit import _reduce_statistics
+        from irft_torch.data import Dataset, save_dataset
+        from irft_torch.gp.statistics import initial_basis, recording_statistics, statistics_arrays
 
-    T6 = 20_000 if q else 250_000
-    basis = initial_basis()
-    with tempfile.TemporaryDirectory() as tmp:
-        plain, saved = [], []
-        for i in range(4):
-            c, f = recording(T6, seed=10 + i)
-            ds = Dataset(c, f, torch.arange(T6, dtype=torch.float64), torch.zeros(T6, 2))
-            plain.append(save_dataset(Path(tmp) / f"plain{i}.npz", ds))
-            ds.statistics = statistics_arrays(recording_statistics(c, f, basis), c, f)
-            saved.append(save_dataset(Path(tmp) / f"saved{i}.npz", ds))
-        times = {}
-        for name, paths, jobs in (("one process", plain, 1), ("2 workers", plain, 2), ("saved", saved, 1)):
-            t0 = time.perf_counter()
-            _reduce_statistics(paths, basis, jobs=jobs)
-            times[name] = time.perf_counter() - t0
-        try:  # the same reduction on a local Dask cluster of 2 worker processes, started and stopped
-            from irft_torch.studies.fleet import reduce_on_dask
+        T6 = 20_000 if q else 250_000
+        basis = initial_basis()
+        with tempfile.TemporaryDirectory() as tmp:
+            plain, saved = [], []
+            for i in range(4):
+                c, f = recording(T6, seed=10 + i)
+                ds = Dataset(c, f, torch.arange(T6, dtype=torch.float64), torch.zeros(T6, 2))
+                plain.append(save_dataset(Path(tmp) / f"plain{i}.npz", ds))
+                ds.statistics = statistics_arrays(recording_statistics(c, f, basis), c, f)
+                saved.append(save_dataset(Path(tmp) / f"saved{i}.npz", ds))
+            times = {}
+            for name, paths, jobs in (("one process", plain, 1), ("2 workers", plain, 2), ("saved", saved, 1)):
+                t0 = time.perf_counter()
+                _reduce_statistics(paths, basis, jobs=jobs)
+                times[name] = time.perf_counter() - t0
+            try:  # the same reduction on a local Dask cluster of 2 worker processes, started and stopped
+                from irft_torch.studies.fleet import reduce_on_dask
 
-            times["dask"] = reduce_on_dask(plain, basis, n_workers=2).seconds
-        except ImportError:
-            times["dask"] = None
-    dask = "not installed" if times["dask"] is None else f"{times['dask']:.1f} s"
-    row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
-        f"2 worker processes {times['2 workers']:.1f} s; on Dask (LocalCluster, 2 worker processes, start-up "
-        f"included) {dask}; saved with the datasets {times['saved']:.1f} s",
-        f"one process, every pass {times['one process']:.1f} s",
-        f"{times['one process'] / times['2 workers']:.1f}x; "
-        + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
-        + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
-    fit_together_case(q, row)
-    hyper_posterior_case(q, row)
-    terrain_filter_case(q, row)
+                times["dask"] = reduce_on_dask(plain, basis, n_workers=2).seconds
+            except ImportError:
+                times["dask"] = None
+        dask = "not installed" if times["dask"] is None else f"{times['dask']:.1f} s"
+        row(f"6. fleet: 4 datasets x {T6:,} samples x M = 10 -> spectral statistics ({basis.size} features)",
+            f"2 worker processes {times['2 workers']:.1f} s; on Dask (LocalCluster, 2 worker processes, start-up "
+            f"included) {dask}; saved with the datasets {times['saved']:.1f} s",
+            f"one process, every pass {times['one process']:.1f} s",
+            f"{times['one process'] / times['2 workers']:.1f}x; "
+            + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
+            + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
+    for k, case in ((7, fit_together_case), (8, hyper_posterior_case), (9, terrain_filter_case), (10, turning_case),
+                    (11, nuts_case)):
+        if want(k):
+            case(q, row)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 

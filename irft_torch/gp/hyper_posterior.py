@@ -37,6 +37,8 @@ import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
+from .hyper_density import closed_form_log_posterior, log_posterior_batch
+
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
            "point_mass", "log_evidence", "HYPER_POSTERIORS"]
 
@@ -56,6 +58,14 @@ class HyperSpec:
     @property
     def size(self) -> int:
         return len(self.labels)
+
+    def full(self, theta: Tensor) -> Tensor:
+        """theta of every coordinate (*S, P) from this spec's own (*S, P_free) (the same here)."""
+        return theta
+
+    def free_part(self, g: Tensor) -> Tensor:
+        """This spec's own coordinates (*S, P_free) of a gradient over every coordinate (*S, P)."""
+        return g
 
     def theta(self, hypers) -> Tensor:
         """theta = log(value) (P,) of the hyperparameters' current values."""
@@ -136,10 +146,15 @@ def _swapped(hypers, raw: dict[str, Tensor]):
             module._parameters[leaf] = p
 
 
-def log_posterior(backend, spec: HyperSpec, theta: Tensor) -> Tensor:
+def log_posterior(backend, spec: HyperSpec, theta: Tensor, exact_graph: bool = False) -> Tensor:
     """Unnormalised log p(theta | F) at theta (P,) (differentiable): -T x the backend's negative log
     likelihood per sample (both axes) plus the log prior; -inf where theta is impossible (a value below its
-    bound, a covariance that is not positive definite)."""
+    bound, a covariance that is not positive definite). In closed form where the backend has one (``gp.hyper_density``:
+    first derivatives only); ``exact_graph``: through autograd, differentiable twice (the Laplace Hessian)."""
+    if not exact_graph:
+        fast = closed_form_log_posterior(backend, spec, theta)
+        if fast is not None:
+            return fast
     raw = spec.raw(theta)
     if not all(torch.isfinite(r).all() for r in raw.values()):
         return theta.new_tensor(-math.inf)
@@ -225,7 +240,7 @@ def point_mass(backend) -> HyperPosterior:
 def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """log p, its gradient (P,) and the Hessian (P, P) of -log p at theta, by autograd."""
     th = theta.detach().clone().requires_grad_(True)
-    lp = log_posterior(backend, spec, th)
+    lp = log_posterior(backend, spec, th, exact_graph=True)
     (g,) = torch.autograd.grad(lp, th, create_graph=True)
     rows = [torch.autograd.grad(g[i], th, retain_graph=True)[0] for i in range(th.numel())]
     H = -torch.stack(rows)
@@ -391,7 +406,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     cov = 0.5 * (cov + cov.mT)
     x, logq = _student_t(mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
     with torch.no_grad():
-        logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x])
+        logp = log_posterior_batch(backend, sub_spec, x)  # one call for all (closed form), else one by one
+        logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x]) if logp is None else logp
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
     logw = logp - logq
     ok = torch.isfinite(logw)
@@ -426,6 +442,14 @@ class _SubSpec(HyperSpec):
 
     def raw(self, theta: Tensor) -> dict[str, Tensor]:
         return self.full_spec.raw(self.base.index_put((self.idx,), theta))
+
+    def full(self, theta: Tensor) -> Tensor:
+        out = self.base.to(theta).expand(*theta.shape[:-1], self.base.shape[-1]).clone()
+        out[..., self.idx] = theta
+        return out
+
+    def free_part(self, g: Tensor) -> Tensor:
+        return g[..., self.idx]
 
 
 def _free_mask(spec: HyperSpec, free) -> Tensor:

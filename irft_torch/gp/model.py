@@ -366,14 +366,19 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
-                loss = self.backend.loss() if self.surface is None else self._surface_loss()
-                value = loss.item()
+                # closed form where the backend has one (``backends.closed_form``), else autograd
+                value = self.backend.loss_and_grad() if self.surface is None else None
+                loss = None
+                if value is None:
+                    loss = self.backend.loss() if self.surface is None else self._surface_loss()
+                    value = loss.item()
                 if not math.isfinite(value):
                     history.append(value)
                     break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
                 if value < best[0]:
                     best = (value, self._snapshot(), step)
-                loss.backward()
+                if loss is not None:
+                    loss.backward()
                 opt.step()
                 history.append(value)
                 if self.surface is None and step % 10 == 9 and (self.backend.stale() or

@@ -110,15 +110,22 @@ def test_fit_interrupted_before_its_first_step_writes_nothing(capsys, tmp_path, 
     out = tmp_path / "fit"
     assert main(["fit", str(dataset), "--out", str(out), "--n-iter", "3", "--max-samples", "80", "--no-progress"]) == 0
     before = _files(out)
-    real, calls = RFTBackend.loss, {"n": 0}
+    real, real_lg, calls = RFTBackend.loss, RFTBackend.loss_and_grad, {"n": 0}
 
-    def loss(self, *a, **k):
+    def loss(self, *a, **k):  # the autograd step
         calls["n"] += 1
         if calls["n"] > calls.get("stop", 0):
             raise KeyboardInterrupt
         return real(self, *a, **k)
 
+    def loss_and_grad(self, *a, **k):  # the closed-form step (gp.backends.closed_form)
+        calls["n"] += 1
+        if calls["n"] > calls.get("stop", 0):
+            raise KeyboardInterrupt
+        return real_lg(self, *a, **k)
+
     monkeypatch.setattr(RFTBackend, "loss", loss)
+    monkeypatch.setattr(RFTBackend, "loss_and_grad", loss_and_grad)
     capsys.readouterr()
     rc = main(["fit", str(dataset), "--out", str(out), "--n-iter", "5", "--max-samples", "80", "--no-progress",
                "--replace"])

@@ -43,14 +43,20 @@ def test_a_diverging_fit_keeps_its_best_iterate(gait2):
 def test_a_nan_loss_stops_the_fit_at_its_best_iterate(gait2, monkeypatch):
     c, f = gait2
     m = irft.InverseRFT(c, f, method="observations")
-    real, calls = type(m.backend).loss, {"n": 0}
+    real, real_lg, calls = type(m.backend).loss, type(m.backend).loss_and_grad, {"n": 0}
 
-    def loss(self):
+    def loss(self):  # the autograd step's loss
         calls["n"] += 1
         out = real(self)
         return out * math.nan if calls["n"] > 5 else out
 
+    def loss_and_grad(self):  # the closed-form step's (gp.backends.closed_form)
+        calls["n"] += 1
+        out = real_lg(self)
+        return out * math.nan if out is not None and calls["n"] > 5 else out
+
     monkeypatch.setattr(type(m.backend), "loss", loss)
+    monkeypatch.setattr(type(m.backend), "loss_and_grad", loss_and_grad)
     with pytest.warns(FitDivergedWarning, match="to nan"):
         h = m.fit(20, progress=False)
     assert len(h) == 6 and math.isnan(h[-1])

@@ -113,7 +113,11 @@ def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch, met
 
     monkeypatch.setattr("linear_operator.operators._linear_operator.psd_safe_cholesky", broken)
     monkeypatch.setattr("irft_torch.gp.backends.observations.psd_safe_cholesky", broken)  # its training loss
+    def broken_ex(A, *a, **k):  # the closed-form step's factor (gp.backends.closed_form): info > 0 everywhere
+        return torch.zeros_like(A), torch.ones(A.shape[:-2], dtype=torch.int32)
+
     monkeypatch.setattr(torch.linalg, "cholesky", broken_torch)
+    monkeypatch.setattr(torch.linalg, "cholesky_ex", broken_ex)
     with pytest.raises(NotPSDError, match="hyperparameters then: .*lengthscale_x"):
         model.fit(n_iter=2, progress=False)
 

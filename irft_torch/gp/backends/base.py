@@ -124,7 +124,24 @@ class RFTBackend(nn.Module):
         (a hyperparameter posterior's draws), or None where there is nothing to share (build a new one)."""
         return None
 
+    def closed_form(self):
+        """The likelihood of this backend's data in closed form (``closed_form.ClosedForm``: one loss and
+        its gradient without autograd, over a batch of hyperparameter draws too), or None where there is
+        none (then ``loss()`` and autograd serve)."""
+        return None
+
+    def prepare(self, values: dict) -> None:
+        """Adapt to hyperparameter values about to be evaluated by ``closed_form()`` (name -> (*S, *shape);
+        the spectral basis grows to hold their lengthscales). Nothing by default."""
+
     # ---- shared ------------------------------------------------------------------------------
+    def loss_and_grad(self) -> float | None:
+        """``loss()`` and its gradient in closed form (``closed_form.loss_and_grad``): sets ``.grad`` of the
+        raw hyperparameters and returns the loss, or None (use ``loss()`` and autograd)."""
+        from .closed_form import loss_and_grad
+
+        return loss_and_grad(self)
+
     def loss(self) -> Tensor:
         """Negative log marginal likelihood per force sample summed over both axes, minus the log
         density of any registered hyperparameter prior divided by T (MAP), as gpytorch's

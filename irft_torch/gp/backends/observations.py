@@ -18,7 +18,7 @@ from torch import Tensor
 from ...rft.contacts import Contacts
 from ..encoding import encode_contacts
 from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
-from ..operators import RFTKernelLinearOperator
+from ..operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
 from .base import FunctionalPosterior, RFTBackend
 
 __all__ = ["CompositeExactGP", "ObservationsBackend", "PriorBackend"]
@@ -95,6 +95,37 @@ class ObservationsBackend(RFTBackend):
         z = torch.linalg.solve_triangular(L, r[..., None], upper=False)[..., 0]
         logdet = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         return 0.5 * (z.pow(2).sum(-1) + logdet + n * math.log(2 * math.pi)) / self.n_samples
+
+    def closed_form(self):
+        """``closed_form.ClosedForm`` in the observations' space (R = I, A = W K W^T) where W K W^T has a
+        cheap exact form: a translating toe (``RowSeparable``) or few distinct angle pairs (weights summed
+        per pair, ``PairsRBF`` with R = W_U, the operator's own dense-weights case); else None (autograd).
+        Only with the Cholesky solver."""
+        from .closed_form import ClosedForm
+        from .covariance_terms import PairsRBF, RowSeparable
+
+        if self.solver != "cholesky":
+            return None
+        hit = self.__dict__.get("_closed_form_cache")
+        if hit is not None and hit[0] is self.train_contacts and hit[1] is self.train_forces:
+            return hit[2]
+        c, y = self.train_contacts, self.train_forces.T
+        with torch.no_grad():
+            side = self._side(c)
+            g = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
+        R = None
+        if "separable" in side:
+            terms = [RowSeparable(side["separable"][0])]
+        else:
+            U, M = side["pairs1"].shape[0], side["i1"].shape[-1]
+            if not _use_dense_weights(U, M, U, M):
+                self._closed_form_cache = (c, self.train_forces, None)
+                return None
+            R = _dense_weights(side["i1"].expand(2, *side["i1"].shape[-2:]), side["w1"], U)
+            terms = [PairsRBF(side["pairs1"])]
+        cf = ClosedForm(R, y, g, y.new_zeros(2, 3), self.n_samples, terms, symmetrize=False)
+        self._closed_form_cache = (c, self.train_forces, cf)
+        return cf
 
     def _ensure_width(self, M: int) -> None:
         """Widen the training rows with zero-weight padding so test rows with M segments fit."""

@@ -87,6 +87,11 @@ class PairsBackend(WeightSpaceBackend):
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return X @ self._K()
 
+    def _closed_form_terms(self, f) -> list:
+        from .covariance_terms import PairsRBF
+
+        return [PairsRBF(self.table.to(f.R))]
+
     def _cross(self, c: Contacts) -> Tensor:
         """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""
         pairs = Contacts.points(self.table[:, 0], self.table[:, 1])  # the map at each pair: weight 1

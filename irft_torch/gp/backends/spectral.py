@@ -189,6 +189,19 @@ class SpectralBackend(WeightSpaceBackend):
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return self._kron(X, *self._sigma_factors())
 
+    def _closed_form_terms(self, f) -> list:
+        from .covariance_terms import KroneckerFourier
+
+        return [KroneckerFourier(self.basis, f.R)]
+
+    def prepare(self, values: dict) -> None:
+        """Outside a fit loop, grow the basis so that its truncation error is below ``tol`` for every
+        lengthscale in ``values`` (a batch of draws: one basis for all)."""
+        if not self.in_fit:
+            from .covariance_terms import LENGTHSCALE
+
+            self.refresh(values[LENGTHSCALE])
+
     def _features_of(self, c: Contacts) -> Tensor:
         """features(c), remembered for the last few query objects that need no gradient."""
         if any(t.requires_grad for t in c.as_dict().values()):
@@ -340,27 +353,28 @@ class SpectralBackend(WeightSpaceBackend):
             return False
         return not bool((self.truncation_error() <= self.tol).all())
 
-    def refresh(self) -> bool:
-        """Grow the basis if the current lengthscales need more harmonics than it has for ``tol``
-        (recomputing the statistics from the kept data). Returns whether it grew. A held basis
-        (``held``) never grows."""
-        if self.held or bool((self.truncation_error() <= self.tol).all()):  # the cheap check: this basis only
+    def refresh(self, lengthscale: Tensor | None = None) -> bool:
+        """Grow the basis if the current lengthscales (or ``lengthscale`` (*S, 2, 1, 4), every draw of a
+        batch) need more harmonics than it has for ``tol`` (recomputing the statistics from the kept data).
+        Returns whether it grew. A held basis (``held``) never grows."""
+        ls = self.hypers.lengthscale if lengthscale is None else lengthscale.detach().reshape(-1, 1, 4)
+        if self.held or bool((self.basis.truncation_error(ls) <= self.tol).all()):  # the cheap check: this basis
             return False
-        need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
+        need = FourierBasis.for_lengthscale(ls, self.tol)
         if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:
             return False
-        ahead = FourierBasis.for_lengthscale(self.hypers.lengthscale.detach() * 0.85, self.tol)  # room to shrink
+        ahead = FourierBasis.for_lengthscale(ls.detach() * 0.85, self.tol)  # room to shrink
         grown = FourierBasis(max(ahead.n_beta, self.basis.n_beta), max(ahead.n_gamma, self.basis.n_gamma))
         fixed = self._data is None and not (self._stored is not None and self._covers(self._stored, grown))
         if grown == self.basis or fixed:
             if fixed:
                 warnings.warn(f"the lengthscales need a larger Fourier basis ({need}) than the statistics were "
                               f"computed in ({self.basis}) and the raw data are not kept: the kernel truncation "
-                              f"error is now {self.truncation_error().max().item():.1e} (tol {self.tol:.0e})",
+                              f"error is now {self.basis.truncation_error(ls).max().item():.1e} (tol {self.tol:.0e})",
                               stacklevel=2)
             return False
         if max(need.n_beta, need.n_gamma) >= MAX_HARMONICS:  # not just the margin: the tolerance is out of reach
-            warnings.warn(f"lengthscales {self.hypers.lengthscale.detach().reshape(-1).tolist()} need more than "
+            warnings.warn(f"lengthscales {ls.detach().reshape(-1).tolist()} need more than "
                           f"{MAX_HARMONICS} harmonics per angle; the truncation error may exceed tol={self.tol:.0e}",
                           stacklevel=2)
         self.basis = grown

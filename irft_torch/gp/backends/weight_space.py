@@ -156,15 +156,24 @@ def data_factor(stats: FeatureStatistics, dtype) -> _DataFactor:
     return _DataFactor(R.to(dtype), c_y.to(dtype), c_g.to(dtype), rho.to(dtype), keep.sum(-1))
 
 
-def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype) -> _DataFactor:
+def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype, trim: bool | None = None) -> _DataFactor:
     """The same factor from the rows themselves, Phi (2, T, F) = U S V^T (thin SVD, float64): R = S V^T,
-    c = U^T y. Cheaper than the eigendecomposition of P when T < F, and better conditioned."""
+    c = U^T y. Cheaper than the eigendecomposition of P when T < F, and better conditioned. Singular values
+    below ``F eps`` of the largest are Phi's null space (zero in the model, as in ``data_factor``), and the
+    rows of R beyond the largest rank of the two axes are dropped (``trim``; default: unless inside
+    ``closed_form.autograd_only``, the engine as it was): zero rows of R only add sigma^2 to the diagonal,
+    which the (n - r) log sigma^2 term counts anyway. A turning toe's 200 x 289 rows have rank 64."""
+    from .closed_form import closed_form_enabled
+
     Phi, y = Phi.double(), y.double()
     # On CUDA the default Jacobi driver can fail to converge on these rank-deficient rows (it then warns and
     # falls back); QR-based gesvd is the one that does not.
     U, S, Vh = torch.linalg.svd(Phi, full_matrices=False, driver="gesvd" if Phi.is_cuda else None)
     tol = Phi.shape[-1] * torch.finfo(torch.float64).eps * 10 * S[..., :1].pow(2).clamp_min(1e-300)
     keep = S.pow(2) > tol
+    if closed_form_enabled() if trim is None else trim:
+        r = max(int(keep.sum(-1).max()), 1)  # S descends: the kept directions come first
+        U, S, Vh, keep = U[..., :r], S[..., :r], Vh[..., :r, :], keep[..., :r]
     S = torch.where(keep, S, torch.zeros_like(S))
     R = S[..., :, None] * Vh
     c_y = torch.where(keep, (U.mT @ y[..., None])[..., 0], torch.zeros_like(S))
@@ -223,6 +232,25 @@ class WeightSpaceBackend(RFTBackend):
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         raise NotImplementedError
+
+    def _closed_form_terms(self, f: _DataFactor) -> list:
+        """The ``closed_form.CovarianceTerm`` s of Sigma (summed), or None (no closed form)."""
+        return None
+
+    def closed_form(self):
+        """``closed_form.ClosedForm`` on this backend's data factor (R, c, rho) and Sigma's terms, rebuilt
+        when the data factor changes (new data, a grown basis)."""
+        from .closed_form import ClosedForm
+
+        f = self._factor()
+        hit = self.__dict__.get("_closed_form_cache")
+        if hit is not None and hit[0] is f:
+            return hit[1]
+        terms = self._closed_form_terms(f)
+        cf = None if terms is None else ClosedForm(f.R, f.c_y, f.c_g if self.hypers.mean is not None else None,
+                                                    f.rho, self.stats.n, terms)
+        self._closed_form_cache = (f, cf)
+        return cf
 
     def _cross(self, contacts: Contacts) -> Tensor:
         raise NotImplementedError

@@ -1,0 +1,263 @@
+r"""The additive terms of the prior covariance Sigma in the closed-form likelihood (``closed_form``), each with
+its own d Sigma / d (its hyperparameters).
+
+A term computes its contribution A_k = R Sigma_k R^T (Sigma_k itself where R is None: the observations'
+space) at a set of hyperparameter values (name -> (*S, *shape), a batch of S draws or none), and turns the
+adjoint G = d nll / d A into d nll / d value for its own parameters: <R^T G R, d Sigma_k / d value>, in
+whatever order of products is cheapest (``Adjoint`` forms G R and R^T G R only when asked). Kernels are
+evaluated from the squared differences of the embedding coordinates, kept with the term:
+K = s exp(-1/2 sum_d Delta_d^2 / l_d^2), so dK / dl_d = K o Delta_d^2 / l_d^3 is one more product.
+
+Adding a term: see ``closed_form``'s module docstring.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..embedding import embed_angles
+from ..fourier import GRID, _analysis, _grid
+
+__all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF",
+           "KroneckerFourier", "RowSeparable"]
+
+LENGTHSCALE = "kernel.base_kernel.raw_lengthscale"  # value (*S, 2, 1, 4)
+OUTPUTSCALE = "kernel.raw_outputscale"  # value (*S, 2)
+NOISE = "likelihood.noise_covar.raw_noise"  # value (*S, 2, 1), or (*S, 1) tied
+MEAN = "mean.raw_scales"  # value (*S, 2)
+
+
+class Adjoint:
+    """d nll / d A = G = [(sigma^2 I + A)^{-1} - alpha alpha^T] / (2n) (*S, 2, r, r), in whichever form a term
+    contracts it with, each formed once when first asked. With L L^T = sigma^2 I + A:
+
+    - ``G``: dense, from the inverse (``torch.cholesky_inverse``);
+    - ``H`` = L^{-1} R (*S, 2, r, F) and ``v`` = R^T alpha (*S, 2, F): R^T G R = (H^T H - v v^T) / (2n), so a
+      term that contracts R^T G R with a structured d Sigma (a Kronecker product) needs one triangular
+      solve, not G R (half the flops) nor R^T G R (F x F);
+    - ``GR`` = G R and ``sigma`` = R^T G R (= G where R is None);
+    - ``trace_inverse()``: tr (sigma^2 I + A)^{-1}, from whichever inverse is at hand.
+    """
+
+    def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int) -> None:
+        self.L, self.alpha, self.R, self.n = L, alpha, R, n  # alpha (*S, 2, r, 1)
+        self._G = self._Minv = self._H = self._v = self._GR = self._sigma = None
+
+    @property
+    def G(self) -> Tensor:
+        if self._G is None:
+            self._Minv = torch.cholesky_inverse(self.L)
+            self._G = (self._Minv - self.alpha * self.alpha.mT) / (2 * self.n)
+        return self._G
+
+    @property
+    def H(self) -> Tensor:
+        if self._H is None:
+            self._H = torch.linalg.solve_triangular(self.L, self.R, upper=False)
+        return self._H
+
+    @property
+    def v(self) -> Tensor:
+        if self._v is None:
+            self._v = (self.alpha.mT @ self.R)[..., 0, :]
+        return self._v
+
+    @property
+    def GR(self) -> Tensor:
+        if self._GR is None:
+            if self.R is None:
+                self._GR = self.G
+            elif self._G is None:  # L^-T H - alpha v^T: a triangular solve instead of a product with G
+                z = torch.linalg.solve_triangular(self.L.mT, self.H, upper=True)
+                self._GR = (z - self.alpha * self.v[..., None, :]) / (2 * self.n)
+            else:
+                self._GR = self._G @ self.R
+        return self._GR
+
+    @property
+    def sigma(self) -> Tensor:
+        if self._sigma is None:
+            if self.R is None:
+                self._sigma = self.G
+            else:
+                v = self.v
+                self._sigma = (self.H.mT @ self.H - v[..., :, None] * v[..., None, :]) / (2 * self.n)
+        return self._sigma
+
+    def trace_inverse(self) -> Tensor:
+        """tr (sigma^2 I + A)^{-1} (*S, 2)."""
+        if self._Minv is not None:
+            return torch.diagonal(self._Minv, dim1=-2, dim2=-1).sum(-1)
+        eye = torch.eye(self.L.shape[-1], dtype=self.L.dtype, device=self.L.device)
+        return torch.linalg.solve_triangular(self.L, eye, upper=False).pow(2).sum((-1, -2))
+
+
+class CovarianceTerm:
+    """One additive term Sigma_k of the weights' prior covariance (of the observations' where R is None).
+
+    Attributes:
+        names: the raw parameters (names in ``RFTHyperparameters``) whose values it reads and whose
+            gradients it returns.
+    """
+
+    names: tuple[str, ...] = ()
+
+    def forward(self, values: dict[str, Tensor], R: Tensor | None) -> tuple[Tensor, object]:
+        """A_k = R Sigma_k R^T (*S, 2, r, r) (Sigma_k itself where R is None) at ``values`` (name -> value
+        (*S, *shape)), and whatever ``backward`` needs."""
+        raise NotImplementedError
+
+    def backward(self, values: dict[str, Tensor], adj: Adjoint, state) -> dict[str, Tensor]:
+        """d nll / d value (*S, *shape) for each of ``names``."""
+        raise NotImplementedError
+
+
+def squared_differences(e: Tensor) -> Tensor:
+    """(..., n, k) embedding coordinates -> (..., k, n * n) squared pairwise differences, flattened."""
+    e = e.movedim(-1, -2)
+    n = e.shape[-1]
+    return (e[..., :, None] - e[..., None, :]).pow(2).reshape(*e.shape[:-1], n * n)
+
+
+def rbf_from_differences(D: Tensor, ls: Tensor, s: Tensor | None = None) -> Tensor:
+    """s exp(-1/2 sum_d D_d / l_d^2) (*S, 2, n, n): D (k, n^2) (one for both axes) or (2, k, n^2) (one per
+    axis), ls (*S, 2, k), s (*S, 2) or None (unit variance)."""
+    inv = ls.pow(-2)
+    e = inv @ D if D.dim() == 2 else (inv[..., None, :] @ D)[..., 0, :]
+    n = int(round(D.shape[-1] ** 0.5))
+    K = torch.exp(-0.5 * e).reshape(*e.shape[:-1], n, n)
+    return K if s is None else s[..., None, None] * K
+
+
+def lengthscale_gradient(weighted: Tensor, D: Tensor, ls: Tensor) -> Tensor:
+    """sum_ij weighted_ij D_d,ij / l_d^3 (*S, 2, k): d/dl_d of sum_ij W_ij K_ij for weighted = W o K (*S, 2, n, n),
+    D as in ``rbf_from_differences``, ls (*S, 2, k)."""
+    w = weighted.reshape(*weighted.shape[:-2], -1)
+    out = w @ D.mT if D.dim() == 2 else (w[..., None, :] @ D.mT)[..., 0, :]
+    return out / ls.pow(3)
+
+
+class PairsRBF(CovarianceTerm):
+    """The angle kernel between U fixed angle pairs (the pairs backend's Sigma = K_UU, or with R = W_U the
+    observations' W K W^T): K = s exp(-1/2 sum_d Delta_d^2 / l_d^2) (*S, 2, U, U) on the embedding
+    (sin 2beta, cos 2beta, sin gamma, cos gamma) of the pairs (U, 2).
+
+    d nll / d s = <R^T G R, K> / s,   d nll / d l_d = <R^T G R o K, Delta_d^2> / l_d^3.
+    """
+
+    names = (LENGTHSCALE, OUTPUTSCALE)
+
+    def __init__(self, table: Tensor) -> None:
+        self.D = squared_differences(embed_angles(table[:, 0], table[:, 1]))  # (4, U^2)
+
+    def forward(self, values, R):
+        K = rbf_from_differences(self.D, values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE])
+        return (K if R is None else (R @ K) @ R.mT), K
+
+    def backward(self, values, adj, K):
+        GK = adj.sigma * K
+        return {OUTPUTSCALE: GK.sum((-1, -2)) / values[OUTPUTSCALE],
+                LENGTHSCALE: lengthscale_gradient(GK, self.D, values[LENGTHSCALE][..., 0, :])[..., None, :]}
+
+
+class KroneckerFourier(CovarianceTerm):
+    r"""The spectral basis' Sigma = s Sigma_beta kron Sigma_gamma, each factor C = B K B^T (C symmetrized)
+    read off its unit-variance kernel K on the periodic grid (``fourier.factor_coefficients``). With
+    R^T G R = (H^T H - v v^T) / (2n) (``Adjoint``) and H_c (row c of H), V = v as (F_beta x F_gamma) matrices:
+
+        d nll / d Sigma_beta  = s / (2n) [sum_c H_c Sigma_gamma H_c^T - V Sigma_gamma V^T]
+        d nll / d Sigma_gamma = s / (2n) [sum_c H_c^T Sigma_beta H_c - V^T Sigma_beta V]
+        d nll / d s = <d nll / d Sigma_beta, Sigma_beta> / s,      d nll / d K = B^T (d nll / d C) B,
+
+    then dK / dl as above on the grid. Per axis: one r x r x F product (A), one triangular solve (H) and
+    four r x F x F_beta (or F_gamma) products; no F x F matrix is formed.
+    """
+
+    names = (LENGTHSCALE, OUTPUTSCALE)
+
+    def __init__(self, basis, R: Tensor) -> None:
+        self.basis = basis
+        x = _grid(GRID, R.dtype, R.device)
+        self.Bb, self.Bg = _analysis(basis.n_beta, x), _analysis(basis.n_gamma, x)
+        self.D = squared_differences(torch.stack([torch.sin(x), torch.cos(x)], -1))  # (2, G^2)
+        Fb, Fg = basis.sizes
+        r = R.shape[-2]
+        self.Rp = R.reshape(2, r, Fb, Fg).transpose(1, 2).reshape(2, Fb, r * Fg)  # R_a's rows: (2, F_beta, r F_gamma)
+
+    def _factor(self, B: Tensor, ls: Tensor) -> tuple[Tensor, Tensor]:
+        K = rbf_from_differences(self.D, ls)
+        C = B @ K @ B.mT
+        return 0.5 * (C + C.mT), K
+
+    def forward(self, values, R):
+        ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
+        Sb, Kb = self._factor(self.Bb, ls[..., 0:2])
+        Sg, Kg = self._factor(self.Bg, ls[..., 2:4])
+        Fb, Fg = self.basis.sizes
+        k = R.shape[-2]
+        batch = Sg.shape[:-3]
+        Y1 = R.reshape(2, k * Fb, Fg) @ Sg  # R (I kron Sigma_gamma): (*S, 2, k Fb, Fg), as SpectralBackend._kron
+        Y1p = Y1.reshape(*batch, 2, k, Fb, Fg).transpose(-3, -2).reshape(*batch, 2, Fb, k * Fg)
+        Y = (Sb.mT @ Y1p).reshape(*batch, 2, Fb, k, Fg).transpose(-3, -2)
+        Y = s[..., None, None] * Y.reshape(*batch, 2, k, Fb * Fg)  # R Sigma
+        return Y @ R.mT, (Sb, Kb, Kg, Sg)
+
+    def backward(self, values, adj, state):
+        Sb, Kb, Kg, Sg = state
+        ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
+        H, v = adj.H, adj.v  # R^T G R = (H^T H - v v^T) / (2n)
+        Fb, Fg = self.basis.sizes
+        r = H.shape[-2]
+        batch = H.shape[:-3]
+        Hp = H.reshape(*batch, 2, r, Fb, Fg).transpose(-3, -2).reshape(*batch, 2, Fb, r * Fg)
+        HSg = (H.reshape(*batch, 2, r * Fb, Fg) @ Sg).reshape(*batch, 2, r, Fb, Fg).transpose(-3, -2)
+        V = v.reshape(*batch, 2, Fb, Fg)
+        sc = s[..., None, None] / (2 * adj.n)
+        dSb = sc * (HSg.reshape(*batch, 2, Fb, r * Fg) @ Hp.mT - (V @ Sg) @ V.mT)
+        SbH = (Sb.mT @ Hp).reshape(*batch, 2, Fb * r, Fg)
+        dSg = sc * (SbH.mT @ Hp.reshape(*batch, 2, Fb * r, Fg) - V.mT @ Sb @ V)
+        grads = []
+        for B, K, dS, l in ((self.Bb, Kb, dSb, ls[..., 0:2]), (self.Bg, Kg, dSg, ls[..., 2:4])):
+            dK = B.mT @ (0.5 * (dS + dS.mT)) @ B
+            grads.append(lengthscale_gradient(dK * K, self.D, l))
+        d_s = (Sb * dSb).sum((-1, -2)) / s  # <d nll / d Sigma, Sigma_beta kron Sigma_gamma>
+        return {OUTPUTSCALE: d_s, LENGTHSCALE: torch.cat(grads, -1)[..., None, :]}
+
+
+class RowSeparable(CovarianceTerm):
+    """A translating toe in the observations' space (R = I): K = s K_gamma o (L_b K_beta L_b^T) (*S, 2, T, T)
+    (``operators.RowSeparableRFTOperator``).
+
+    d nll / d l (a gamma coordinate) = <G o K, Delta_gamma^2> / l^3,
+    d nll / d l (a beta coordinate)  = <L_b^T (G o s K_gamma) L_b o K_beta, Delta_beta^2> / l^3.
+
+    Args:
+        sep: ``operators.row_separable`` of the (2, T, M) training segments: betas (n_b,), Lb (2, T, n_b),
+            gamma (2, T) (each row's).
+    """
+
+    names = (LENGTHSCALE, OUTPUTSCALE)
+
+    def __init__(self, sep: dict) -> None:
+        betas, gamma = sep["betas"], sep["gamma"]
+        self.Lb = sep["Lb"]
+        self.Db = squared_differences(embed_angles(betas, torch.zeros_like(betas))[..., :2])  # (2, n_b^2)
+        self.Dg = squared_differences(embed_angles(torch.zeros_like(gamma), gamma)[..., 2:])  # (2 axes, 2, T^2)
+
+    def forward(self, values, R):
+        ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
+        Kb = rbf_from_differences(self.Db, ls[..., 0:2])
+        Kg = rbf_from_differences(self.Dg, ls[..., 2:4], s)
+        K = Kg * (self.Lb @ Kb @ self.Lb.mT)
+        return K, (K, Kb, Kg)
+
+    def backward(self, values, adj, state):
+        K, Kb, Kg = state
+        ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
+        G = adj.G
+        GK = G * K
+        d_g = lengthscale_gradient(GK, self.Dg, ls[..., 2:4])
+        Q = self.Lb.mT @ (G * Kg) @ self.Lb
+        d_b = lengthscale_gradient(Q * Kb, self.Db, ls[..., 0:2])
+        return {OUTPUTSCALE: GK.sum((-1, -2)) / s, LENGTHSCALE: torch.cat([d_b, d_g], -1)[..., None, :]}

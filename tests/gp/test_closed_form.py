@@ -1,0 +1,265 @@
+"""The closed-form loss and gradient (``gp.backends.closed_form``) and the batched log posterior over
+hyperparameter draws (``gp.hyper_density``), each against two independent references: autograd through the
+backends' own ``loss`` (the code that existed before) and the dense reference (explicit W, explicit K,
+torch Cholesky; ``dense_reference``). float64 to 1e-8 (the spectral backend against the dense reference:
+1e-6, its truncation); float32 against float64."""
+
+import math
+
+import pytest
+import torch
+from gpytorch.constraints import GreaterThan
+from gpytorch.priors import GammaPrior
+
+import irft_torch as irft
+from irft_torch.gp.backends.closed_form import ClosedForm, autograd_only, current_values
+from irft_torch.gp.backends.covariance_terms import LENGTHSCALE, OUTPUTSCALE, CovarianceTerm, PairsRBF
+from irft_torch.gp.hyper_density import log_posterior_and_grad, log_posterior_batch
+from irft_torch.gp.hyper_posterior import _SubSpec, hyper_spec, log_posterior
+from irft_torch.rft import FourierStressMap
+
+from .dense_reference import axis_reference
+from .test_backends_vs_dense import data, set_hypers
+
+# (backend, contacts): which closed form each case exercises
+CASES = [("observations", "translating"),  # RowSeparable
+         ("observations", True),  # few distinct pairs: PairsRBF with R = W_U
+         ("pairs", True),  # PairsRBF on the weight-space factor
+         ("spectral", False)]  # KroneckerFourier
+
+
+def autograd_grads(model):
+    params = list(model.hypers.parameters())
+    loss = model.backend.loss()
+    return loss.item(), torch.autograd.grad(loss, params)
+
+
+def closed_form_grads(model):
+    params = list(model.hypers.parameters())
+    for p in params:
+        p.grad = None
+    loss = model.backend.loss_and_grad()
+    assert loss is not None, f"{model.method} has no closed form here"
+    out = [p.grad.clone() for p in params]
+    for p in params:
+        p.grad = None
+    return loss, out
+
+
+def assert_grads_close(got, want, tol, names):
+    for name, a, b in zip(names, got, want):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol * b.abs().max().item() + 1e-300, msg=f"gradient of {name}")
+
+
+@pytest.mark.parametrize("tied", [False, True])
+@pytest.mark.parametrize("prior_mean", ["zero", "physics"])
+@pytest.mark.parametrize("method, repeated", CASES)
+def test_loss_and_every_gradient_equal_autograd_of_the_backends_loss(method, repeated, prior_mean, tied):
+    """With the physical priors (their closed form too), at hyperparameters away from the initial ones."""
+    c, f = data(T=30, M=4, seed=2, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, tied_noise=tied)
+    set_hypers(model, seed=3)
+    names = [n for n, _ in model.hypers.named_parameters()]
+    want_loss, want = autograd_grads(model)
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(want_loss, rel=1e-12)
+    assert_grads_close(got, want, 1e-9, names)
+
+
+@pytest.mark.parametrize("prior_mean", ["zero", "physics"])
+@pytest.mark.parametrize("method, repeated", CASES)
+def test_loss_and_every_gradient_equal_the_dense_reference(method, repeated, prior_mean):
+    """The paper's plain likelihood (no priors), differentiated by autograd through the explicit dense
+    formula; the closed form's raw-parameter gradients against it."""
+    c, f = data(T=25, M=4, seed=0, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, priors=None)
+    set_hypers(model, seed=1)
+    params = dict(model.hypers.named_parameters())
+    ls, os, noise = model.hypers.lengthscale, model.hypers.outputscale, model.hypers.noise
+    total = 0.0
+    for a, w in enumerate((c.weight_x, c.weight_z)):
+        mean = None
+        if prior_mean == "physics":
+            mean = model.hypers.mean_scales[a] * (w * FourierStressMap.generic()(c.beta, c.gamma)[..., a]).sum(-1)
+        total = total - axis_reference(c, f[:, a], w, ls[a, 0], os[a], noise[a], mean)[0]
+    want = torch.autograd.grad(total, list(params.values()))
+    got_loss, got = closed_form_grads(model)
+    tol = 1e-6 if method == "spectral" else 1e-8
+    assert got_loss == pytest.approx(total.item(), rel=tol)
+    assert_grads_close(got, want, tol * 10, list(params))
+
+
+@pytest.mark.parametrize("method, repeated", CASES)
+def test_a_batch_of_draws_equals_each_draw_alone_and_the_dense_reference(method, repeated):
+    """ClosedForm.evaluate over S draws in one call: each draw's nll and gradients equal a call with that
+    draw alone and the dense reference's at that draw (physics mean, tied noise)."""
+    c, f = data(T=25, M=4, seed=4, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method, prior_mean="physics", tied_noise=True, priors=None)
+    set_hypers(model, seed=5)
+    base = current_values(model.hypers)
+    g = torch.Generator().manual_seed(6)
+    S = 5
+    values = {n: v * torch.exp(0.2 * torch.randn(S, *v.shape, generator=g)) for n, v in base.items()}
+    model.backend.prepare(values)
+    cf = model.backend.closed_form()
+    nll, grads, ok = cf.evaluate(values)
+    assert ok.all() and nll.shape == (S, 2)
+    tol = 1e-6 if method == "spectral" else 1e-8
+    for s in range(S):
+        one = {n: v[s] for n, v in values.items()}
+        nll1, grads1, _ = cf.evaluate(one)
+        torch.testing.assert_close(nll[s], nll1, rtol=1e-12, atol=0)
+        for n in grads:
+            torch.testing.assert_close(grads[n][s], grads1[n], rtol=1e-10, atol=1e-12 * grads1[n].abs().max())
+        ls, os = one[LENGTHSCALE], one[OUTPUTSCALE]
+        noise = one["likelihood.noise_covar.raw_noise"].expand(2)
+        for a, w in enumerate((c.weight_x, c.weight_z)):
+            m = one["mean.raw_scales"][a] * (w * FourierStressMap.generic()(c.beta, c.gamma)[..., a]).sum(-1)
+            ref = -axis_reference(c, f[:, a], w, ls[a, 0], os[a], noise[a], m)[0]
+            assert nll[s, a].item() == pytest.approx(ref.item(), rel=tol)
+
+
+@pytest.mark.parametrize("method, repeated", CASES)
+def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeated):
+    """What Laplace and NUTS use: the batched log posterior (128 proposals: one call) and the single one
+    with its gradient, against the autograd path (``exact_graph``), over all and over some coordinates."""
+    c, f = data(T=30, M=4, seed=7, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method)
+    set_hypers(model, seed=8)
+    spec = hyper_spec(model.hypers)
+    theta = spec.theta(model.hypers)
+    x = theta + 0.15 * torch.randn(6, theta.numel(), generator=torch.Generator().manual_seed(9))
+    for sp, pts in ((spec, x), (_SubSpec(spec, theta, torch.tensor([0, 3, 9])), x[:, [0, 3, 9]])):
+        batch = log_posterior_batch(model.backend, sp, pts)  # grows the spectral basis for all draws first
+        with autograd_only():
+            one_by_one = torch.stack([log_posterior(model.backend, sp, p) for p in pts])
+        torch.testing.assert_close(batch, one_by_one, rtol=1e-9, atol=0)  # summation order differs
+        for p in pts[:2]:
+            t = p.clone().requires_grad_(True)
+            (g,) = torch.autograd.grad(log_posterior(model.backend, sp, t), t)
+            t = p.clone().requires_grad_(True)
+            (want,) = torch.autograd.grad(log_posterior(model.backend, sp, t, exact_graph=True), t)
+            torch.testing.assert_close(g, want, rtol=1e-9, atol=1e-9 * want.abs().max())
+
+
+def test_impossible_draws_get_minus_infinity_and_no_gradient():
+    c, f = data(T=20, M=3, seed=10, repeated=True)
+    model = irft.InverseRFT(c, f, method="pairs")
+    spec = hyper_spec(model.hypers)
+    theta = spec.theta(model.hypers)
+    bad = theta.clone()
+    bad[spec.labels.index("noise_x")] = -80.0  # below the noise floor
+    lp, g = log_posterior_and_grad(model.backend, spec, torch.stack([theta, bad]))
+    assert torch.isfinite(lp[0]) and lp[1] == -math.inf
+    assert torch.equal(g[1], torch.zeros_like(g[1]))
+
+
+def test_float32_agrees_with_float64():
+    c, f = data(T=30, M=4, seed=11, repeated=True)
+    grads = {}
+    for dtype in (torch.float32, torch.float64):
+        model = irft.InverseRFT(c, f, method="pairs", dtype=dtype)
+        set_hypers(model, seed=12)
+        loss, g = closed_form_grads(model)
+        grads[dtype] = (loss, g)
+        assert all(x.dtype == dtype for x in g)
+    assert grads[torch.float32][0] == pytest.approx(grads[torch.float64][0], rel=1e-4)
+    for a, b in zip(grads[torch.float32][1], grads[torch.float64][1]):
+        torch.testing.assert_close(a.double(), b, rtol=1e-3, atol=1e-3 * b.abs().max())
+
+
+@pytest.mark.parametrize("method, repeated", [("pairs", True), ("spectral", False), ("observations", "translating")])
+def test_a_fit_follows_the_autograd_fit(method, repeated):
+    """The same Adam steps give the same hyperparameters (and losses) as before, to round-off."""
+    c, f = data(T=40, M=4, seed=13, repeated=repeated)
+    fast, slow = (irft.InverseRFT(c, f, method=method, prior_mean="physics") for _ in range(2))
+    h_fast = fast.fit(40, lr=0.05, progress=False)
+    with autograd_only():
+        h_slow = slow.fit(40, lr=0.05, progress=False)
+    assert h_fast == pytest.approx(h_slow, rel=1e-9)
+    for (n, a), b in zip(fast.hypers.named_parameters(), slow.hypers.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9, msg=n)
+
+
+def test_a_prior_registered_by_hand_takes_autograd_and_an_uncovered_parameter_falls_back():
+    c, f = data(T=25, M=3, seed=14, repeated=True)
+    model = irft.InverseRFT(c, f, method="pairs")
+    model.hypers.kernel.register_prior("extra_prior", GammaPrior(2.0, 3.0), lambda m: m.outputscale)
+    names = [n for n, _ in model.hypers.named_parameters()]
+    want_loss, want = autograd_grads(model)
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(want_loss, rel=1e-12)
+    assert_grads_close(got, want, 1e-9, names)
+    # a parameter no closed-form term knows: never a silent zero gradient, autograd serves
+    model.hypers.register_parameter("raw_other", torch.nn.Parameter(torch.zeros(1)))
+    model.hypers.register_constraint("raw_other", GreaterThan(0.0))
+    assert model.backend.loss_and_grad() is None
+
+
+class _DeviationTerm(CovarianceTerm):
+    """A toy finite-rank term v_k h_k(theta) h_k(theta') with fixed h_k (K, U) at the pairs and variances
+    v (a raw parameter of the hyperparameters): what an additive kernel term plugs in as."""
+
+    names = ("raw_dev",)
+
+    def __init__(self, H):
+        self.H = H  # (K, U)
+
+    def forward(self, values, R):
+        RH = R @ self.H.mT  # (2, r, K)
+        v = values["raw_dev"]  # (*S, K)
+        return (RH * v[..., None, None, :]) @ RH.mT, RH
+
+    def backward(self, values, adj, RH):
+        return {"raw_dev": ((RH.mT @ adj.G) * RH.mT).sum(-1).sum(-2)}
+
+
+def test_an_additive_term_plugs_in():
+    """Sigma = K_UU + H^T diag(v) H: the closed form with the toy term against autograd through a direct
+    evaluation of the same likelihood (the weight-space formula written with torch.logdet and solve)."""
+    c, f = data(T=30, M=4, seed=15, repeated=True)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+    set_hypers(model, seed=16)
+    model.hypers.register_parameter("raw_dev", torch.nn.Parameter(torch.tensor([0.1, -0.4])))
+    model.hypers.register_constraint("raw_dev", GreaterThan(0.0))
+    table = model.backend.table
+    H = torch.stack([torch.cos(2 * table[:, 0]), torch.sin(table[:, 1])])  # (2, U): two fixed Fourier functions
+    backend = model.backend
+    f0 = backend._factor()
+    backend._closed_form_cache = (f0, ClosedForm(f0.R, f0.c_y, None, f0.rho, backend.stats.n,
+                                                 [PairsRBF(table), _DeviationTerm(H)]))
+    params = list(model.hypers.parameters())
+    got_loss, got = closed_form_grads(model)
+
+    K = backend._K() + H.mT @ torch.diag_embed(model.hypers.raw_dev_constraint.transform(model.hypers.raw_dev)) @ H
+    A = f0.R @ K @ f0.R.mT
+    noise = model.hypers.noise
+    n, r = backend.stats.n, A.shape[-1]
+    S = A + noise[:, None, None] * torch.eye(r)
+    quad = f0.rho[:, 0] / noise + (f0.c_y[..., None, :] @ torch.linalg.solve(S, f0.c_y[..., None]))[..., 0, 0]
+    logdet = (n - r) * noise.log() + torch.logdet(S)
+    want_loss = (0.5 * (quad + logdet + n * math.log(2 * math.pi)) / n).sum()
+    want = torch.autograd.grad(want_loss, params)
+    assert got_loss == pytest.approx(want_loss.item(), rel=1e-12)
+    assert_grads_close(got, want, 1e-9, [n for n, _ in model.hypers.named_parameters()])
+
+
+def test_laplace_is_the_same_posterior_as_before():
+    """The Laplace posterior (polish, Hessian, 128 weighted proposals in one call) with the same generator
+    equals the one computed through autograd, proposal by proposal."""
+    c, f = data(T=40, M=4, seed=17, repeated=True)
+    posts = []
+    for ctx in (autograd_only, None):
+        model = irft.InverseRFT(c, f, method="pairs")
+        model.fit(30, progress=False)
+        g = torch.Generator().manual_seed(18)
+        if ctx is None:
+            posts.append(model.fit_hyper_posterior("laplace", generator=g))
+        else:
+            with ctx():
+                posts.append(model.fit_hyper_posterior("laplace", generator=g))
+    a, b = posts
+    torch.testing.assert_close(a.mode, b.mode, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(a.theta, b.theta, rtol=1e-8, atol=1e-9)
+    torch.testing.assert_close(a.weights, b.weights, rtol=1e-8, atol=1e-10)
+    assert a.ess == pytest.approx(b.ess, rel=1e-8)
