@@ -5,13 +5,12 @@ of alpha_y."""
 
 import pytest
 import torch
+from gp.test_inverse3d import _set, dense, turning_toe
 
 import irft_torch as irft
 from irft_torch.design import ProbeScorer, ProbeScorer3D, Region
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
 from irft_torch.rft import Contacts3D
-
-from ..gp.test_inverse3d import _set, dense, turning_toe
 
 CASES = [(m, a) for m in ("observations", "pairs", "spectral") for a in ("map", "constant")]
 LS = 0.8 + torch.rand(3, 1, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)

@@ -40,7 +40,8 @@ def test_laplace_mixture_matches_brute_force_integration_over_alpha_y_variance(p
     _set(m, *HYPERS)
     hp = m.fit_hyper_posterior("laplace", n_proposals=512, n_draws=None, free=["outputscale_y"],
                                generator=torch.Generator().manual_seed(0))
-    assert hp.labels[12:] == ["outputscale_x", "outputscale_y", "outputscale_z", "noise_x", "noise_y", "noise_z"]
+    assert len(hp.labels) == 18 and {"outputscale_x", "outputscale_y", "outputscale_z", "noise_x", "noise_y",
+                                     "noise_z", "lengthscale_y[sin2b]", "lengthscale_z[cosg]"} <= set(hp.labels)
     assert hp.khat < 0.5 and hp.ess > 250
     j = hp.labels.index("outputscale_y")
     mode, sd = float(hp.mode[j]), float(hp.covariance[j, j].sqrt())
@@ -111,8 +112,12 @@ def test_laplace_end_to_end_on_every_backend_save_load_and_constant_alpha_y(prob
         mu = sum(wi * x for wi, x in zip(w, means))
         cov = sum(wi * (C + (x - mu)[:, :, None] * (x - mu)[:, None, :]) for wi, x, C in zip(w, means, covs))
         got = m.predict_forces(c[2:9], include_noise=True)
-        torch.testing.assert_close(got.mean, mu, rtol=1e-9, atol=1e-11)
-        torch.testing.assert_close(got.covariance, cov, rtol=1e-8, atol=1e-12)
+        # spectral: each draw's basis grows from the model's, a model built by hand from its own; draws at short
+        # lengthscales reach the harmonics' cap (truncation_error() says by how much): equal within that
+        rtol = 1e-9 if method != "spectral" else 1e-6
+        torch.testing.assert_close(got.mean, mu, rtol=rtol, atol=1e-11)
+        atol = 1e-12 if method != "spectral" else 1e-6 * float(cov.abs().max())
+        torch.testing.assert_close(got.covariance, cov, rtol=10 * rtol, atol=atol)
         m.save(tmp_path / "m.pt")
         back = InverseRFT3D.load(tmp_path / "m.pt")
         assert back.hyper_posterior is not None and back.hyper_method == "laplace"
@@ -160,14 +165,14 @@ def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(problem):
     _set(m, *HYPERS)
     hp = m.fit_hyper_posterior("laplace", n_proposals=32, n_draws=5, free=["outputscale_y", "noise_x"],
                                generator=torch.Generator().manual_seed(4))
-    w0, thetas = hp.weights.clone(), hp.theta.clone()
+    w0 = hp.weights.clone()
+    # each draw's hyperparameter values (theta is log value in this model's own data scales: read the values
+    # from the draws, not by loading theta into a model built on other data)
+    values = [tuple(t.detach().clone() for t in (b.hypers.lengthscale, b.hypers.outputscale, b.hypers.noise))
+              for b in m._draw_backends]
     m.add_data(c[9:], f[9:])
-    spec = hyper_spec(m.hypers)
     logr = []
-    for th in thetas:  # p(F_new | F_old, theta_s) by hand on the dense reference
-        d = InverseRFT3D(c, f, method="pairs")
-        spec.load(d.hypers, th)
-        h = (d.hypers.lengthscale.detach(), d.hypers.outputscale.detach(), d.hypers.noise.detach())
+    for h in values:  # p(F_new | F_old, theta_s) by hand on the dense reference
         logr.append(-float(dense(c, f, *h, False)[0]) * len(c) + float(dense(c[:9], f[:9], *h, False)[0]) * 9)
     lw = w0.log() + torch.tensor(logr, dtype=F64)
     want = (lw - lw.max()).exp()

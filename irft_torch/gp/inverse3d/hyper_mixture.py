@@ -78,6 +78,8 @@ class HyperMixture3DMixin:
                 hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
         finally:
             self.backend.eval()
+        self.backend.refresh()  # at the mode (where the posterior leaves the hyperparameters): the draws' backends
+        # start from its basis, as a loaded model's do (save/load then gives the same mixture)
         self._set_hyper_posterior(hp)
         return hp
 

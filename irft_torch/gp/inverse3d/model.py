@@ -250,9 +250,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
         c = contacts.to(dtype=self.dtype, device=self._device)
         f = _as_forces(forces, len(c), self.dtype, self._device)
-        self.backend.add_data(c, f)
-        if self._draw_backends is not None and self.hyper_posterior is not None:
+        if self._draw_backends is not None and self.hyper_posterior is not None:  # before the shared data move
             add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+        self.backend.add_data(c, f)
         self.train_contacts, self.train_forces = self.backend.train_contacts, self.backend.train_forces
         if self.priors == "physical":
             _, map_scale = data_scales_3d(self.train_contacts, self.train_forces)
