@@ -32,7 +32,7 @@ from ..gp.inverse3d import Backend3D, InverseRFT3D, point_contacts
 from ..gp.inverse3d.hyperparameters import BLOCKS
 from ..gp.inverse3d.joint import BlockRows
 from ..rft.contacts3d import Contacts3D
-from .scoring import Region
+from .region import Region
 
 __all__ = ["ProbeScorer3D"]
 
