@@ -42,7 +42,12 @@ class Adjoint:
 
     def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int) -> None:
         self.L, self.alpha, self.R, self.n = L, alpha, R, n  # alpha (*S, 2, r, 1)
-        self._G = self._Minv = self._H = self._v = self._GR = self._sigma = None
+        self._G: Tensor | None = None
+        self._Minv: Tensor | None = None
+        self._H: Tensor | None = None
+        self._v: Tensor | None = None
+        self._GR: Tensor | None = None
+        self._sigma: Tensor | None = None
 
     @property
     def G(self) -> Tensor:
