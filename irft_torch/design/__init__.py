@@ -7,6 +7,8 @@ space; neither ``gp`` nor ``rft`` imports it."""
 from .greedy import DesignStep, greedy_design
 from .optimize import DesignedProbe, default_spec, optimize_probe
 from .scoring import MixtureScorer, ProbeScorer, Region, force_relative
+from .scoring3d import ProbeScorer3D
 
-__all__ = ["ProbeScorer", "MixtureScorer", "Region", "DesignStep", "greedy_design", "force_relative", "optimize_probe",
+__all__ = ["ProbeScorer", "ProbeScorer3D", "MixtureScorer", "Region",
+           "DesignStep", "greedy_design", "force_relative", "optimize_probe",
            "DesignedProbe", "default_spec"]

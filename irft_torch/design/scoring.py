@@ -53,6 +53,7 @@ from .region import Region, _as_contacts
 
 if TYPE_CHECKING:
     from ..gp.backends.spectral import SpectralBackend
+    from .scoring3d import ProbeScorer3D
 
 __all__ = ["Region", "ProbeScorer", "MixtureScorer", "force_relative", "SCORING_TOL"]
 
@@ -168,7 +169,7 @@ class ProbeScorer:
     # ---- construction ----------------------------------------------------------------------
     @classmethod
     def from_model(cls, model, method: str | None = None, noise_scale: NoiseScale = None,
-                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer | MixtureScorer:
+                   grid_size=None, tol: float | str | None = "auto") -> ProbeScorer | MixtureScorer | ProbeScorer3D:
         """The posterior of a (fitted) ``InverseRFT``, with its hyperparameters fixed.
 
         Args:
@@ -197,6 +198,14 @@ class ProbeScorer:
         current map variance (``map_variance``, ``integrated_variance()``) is that of its own basis,
         within the truncation error of the model's (6e-4 relative at 1e-4 in one check).
         """
+        from ..gp.inverse3d import InverseRFT3D
+
+        if isinstance(model, InverseRFT3D):  # a 3-D model: design.scoring3d (its own backend, fixed hyperparameters)
+            if method is not None or noise_scale is not None or tol != "auto":
+                raise ValueError("a 3-D model is scored in its own backend: method, noise_scale and tol do not apply")
+            from .scoring3d import ProbeScorer3D
+
+            return ProbeScorer3D.from_model(model)
         if grid_size is not None:
             warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
         if method == "grid":

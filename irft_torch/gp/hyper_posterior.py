@@ -109,9 +109,10 @@ def _label(name: str, shape: torch.Size) -> list[str]:
 
 
 def hyper_spec(hypers) -> HyperSpec:
-    """The free (``requires_grad``) hyperparameters of an ``RFTHyperparameters``, each positive through
-    its gpytorch constraint."""
-    names, shapes, cons, labels = [], [], [], []
+    """The free (``requires_grad``) hyperparameters of an ``RFTHyperparameters`` or any module whose
+    ``hyper_labels(name, shape)`` names its coordinates (the 3-D one), each positive through its constraint."""
+    names, shapes, cons, labels = [], [], [], list[str]()
+    label_of = getattr(hypers, "hyper_labels", _label)
     for name, p, c in hypers.named_parameters_and_constraints():
         if not p.requires_grad:
             continue
@@ -120,7 +121,7 @@ def hyper_spec(hypers) -> HyperSpec:
         names.append(name)
         shapes.append(p.shape)
         cons.append(c)
-        labels += _label(name, p.shape)
+        labels += label_of(name, p.shape)
     return HyperSpec(names, shapes, cons, labels)
 
 
@@ -314,9 +315,8 @@ def pareto_khat(log_weights: Tensor) -> float:
 
 
 def _generator_device(generator: torch.Generator | None) -> torch.device:
-    """Where random numbers are drawn: on the generator's device (the CPU's default generator when None),
-    then moved to the data, so a model on the GPU draws the same proposals as on the CPU and a CPU
-    ``generator`` works with either."""
+    """Where random numbers are drawn: the generator's device (the CPU's default generator when None), then moved
+    to the data: a GPU model draws the CPU's proposals, and a CPU ``generator`` works with either."""
     return torch.device("cpu") if generator is None else generator.device
 
 

@@ -83,17 +83,17 @@ def per_sample(cov, T):
 # ---- data: a C-toe turning about the vertical while it strokes and drifts sideways --------------------------------
 def turning_toe(T=10, seed=0):
     gen = torch.Generator().manual_seed(seed)
-    mesh = Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2)
-    t = torch.linspace(0, 1, T)
+    mesh = Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2).to(dtype=torch.float64)
+    t = torch.linspace(0, 1, T, dtype=torch.float64)  # float64 whatever torch's default (a module fixture runs first)
     yaw = 0.9 * t
-    c, s, z, o = torch.cos(yaw), torch.sin(yaw), torch.zeros(T), torch.ones(T)
+    c, s, z, o = torch.cos(yaw), torch.sin(yaw), torch.zeros_like(t), torch.ones_like(t)
     R = torch.stack([torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1), torch.stack([z, z, o], -1)], -2)
     v = torch.stack([0.02 * o, 0.01 * torch.sin(3 * t), -0.01 * torch.cos(2 * t)], -1)
     w = torch.stack([z, z, 0.9 * o], -1)
     x0 = torch.stack([0.02 * t, z, -0.015 - 0.01 * t], -1)
     cc = contacts_3d(mesh, v, w, surface=0.0, position=x0, rotation=R)
     f = forces_3d(FourierStressMap.generic(0.5, 0.6), cc, alpha_y=0.1)
-    return cc, f + 0.02 * torch.randn(f.shape, generator=gen)
+    return cc, f + 0.02 * torch.randn(f.shape, generator=gen, dtype=f.dtype)
 
 
 def _set(model, ls, os, noise):

@@ -73,8 +73,10 @@ def closed_form_enabled() -> bool:
 
 
 def closed_form_of(backend):
-    """``backend.closed_form()``, or None inside ``autograd_only``."""
-    return backend.closed_form() if _ENABLED[-1] else None
+    """``backend.closed_form()``, or None inside ``autograd_only`` and for a backend without one (the 3-D
+    backends: their hyperparameter posterior goes through autograd)."""
+    make = getattr(backend, "closed_form", None)
+    return make() if _ENABLED[-1] and make is not None else None
 
 
 # ---- the Gaussian likelihood ------------------------------------------------------------------------

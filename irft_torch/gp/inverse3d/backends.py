@@ -26,6 +26,7 @@ v = H^T L^{-1} c~, covariance Phi_q Sigma Phi_q^T - (H Sigma Phi_q^T)^T (H Sigma
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import TYPE_CHECKING, cast
 
@@ -111,6 +112,58 @@ class Backend3D(nn.Module):
         mean, cov = _pack(c, parts)
         return (mean, cov, joints) if joint else (mean, cov)
 
+    # ---- the prior covariance of two row sets, through the kernel (dense, any element counts) -------------------
+    @staticmethod
+    def _structure(b1, g1, w1, b2, g2, w2, same=False):
+        with torch.no_grad():
+            return RFTKernelLinearOperator.segment_structure(b1[None], g1[None], w1[None], b2[None], g2[None],
+                                                             w2[None], ONE, same_inputs=same)
+
+    def _term(self, c: int, structure, w1: Tensor, w2: Tensor, detach: bool) -> Tensor:
+        """Prior covariance of two row sets through map c (n1, n2)."""
+        ls, os = self.hypers.lengthscale[c:c + 1], self.hypers.outputscale[c:c + 1]
+        if detach:
+            ls, os = ls.detach(), os.detach()
+        if self.hypers.constant_map(c):
+            return os[0] * w1.sum(-1)[:, None] * w2.sum(-1)[None, :]
+        return RFTKernelLinearOperator.from_structure(structure, ls, os, ONE).to_dense()[0]
+
+    def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
+        """Prior covariance (n_q, n_t) of two row sets of block b (``block_rows``: beta, gamma, weights per map)."""
+        out: Tensor | int = 0
+        for i, c in enumerate(BLOCKS[b].maps):
+            s = None if self.hypers.constant_map(c) else \
+                self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
+            out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
+        return cast(Tensor, out)  # a block has at least one map
+
+    # ---- streaming and hyperparameter draws ------------------------------------------------------------------------
+    def add_data(self, contacts: Contacts3D, forces: Tensor) -> None:
+        """Append samples at fixed hyperparameters: the posterior becomes exactly a batch fit's on all of them.
+        Every data structure is replaced, never changed in place (draws' backends share them)."""
+        self.train_contacts = Contacts3D.cat([self.train_contacts, contacts.to(self.train_contacts.beta)])
+        self.train_forces = torch.cat([self.train_forces, forces.to(self.train_forces)])
+        self.n_samples = len(self.train_contacts)
+        self._data_changed(contacts, forces)
+        self._reset()
+
+    def _data_changed(self, contacts: Contacts3D, forces: Tensor) -> None:
+        """Bring the hyperparameter-free structures up to the data after ``add_data`` appended (contacts, forces)."""
+
+    def _reset(self) -> None:
+        """Forget what depends on the hyperparameters (cached factors)."""
+
+    def with_hypers(self, hypers: RFT3DHyperparameters) -> Backend3D:
+        """This backend at other hyperparameters (a hyperparameter posterior's draw): the data and whatever does
+        not depend on the hyperparameters are shared (pairs table and data factors; spectral features wherever the
+        basis still serves the draw's lengthscales, else grown for it)."""
+        new = copy.copy(self)
+        new._parameters, new._buffers, new._modules = dict(self._parameters), dict(self._buffers), dict(self._modules)
+        new._modules["hypers"] = hypers
+        new._reset()
+        new.refresh()
+        return new
+
     def truncation_error(self) -> Tensor:
         return self.hypers.kernel.outputscale.detach().new_zeros(3)
 
@@ -136,25 +189,16 @@ class Observations3D(Backend3D):
 
     def __init__(self, hypers, contacts: Contacts3D, forces: Tensor) -> None:
         super().__init__(hypers, contacts, forces)
-        self._train = [block_rows(contacts, b) for b in BLOCKS]
-        self._structures = [[self._structure(rows[0], rows[1], w, rows[0], rows[1], w, same=True)
-                             for w in rows[2]] for rows in self._train]
+        self._data_changed(contacts, forces)
         self._factor_cache = None
 
-    @staticmethod
-    def _structure(b1, g1, w1, b2, g2, w2, same=False):
-        with torch.no_grad():
-            return RFTKernelLinearOperator.segment_structure(b1[None], g1[None], w1[None], b2[None], g2[None],
-                                                             w2[None], ONE, same_inputs=same)
+    def _data_changed(self, contacts, forces) -> None:
+        self._train = [block_rows(self.train_contacts, b) for b in BLOCKS]
+        self._structures = [[self._structure(rows[0], rows[1], w, rows[0], rows[1], w, same=True)
+                             for w in rows[2]] for rows in self._train]
 
-    def _term(self, c: int, structure, w1: Tensor, w2: Tensor, detach: bool) -> Tensor:
-        """Prior covariance of two row sets through map c (n1, n2)."""
-        ls, os = self.hypers.lengthscale[c:c + 1], self.hypers.outputscale[c:c + 1]
-        if detach:
-            ls, os = ls.detach(), os.detach()
-        if self.hypers.constant_map(c):
-            return os[0] * w1.sum(-1)[:, None] * w2.sum(-1)[None, :]
-        return RFTKernelLinearOperator.from_structure(structure, ls, os, ONE).to_dense()[0]
+    def _reset(self) -> None:
+        self._factor_cache = None
 
     def _train_cov(self, b: int, detach: bool) -> Tensor:
         block, (_, _, ws) = BLOCKS[b], self._train[b]
@@ -185,14 +229,6 @@ class Observations3D(Backend3D):
                     out.append((L, torch.cholesky_solve(y[:, None], L)[:, 0]))
             self._factor_cache = (key, out)
         return self._factor_cache[1]
-
-    def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
-        block = BLOCKS[b]
-        out: Tensor | int = 0
-        for i, c in enumerate(block.maps):
-            s = self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
-            out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
-        return cast(Tensor, out)  # a block has at least one map
 
     def _block_posterior(self, b, c, full):
         L, alpha = self._factor()[b]
@@ -229,6 +265,27 @@ class WeightSpace3D(Backend3D):
         self._factors: list[list[tuple[Tensor, Tensor, Tensor]]] | None = None
         # (the factors, the hyperparameters' key, per block (H, H^T z)): the posterior's terms
         self._post_cache: tuple[list, Tensor, list[tuple[Tensor, Tensor]]] | None = None
+
+    def _reset(self) -> None:
+        self._post_cache = None
+
+    def _merge_rows(self, contacts: Contacts3D, forces: Tensor) -> None:
+        """The data factors of the old rows and new ones, exactly: stacking [R_g; Phi_new] and [c_g; y_new] keeps
+        Phi^T Phi, Phi^T y and |y|^2 (the factor's whole content), and rho adds up."""
+        T = len(contacts)
+        merged = []
+        with torch.no_grad():
+            for b, block in enumerate(BLOCKS):
+                Phi = self._features(contacts, b)
+                y = block_targets(forces.to(Phi), block)
+                groups = []
+                for g, (R, cy, rho) in enumerate(self._factors[b]):
+                    rows = slice(g * T, (g + 1) * T)
+                    f = data_factor_from_rows(torch.cat([R, Phi[rows]])[None], torch.cat([cy, y[rows]])[None], None,
+                                              Phi.dtype)
+                    groups.append((f.R[0], f.c_y[0], rho + f.rho[0, 0]))
+                merged.append(groups)
+        self._factors = merged
 
     def _set_features(self) -> None:
         """(Re)compute the training rows' data factors, hyperparameter-free."""
@@ -319,6 +376,10 @@ class Spectral3D(WeightSpace3D):
         self.basis = self._basis_for(hypers.lengthscale)
         self._set_features()
 
+    def _data_changed(self, contacts, forces) -> None:
+        self._bank = None  # it does not hold the new samples: a grown basis recomputes from train_contacts
+        self._merge_rows(contacts, forces)
+
     def _maps_rbf(self) -> list[int]:
         return [c for c in range(3) if not self.hypers.constant_map(c)]
 
@@ -383,9 +444,14 @@ class Pairs3D(WeightSpace3D):
 
     def __init__(self, hypers, contacts, forces) -> None:
         super().__init__(hypers, contacts, forces)
-        live = contacts.in_contact()
-        pairs = torch.stack([contacts.beta[live], contacts.gamma[live]], -1)
-        self.table = unique_pairs(pairs.detach())[0] if pairs.shape[0] else contacts.beta.new_zeros(1, 2)
+        self._data_changed(contacts, forces)
+
+    def _data_changed(self, contacts, forces) -> None:
+        """The table of all samples' distinct pairs and their data factors, anew (a new sample may add pairs)."""
+        c = self.train_contacts
+        live = c.in_contact()
+        pairs = torch.stack([c.beta[live], c.gamma[live]], -1)
+        self.table = unique_pairs(pairs.detach())[0] if pairs.shape[0] else c.beta.new_zeros(1, 2)
         self._set_features()
 
     def describe(self) -> str:
@@ -450,37 +516,34 @@ class _OffTable(Exception):
     pass
 
 
+def table_columns(backend: Pairs3D, b: int, q: tuple) -> Tensor:
+    """Cov(rows q, u) (n, F_b) with u the block's maps at the pairs table: W_q K(q, table) per map side by side
+    (a constant alpha_y: s_y W_q 1). For rows whose angles are off the table."""
+    beta, gamma, ws = q
+    tb, tg = backend.table[:, :1], backend.table[:, 1:]
+    ones = torch.ones_like(tb)
+    cols = []
+    for i, m in enumerate(BLOCKS[b].maps):
+        if backend.hypers.constant_map(m):
+            cols.append(ws[i].sum(-1, keepdim=True) * backend.hypers.outputscale[m].detach())
+        else:
+            st = backend._structure(beta, gamma, ws[i], tb, tg, ones)
+            cols.append(backend._term(m, st, ws[i], ones, detach=True))
+    return torch.cat(cols, -1)
+
+
 def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
     """Exact posterior of query rows whose angles are off the pairs table: prior cross-covariances with the
     table's map values, through the same H, v (u = map values at the table)."""
-    block = BLOCKS[b]
     H, v = backend._terms(b)
-    beta, gamma, ws = block_rows(c, block)
-    U = backend.table.shape[0]
-    cols: list[Tensor] = []
-    priors: Tensor | int = 0
-    tb, tg = backend.table[:, 0], backend.table[:, 1]
-    for i, m in enumerate(block.maps):
-        if backend.hypers.constant_map(m):
-            s = backend.hypers.outputscale[m].detach()
-            cols.append(ws[i].sum(-1, keepdim=True) * s)
-            priors = priors + s * ws[i].sum(-1)[:, None] * ws[i].sum(-1)[None, :]
-            continue
-        ls, s = backend.hypers.lengthscale[m:m + 1].detach(), backend.hypers.outputscale[m:m + 1].detach()
-        ones = torch.ones(U, 1, dtype=tb.dtype, device=tb.device)
-        st = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], tb[None, :, None],
-                                                       tg[None, :, None], ones[None], ONE)
-        cols.append(RFTKernelLinearOperator.from_structure(st, ls, s, ONE).to_dense()[0])
-        sq = RFTKernelLinearOperator.segment_structure(beta[None], gamma[None], ws[i][None], beta[None], gamma[None],
-                                                       ws[i][None], ONE, same_inputs=True)
-        priors = priors + RFTKernelLinearOperator.from_structure(sq, ls, s, ONE).to_dense()[0]
-    C = torch.cat(cols, -1)  # Cov(q, u) = W_q K(q, table)
+    q = block_rows(c, BLOCKS[b])
+    C = table_columns(backend, b, q)
     mean = C @ v
     G = H @ C.mT
-    cov = priors - G.mT @ G
+    cov = backend._cross(b, q, q, same=True) - G.mT @ G
     if full:
         return mean, 0.5 * (cov + cov.mT)
-    return mean, _sample_blocks(cov, len(block.axes), len(c))
+    return mean, _sample_blocks(cov, len(BLOCKS[b].axes), len(c))
 
 
 def make_backend_3d(method: str, hypers, contacts: Contacts3D, forces: Tensor, tol: float = 1e-7,

@@ -98,6 +98,26 @@ class RFT3DHyperparameters(Module):
         """Whether map c is a constant (alpha_y with ``alpha_y="constant"``)."""
         return c == 1 and self.alpha_y == "constant"
 
+    def hyper_labels(self, name: str, shape: torch.Size) -> list[str]:
+        """Readable names of a raw parameter's coordinates (``gp.hyper_posterior.hyper_spec``):
+        ``lengthscale_{x,y,z}[sin2b|cos2b|sing|cosg]``, ``outputscale_{x,y,z}`` (the maps alpha_x, alpha_y,
+        alpha_z) and ``noise_{x,y,z}`` (the force axes F_x, F_y, F_z)."""
+        base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",
+                "likelihood.noise_covar.raw_noise": "noise"}.get(name)
+        if base is None:
+            raise ValueError(f"no label for the 3-D hyperparameter {name!r}")
+        if base == "lengthscale":
+            dims = ("sin2b", "cos2b", "sing", "cosg")
+            return [f"lengthscale_{'xyz'[i // 4]}[{dims[i % 4]}]" for i in range(shape.numel())]
+        return [f"{base}_{a}" for a in "xyz"]
+
+    def fixed_labels(self) -> list[str]:
+        """Coordinates no likelihood sees: alpha_y's lengthscales when alpha_y is a constant (a hyperparameter
+        posterior leaves them where they are)."""
+        if self.alpha_y != "constant":
+            return []
+        return self.hyper_labels("kernel.base_kernel.raw_lengthscale", torch.Size([12]))[4:8]
+
     def as_dict(self) -> dict[str, list | str]:
         ls = self.lengthscale.detach()
         out: dict[str, list | str] = {"lengthscale_x": ls[0, 0].tolist(), "lengthscale_z": ls[2, 0].tolist(),

@@ -17,9 +17,12 @@ from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
+from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
-from ..posterior import normal_interval
+from ..mixture import mixture_quantile
+from ..posterior import _check_level, normal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
+from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
 
@@ -30,12 +33,18 @@ FORMAT_3D = "irft_torch.InverseRFT3D/1"
 
 @dataclass
 class Posterior3D:
-    """Gaussian posterior marginals, axis order (x, y, z): ``mean`` and ``variance`` (..., 3) and, for forces,
-    the full ``covariance`` (..., 3, 3) of each sample's three axes."""
+    """Posterior marginals, axis order (x, y, z): ``mean`` and ``variance`` (..., 3) and the full ``covariance``
+    (..., 3, 3) of each point's three axes.
+
+    Averaged over hyperparameter draws (``hyper_posterior="laplace"``) each marginal is a Gaussian mixture:
+    ``mean``, ``variance`` and ``covariance`` are its moments (``hyper_mixture.mixture_covariance``),
+    ``components`` the draws' own means and variances (S, ..., 3) and their weights (S,), and ``interval``
+    inverts the mixture's CDF."""
 
     mean: Tensor
     variance: Tensor
     covariance: Tensor | None = None
+    components: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def stddev(self) -> Tensor:
@@ -43,7 +52,32 @@ class Posterior3D:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
+        _check_level(level)
+        if self.components is not None:
+            means, variances, weights = self.components
+            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
+                    mixture_quantile(0.5 + level / 2, means, variances, weights))
         return normal_interval(self.mean, self.stddev, level)
+
+    @classmethod
+    def mixture(cls, means: Tensor, covariances: Tensor, weights: Tensor | None) -> Posterior3D:
+        """The mixture over draws of ``means`` (S, ..., 3) and ``covariances`` (S, ..., 3, 3) with ``weights`` (S,)
+        (None: one plug-in draw, a plain Gaussian)."""
+        if weights is None or means.shape[0] == 1:
+            cov = covariances[0]
+            return cls(means[0], torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
+        mean, cov = mixture_covariance(means, covariances, weights)
+        variances = torch.diagonal(covariances, dim1=-2, dim2=-1)
+        return cls(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov, (means, variances, weights))
+
+    def reshape(self, *shape: int) -> Posterior3D:
+        """The points reshaped to ``shape`` (the axis dimension kept)."""
+        comp = None
+        if self.components is not None:
+            m, v, w = self.components
+            comp = (m.reshape(m.shape[0], *shape, 3), v.reshape(v.shape[0], *shape, 3), w)
+        cov = None if self.covariance is None else self.covariance.reshape(*shape, 3, 3)
+        return Posterior3D(self.mean.reshape(*shape, 3), self.variance.reshape(*shape, 3), cov, comp)
 
 
 def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
@@ -66,7 +100,7 @@ def _as_forces(forces, T: int, dtype, device) -> Tensor:
     return f
 
 
-class InverseRFT3D(nn.Module):
+class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     """3-D I-RFT: GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma) and alpha_y (a third map over
     (beta, gamma), or a constant) from forces F[t] = sum_k W[t, k] alpha(theta[t, k]) + noise (docs/inverse3d.md).
 
@@ -84,6 +118,9 @@ class InverseRFT3D(nn.Module):
         max_harmonics: spectral backend: at most this many harmonics per angle (default 30); below the
             lengthscales ``tol`` needs, the kernel is the RBF truncated there (``truncation_error`` says by how much;
             a ``UserWarning`` after ``fit``).
+        hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
+            then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
+            ``gp.hyper_posterior`` machinery) and every prediction is a mixture over its draws.
 
     Example:
         >>> model = InverseRFT(contacts_3d, forces)       # (T, 3) forces: a 3-D model
@@ -94,7 +131,8 @@ class InverseRFT3D(nn.Module):
 
     def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
                  priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
-                 tol: float = 1e-7, features=None, max_harmonics: int | None = None) -> None:
+                 tol: float = 1e-7, features=None, max_harmonics: int | None = None,
+                 hyper_posterior: str | None = None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
@@ -102,6 +140,9 @@ class InverseRFT3D(nn.Module):
             raise ValueError(f"alpha_y must be one of {ALPHA_Y}, got {alpha_y!r}")
         if method not in METHODS_3D:
             raise ValueError(f"method must be one of {METHODS_3D}, got {method!r}")
+        hyper_posterior = "map" if hyper_posterior is None else hyper_posterior
+        if hyper_posterior not in HYPER_POSTERIORS:
+            raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
         _check_dtype(dtype)
@@ -119,12 +160,16 @@ class InverseRFT3D(nn.Module):
             warnings.warn(f"forces reach {float(f.abs().max()):.3g}: above 1e4 N; are they in mN? (forces are in N)",
                           stacklevel=2)
         self.alpha_y, self.method_arg, self.priors, self.dtype = alpha_y, method, priors, dtype
+        self.hyper_method = hyper_posterior
+        self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
+        self._draw_backends: list[Backend3D] | None = None
         self.tol, self.init_lengthscale = float(tol), float(lengthscale)
         self.train_contacts, self.train_forces = c, f
         self._device = device
         power = f.pow(2).mean(0)
         noise_floor = max(float(power[power > 0].min()) if (power > 0).any() else 1.0, 1e-300) * \
             (1e-8 if dtype == torch.float64 else 1e-5)
+        self._noise_floor = noise_floor
         force_scale, map_scale = data_scales_3d(c, f)
         self.hypers = RFT3DHyperparameters(alpha_y, noise_floor, force_scale.clamp_min(1e-6).cpu(),
                                            map_scale.cpu()).to(device=device, dtype=dtype)
@@ -181,6 +226,11 @@ class InverseRFT3D(nn.Module):
             bar.close()
         if self.backend.stale():
             self.backend.refresh()
+        if self.hyper_method != "map":
+            self.fit_hyper_posterior()
+            self.backend.refresh()  # the polished mode may need a larger basis
+        else:
+            self._set_hyper_posterior(None)
         err = float(self.backend.truncation_error().max())
         if err > self.tol:
             warnings.warn(f"the lengthscales need more than max_harmonics={self.max_harmonics} harmonics for tol="
@@ -189,29 +239,59 @@ class InverseRFT3D(nn.Module):
         self.loss_history.extend(history)
         return history
 
-    # ---- prediction ----------------------------------------------------------------------------------------------
-    def predict_forces(self, contacts: Contacts3D, include_noise: bool = False) -> Posterior3D:
-        """Posterior of (F_x, F_y, F_z) for contacts (T, K): mean, variance (T, 3) in N, N^2 and each sample's
-        3 x 3 ``covariance`` (F_x and F_y correlate through alpha_x and alpha_y; F_z is independent of both)."""
+    # ---- streaming -------------------------------------------------------------------------------------------------
+    def add_data(self, contacts: Contacts3D, forces) -> InverseRFT3D:
+        """Streaming: append force samples with the hyperparameters fixed (no refit). The posterior is exactly
+        that of a batch fit on all the data at these hyperparameters (each backend appends to its own exact
+        factors: ``Backend3D.add_data``); hyperparameter draws are reweighted by the new samples' likelihood
+        (``gp.hyper_posterior.add_data_to_draws``). The physical priors' centres follow all the data, so a later
+        ``fit`` (and a saved and loaded model) has the objective of a model built on all of it."""
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
         c = contacts.to(dtype=self.dtype, device=self._device)
-        with torch.no_grad():
-            mean, cov = self.backend.posterior(c)
-        cov = 0.5 * (cov + cov.mT)
-        if include_noise:
-            cov = cov + torch.diag_embed(self.hypers.noise.detach()).expand_as(cov)
-        return Posterior3D(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
+        f = _as_forces(forces, len(c), self.dtype, self._device)
+        if self._draw_backends is not None and self.hyper_posterior is not None:  # before the shared data move
+            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
+        self.backend.add_data(c, f)
+        self.train_contacts, self.train_forces = self.backend.train_contacts, self.backend.train_forces
+        if self.priors == "physical":
+            _, map_scale = data_scales_3d(self.train_contacts, self.train_forces)
+            register_priors_3d(self.hypers, prior_centres_3d(self.train_contacts, self.train_forces, map_scale,
+                                                             self._noise_floor))
+        return self
 
-    def stress_map(self, beta, gamma) -> Posterior3D:
-        """Posterior of (alpha_x, alpha_y, alpha_z) at angles of any broadcast shape S (rad): mean, variance
-        S + (3,) in N/cm^3 (angles outside the canonical square mapped in by the mirror identity)."""
+    # ---- prediction ----------------------------------------------------------------------------------------------
+    def predict_forces(self, contacts: Contacts3D, include_noise: bool = False) -> Posterior3D:
+        """Posterior of (F_x, F_y, F_z) for contacts (T, K): mean, variance (T, 3) in N, N^2 and each sample's
+        3 x 3 ``covariance`` (F_x and F_y correlate through alpha_x and alpha_y; F_z is independent of both). With
+        a hyperparameter posterior, the mixture over its draws (``Posterior3D.mixture``)."""
+        if not isinstance(contacts, Contacts3D):
+            raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
+        c = contacts.to(dtype=self.dtype, device=self._device)
+        backends, weights = self._weighted_backends()
+        means, covs = [], []
+        with torch.no_grad():
+            for backend in backends:
+                mean, cov = backend.posterior(c)
+                cov = 0.5 * (cov + cov.mT)
+                if include_noise:
+                    cov = cov + torch.diag_embed(backend.hypers.noise.detach()).expand_as(cov)
+                means.append(mean)
+                covs.append(cov)
+        return Posterior3D.mixture(torch.stack(means), torch.stack(covs), weights)
+
+    def _angles(self, beta, gamma) -> tuple[Tensor, Tensor, torch.Size]:
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         beta, gamma = torch.broadcast_tensors(beta, gamma)
-        p = self.predict_forces(point_contacts(beta, gamma))
-        return Posterior3D(p.mean.reshape(*S, 3), p.variance.reshape(*S, 3), p.covariance.reshape(*S, 3, 3))
+        return beta, gamma, S
+
+    def stress_map(self, beta, gamma) -> Posterior3D:
+        """Posterior of (alpha_x, alpha_y, alpha_z) at angles of any broadcast shape S (rad): mean, variance
+        S + (3,) in N/cm^3 (angles outside the canonical square mapped in by the mirror identity)."""
+        beta, gamma, S = self._angles(beta, gamma)
+        return self.predict_forces(point_contacts(beta, gamma)).reshape(*S)
 
     def forward(self, beta, gamma) -> Tensor:
         """Posterior mean map (..., 3) = (alpha_x, alpha_y, alpha_z): ``rft.forces_3d(model, contacts)`` works."""
@@ -219,42 +299,56 @@ class InverseRFT3D(nn.Module):
 
     def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None) -> Tensor:
         """Maps drawn from the joint posterior at angles of any broadcast shape S: (n, *S, 3) in N/cm^3 (the
-        points of one draw jointly distributed; alpha_x and alpha_y correlated as the data make them)."""
+        points of one draw jointly distributed; alpha_x and alpha_y correlated as the data make them). With a
+        hyperparameter posterior each map first picks a draw by its weight."""
         if int(n) != n or n < 1:
             raise ValueError(f"n must be a positive integer, got {n!r}")
-        beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
-        gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
-        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        beta, gamma, S = self._angles(beta, gamma)
         c = point_contacts(beta, gamma)
         N = len(c)
         if N > 3000:
             raise ValueError(f"{N} points: sample at most 3000 at a time (the joint covariance is dense)")
         from ..posterior import _psd_root
 
+        backends, weights = self._weighted_backends()
+        if weights is None:
+            counts = [int(n)]
+        else:
+            pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
+            counts = torch.bincount(pick, minlength=len(backends)).tolist()
+        out = []
         with torch.no_grad():
-            mean, _, joints = self.backend.posterior(c, joint=True)
-            out = mean.new_zeros(int(n), N, 3)
-            h = joints[0]
-            eps = torch.randn(h.shape[0], int(n), generator=generator, dtype=h.dtype, device=h.device)
-            dh = (_psd_root(h) @ eps).T.reshape(int(n), 2, N)
-            out[..., 0], out[..., 1] = dh[:, 0], dh[:, 1]
-            eps = torch.randn(N, int(n), generator=generator, dtype=h.dtype, device=h.device)
-            out[..., 2] = (_psd_root(joints[1]) @ eps).T
-            out = out + mean
-        return out.reshape(int(n), *S, 3)
+            for backend, k in zip(backends, counts):
+                if k == 0:
+                    continue
+                mean, _, joints = backend.posterior(c, joint=True)
+                draw = mean.new_zeros(k, N, 3)
+                h = joints[0]
+                eps = torch.randn(h.shape[0], k, generator=generator, dtype=h.dtype, device=h.device)
+                dh = (_psd_root(h) @ eps).T.reshape(k, 2, N)
+                draw[..., 0], draw[..., 1] = dh[:, 0], dh[:, 1]
+                eps = torch.randn(N, k, generator=generator, dtype=h.dtype, device=h.device)
+                draw[..., 2] = (_psd_root(joints[1]) @ eps).T
+                out.append(draw + mean)
+        draws = torch.cat(out)
+        if len(out) > 1:  # interleave the draws' maps
+            draws = draws[torch.randperm(int(n), generator=generator, device=draws.device)]
+        return draws.reshape(int(n), *S, 3)
 
     def cross_validate(self, groups, refit: bool = False, n_iter: int = 300, lr: float = 0.05,
                        include_noise: bool = False) -> Posterior3D:
         """Each group of training samples predicted from the other groups: at this model's fitted
-        hyperparameters (default) or by a model like this one fitted on the others (``refit``). Returns the
-        held-out ``Posterior3D`` (T, 3) in the training order."""
+        hyperparameters (default; with a hyperparameter posterior, the mixture over its draws) or by a model like
+        this one fitted on the others (``refit``). Returns the held-out ``Posterior3D`` (T, 3) in the training
+        order."""
         g = torch.as_tensor(groups, device=self._device)
         T = len(self.train_contacts)
         if g.shape != (T,):
             raise ValueError(f"groups must be ({T},) labels, one per training sample, got {tuple(g.shape)}")
-        mean = self.train_forces.new_zeros(T, 3)
-        cov = self.train_forces.new_zeros(T, 3, 3)
+        backends, weights = self._weighted_backends()
+        S = 1 if refit else len(backends)
+        mean = self.train_forces.new_zeros(S, T, 3)
+        cov = self.train_forces.new_zeros(S, T, 3, 3)
         for label in g.unique():
             test = g == label
             if bool(test.all()):
@@ -263,15 +357,18 @@ class InverseRFT3D(nn.Module):
             if refit:
                 m = InverseRFT3D(ctr, ftr, **self._options())
                 m.fit(n_iter=n_iter, lr=lr, progress=False)
-            else:
-                m = InverseRFT3D.__new__(InverseRFT3D)
-                nn.Module.__init__(m)
-                m.__dict__.update({k: v for k, v in self.__dict__.items() if k not in ("_modules",)})
-                m._modules = {"hypers": self.hypers}
-                m.backend = make_backend_3d(self.method, self.hypers, ctr, ftr, tol=self.tol)
-            p = m.predict_forces(self.train_contacts[test], include_noise=include_noise)
-            mean[test], cov[test] = p.mean, p.covariance
-        return Posterior3D(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
+                p = m.predict_forces(self.train_contacts[test], include_noise=include_noise)
+                mean[0, test], cov[0, test] = p.mean, p.covariance
+                continue
+            for s, backend in enumerate(backends):
+                held = make_backend_3d(self.method, backend.hypers, ctr, ftr, tol=self.tol,
+                                       max_harmonics=self.max_harmonics)
+                with torch.no_grad():
+                    ms, cs = held.posterior(self.train_contacts[test])
+                if include_noise:
+                    cs = cs + torch.diag_embed(backend.hypers.noise.detach())
+                mean[s, test], cov[s, test] = ms, 0.5 * (cs + cs.mT)
+        return Posterior3D.mixture(mean, cov, None if refit else weights)
 
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
@@ -291,13 +388,18 @@ class InverseRFT3D(nn.Module):
     # ---- persistence -----------------------------------------------------------------------------------------------
     def _options(self) -> dict:
         return {"alpha_y": self.alpha_y, "method": self.method_arg, "priors": self.priors, "dtype": self.dtype,
-                "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics}
+                "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics,
+                "hyper_posterior": self.hyper_method}
 
     def save(self, path) -> None:
-        """Training data, options and hyperparameters in one file (``load`` rebuilds the model)."""
-        torch.save({"format": FORMAT_3D, "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
-                    "forces": self.train_forces.cpu(), "options": self._options(),
-                    "hypers": {k: v.cpu() for k, v in self.hypers.state_dict().items()}}, path)
+        """Training data (after ``add_data``: all of it), options, hyperparameters and any hyperparameter
+        posterior's draws and weights in one file (``load`` rebuilds the model, predictions the same)."""
+        payload = {"format": FORMAT_3D, "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
+                   "forces": self.train_forces.cpu(), "options": self._options(),
+                   "hypers": {k: v.cpu() for k, v in self.hypers.state_dict().items()}}
+        if self.hyper_posterior is not None:
+            payload["hyper_posterior"] = self.hyper_posterior.state()
+        torch.save(payload, path)
 
     @classmethod
     def load(cls, path, map_location=None) -> InverseRFT3D:
@@ -308,8 +410,9 @@ class InverseRFT3D(nn.Module):
             raise ModelFileError(f"{path} is not a 3-D I-RFT model file ({FORMAT_3D})")
         model = cls(Contacts3D(**d["contacts"]), d["forces"], **d["options"])
         model.hypers.load_state_dict(d["hypers"], strict=False)
-        if hasattr(model.backend, "refresh"):
-            model.backend.refresh()
+        model.backend.refresh()
+        if "hyper_posterior" in d:
+            model._set_hyper_posterior(HyperPosterior.from_state(d["hyper_posterior"]))
         return model
 
     def extra_repr(self) -> str:

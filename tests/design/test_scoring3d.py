@@ -1,0 +1,103 @@
+"""Probe scores of 3-D models (design.scoring3d) against the dense 3-D reference of tests/gp/test_inverse3d: the
+information gain from the candidate's explicit posterior force covariance, the integrated variance from the dense
+posterior of a model that has also seen the candidate (its forces do not matter), on every backend and both forms
+of alpha_y."""
+
+import pytest
+import torch
+from gp.test_inverse3d import _set, dense, turning_toe
+
+import irft_torch as irft
+from irft_torch.design import ProbeScorer, ProbeScorer3D, Region
+from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
+from irft_torch.rft import Contacts3D
+
+CASES = [(m, a) for m in ("observations", "pairs", "spectral") for a in ("map", "constant")]
+LS = 0.8 + torch.rand(3, 1, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+OS = torch.tensor([0.09, 0.02, 0.2], dtype=torch.float64)
+NOISE = torch.tensor([4e-4, 3e-4, 5e-4], dtype=torch.float64)
+
+
+def _model(method, alpha_y, T=10):
+    c, f = turning_toe(T=T)
+    m = InverseRFT3D(c, f, method=method, alpha_y=alpha_y, priors=None,
+                     tol=1e-12 if method == "spectral" else 1e-7)
+    _set(m, LS, OS, NOISE)
+    m.backend.refresh()
+    return c, f, m
+
+
+@pytest.mark.parametrize("method,alpha_y", CASES)
+def test_scores_match_the_dense_reference(method, alpha_y):
+    c, f, model = _model(method, alpha_y)
+    scorer = ProbeScorer.from_model(model)
+    assert isinstance(scorer, ProbeScorer3D)
+    constant = alpha_y == "constant"
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    cand = turning_toe(T=8, seed=3)[0][2:7]
+    T = len(cand)
+    # information gain: 1/2 log |I + D^-1/2 S D^-1/2| of the candidate's rows (F_x, F_y, F_z) x T
+    _, post = dense(c, f, ls, os, noise, constant)
+    _, S = post(cand)
+    d = noise.repeat_interleave(T).rsqrt()
+    want = 0.5 * torch.linalg.slogdet(torch.eye(3 * T, dtype=S.dtype) + d[:, None] * S * d[None, :])[1]
+    rtol = 1e-6 if method != "spectral" else 1e-5
+    torch.testing.assert_close(scorer.information_gain(cand), want, rtol=rtol, atol=1e-9)
+    # integrated variance, now and after the candidate: the dense posterior of the maps at the region's points
+    region = Region.square(5)
+    pts = point_contacts(region.beta, region.gamma)
+    N = region.beta.numel()
+
+    def iv(post_fn):
+        _, P = post_fn(pts)
+        var = torch.diagonal(P).reshape(3, N)
+        return (var * region.weight).sum(-1) / os
+
+    torch.testing.assert_close(scorer.integrated_variance(None, region, per_map=True), iv(post), rtol=rtol, atol=1e-9)
+    both = Contacts3D.cat([c, cand])
+    _, post_after = dense(both, torch.cat([f, torch.zeros(T, 3, dtype=f.dtype)]), ls, os, noise, constant)
+    after = iv(post_after)
+    torch.testing.assert_close(scorer.integrated_variance(cand, region, per_map=True), after, rtol=rtol, atol=1e-9)
+    torch.testing.assert_close(scorer.condition(cand).integrated_variance(None, region, per_map=True), after,
+                               rtol=rtol, atol=1e-9)
+    # the map variance at points: the dense posterior's diagonal
+    mv = scorer.map_variance(region.beta[:4], region.gamma[:4])
+    _, P4 = post(point_contacts(region.beta[:4], region.gamma[:4]))
+    torch.testing.assert_close(mv, torch.diagonal(P4).reshape(3, 4).T, rtol=rtol, atol=1e-10)
+
+
+def test_more_of_a_probe_is_worth_more_and_ranking_follows_the_scores():
+    c, f, model = _model("pairs", "map")
+    scorer = ProbeScorer3D.from_model(model)
+    long, _ = turning_toe(T=8, seed=3)
+    short = long[:3]
+    eig = scorer.score([short, long], "eig")
+    iv = scorer.score([short, long], "variance")
+    assert eig[1] > eig[0] > 0  # more rows of the same probe: more information (log det is monotone)
+    assert iv[1] < iv[0] < scorer.integrated_variance()
+    assert [i for i, _ in scorer.rank([short, long], "eig")] == [1, 0]
+    assert [i for i, _ in scorer.rank([short, long], "variance")] == [1, 0]
+    per_block = scorer.information_gain(long, per_block=True)
+    torch.testing.assert_close(per_block.sum(), eig[1])
+
+
+def test_the_scorer_follows_the_model_and_refuses_what_does_not_apply():
+    c, f, model = _model("observations", "map")
+    scorer = ProbeScorer.from_model(model)
+    before = scorer.integrated_variance()
+    extra, fe = turning_toe(T=6, seed=5)
+    model.add_data(extra, fe)
+    assert scorer.integrated_variance() < before  # it scores the model's current belief
+    with pytest.raises(TypeError, match="Contacts3D"):
+        scorer.information_gain(irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=20)))
+    with pytest.raises(ValueError, match="criterion"):
+        scorer.score([extra], "entropy")
+    with pytest.raises(ValueError, match="3-D model"):
+        ProbeScorer.from_model(model, method="spectral")
+    with pytest.raises(TypeError, match="InverseRFT3D"):
+        ProbeScorer3D.from_model(irft.InverseRFT(*_planar()))
+
+
+def _planar():
+    c = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=20))
+    return c, irft.rft.forces(irft.rft.FourierStressMap.generic(), c)

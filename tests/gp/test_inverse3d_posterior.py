@@ -1,0 +1,192 @@
+"""3-D I-RFT beyond the plug-in: the hyperparameter posterior (Laplace, against brute-force integration over one
+free hyperparameter on the plain dense reference of test_inverse3d) and streaming ``add_data`` (against a batch
+model on all the data, on every backend, and the dense reference)."""
+
+import math
+
+import pytest
+import torch
+
+from irft_torch.gp.hyper_posterior import hyper_spec
+from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
+from irft_torch.gp.inverse3d.priors import data_scales_3d, prior_centres_3d
+from irft_torch.gp.priors import OUTPUTSCALE_LOG_SD
+
+from .test_inverse3d import _set, dense, per_sample, turning_toe
+
+F64 = torch.float64
+HYPERS = (torch.tensor([[[1.1, 0.9, 1.3, 1.0]], [[0.8, 1.2, 1.0, 1.4]], [[1.0, 1.0, 0.9, 1.2]]], dtype=F64),
+          torch.tensor([0.09, 0.02, 0.2], dtype=F64), torch.tensor([4e-4, 3e-4, 5e-4], dtype=F64))
+
+
+def query():
+    b = torch.tensor([-1.2, -0.4, 0.0, 0.3, 1.0], dtype=F64)
+    g = torch.tensor([-1.5, -0.3, 0.8, 1.2, 1.55], dtype=F64)
+    return b, g
+
+
+@pytest.fixture(scope="module")
+def problem():
+    c, f = turning_toe(T=14, seed=3)
+    return c, f
+
+
+def test_laplace_mixture_matches_brute_force_integration_over_alpha_y_variance(problem):
+    """outputscale_y (alpha_y's prior variance) free: alpha_x, alpha_y and the (F_x, F_y) covariance all move with
+    it (one horizontal block). The model's mixture (Laplace, importance-reweighted) against the trapezoid rule on
+    a grid of log s_y: the dense reference's marginal likelihood x T plus the prior's log density by hand."""
+    c, f = problem
+    m = InverseRFT3D(c, f, method="observations")
+    _set(m, *HYPERS)
+    hp = m.fit_hyper_posterior("laplace", n_proposals=512, n_draws=None, free=["outputscale_y"],
+                               generator=torch.Generator().manual_seed(0))
+    assert len(hp.labels) == 18 and {"outputscale_x", "outputscale_y", "outputscale_z", "noise_x", "noise_y",
+                                     "noise_z", "lengthscale_y[sin2b]", "lengthscale_z[cosg]"} <= set(hp.labels)
+    assert hp.khat < 0.5 and hp.ess > 250
+    j = hp.labels.index("outputscale_y")
+    mode, sd = float(hp.mode[j]), float(hp.covariance[j, j].sqrt())
+    centre = prior_centres_3d(c, f, data_scales_3d(c, f)[1], m._noise_floor)["outputscale"][1]
+    ls, os, noise = (t.detach().clone() for t in (m.hypers.lengthscale, m.hypers.outputscale, m.hypers.noise))
+    qm, qf = point_contacts(*query()), c[3:8]
+    lps, maps, forces = [], [], []
+    for th in torch.linspace(mode - 10 * sd, mode + 10 * sd, 161, dtype=F64):
+        os[1] = th.exp()
+        nll, post = dense(c, f, ls, os, noise, False)
+        lps.append(-float(nll) * len(c) - 0.5 * float((th - centre.log()) / OUTPUTSCALE_LOG_SD) ** 2)
+        mean, cov = post(qm)
+        maps.append((mean, per_sample(cov, len(qm))))
+        mean, cov = post(qf)
+        forces.append((mean, per_sample(cov, len(qf))))
+    lw = torch.tensor(lps, dtype=F64)
+    w = (lw - lw.max()).exp()
+    w = w / w.sum()
+
+    def total(parts):  # law of total covariance, written out
+        mu = sum(wi * p[0] for wi, p in zip(w, parts))
+        cov = sum(wi * (p[1] + (p[0] - mu)[..., :, None] * (p[0] - mu)[..., None, :]) for wi, p in zip(w, parts))
+        return mu, cov
+
+    want_m, want_mc = total(maps)
+    want_f, want_fc = total(forces)
+    got = m.stress_map(*query())
+    scale = float(want_m.abs().max())
+    torch.testing.assert_close(got.mean, want_m, atol=1e-3 * scale, rtol=0)
+    torch.testing.assert_close(got.covariance, want_mc, rtol=2e-3, atol=1e-3 * float(want_mc.abs().max()))
+    gf = m.predict_forces(qf)
+    torch.testing.assert_close(gf.mean, want_f, atol=1e-3 * float(want_f.abs().max()), rtol=0)
+    torch.testing.assert_close(gf.covariance, want_fc, rtol=2e-3, atol=1e-3 * float(want_fc.abs().max()))
+    # the integration mattered: the plug-in's alpha_y variance is off the mixture's by more than the tolerance
+    plug = InverseRFT3D(c, f, method="observations")
+    plug.hypers.load_state_dict(m.hypers.state_dict())
+    assert (plug.stress_map(*query()).variance[:, 1] / want_mc[:, 1, 1] - 1).abs().max() > 1e-2
+    # the mixture's intervals are its CDF's quantiles: 2.5 % below the lower end, by the draws' own normals
+    lo, _ = got.interval(0.95)
+    means, variances, weights = got.components
+    cdf = (weights[:, None, None] * 0.5 * torch.special.erfc(-(lo - means) / variances.sqrt() / math.sqrt(2))).sum(0)
+    torch.testing.assert_close(cdf, torch.full_like(cdf, 0.025), rtol=0, atol=1e-9)
+
+
+def test_laplace_end_to_end_on_every_backend_save_load_and_constant_alpha_y(problem, tmp_path):
+    """fit(...) with hyper_posterior="laplace": each prediction is the weighted mixture of the draws' plug-in
+    predictions (a model per draw, built and set by hand); alpha_y's lengthscales stay fixed for a constant alpha_y;
+    save/load keeps the draws; sample_maps draws from the mixture."""
+    c, f = problem
+    for method, alpha_y in (("pairs", "map"), ("spectral", "constant")):
+        m = InverseRFT3D(c, f, method=method, alpha_y=alpha_y, hyper_posterior="laplace", tol=1e-9)
+        _set(m, *HYPERS)
+        hp = m.fit_hyper_posterior(n_proposals=48, n_draws=6, generator=torch.Generator().manual_seed(1))
+        assert hp is m.hyper_posterior and hp.n_draws >= 2 and abs(float(hp.weights.sum()) - 1) < 1e-12
+        spec = hyper_spec(m.hypers)
+        fixed = [spec.labels.index(f"lengthscale_y[{d}]") for d in ("sin2b", "cos2b", "sing", "cosg")]
+        moved = (hp.theta[:, fixed] - hp.mode[fixed]).abs().max()
+        assert (moved == 0) if alpha_y == "constant" else (moved > 0)
+        means, covs = [], []
+        for th in hp.theta:
+            d = InverseRFT3D(c, f, method=method, alpha_y=alpha_y, tol=1e-9)
+            spec.load(d.hypers, th)
+            d.backend.refresh()
+            p = d.predict_forces(c[2:9], include_noise=True)
+            means.append(p.mean)
+            covs.append(p.covariance)
+        w = hp.weights
+        mu = sum(wi * x for wi, x in zip(w, means))
+        cov = sum(wi * (C + (x - mu)[:, :, None] * (x - mu)[:, None, :]) for wi, x, C in zip(w, means, covs))
+        got = m.predict_forces(c[2:9], include_noise=True)
+        # spectral: each draw's basis grows from the model's, a model built by hand from its own; draws at short
+        # lengthscales reach the harmonics' cap (truncation_error() says by how much): equal within that
+        rtol = 1e-9 if method != "spectral" else 1e-6
+        torch.testing.assert_close(got.mean, mu, rtol=rtol, atol=1e-11)
+        atol = 1e-12 if method != "spectral" else 1e-6 * float(cov.abs().max())
+        torch.testing.assert_close(got.covariance, cov, rtol=10 * rtol, atol=atol)
+        m.save(tmp_path / "m.pt")
+        back = InverseRFT3D.load(tmp_path / "m.pt")
+        assert back.hyper_posterior is not None and back.hyper_method == "laplace"
+        torch.testing.assert_close(back.predict_forces(c[2:9], include_noise=True).covariance, got.covariance,
+                                   rtol=1e-9, atol=1e-12)
+    b, g = query()
+    post = m.stress_map(b, g)
+    draws = m.sample_maps(b, g, 4000, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(draws.mean(0), post.mean, atol=5 * float(post.stddev.max()) / 63, rtol=0)
+    torch.testing.assert_close(draws.var(0), post.variance, rtol=0.12, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+def test_add_data_is_the_batch_posterior(problem, method):
+    """Samples streamed in two parts (the second with more elements per sample: padding) give the batch model's
+    loss, force and map posteriors at the same hyperparameters, and the dense reference's."""
+    c, f = problem
+    tol = 1e-12 if method == "spectral" else 1e-7
+    batch = InverseRFT3D(c, f, method=method, tol=tol)
+    part = InverseRFT3D(c[:9], f[:9], method=method, tol=tol)
+    for m in (batch, part):
+        _set(m, *HYPERS)
+        m.backend.refresh()
+    part.add_data(c[9:].pad_elements(c.n_elements + 3), f[9:])
+    assert len(part.train_contacts) == len(c) and part.backend.n_samples == len(c)
+    with torch.no_grad():
+        torch.testing.assert_close(part.backend.negative_log_likelihood(), batch.backend.negative_log_likelihood(),
+                                   rtol=1e-9, atol=0)
+        nll, post = dense(c, f, *HYPERS, False)
+        torch.testing.assert_close(part.backend.negative_log_likelihood().sum(), nll, rtol=1e-7, atol=0)
+    q, _ = turning_toe(T=6, seed=5)
+    for got, want in ((part.predict_forces(q), batch.predict_forces(q)),
+                      (part.stress_map(*query()), batch.stress_map(*query()))):
+        torch.testing.assert_close(got.mean, want.mean, rtol=1e-8, atol=1e-10)
+        torch.testing.assert_close(got.covariance, want.covariance, rtol=1e-7, atol=1e-11)
+    mean, cov = post(q)
+    torch.testing.assert_close(part.predict_forces(q).mean, mean, rtol=1e-7, atol=1e-10)
+    # the priors' centres follow all the data: the loss is the batch model's, priors included
+    torch.testing.assert_close(part.loss(), batch.loss(), rtol=1e-9, atol=0)
+
+
+def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(problem):
+    c, f = problem
+    m = InverseRFT3D(c[:9], f[:9], method="pairs")
+    _set(m, *HYPERS)
+    hp = m.fit_hyper_posterior("laplace", n_proposals=32, n_draws=5, free=["outputscale_y", "noise_x"],
+                               generator=torch.Generator().manual_seed(4))
+    w0 = hp.weights.clone()
+    # each draw's hyperparameter values (theta is log value in this model's own data scales: read the values
+    # from the draws, not by loading theta into a model built on other data)
+    values = [tuple(t.detach().clone() for t in (b.hypers.lengthscale, b.hypers.outputscale, b.hypers.noise))
+              for b in m._draw_backends]
+    m.add_data(c[9:], f[9:])
+    logr = []
+    for h in values:  # p(F_new | F_old, theta_s) by hand on the dense reference
+        logr.append(-float(dense(c, f, *h, False)[0]) * len(c) + float(dense(c[:9], f[:9], *h, False)[0]) * 9)
+    lw = w0.log() + torch.tensor(logr, dtype=F64)
+    want = (lw - lw.max()).exp()
+    torch.testing.assert_close(m.hyper_posterior.weights, want / want.sum(), rtol=1e-7, atol=1e-12)
+
+
+def test_bad_arguments():
+    c, f = turning_toe(T=4)
+    with pytest.raises(ValueError, match="hyper_posterior"):
+        InverseRFT3D(c, f, hyper_posterior="mcmc")
+    m = InverseRFT3D(c, f)
+    with pytest.raises(ValueError, match="method"):
+        m.fit_hyper_posterior("hmc")
+    with pytest.raises(TypeError, match="Contacts3D"):
+        m.add_data(c.planar(), f)
+    with pytest.raises(ValueError, match=r"\(T, 3\)"):
+        m.add_data(c, f[:, :2])
