@@ -336,3 +336,26 @@ def test_nuts_hyper_posterior_runs_on_cuda():
     b = torch.linspace(-1.0, 1.0, 4, device=CUDA)
     post = m.stress_map(b, b)
     assert on_cuda(post.mean) and torch.isfinite(post.variance).all()
+
+
+def test_probe_scores_of_a_3d_model_on_cuda_match_cpu():
+    from irft_torch.design import ProbeScorer3D
+    from irft_torch.rft import Mesh, contacts_3d, forces_3d
+
+    T = 12
+    t = torch.linspace(0, 1, T, dtype=torch.float64)
+    z, o = torch.zeros_like(t), torch.ones_like(t)
+    v = torch.stack([0.02 * o, 0.01 * torch.sin(3 * t), -0.01 * torch.cos(2 * t)], -1)
+    w = torch.stack([z, z, 0.9 * o], -1)
+    x0 = torch.stack([0.02 * t, z, -0.015 - 0.01 * t], -1)
+    mesh = Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2).to(dtype=torch.float64)
+    out = []
+    for dev in ("cpu", CUDA):
+        cc = contacts_3d(mesh.to(device=dev), v.to(dev), w.to(dev), surface=0.0, position=x0.to(dev))
+        f = forces_3d(FourierStressMap.generic(0.5, 0.6).to(dev), cc, alpha_y=0.1)
+        scorer = ProbeScorer.from_model(irft.InverseRFT(cc[:8], f[:8], method="pairs"))
+        assert isinstance(scorer, ProbeScorer3D)
+        out.append((scorer.score([cc[8:], cc[6:]], "eig"), scorer.score([cc[8:], cc[6:]], "variance")))
+    assert on_cuda(out[1][0])
+    close(out[1][0], out[0][0], rtol=1e-6)
+    close(out[1][1], out[0][1], rtol=1e-6)
