@@ -24,6 +24,7 @@ from ..posterior import _check_level, normal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
+from .mean import fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
@@ -111,6 +112,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             zero-mean normal prior: a rank-one kernel term).
         method: "auto", "observations", "pairs" or "spectral" (``gp.inverse3d.backends``).
         priors: "physical" (default, ``gp.inverse3d.priors``) or None (the plain marginal likelihood).
+        prior_mean: "zero" (default) or "physics": the generic maps, one least-squares scale per map fitted to
+            these forces and then fixed (``gp.inverse3d.mean``; ``model.mean_scales``): where the forces do not
+            constrain a map, predictions fall back on the scaled generic medium instead of zero.
         dtype: float64 (default) or float32. lengthscale: initial lengthscale. tol: spectral truncation bound.
         features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
             data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
@@ -132,7 +136,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
                  priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
                  tol: float = 1e-7, features=None, max_harmonics: int | None = None,
-                 hyper_posterior: str | None = None) -> None:
+                 hyper_posterior: str | None = None, prior_mean: str = "zero") -> None:
         super().__init__()
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
@@ -145,6 +149,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
+        if prior_mean not in ("zero", "physics"):
+            raise ValueError(f"prior_mean must be 'zero' or 'physics' for a 3-D model, got {prior_mean!r}")
         _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
@@ -160,6 +166,10 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             warnings.warn(f"forces reach {float(f.abs().max()):.3g}: above 1e4 N; are they in mN? (forces are in N)",
                           stacklevel=2)
         self.alpha_y, self.method_arg, self.priors, self.dtype = alpha_y, method, priors, dtype
+        self.prior_mean = prior_mean
+        # (3,) scales of the generic maps in the prior mean (None: a zero mean); the training rows' shape forces
+        G = shape_forces_3d(c) if prior_mean == "physics" else None
+        self.mean_scales: Tensor | None = None if G is None else fit_mean_scales(c, f, G)
         self.hyper_method = hyper_posterior
         self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
         self._draw_backends: list[Backend3D] | None = None
@@ -183,10 +193,24 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         from ..fourier import MAX_HARMONICS
 
         self.max_harmonics = MAX_HARMONICS if max_harmonics is None else int(max_harmonics)
-        self.backend: Backend3D = make_backend_3d(method, self.hypers, c, f, tol=tol, features=features,
-                                                  max_harmonics=self.max_harmonics)
+        residual = f if G is None else f - G @ self.mean_scales
+        self.backend: Backend3D = make_backend_3d(method, self.hypers, c, residual, tol=tol,
+                                                  features=features, max_harmonics=self.max_harmonics)
         self.loss_history: list[float] = []
         self.eval()
+
+    # ---- the prior mean -----------------------------------------------------------------------------------------
+    def mean_forces(self, contacts: Contacts3D) -> Tensor:
+        """(T, 3) the prior mean's forces of ``contacts`` in N (zeros for a zero mean; map values for
+        ``point_contacts``)."""
+        c = contacts.to(dtype=self.dtype, device=self._device)
+        if self.mean_scales is None:
+            return c.beta.new_zeros(len(c), 3)
+        return shape_forces_3d(c) @ self.mean_scales.to(c.beta)
+
+    def _residual(self, contacts: Contacts3D, forces: Tensor) -> Tensor:
+        """What the GPs see: the forces less the prior mean's."""
+        return forces if self.mean_scales is None else forces - self.mean_forces(contacts)
 
     # ---- views -------------------------------------------------------------------------------------------------
     @property
@@ -250,10 +274,12 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
         c = contacts.to(dtype=self.dtype, device=self._device)
         f = _as_forces(forces, len(c), self.dtype, self._device)
+        r = self._residual(c, f)
         if self._draw_backends is not None and self.hyper_posterior is not None:  # before the shared data move
-            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
-        self.backend.add_data(c, f)
-        self.train_contacts, self.train_forces = self.backend.train_contacts, self.backend.train_forces
+            add_data_to_draws(self.hyper_posterior, self._draw_backends, c, r)
+        self.backend.add_data(c, r)
+        self.train_contacts = self.backend.train_contacts
+        self.train_forces = torch.cat([self.train_forces, f])  # as measured (the backend holds the residuals)
         if self.priors == "physical":
             _, map_scale = data_scales_3d(self.train_contacts, self.train_forces)
             register_priors_3d(self.hypers, prior_centres_3d(self.train_contacts, self.train_forces, map_scale,
@@ -270,9 +296,11 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         c = contacts.to(dtype=self.dtype, device=self._device)
         backends, weights = self._weighted_backends()
         means, covs = [], []
+        prior = self.mean_forces(c)
         with torch.no_grad():
             for backend in backends:
                 mean, cov = backend.posterior(c)
+                mean = mean + prior
                 cov = 0.5 * (cov + cov.mT)
                 if include_noise:
                     cov = cov + torch.diag_embed(backend.hypers.noise.detach()).expand_as(cov)
@@ -317,6 +345,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
             counts = torch.bincount(pick, minlength=len(backends)).tolist()
         out = []
+        prior = self.mean_forces(c)
         with torch.no_grad():
             for backend, k in zip(backends, counts):
                 if k == 0:
@@ -329,7 +358,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 draw[..., 0], draw[..., 1] = dh[:, 0], dh[:, 1]
                 eps = torch.randn(N, k, generator=generator, dtype=h.dtype, device=h.device)
                 draw[..., 2] = (_psd_root(joints[1]) @ eps).T
-                out.append(draw + mean)
+                out.append(draw + mean + prior)
         draws = torch.cat(out)
         if len(out) > 1:  # interleave the draws' maps
             draws = draws[torch.randperm(int(n), generator=generator, device=draws.device)]
@@ -361,10 +390,11 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 mean[0, test], cov[0, test] = p.mean, p.covariance
                 continue
             for s, backend in enumerate(backends):
-                held = make_backend_3d(self.method, backend.hypers, ctr, ftr, tol=self.tol,
+                held = make_backend_3d(self.method, backend.hypers, ctr, self._residual(ctr, ftr), tol=self.tol,
                                        max_harmonics=self.max_harmonics)
                 with torch.no_grad():
                     ms, cs = held.posterior(self.train_contacts[test])
+                    ms = ms + self.mean_forces(self.train_contacts[test])
                 if include_noise:
                     cs = cs + torch.diag_embed(backend.hypers.noise.detach())
                 mean[s, test], cov[s, test] = ms, 0.5 * (cs + cs.mT)
@@ -389,7 +419,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def _options(self) -> dict:
         return {"alpha_y": self.alpha_y, "method": self.method_arg, "priors": self.priors, "dtype": self.dtype,
                 "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics,
-                "hyper_posterior": self.hyper_method}
+                "hyper_posterior": self.hyper_method, "prior_mean": self.prior_mean}
 
     def save(self, path) -> None:
         """Training data (after ``add_data``: all of it), options, hyperparameters and any hyperparameter
@@ -399,6 +429,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                    "hypers": {k: v.cpu() for k, v in self.hypers.state_dict().items()}}
         if self.hyper_posterior is not None:
             payload["hyper_posterior"] = self.hyper_posterior.state()
+        if self.mean_scales is not None:
+            payload["mean_scales"] = self.mean_scales.cpu()
         torch.save(payload, path)
 
     @classmethod
@@ -409,6 +441,11 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
 
             raise ModelFileError(f"{path} is not a 3-D I-RFT model file ({FORMAT_3D})")
         model = cls(Contacts3D(**d["contacts"]), d["forces"], **d["options"])
+        if "mean_scales" in d:  # the scales it was built with (after add_data, not those of all its data)
+            model.mean_scales = d["mean_scales"].to(device=model._device, dtype=model.dtype)
+            model.backend = make_backend_3d(model.method_arg, model.hypers, model.train_contacts,
+                                            model._residual(model.train_contacts, model.train_forces),
+                                            tol=model.tol, max_harmonics=model.max_harmonics)
         model.hypers.load_state_dict(d["hypers"], strict=False)
         model.backend.refresh()
         if "hyper_posterior" in d:
@@ -417,4 +454,5 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
 
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, K={self.train_contacts.n_elements}, alpha_y={self.alpha_y!r}, " \
+               f"prior_mean={self.prior_mean!r}, " \
                f"backend={self.backend.describe()!r}"
