@@ -96,7 +96,10 @@ class TerrainFilter(nn.Module):
             needed, and the cost of a step grows with the samples held).
         capacity: initial room for samples per environment without a window (default 32).
         block_bytes: CPU only: environments are updated in blocks whose working set is about this size,
-            so that a step reads and writes each environment's state once from memory (default 8 MiB).
+            so that a step reads and writes each environment's state once from memory (default 32 MiB: the
+            estimate leaves out the step's temporaries, and each block costs a few hundred small operations;
+            on this project's 2-core EPYC (32 MiB L3), B = 4096, M = 10, window 16: 8 / 16 / 32 / 64 MiB gave
+            19.7k / 27.1k / 28.9k env-steps/s in float64 and 32.1k / 38.9k / 43.6k / 48.1k in float32).
 
     Example:
         >>> filt = irft.TerrainFilter(model, n_envs=4096, window=16)
@@ -122,7 +125,7 @@ class TerrainFilter(nn.Module):
     post_var: Tensor
 
     def __init__(self, model: InverseRFT, n_envs: int, window: int | None = None, capacity: int = 32,
-                 block_bytes: int = 8 << 20) -> None:
+                 block_bytes: int = 32 << 20) -> None:
         super().__init__()
         if not isinstance(model, InverseRFT):
             raise TypeError(f"model must be an irft_torch.InverseRFT (fitted), got {type(model).__name__}")
