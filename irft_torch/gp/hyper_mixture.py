@@ -6,6 +6,7 @@ NUTS) and keeps one backend per draw; every prediction averages over them with t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
@@ -20,7 +21,19 @@ if TYPE_CHECKING:
     from .backends.weight_space import FeatureStatistics
     from .surface import SurfaceOffset
 
-__all__ = ["HyperMixtureMixin"]
+__all__ = ["HyperMixtureMixin", "backends_at_draws"]
+
+
+def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, device, dtype) -> list:
+    """One backend per draw of ``hp`` (``make(draw hyperparameters)``), in eval mode: what a model with a
+    hyperparameter posterior predicts with, planar or 3-D. Refuses a posterior over other coordinates."""
+    spec = hyper_spec(hypers)
+    if list(hp.labels) != spec.labels:
+        raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
+    out = [make(draw_hypers(hypers, spec, th.to(device, dtype))) for th in hp.theta]
+    for b in out:
+        b.eval()
+    return out
 
 
 class HyperMixtureMixin(nn.Module):
@@ -92,18 +105,10 @@ class HyperMixtureMixin(nn.Module):
         return self.hyper_posterior
 
     def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
-        """Keep ``hp`` and build one backend per draw (sharing nothing with ``self.backend`` but the data)."""
+        """Keep ``hp`` and build one backend per draw (``_backend_at``: sharing what does not depend on them)."""
         self.hyper_posterior = hp
-        if hp is None:
-            self._draw_backends = None
-            return
-        spec = hyper_spec(self.hypers)
-        if list(hp.labels) != spec.labels:
-            raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
-        self._draw_backends = [self._backend_at(draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)))
-                               for th in hp.theta]
-        for b in self._draw_backends:
-            b.eval()
+        self._draw_backends = None if hp is None else \
+            backends_at_draws(self.hypers, hp, self._backend_at, self._device, self.dtype)
 
     def _backend_at(self, hypers: RFTHyperparameters) -> RFTBackend:
         """A backend like ``self.backend`` at other hyperparameters, sharing what does not depend on them:

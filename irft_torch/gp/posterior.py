@@ -36,12 +36,7 @@ class Posterior:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        _check_level(level)
-        if self.components is not None:
-            means, variances, weights = self.components
-            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
-                    mixture_quantile(0.5 + level / 2, means, variances, weights))
-        return normal_interval(self.mean, self.stddev, level)
+        return marginal_interval(self.mean, self.stddev, self.components, level)
 
     def to(self, *args, **kwargs) -> Posterior:
         """The same posterior with every tensor moved as ``Tensor.to(*args, **kwargs)`` moves it (a
@@ -142,6 +137,19 @@ def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts,
 def _check_level(level: float) -> None:
     if not 0 < level < 1:
         raise ValueError(f"level must be in (0, 1), got {level}")
+
+
+def marginal_interval(mean: Tensor, stddev: Tensor, components: tuple[Tensor, Tensor, Tensor] | None,
+                      level: float) -> tuple[Tensor, Tensor]:
+    """Central interval (lower, upper) at ``level`` of each marginal: Gaussian (``normal_interval``), or, with
+    ``components`` = (means, variances, weights) of a mixture over hyperparameter draws, the mixture CDF's
+    quantiles (``gp.mixture``). What ``Posterior.interval`` and the 3-D posterior's ``interval`` return."""
+    _check_level(level)
+    if components is not None:
+        means, variances, weights = components
+        return (mixture_quantile(0.5 - level / 2, means, variances, weights),
+                mixture_quantile(0.5 + level / 2, means, variances, weights))
+    return normal_interval(mean, stddev, level)
 
 
 def normal_interval(mean: Tensor, stddev: Tensor, level: float) -> tuple[Tensor, Tensor]:

@@ -17,7 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
+from ..hyper_mixture import backends_at_draws
+from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec, laplace, nuts
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
 
@@ -86,16 +87,8 @@ class HyperMixture3DMixin:
     def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
         """Keep ``hp`` and one backend per draw (sharing the data and hyperparameter-free factors)."""
         self.hyper_posterior = hp
-        if hp is None:
-            self._draw_backends = None
-            return
-        spec = hyper_spec(self.hypers)
-        if list(hp.labels) != spec.labels:
-            raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
-        self._draw_backends = [self.backend.with_hypers(draw_hypers(self.hypers, spec, th.to(self._device, self.dtype)))
-                               for th in hp.theta]
-        for b in self._draw_backends:
-            b.eval()
+        self._draw_backends = None if hp is None else \
+            backends_at_draws(self.hypers, hp, self.backend.with_hypers, self._device, self.dtype)
 
     def _weighted_backends(self) -> tuple[list[Backend3D], Tensor | None]:
         """The backends predictions average over and their weights (None: the one plug-in backend)."""

@@ -19,8 +19,7 @@ from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
-from ..mixture import mixture_quantile
-from ..posterior import _check_level, normal_interval
+from ..posterior import marginal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
@@ -53,12 +52,7 @@ class Posterior3D:
 
     def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
         """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        _check_level(level)
-        if self.components is not None:
-            means, variances, weights = self.components
-            return (mixture_quantile(0.5 - level / 2, means, variances, weights),
-                    mixture_quantile(0.5 + level / 2, means, variances, weights))
-        return normal_interval(self.mean, self.stddev, level)
+        return marginal_interval(self.mean, self.stddev, self.components, level)
 
     @classmethod
     def mixture(cls, means: Tensor, covariances: Tensor, weights: Tensor | None) -> Posterior3D:
