@@ -544,10 +544,11 @@ def main(argv=None) -> None:
     ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
     ap.add_argument("--study", default="3d", choices=["3d", "planar", "both"],
                     help="3d: every run at every slip angle (wheel_validation_3d.py); planar: slip angle 0 (below)")
-    ap.add_argument("--variants", default="map,physics",
-                    help="3-D: the I-RFT rows, comma-separated: map (alpha_y a map, zero mean: the constructor's "
-                         "default), constant (alpha_y one constant), physics (alpha_y a map, prior_mean='physics'); "
-                         "each adds its folds' fits (about 2 minutes here)")
+    ap.add_argument("--variants", default="",
+                    help="3-D: I-RFT rows beside the default (alpha_y a map, prior_mean='physics'), comma-separated: "
+                         "zero (every map zero-mean), constant (alpha_y one constant), physics_alpha_y (alpha_y's "
+                         "mean the scaled generic alpha_x(0, 0) too); each adds its folds' fits (about 3 minutes "
+                         "here)")
     ap.add_argument("--harmonics", type=int, default=8,
                     help="3-D: at most this many Fourier harmonics per angle (the spectral kernel is truncated there "
                          "when the lengthscales need more; the report gives the truncation)")

@@ -11,12 +11,15 @@ other levels (all trials):
 
 Predictors of the held-out runs:
 
-  I-RFT (alpha_y map)       ``irft.InverseRFT(contacts_3d, forces)`` (spectral backend, physical priors, MAP),
-                            alpha_y a third map over (beta, gamma)
-  I-RFT (alpha_y constant)  the same with alpha_y one constant (a rank-one term)
-  I-RFT (physics mean)      alpha_y a map, ``prior_mean="physics"``: the GPs model what the generic maps, one
-                            least-squares scale per map fitted on the training runs, do not explain (away from
-                            the training kinematics the maps fall back on that scaled generic medium, not zero)
+  I-RFT                     ``irft.InverseRFT(contacts_3d, forces)`` with its defaults (spectral backend here,
+                            physical priors, MAP): alpha_y a third map over (beta, gamma), ``prior_mean="physics"``
+                            (alpha_x and alpha_z's prior means Li et al.'s generic maps, one least-squares scale
+                            each fitted on the training runs, alpha_y's zero: away from the training kinematics
+                            the maps fall back on that scaled generic medium, not zero)
+  ``--variants`` adds rows:
+    zero                    every map zero-mean (``prior_mean="zero"``, the planar model's default)
+    constant                alpha_y one constant (a rank-one term), the default mean
+    physics_alpha_y         alpha_y's mean the scaled generic alpha_x(0, 0) too (``prior_mean="physics_alpha_y"``)
   generic x LS per axis     the generic Li et al. map in the same 3-D RFT (alpha_y = alpha_x(0, 0)) with one
                             least-squares scale per force axis fitted on the training runs
   others' RFT (files)       the data authors' 3-D RFT prediction (generic x 0.6, commanded speeds)
@@ -43,21 +46,23 @@ from irft_torch.gp.inverse3d.backends import SpectralFeatureBank
 from irft_torch.rft import FourierStressMap, contacts_3d, forces_3d
 
 AXES = ("longitudinal", "lateral", "vertical")
-IRFT, IRFT_C, IRFT_P = "I-RFT (alpha_y map)", "I-RFT (alpha_y constant)", "I-RFT (physics mean)"
+IRFT, IRFT_Z, IRFT_C, IRFT_PY = ("I-RFT", "I-RFT (zero mean)", "I-RFT (alpha_y constant)",
+                                 "I-RFT (alpha_y mean too)")
 GEN, AUTH, MEAN = "generic x LS per axis", "others' RFT (files)", "trivial (training mean)"
-ALL_VARIANTS = {"map": (IRFT, "map", "zero"), "constant": (IRFT_C, "constant", "zero"),
-                "physics": (IRFT_P, "map", "physics")}  # --variants: row, alpha_y, prior mean
-VARIANTS = {IRFT: ("map", "zero"), IRFT_P: ("map", "physics")}  # the rows run (set from --variants by ``run``)
+ALL_VARIANTS = {"default": (IRFT, "map", "physics"), "zero": (IRFT_Z, "map", "zero"),
+                "constant": (IRFT_C, "constant", "physics"),
+                "physics_alpha_y": (IRFT_PY, "map", "physics_alpha_y")}  # --variants: row, alpha_y, prior mean
+VARIANTS = {IRFT: ("map", "physics")}  # the rows run (set from --variants by ``run``)
 ROWS = (*VARIANTS, GEN, AUTH, MEAN)
 
 
 def _choose_variants(names: str) -> None:
-    """--variants "map,constant,physics" -> the I-RFT rows of this run (module-wide: a script)."""
+    """--variants "zero,constant" -> the I-RFT rows of this run, the default row first (module-wide: a script)."""
     global VARIANTS, ROWS
-    keys = [k.strip() for k in names.split(",") if k.strip()]
+    keys = ["default"] + [k.strip() for k in names.split(",") if k.strip() and k.strip() != "default"]
     bad = [k for k in keys if k not in ALL_VARIANTS]
-    if bad or not keys or "map" not in keys:
-        raise SystemExit(f"--variants {names!r}: choose from {sorted(ALL_VARIANTS)}, 'map' (the default row) included")
+    if bad:
+        raise SystemExit(f"--variants {names!r}: choose from {sorted(set(ALL_VARIANTS) - {'default'})}")
     VARIANTS = {ALL_VARIANTS[k][0]: ALL_VARIANTS[k][1:] for k in keys}
     ROWS = (*VARIANTS, GEN, AUTH, MEAN)
 SCHEMES = ("slip angle", "slip")
@@ -87,7 +92,7 @@ def warm_bank(d: dict, n: int) -> None:
             d["bank"]._full(FourierBasis(n, n), b, constant)
 
 
-def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "zero") -> InverseRFT3D:
+def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "physics") -> InverseRFT3D:
     i = torch.as_tensor(idx)
     model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, method="spectral", tol=args.tol,
                          features=d["bank"].rows(i), max_harmonics=args.harmonics, prior_mean=prior_mean)
@@ -190,12 +195,16 @@ def plot_maps(models: dict, out: Path) -> None:
                 ax.set_title(f"{wheel}: {name} {what}")
                 ax.set_xlabel("beta [deg]")
                 ax.set_ylabel("gamma [deg]")
+    means = "; ".join(f"{w}: generic x ({', '.join(f'{v:.2f}' for v in m.mean_scales.tolist())})"
+                      for w, m in models.items() if m.mean_scales is not None)
+    fig.suptitle("Posterior of the maps from all runs (the GP plus its prior mean" +
+                 (f", (s_x, s_y, s_z) = {means})" if means else ")"))
     fig.savefig(out / "wheel3d_maps.png", dpi=100)
     plt.close(fig)
 
 
 def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
-    _choose_variants(getattr(args, "variants", "map,physics"))
+    _choose_variants(getattr(args, "variants", ""))
     t0 = time.perf_counter()
     lines = ["## 3-D: every run, every slip angle (issue 31)", ""]
     models, summary = {}, {}
@@ -205,8 +214,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
         warm_bank(d, args.harmonics)
         results = {s: evaluate(d, s, args) for s in SCHEMES}
         plot_forces(d, results, wheel, out)
-        default = InverseRFT3D.__init__.__kwdefaults__["alpha_y"]
-        models[wheel] = fit(d, np.arange(len(d["runs"])), default, args)
+        default = InverseRFT3D.__init__.__kwdefaults__["alpha_y"], InverseRFT3D.__init__.__kwdefaults__["prior_mean"]
+        models[wheel] = fit(d, np.arange(len(d["runs"])), default[0], args, default[1])
         lines += [f"### {wheel} wheel ({len(d['runs'])} runs, {d['c'].n_elements} contact elements at most per run)",
                   ""]
         for scheme in SCHEMES:
@@ -223,16 +232,16 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
             lines += ["", "95 % coverage held out (noise included): " + "; ".join(
                 f"{k} {100 * cov[k][0]:.0f} / {100 * cov[k][1]:.0f} / {100 * cov[k][2]:.0f} %" for k in VARIANTS), ""]
     plot_maps(models, out)
-    row = IRFT if default == "map" else IRFT_C
-    lines += _bars(summary, row), ""
-    if IRFT_P in VARIANTS:
-        lines += _bars(summary, IRFT_P), ""
+    lines += _bars(summary, IRFT), ""
     lines += ["Spectral kernel truncation of the all-runs fits (relative, per map; at most "
               f"{args.harmonics} harmonics per angle): " + "; ".join(
                   f"{w}: {', '.join(f'{v:.1e}' for v in m.truncation_error().tolist())}"
                   for w, m in models.items()), ""]
-    lines += [f"Fitted hyperparameters (all runs, alpha_y={default!r}): " + "; ".join(
+    lines += [f"Fitted hyperparameters (all runs, alpha_y={default[0]!r}, prior_mean={default[1]!r}): " + "; ".join(
         f"{w}: {m.hyperparameters()}" for w, m in models.items()), "",
+        "Prior mean scales of the generic maps (s_x, s_y, s_z), all runs: " + "; ".join(
+            f"{w}: {', '.join(f'{v:.3f}' for v in m.mean_scales.tolist())}" for w, m in models.items()
+            if m.mean_scales is not None), "",
         f"Time: {time.perf_counter() - t0:.0f} s (2 CPU cores). Figures: wheel3d_forces_{{smooth,grouser}}.png, "
         "wheel3d_maps.png."]
     return "\n".join(lines)

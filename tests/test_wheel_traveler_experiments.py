@@ -33,6 +33,23 @@ def test_help_prints_the_description_and_defaults(name, last, capsys):
     assert last in text and "(default: experiments/results)" in text
 
 
+def test_the_3d_study_runs_the_constructors_defaults_first_and_names_its_variants():
+    """--variants: the default row (the 3-D constructor's alpha_y and prior mean) always runs first; the others are
+    added by name, an unknown name is refused with the choices."""
+    from irft_torch.gp.inverse3d import InverseRFT3D
+
+    w = _script("wheel_validation_3d")
+    defaults = InverseRFT3D.__init__.__kwdefaults__
+    w._choose_variants("")
+    assert list(w.VARIANTS.values()) == [(defaults["alpha_y"], defaults["prior_mean"])]
+    w._choose_variants("zero, physics_alpha_y")
+    assert list(w.VARIANTS.values()) == [(defaults["alpha_y"], defaults["prior_mean"]), ("map", "zero"),
+                                         ("map", "physics_alpha_y")]
+    assert w.ROWS[:3] == tuple(w.VARIANTS)
+    with pytest.raises(SystemExit, match="constant"):
+        w._choose_variants("physics")
+
+
 def test_solve_sinkage_interpolates_and_says_never():
     solve = _script("wheel_validation").solve_sinkage
     s = np.array([0.01, 0.02, 0.03])

@@ -1,4 +1,5 @@
-"""Sequential design: pick probes one after another, each the best given the ones before."""
+"""Sequential design: pick probes one after another, each the best given the ones before (planar candidates
+with a ``ProbeScorer`` or ``MixtureScorer``, ``rft.Contacts3D`` candidates with a ``ProbeScorer3D``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import torch
 
 from .region import Region, _as_contacts
 from .scoring import MixtureScorer, ProbeScorer
+from .scoring3d import ProbeScorer3D
+from .scoring3d import _as_contacts as _as_contacts_3d
 
 __all__ = ["DesignStep", "greedy_design"]
 
@@ -17,14 +20,15 @@ __all__ = ["DesignStep", "greedy_design"]
 @dataclass
 class DesignStep:
     """One pick of ``greedy_design``: the candidate's index, its score when picked, and the
-    integrated variance over the region once it is observed (2 = prior, 0 = known)."""
+    integrated variance over the region once it is observed (the prior: 2 planar, 3 in 3-D; 0 = known)."""
 
     index: int
     score: float
     integrated_variance: float
 
 
-def greedy_design(scorer: ProbeScorer | MixtureScorer, candidates: Sequence, budget: int, criterion: str = "variance",
+def greedy_design(scorer: ProbeScorer | MixtureScorer | ProbeScorer3D, candidates: Sequence, budget: int,
+                  criterion: str = "variance",
                   region: Region | None = None) -> list[DesignStep]:
     """Pick ``budget`` probes one after another, each the best given the ones before (the belief is
     conditioned on every pick; the posterior variance does not depend on the values). Neither the
@@ -35,7 +39,7 @@ def greedy_design(scorer: ProbeScorer | MixtureScorer, candidates: Sequence, bud
     """
     if int(budget) != budget or budget < 0:
         raise ValueError(f"budget must be an integer >= 0, got {budget}")
-    cands = [_as_contacts(c) for c in candidates]
+    cands = [(_as_contacts_3d if isinstance(scorer, ProbeScorer3D) else _as_contacts)(c) for c in candidates]
     if budget > len(cands):
         warnings.warn(f"budget {budget} is more than the {len(cands)} candidate(s): the design has {len(cands)} "
                       f"step(s)", stacklevel=2)

@@ -8,10 +8,11 @@ import torch
 from gp.test_inverse3d import _set, dense, turning_toe
 
 import irft_torch as irft
-from irft_torch.design import ProbeScorer, ProbeScorer3D, Region
+from irft_torch.design import ProbeScorer, ProbeScorer3D, Region, greedy_design
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
 from irft_torch.rft import Contacts3D
 
+F64 = torch.float64
 CASES = [(m, a) for m in ("observations", "pairs", "spectral") for a in ("map", "constant")]
 LS = 0.8 + torch.rand(3, 1, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
 OS = torch.tensor([0.09, 0.02, 0.2], dtype=torch.float64)
@@ -79,6 +80,30 @@ def test_more_of_a_probe_is_worth_more_and_ranking_follows_the_scores():
     assert [i for i, _ in scorer.rank([short, long], "variance")] == [1, 0]
     per_block = scorer.information_gain(long, per_block=True)
     torch.testing.assert_close(per_block.sum(), eig[1])
+
+
+def test_greedy_design_in_3d_follows_the_chain_rule_and_picks_the_best_each_time():
+    """greedy_design with a ProbeScorer3D: each pick is the best candidate given the ones before (checked by scoring
+    every remaining one on the conditioned scorer), and the EIG steps add up to the joint EIG of the picks taken as
+    one probe (the chain rule; the joint score does not go through the sequence)."""
+    c, f, model = _model("pairs", "map")
+    scorer = ProbeScorer3D.from_model(model)
+    cands = [turning_toe(T=4, seed=s)[0] for s in (11, 12, 13, 14)]
+    steps = greedy_design(scorer, cands, budget=3, criterion="eig")
+    assert len({s.index for s in steps}) == 3
+    current = scorer
+    for s in steps:
+        left = [i for i in range(4) if i not in [t.index for t in steps[:steps.index(s)]]]
+        scores = current.score([cands[i] for i in left], "eig")
+        assert left[int(scores.argmax())] == s.index
+        torch.testing.assert_close(torch.tensor(s.score, dtype=F64), scores.max().to(F64), rtol=1e-9, atol=1e-12)
+        current = current.condition(cands[s.index])
+        assert abs(s.integrated_variance - float(current.integrated_variance())) < 1e-9
+    joint = scorer.score([Contacts3D.cat([cands[s.index] for s in steps])], "eig")[0]
+    torch.testing.assert_close(torch.tensor(sum(s.score for s in steps), dtype=F64), joint.to(F64), rtol=1e-7,
+                               atol=1e-10)
+    with pytest.raises(TypeError, match="Contacts3D"):
+        greedy_design(scorer, [_planar()[0]], budget=1)
 
 
 def test_the_scorer_follows_the_model_and_refuses_what_does_not_apply():

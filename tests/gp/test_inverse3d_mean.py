@@ -24,9 +24,31 @@ def test_scales_are_recovered_from_forces_of_a_scaled_generic_medium():
     torch.testing.assert_close(shape_forces_3d(c) @ s, f, rtol=1e-10, atol=1e-12)
 
 
+def test_the_default_mean_scales_alpha_x_and_alpha_z_only():
+    """prior_mean="physics" (the 3-D default): forces of a scaled generic medium whose alpha_y is zero give back
+    its two scales exactly and s_y = 0, whatever the lateral forces; "physics_alpha_y" fits all three."""
+    c, _ = turning_toe(T=12)
+    f = forces_3d(FourierStressMap.generic(0.5, 0.6), c, alpha_y=0.0)
+    assert InverseRFT3D.__init__.__kwdefaults__["prior_mean"] == "physics"
+    m = InverseRFT3D(c, f)
+    torch.testing.assert_close(m.mean_scales, torch.tensor([0.5, 0.0, 0.6], dtype=F64), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(m.mean_forces(c), f, rtol=1e-10, atol=1e-12)
+    # with a lateral stress the two scales are still the least-squares fit of the x-z shapes alone (by hand)
+    f2 = forces_3d(FourierStressMap.generic(0.5, 0.6), c, alpha_y=0.1)
+    G = shape_forces_3d(c)[..., [0, 2]].reshape(-1, 2)
+    want = torch.linalg.lstsq(G, f2.reshape(-1, 1)).solution[:, 0]
+    s = InverseRFT3D(c, f2).mean_scales
+    torch.testing.assert_close(s[[0, 2]], want, rtol=1e-9, atol=1e-12)
+    assert float(s[1]) == 0.0
+    s_all = InverseRFT3D(c, f2, prior_mean="physics_alpha_y").mean_scales
+    torch.testing.assert_close(s_all, torch.tensor([0.5, 0.1 / GX00, 0.6], dtype=F64), rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="maps"):
+        fit_mean_scales(c, f, maps=(0, 3))
+
+
 def test_the_mean_map_is_the_scaled_generic_map():
     c, f = turning_toe(T=12)
-    m = InverseRFT3D(c, f, prior_mean="physics")
+    m = InverseRFT3D(c, f, prior_mean="physics_alpha_y")
     b = torch.linspace(-2.5, 2.5, 7, dtype=F64)  # outside the canonical square too: the mirror identity
     g = torch.linspace(-1.5, 1.5, 7, dtype=F64).flip(0)
     want = FourierStressMap.generic()(b, g)
@@ -40,7 +62,7 @@ def test_the_mean_map_is_the_scaled_generic_map():
 @pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
 def test_posterior_is_the_dense_reference_on_the_residual_plus_the_mean(method):
     c, f = turning_toe(T=10)
-    m = InverseRFT3D(c, f, method=method, prior_mean="physics", priors=None,
+    m = InverseRFT3D(c, f, method=method, prior_mean="physics_alpha_y", priors=None,
                      tol=1e-12 if method == "spectral" else 1e-7)
     ls = 0.8 + torch.rand(3, 1, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
     os, noise = torch.tensor([0.09, 0.02, 0.2], dtype=F64), torch.tensor([4e-4, 3e-4, 5e-4], dtype=F64)

@@ -36,7 +36,7 @@ def test_laplace_mixture_matches_brute_force_integration_over_alpha_y_variance(p
     it (one horizontal block). The model's mixture (Laplace, importance-reweighted) against the trapezoid rule on
     a grid of log s_y: the dense reference's marginal likelihood x T plus the prior's log density by hand."""
     c, f = problem
-    m = InverseRFT3D(c, f, method="observations")
+    m = InverseRFT3D(c, f, method="observations", prior_mean="zero")  # the dense reference's zero mean
     _set(m, *HYPERS)
     hp = m.fit_hyper_posterior("laplace", n_proposals=512, n_draws=None, free=["outputscale_y"],
                                generator=torch.Generator().manual_seed(0))
@@ -76,7 +76,7 @@ def test_laplace_mixture_matches_brute_force_integration_over_alpha_y_variance(p
     torch.testing.assert_close(gf.mean, want_f, atol=1e-3 * float(want_f.abs().max()), rtol=0)
     torch.testing.assert_close(gf.covariance, want_fc, rtol=2e-3, atol=1e-3 * float(want_fc.abs().max()))
     # the integration mattered: the plug-in's alpha_y variance is off the mixture's by more than the tolerance
-    plug = InverseRFT3D(c, f, method="observations")
+    plug = InverseRFT3D(c, f, method="observations", prior_mean="zero")
     plug.hypers.load_state_dict(m.hypers.state_dict())
     assert (plug.stress_map(*query()).variance[:, 1] / want_mc[:, 1, 1] - 1).abs().max() > 1e-2
     # the mixture's intervals are its CDF's quantiles: 2.5 % below the lower end, by the draws' own normals
@@ -136,8 +136,8 @@ def test_add_data_is_the_batch_posterior(problem, method):
     loss, force and map posteriors at the same hyperparameters, and the dense reference's."""
     c, f = problem
     tol = 1e-12 if method == "spectral" else 1e-7
-    batch = InverseRFT3D(c, f, method=method, tol=tol)
-    part = InverseRFT3D(c[:9], f[:9], method=method, tol=tol)
+    batch = InverseRFT3D(c, f, method=method, tol=tol, prior_mean="zero")
+    part = InverseRFT3D(c[:9], f[:9], method=method, tol=tol, prior_mean="zero")
     for m in (batch, part):
         _set(m, *HYPERS)
         m.backend.refresh()
@@ -161,7 +161,7 @@ def test_add_data_is_the_batch_posterior(problem, method):
 
 def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(problem):
     c, f = problem
-    m = InverseRFT3D(c[:9], f[:9], method="pairs")
+    m = InverseRFT3D(c[:9], f[:9], method="pairs", prior_mean="zero")
     _set(m, *HYPERS)
     hp = m.fit_hyper_posterior("laplace", n_proposals=32, n_draws=5, free=["outputscale_y", "noise_x"],
                                generator=torch.Generator().manual_seed(4))

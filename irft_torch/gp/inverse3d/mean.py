@@ -1,17 +1,23 @@
 r"""A physics prior mean for 3-D models: Li et al.'s generic maps, one scale per map fitted to the training forces.
 
-With ``InverseRFT(contacts_3d, forces, prior_mean="physics")`` the GPs model what the generic medium does not
+With ``InverseRFT(contacts_3d, forces, prior_mean=...)`` the GPs model what the generic medium does not
 explain: the prior mean of the maps is
 
     mu_x(beta, gamma) = s_x g_x(beta, gamma),   mu_y = s_y g_x(0, 0),   mu_z(beta, gamma) = s_z g_z(beta, gamma)
 
-with g the generic maps of Li et al. 2013 (``rft.FourierStressMap.generic()``, unscaled; alpha_y the generic
-alpha_x(0, 0), as the rover-wheel authors take it) and s = (s_x, s_y, s_z) the least-squares scales of the
+with g the generic maps of Li et al. 2013 (``rft.FourierStressMap.generic()``, unscaled; alpha_y's shape the
+generic alpha_x(0, 0), as the rover-wheel authors take it) and s = (s_x, s_y, s_z) the least-squares scales of the
 training forces on the forces those maps make (``shape_forces_3d``: each map's contribution at unit scale,
-(T, 3 axes, 3 maps)). The scales are fixed when the model is built (an empirical-Bayes mean; the minimum-norm
-solution where a map is not seen: a planar motion leaves s_y = 0) and kept in the model's file. Where the forces
-constrain the maps, the posterior follows the data whatever the mean; where they do not (a held-out kinematics,
-a locked wheel), it falls back on the scaled generic medium instead of zero.
+(T, 3 axes, 3 maps)). Which maps have a mean (``MEAN_MAPS``):
+
+- ``"physics"`` (the 3-D default): alpha_x and alpha_z, the two maps Li et al. measured; alpha_y keeps a zero
+  mean (s_y = 0: no experiment measured an out-of-plane stress map, and alpha_x(0, 0) is a convention);
+- ``"physics_alpha_y"``: all three, alpha_y's mean the scaled generic alpha_x(0, 0).
+
+The scales are fixed when the model is built (an empirical-Bayes mean; the minimum-norm solution where a map is
+not seen: a planar motion leaves s_y = 0) and kept in the model's file. Where the forces constrain the maps, the
+posterior follows the data whatever the mean; where they do not (a held-out kinematics, a locked wheel), it falls
+back on the scaled generic medium instead of zero.
 """
 
 from __future__ import annotations
@@ -22,7 +28,11 @@ from torch import Tensor
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import FourierStressMap
 
-__all__ = ["shape_forces_3d", "fit_mean_scales"]
+__all__ = ["MEAN_MAPS", "shape_forces_3d", "fit_mean_scales"]
+
+#: prior_mean -> the maps (0: alpha_x, 1: alpha_y, 2: alpha_z) whose mean is their scaled generic shape
+MEAN_MAPS: dict[str, tuple[int, ...]] = {"physics": (0, 2), "physics_alpha_y": (0, 1, 2)}
+
 
 def shape_forces_3d(contacts: Contacts3D) -> Tensor:
     """(T, 3, 3): the force on axis a (F_x, F_y, F_z; N) of map c (alpha_x, alpha_y, alpha_z) at unit scale of
@@ -40,9 +50,15 @@ def shape_forces_3d(contacts: Contacts3D) -> Tensor:
                         torch.stack([z, z, gz], -1)], -2)
 
 
-def fit_mean_scales(contacts: Contacts3D, forces: Tensor, shape_forces: Tensor | None = None) -> Tensor:
+def fit_mean_scales(contacts: Contacts3D, forces: Tensor, shape_forces: Tensor | None = None,
+                    maps: tuple[int, ...] = (0, 1, 2)) -> Tensor:
     """(3,) least-squares scales of (alpha_x, alpha_y, alpha_z)'s generic shapes on ``forces`` (T, 3) in N:
-    min |G s - F|^2 over every sample and axis (minimum norm where a map is not seen). ``shape_forces``:
-    ``shape_forces_3d(contacts)`` if already computed."""
+    min |G s - F|^2 over every sample and axis, s nonzero only on ``maps`` (``MEAN_MAPS[prior_mean]``; minimum
+    norm where a map is not seen). ``shape_forces``: ``shape_forces_3d(contacts)`` if already computed."""
     G = shape_forces_3d(contacts) if shape_forces is None else shape_forces
-    return torch.linalg.pinv(G.reshape(-1, 3)) @ forces.reshape(-1)
+    idx = list(maps)
+    if not idx or any(i not in (0, 1, 2) for i in idx) or len(set(idx)) != len(idx):
+        raise ValueError(f"maps must be distinct map indices in (0, 1, 2), got {maps!r}")
+    s = G.new_zeros(3)
+    s[idx] = torch.linalg.pinv(G[..., idx].reshape(-1, len(idx))) @ forces.reshape(-1)
+    return s

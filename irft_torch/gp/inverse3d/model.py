@@ -23,7 +23,7 @@ from ..posterior import marginal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
-from .mean import fit_mean_scales, shape_forces_3d
+from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
@@ -106,9 +106,12 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             zero-mean normal prior: a rank-one kernel term).
         method: "auto", "observations", "pairs" or "spectral" (``gp.inverse3d.backends``).
         priors: "physical" (default, ``gp.inverse3d.priors``) or None (the plain marginal likelihood).
-        prior_mean: "zero" (default) or "physics": the generic maps, one least-squares scale per map fitted to
-            these forces and then fixed (``gp.inverse3d.mean``; ``model.mean_scales``): where the forces do not
-            constrain a map, predictions fall back on the scaled generic medium instead of zero.
+        prior_mean: "physics" (default), "physics_alpha_y" or "zero". "physics": alpha_x and alpha_z's prior
+            means are Li et al.'s generic maps, one least-squares scale each fitted to these forces and then fixed
+            (``gp.inverse3d.mean``; ``model.mean_scales``), alpha_y's is zero: where the forces do not constrain a
+            map, predictions fall back on the scaled generic medium instead of zero. "physics_alpha_y": alpha_y
+            too (its shape the generic alpha_x(0, 0)). "zero": every map zero-mean (the planar model's default).
+            Why "physics" is the default: the rover wheels' held-out forces (docs/inverse3d.md).
         dtype: float64 (default) or float32. lengthscale: initial lengthscale. tol: spectral truncation bound.
         features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
             data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
@@ -130,7 +133,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
                  priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
                  tol: float = 1e-7, features=None, max_harmonics: int | None = None,
-                 hyper_posterior: str | None = None, prior_mean: str = "zero") -> None:
+                 hyper_posterior: str | None = None, prior_mean: str = "physics") -> None:
         super().__init__()
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
@@ -143,8 +146,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
-        if prior_mean not in ("zero", "physics"):
-            raise ValueError(f"prior_mean must be 'zero' or 'physics' for a 3-D model, got {prior_mean!r}")
+        if prior_mean not in ("zero", *MEAN_MAPS):
+            raise ValueError(f"prior_mean must be one of {('zero', *MEAN_MAPS)} for a 3-D model, got {prior_mean!r}")
         _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
@@ -162,8 +165,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         self.alpha_y, self.method_arg, self.priors, self.dtype = alpha_y, method, priors, dtype
         self.prior_mean = prior_mean
         # (3,) scales of the generic maps in the prior mean (None: a zero mean); the training rows' shape forces
-        G = shape_forces_3d(c) if prior_mean == "physics" else None
-        self.mean_scales: Tensor | None = None if G is None else fit_mean_scales(c, f, G)
+        G = shape_forces_3d(c) if prior_mean in MEAN_MAPS else None
+        self.mean_scales: Tensor | None = None if G is None else fit_mean_scales(c, f, G, MEAN_MAPS[prior_mean])
         self.hyper_method = hyper_posterior
         self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
         self._draw_backends: list[Backend3D] | None = None
@@ -434,7 +437,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             from ..model_file import ModelFileError
 
             raise ModelFileError(f"{path} is not a 3-D I-RFT model file ({FORMAT_3D})")
-        model = cls(Contacts3D(**d["contacts"]), d["forces"], **d["options"])
+        opts = {"prior_mean": "zero", **d["options"]}  # files from before prior_mean: a zero mean
+        model = cls(Contacts3D(**d["contacts"]), d["forces"], **opts)
         if "mean_scales" in d:  # the scales it was built with (after add_data, not those of all its data)
             model.mean_scales = d["mean_scales"].to(device=model._device, dtype=model.dtype)
             model.backend = make_backend_3d(model.method_arg, model.hypers, model.train_contacts,
