@@ -33,6 +33,7 @@ from .backends.pairs import PairsBackend
 from .backends.select import cheaper_space, estimated_costs
 from .backends.weight_space import WeightSpaceBackend, _DataFactor
 from .constraints import ScaledGreaterThan
+from .fit_control import adam
 from .hyperparameters import RFTHyperparameters
 from .kernels import AngleKernel
 
@@ -235,7 +236,7 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
         hypers = _StackedHyperparameters(models)
     backend = _stacked_backend(models, hypers)
     T = max(backend.n_samples, 1)
-    opt = torch.optim.Adam(list(hypers.parameters()), lr=lr)
+    opt = adam(list(hypers.parameters()), lr)
     histories: list[list[float]] = [[] for _ in range(B)]
     # each model's best iterate (loss, its raw hyperparameters, step), kept as its own fit keeps it (fit_control)
     best: list[tuple[float, dict | None, int]] = [(math.inf, None, -1)] * B

@@ -23,10 +23,20 @@ if TYPE_CHECKING:
     from .hyperparameters import RFTHyperparameters
     from .surface import SurfaceOffset
 
-__all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR"]
+__all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
+
+
+def adam(params: list[Tensor], lr: float) -> torch.optim.Adam:
+    """torch's Adam for a fit's few small hyperparameter tensors: the fused kernel where the device has one (one
+    call per step instead of a dozen per tensor: 0.19 against 0.50 ms per step for an ``InverseRFT``'s five
+    tensors on this project's CPU; the same steps to about 1 ulp), else the default implementation."""
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, ValueError):
+        return torch.optim.Adam(params, lr=lr)
 
 
 class FitDivergedWarning(UserWarning):
@@ -68,6 +78,17 @@ class FitControlMixin:
         if self.surface is not None:
             out["surface.offset"] = self.surface.offset.detach().clone()
         return out
+
+    def _kept_state(self, best: tuple, named: list, kept: list) -> tuple:
+        """``best`` (loss, {} or None, step) of a fit loop that copied the best iterate's parameter values into
+        ``kept`` (in the order of ``named``: (name, parameter)) -> (loss, state, step) with the state in
+        ``_snapshot``'s form (the hyperparameters' full state dict, their parameters at the best iterate)."""
+        value, state, step = best
+        if state is None:
+            return best
+        full = {k: v.detach().clone() for k, v in self.hypers.state_dict().items()}
+        full.update((name, v) for (name, _), v in zip(named, kept))
+        return value, full, step
 
     def _keep_best(self, best: tuple, history: list[float], lr: float, quiet: bool = False) -> None:
         """Restore the best iterate where the loss ended above it (by 1e-3 of it, or at NaN / inf), and warn

@@ -18,7 +18,7 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning
+from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning, adam
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
@@ -356,9 +356,12 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
-        params = list(self.hypers.parameters()) + ([] if self.surface is None else [self.surface.offset])
-        opt = torch.optim.Adam(params, lr=lr)
+        named = list(self.hypers.named_parameters()) + ([] if self.surface is None else
+                                                          [("surface.offset", self.surface.offset)])
+        params = [p for _, p in named]
+        opt = adam(params, lr)
         history: list[float] = []
+        kept = [p.detach().clone() for p in params]  # the best iterate's values, copied in place (cheap per step)
         best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
@@ -376,7 +379,10 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                     history.append(value)
                     break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
                 if value < best[0]:
-                    best = (value, self._snapshot(), step)
+                    with torch.no_grad():
+                        for k, p in zip(kept, params):
+                            k.copy_(p)
+                    best = (value, {}, step)
                 if loss is not None:
                     loss.backward()
                 opt.step()
@@ -390,7 +396,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
                           FitInterruptedWarning, stacklevel=2)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
-            self._keep_best(best, history, lr, quiet=True)
+            self._keep_best(self._kept_state(best, named, kept), history, lr, quiet=True)
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
                 f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
@@ -402,7 +408,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                 self._rebuild_backend()
             bar.close()
             self.eval()
-        self._keep_best(best, history, lr)
+        self._keep_best(self._kept_state(best, named, kept), history, lr)
         if self.surface is None and self.backend.stale():
             self._adapt()
         self.loss_history.extend(history)

@@ -17,6 +17,7 @@ from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
+from ..fit_control import adam
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..posterior import marginal_interval
@@ -229,7 +230,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         params = [p for p in self.hypers.parameters() if p.requires_grad]
-        opt = torch.optim.Adam(params, lr=lr)
+        opt = adam(params, lr)
         history: list[float] = []
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT 3-D fit ({self.method})", disable=not progress, leave=False)
         try:
