@@ -23,7 +23,8 @@ if TYPE_CHECKING:
     from .hyperparameters import RFTHyperparameters
     from .surface import SurfaceOffset
 
-__all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam"]
+__all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
+           "copy_into"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
@@ -37,6 +38,15 @@ def adam(params: list[Tensor], lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr, fused=True)
     except (RuntimeError, ValueError):
         return torch.optim.Adam(params, lr=lr)
+
+
+def copy_into(kept: list[Tensor], params: list[Tensor]) -> dict:
+    """The fit loop's best iterate: the parameters' values copied into ``kept`` in place (no allocation per step).
+    Returns {} (the marker ``_kept_state`` turns into the full state at the end)."""
+    with torch.no_grad():
+        for k, p in zip(kept, params):
+            k.copy_(p)
+    return {}
 
 
 class FitDivergedWarning(UserWarning):

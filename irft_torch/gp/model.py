@@ -18,7 +18,7 @@ from tqdm.auto import tqdm
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning, adam
+from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning, adam, copy_into
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
@@ -356,12 +356,10 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
-        named = list(self.hypers.named_parameters()) + ([] if self.surface is None else
-                                                          [("surface.offset", self.surface.offset)])
+        surface = [] if self.surface is None else [("surface.offset", self.surface.offset)]
+        named = [*self.hypers.named_parameters(), *surface]
         params = [p for _, p in named]
-        opt = adam(params, lr)
-        history: list[float] = []
-        kept = [p.detach().clone() for p in params]  # the best iterate's values, copied in place (cheap per step)
+        opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
         best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
@@ -379,10 +377,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                     history.append(value)
                     break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
                 if value < best[0]:
-                    with torch.no_grad():
-                        for k, p in zip(kept, params):
-                            k.copy_(p)
-                    best = (value, {}, step)
+                    best = (value, copy_into(kept, params), step)
                 if loss is not None:
                     loss.backward()
                 opt.step()

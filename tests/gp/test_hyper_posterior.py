@@ -9,9 +9,10 @@ from scipy.optimize import brentq
 from scipy.stats import norm
 
 import irft_torch as irft
-from irft_torch.gp.hyper_posterior import _student_t, gpd_shape, hyper_spec, log_posterior, pareto_khat, point_mass
+from irft_torch.gp.hyper_posterior import _student_t, hyper_spec, log_posterior, point_mass
 from irft_torch.gp.inputs import _data_scales
 from irft_torch.gp.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.pareto import gpd_shape, pareto_khat
 from irft_torch.gp.priors import LENGTHSCALE_CENTRE, LENGTHSCALE_LOG_SD, NOISE_LOG_SD, OUTPUTSCALE_LOG_SD, prior_centres
 
 from .dense_reference import axis_reference
