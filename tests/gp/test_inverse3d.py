@@ -215,3 +215,32 @@ def test_bad_input():
     empty = Contacts3D(c.beta, c.gamma, c.weight_x * 0, c.weight_y * 0, c.weight_z * 0)
     with pytest.raises(ValueError, match="no element"):
         InverseRFT3D(empty, f)
+
+
+def test_a_diverging_3d_fit_keeps_its_best_iterate_and_says_so():
+    """lr far too large: the loss climbs; the model ends at the best step's hyperparameters (its loss is the history's
+    minimum), with a FitDivergedWarning naming a smaller lr. A NaN loss stops the fit at once, best iterate kept."""
+    from irft_torch.gp.fit_control import FitDivergedWarning
+
+    c, f = turning_toe(T=12)
+    m = InverseRFT3D(c, f, method="pairs")
+    with pytest.warns(FitDivergedWarning, match="try lr = 0.5"):
+        hist = m.fit(n_iter=40, lr=5.0, progress=False)
+    assert max(hist) > min(hist) + 0.1
+    torch.testing.assert_close(m.loss().detach(), torch.tensor(min(hist), dtype=torch.float64), rtol=1e-9, atol=1e-12)
+
+    m = InverseRFT3D(c, f, method="pairs")
+    real, calls = m.backend.loss, []
+
+    def poisoned():
+        calls.append(1)
+        out = real()
+        return out * float("nan") if len(calls) == 6 else out
+
+    m.backend.loss = poisoned
+    with pytest.warns(FitDivergedWarning, match="to nan"):
+        hist = m.fit(n_iter=20, lr=0.05, progress=False)
+    assert len(hist) == 6 and math.isnan(hist[-1])
+    m.backend.loss = real
+    torch.testing.assert_close(m.loss().detach(), torch.tensor(min(hist[:5]), dtype=torch.float64), rtol=1e-9,
+                               atol=1e-12)

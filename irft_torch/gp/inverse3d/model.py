@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
-from ..fit_control import adam
+from ..fit_control import FitDivergedWarning, adam, copy_into
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..posterior import marginal_interval
@@ -226,26 +226,44 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         return self.backend.loss()
 
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
-        """Adam on the exact marginal likelihood (MAP with the priors). Ctrl-C keeps what was learned."""
+        """Adam on the exact marginal likelihood (MAP with the priors). Ctrl-C keeps what was learned. As the planar
+        fit: the model ends at the best iterate the loss saw (the loss rose above it, or turned NaN or inf: the
+        fit stops there), and a rise of more than 0.1 (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller
+        lr."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         params = [p for p in self.hypers.parameters() if p.requires_grad]
-        opt = adam(params, lr)
-        history: list[float] = []
+        opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]
+        best = (math.inf, -1)  # loss, step of the values in ``kept``
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT 3-D fit ({self.method})", disable=not progress, leave=False)
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
                 loss = self.backend.loss()
+                value = loss.item()
+                history.append(value)
+                if not math.isfinite(value):
+                    break  # NaN or inf: the best iterate is restored below
+                if value < best[0]:
+                    copy_into(kept, params)
+                    best = (value, step)
                 loss.backward()
                 opt.step()
-                history.append(loss.item())
                 if step % 10 == 9 and self.backend.stale():
                     self.backend.refresh()
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
         finally:
             bar.close()
+        last = history[-1] if history else math.inf
+        if best[1] >= 0 and not (math.isfinite(last) and last <= best[0] + 1e-3 * max(1.0, abs(best[0]))):
+            copy_into(params, kept)
+            self.backend.refresh()
+            if not (math.isfinite(last) and last - best[0] <= max(0.1, 0.1 * abs(best[0]))):
+                warnings.warn(f"the fit diverged: the loss rose from {best[0]:.4g} (step {best[1] + 1}) to {last:.4g} "
+                              f"(step {len(history)}); the model keeps step {best[1] + 1}'s hyperparameters. lr = "
+                              f"{lr:g} is too large for these data: try lr = {lr / 10:g}", FitDivergedWarning,
+                              stacklevel=2)
         if self.backend.stale():
             self.backend.refresh()
         if self.hyper_method != "map":
