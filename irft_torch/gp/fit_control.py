@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from .surface import SurfaceOffset
 
 __all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
-           "copy_into"]
+           "copy_into", "divergence"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
@@ -40,13 +40,28 @@ def adam(params: list[Tensor], lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
-def copy_into(kept: list[Tensor], params: list[Tensor]) -> dict:
-    """The fit loop's best iterate: the parameters' values copied into ``kept`` in place (no allocation per step).
-    Returns {} (the marker ``_kept_state`` turns into the full state at the end)."""
+def copy_into(kept: list[Tensor], params: list[Tensor]) -> None:
+    """The fit loop's best iterate: the parameters' values copied into ``kept`` in place (no allocation per step)."""
     with torch.no_grad():
         for k, p in zip(kept, params):
             k.copy_(p)
-    return {}
+
+
+def divergence(best: float, step: int, history: list[float], lr: float) -> tuple[bool, str | None]:
+    """A fit that ended above its best iterate (loss ``best`` at ``step``, 0-based): (restore the best iterate?,
+    the ``FitDivergedWarning`` message or None). Restore where the last loss is above the best by more than 1e-3
+    of it, or NaN / inf; warn where it rose by more than 0.1 (or 10 %): the lr was too large. The planar and the
+    3-D fit share it."""
+    if step < 0 or not history:
+        return False, None
+    last = history[-1]
+    if math.isfinite(last) and last <= best + 1e-3 * max(1.0, abs(best)):
+        return False, None
+    if math.isfinite(last) and last - best <= max(0.1, 0.1 * abs(best)):
+        return True, None
+    return True, (f"the fit diverged: the loss rose from {best:.4g} (step {step + 1}) to {last:.4g} (step "
+                  f"{len(history)}); the model keeps step {step + 1}'s hyperparameters. lr = {lr:g} is too large "
+                  f"for these data: try lr = {lr / 10:g}")
 
 
 class FitDivergedWarning(UserWarning):
@@ -89,25 +104,23 @@ class FitControlMixin:
             out["surface.offset"] = self.surface.offset.detach().clone()
         return out
 
-    def _kept_state(self, best: tuple, named: list, kept: list) -> tuple:
-        """``best`` (loss, {} or None, step) of a fit loop that copied the best iterate's parameter values into
-        ``kept`` (in the order of ``named``: (name, parameter)) -> (loss, state, step) with the state in
-        ``_snapshot``'s form (the hyperparameters' full state dict, their parameters at the best iterate)."""
-        value, state, step = best
-        if state is None:
-            return best
+    def _kept_state(self, best: tuple[float, int], named: list, kept: list) -> tuple:
+        """(loss, step) of a fit loop that copied the best iterate's parameter values into ``kept`` (in the order
+        of ``named``: (name, parameter)) -> (loss, state, step) with the state in ``_snapshot``'s form (the
+        hyperparameters' full state dict, their parameters at the best iterate; None before any step)."""
+        value, step = best
+        if step < 0:
+            return value, None, step
         full = {k: v.detach().clone() for k, v in self.hypers.state_dict().items()}
         full.update((name, v) for (name, _), v in zip(named, kept))
         return value, full, step
 
     def _keep_best(self, best: tuple, history: list[float], lr: float, quiet: bool = False) -> None:
-        """Restore the best iterate where the loss ended above it (by 1e-3 of it, or at NaN / inf), and warn
-        when the loss rose by more than 0.1 (or 10 %): the lr was too large."""
+        """Restore the best iterate (loss, state, step) where the loss ended above it and warn where it diverged
+        (``divergence``)."""
         value, state, step = best
-        if state is None or not history:
-            return
-        last = history[-1]
-        if math.isfinite(last) and last <= value + 1e-3 * max(1.0, abs(value)):
+        restore, message = divergence(value, step if state is not None else -1, history, lr)
+        if not restore:
             return
         with torch.no_grad():
             self.hypers.load_state_dict({k: v for k, v in state.items() if k != "surface.offset"})
@@ -115,10 +128,8 @@ class FitControlMixin:
                 self.surface.offset.copy_(state["surface.offset"])
         if self.surface is not None:
             self._rebuild_backend()
-        if not quiet and not (math.isfinite(last) and last - value <= max(0.1, 0.1 * abs(value))):
-            warnings.warn(f"the fit diverged: the loss rose from {value:.4g} (step {step + 1}) to {last:.4g} (step "
-                          f"{len(history)}); the model keeps step {step + 1}'s hyperparameters. lr = {lr:g} is too "
-                          f"large for these data: try lr = {lr / 10:g}", FitDivergedWarning, stacklevel=3)
+        if message is not None and not quiet:
+            warnings.warn(message, FitDivergedWarning, stacklevel=3)
 
     def _adapt(self) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or

@@ -360,7 +360,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         named = [*self.hypers.named_parameters(), *surface]
         params = [p for _, p in named]
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
-        best: tuple[float, dict | None, int] = (math.inf, None, -1)  # loss, hyperparameters, step
+        best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
         bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
         step = 0
         self.backend.in_fit = True
@@ -377,7 +377,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                     history.append(value)
                     break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
                 if value < best[0]:
-                    best = (value, copy_into(kept, params), step)
+                    copy_into(kept, params)
+                    best = (value, step)
                 if loss is not None:
                     loss.backward()
                 opt.step()

@@ -34,7 +34,9 @@ def gpd_shape(x: Tensor, prior_k: float = 10.0) -> float:
     Zhang & Stephens (2009, Technometrics 51:316), the posterior mean of theta = -k / sigma on their grid of
     30 + sqrt(n) points weighted by the profile likelihood, then k = mean(log1p(-theta x)), shrunk toward 0.5
     with weight ``prior_k`` as PSIS does (Vehtari et al. 2024, appendix; the R package loo's ``gpdfit``).
-    No iterative fit: a few vectorised passes, where a maximum-likelihood fit takes hundreds of evaluations."""
+    No iterative fit: a few vectorised passes, where a maximum-likelihood fit takes hundreds of evaluations. pyro's
+    ``pyro.ops.stats.fit_generalized_pareto`` is the same estimator; pyro is optional here (the ``bayes`` extra),
+    so the library keeps its own and the tests check it against pyro's where pyro is installed."""
     x = x.double().sort().values
     n = x.numel()
     m = 30 + int(math.sqrt(n))

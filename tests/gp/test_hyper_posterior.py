@@ -287,6 +287,17 @@ def test_pareto_shape_recovers_known_shapes_and_agrees_with_scipys_maximum_likel
     assert abs(k - genpareto.fit(x, floc=0)[0]) < 0.02
 
 
+def test_pareto_shape_is_pyros_implementation_of_the_same_estimator():
+    """pyro's fit_generalized_pareto (Zhang & Stephens with PSIS' shrinkage, written independently) on the same
+    draws: the same k to rounding."""
+    stats = pytest.importorskip("pyro.ops.stats", reason="pyro (the bayes extra) not installed")
+    from scipy.stats import genpareto
+
+    for shape, n in ((0.3, 25), (0.7, 500), (-0.1, 3000)):
+        x = torch.tensor(genpareto.rvs(shape, scale=0.5, size=n, random_state=4))
+        assert gpd_shape(x) == pytest.approx(stats.fit_generalized_pareto(x)[0], rel=1e-9, abs=1e-12)
+
+
 def test_pareto_khat_of_importance_weights_tells_light_from_heavy_tails():
     """Importance weights p/q of a normal target: a wider normal proposal gives bounded weights (k-hat well below
     0.5), a narrower one weights with a Pareto tail of shape 1 - sigma_q^2 / sigma_p^2 = 0.75 here (the ratio of

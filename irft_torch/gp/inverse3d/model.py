@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
-from ..fit_control import FitDivergedWarning, adam, copy_into
+from ..fit_control import FitDivergedWarning, adam, copy_into, divergence
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..posterior import marginal_interval
@@ -255,15 +255,12 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
         finally:
             bar.close()
-        last = history[-1] if history else math.inf
-        if best[1] >= 0 and not (math.isfinite(last) and last <= best[0] + 1e-3 * max(1.0, abs(best[0]))):
+        restore, message = divergence(*best, history, lr)
+        if restore:
             copy_into(params, kept)
             self.backend.refresh()
-            if not (math.isfinite(last) and last - best[0] <= max(0.1, 0.1 * abs(best[0]))):
-                warnings.warn(f"the fit diverged: the loss rose from {best[0]:.4g} (step {best[1] + 1}) to {last:.4g} "
-                              f"(step {len(history)}); the model keeps step {best[1] + 1}'s hyperparameters. lr = "
-                              f"{lr:g} is too large for these data: try lr = {lr / 10:g}", FitDivergedWarning,
-                              stacklevel=2)
+        if message is not None:
+            warnings.warn(message, FitDivergedWarning, stacklevel=2)
         if self.backend.stale():
             self.backend.refresh()
         if self.hyper_method != "map":
