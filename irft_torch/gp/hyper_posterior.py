@@ -19,6 +19,8 @@ value itself would add sum(theta)). Without priors (``priors=None``) the prior i
   Gaussian, weights p(theta | F) / q(theta), self-normalised. Reported: the effective sample size
   (sum w)^2 / sum w^2 and Pareto k-hat of the largest weights (Vehtari et al., PSIS: k-hat < 0.7
   means the weights are reliable). The draws kept for prediction are a systematic resample.
+  Where the approximation does not hold (a hyperparameter at a wall, a flat direction, unreliable weights)
+  ``gp.laplace_guard`` holds, caps or warns (``HyperPosteriorWarning``) instead of a silently wrong mixture.
 - ``nuts``: pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install pyro-ppl``);
   the reference and the fallback when the Laplace weights are unreliable.
 
@@ -37,7 +39,9 @@ import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
+from . import laplace_guard as guard
 from .hyper_density import closed_form_log_posterior, log_posterior_batch
+from .importance import _merge, _student_t, _systematic
 from .pareto import pareto_khat
 
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
@@ -293,55 +297,6 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
     return theta, H, lp
 
 
-def _generator_device(generator: torch.Generator | None) -> torch.device:
-    """Where random numbers are drawn: the generator's device (the CPU's default generator when None), then moved
-    to the data: a GPU model draws the CPU's proposals, and a CPU ``generator`` works with either."""
-    return torch.device("cpu") if generator is None else generator.device
-
-
-def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: bool = True) -> tuple[Tensor, Tensor]:
-    """n draws (n, P) of a multivariate Student-t and their log density (n,). ``qmc``: from a scrambled
-    Sobol sequence in P + 1 dimensions (normals by the inverse normal CDF, the chi-square's inverse CDF
-    2 P^-1(df / 2, u) by scipy.special, lighter to import than scipy.stats): importance-sampling estimates then
-    converge about as 1/n instead of 1/sqrt(n)."""
-    from scipy.special import gammaincinv
-
-    P = mean.numel()
-    L = torch.linalg.cholesky(cov)
-    if qmc:
-        seed = int(torch.randint(0, 2**31 - 1, (), generator=generator, device=_generator_device(generator)))
-        u = torch.quasirandom.SobolEngine(P + 1, scramble=True, seed=seed).draw(n, dtype=torch.float64)
-        u = u.clamp(1e-12, 1 - 1e-12)
-        z = (math.sqrt(2) * torch.special.erfinv(2 * u[:, :P] - 1)).to(mean)
-        v = torch.as_tensor(2 * gammaincinv(df / 2, u[:, P].numpy()), dtype=mean.dtype, device=mean.device)
-    else:
-        gd = _generator_device(generator)
-        z = torch.randn(n, P, generator=generator, dtype=mean.dtype, device=gd).to(mean.device)
-        v = torch.randn(n, int(df), generator=generator, dtype=mean.dtype, device=gd).pow(2).sum(-1).to(mean.device)
-    x = mean + (z @ L.mT) * (df / v).sqrt()[:, None]
-    d = torch.linalg.solve_triangular(L, (x - mean).mT, upper=False).pow(2).sum(0)
-    logdet = 2 * torch.log(torch.diagonal(L)).sum()
-    logq = (math.lgamma((df + P) / 2) - math.lgamma(df / 2) - 0.5 * P * math.log(df * math.pi) - 0.5 * logdet
-            - 0.5 * (df + P) * torch.log1p(d / df))
-    return x, logq
-
-
-def _systematic(weights: Tensor, n: int, generator) -> Tensor:
-    """Indices (n,) of a systematic resample of ``weights`` (low variance: each index appears
-    floor(n w) or ceil(n w) times)."""
-    u0 = torch.rand((), generator=generator, dtype=weights.dtype, device=_generator_device(generator))
-    u0 = u0.to(weights.device)
-    pos = (u0 + torch.arange(n, dtype=weights.dtype, device=weights.device)) / n
-    return torch.searchsorted(weights.cumsum(0).clamp_max(1.0), pos).clamp_max(len(weights) - 1)
-
-
-def _merge(theta: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Identical draws merged, their weights added."""
-    uniq, inv = torch.unique(theta, dim=0, return_inverse=True)
-    w = weights.new_zeros(uniq.shape[0]).index_add_(0, inv, weights)
-    return uniq, w
-
-
 def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None, max_iter: int = 100,
             df: float = 30.0, inflate: float = 1.5, qmc: bool = True,
             generator: torch.Generator | None = None) -> HyperPosterior:
@@ -366,36 +321,44 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     """
     spec = hyper_spec(backend.hypers)
     P = spec.size
-    mask = _free_mask(spec, free)
+    mask = _free_mask(spec, free).clone()
     theta0 = spec.theta(backend.hypers)
-    idx = mask.nonzero()[:, 0].to(theta0.device)
-
-    def full(sub: Tensor) -> Tensor:
-        return theta0.index_put((idx,), sub) if sub.ndim == 1 else theta0.expand(sub.shape[0], P).index_put(
-            (torch.arange(sub.shape[0], device=sub.device)[:, None], idx[None]), sub)
-
-    sub_spec = _SubSpec(spec, theta0, idx)
-    mode_sub, H, lp_mode = _polish(backend, sub_spec, theta0[idx], max_iter)
-    mode = full(mode_sub)
+    held: list[str] = []
+    for _ in range(3):  # polish; coordinates at a wall are held there and the rest polished again (laplace_guard)
+        idx = mask.nonzero()[:, 0].to(theta0.device)
+        sub_spec = _SubSpec(spec, theta0, idx)
+        mode_sub, H, lp_mode = _polish(backend, sub_spec, theta0[idx], max_iter)
+        cov = guard.proposal_covariance(H)
+        at_wall = guard.walls(lambda x: _log_posterior_many(backend, sub_spec, x), mode_sub, cov.diagonal().sqrt())
+        theta0 = sub_spec.full(mode_sub)
+        if not at_wall.any():
+            break
+        held += [sub_spec.labels[int(i)] for i in at_wall.nonzero()[:, 0]]
+        mask[idx[at_wall].cpu()] = False
+        if not mask.any():
+            break
+    mode = theta0
     spec.load(backend.hypers, mode)
-    cov = torch.linalg.inv(_positive_definite(H))
-    cov = 0.5 * (cov + cov.mT)
+    if not mask.any():  # every coordinate at a wall: nothing to marginalise
+        return _kept_plug_in(spec, mode, held, "every hyperparameter is at a wall")
     x, logq = _student_t(mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
-    with torch.no_grad():
-        logp = log_posterior_batch(backend, sub_spec, x)  # one call for all (closed form), else one by one
-        logp = torch.stack([log_posterior(backend, sub_spec, xi) for xi in x]) if logp is None else logp
+    logp = _log_posterior_many(backend, sub_spec, x)
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
-    logw = logp - logq
+    logw = torch.where(guard.possible(sub_spec.full(x), guard.lower_bounds(spec)), logp - logq,
+                       torch.full_like(logp, -math.inf))
     ok = torch.isfinite(logw)
     if not ok.any():
-        raise RuntimeError("every Laplace proposal has zero posterior density: the hyperparameter posterior is far "
-                           "from Gaussian here; use hyper_posterior='nuts' or 'map'")
+        return _kept_plug_in(spec, mode, held, f"every one of the {int(n_proposals)} Laplace proposals is an "
+                                               f"impossible setting")
     lw = torch.where(ok, logw - logw[ok].max(), torch.full_like(logw, -math.inf))
     w = lw.exp()
     w = w / w.sum()
     ess = float(1 / w.pow(2).sum())
     khat = pareto_khat(logw)
-    thetas = full(x)
+    message = guard.reliability_message(ess, khat, int(n_proposals), held)
+    if message:
+        warnings.warn(message, guard.HyperPosteriorWarning, stacklevel=3)
+    thetas = sub_spec.full(x)
     if n_draws is not None and n_draws < len(w):
         pick = _systematic(w, int(n_draws), generator)
         thetas, w = _merge(thetas[pick], torch.full((len(pick),), 1 / len(pick), dtype=w.dtype, device=w.device))
@@ -405,8 +368,24 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     full_cov = theta0.new_zeros(P, P)
     full_cov[idx[:, None], idx[None, :]] = cov
     return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
-                          int(n_proposals), {"log_posterior_mode": float(lp_mode),
+                          int(n_proposals), {"log_posterior_mode": float(lp_mode), "held": held,
                                              "hessian": H.detach() if bool(mask.all()) else None})
+
+
+def _log_posterior_many(backend, spec: HyperSpec, x: Tensor) -> Tensor:
+    """log p at each row of x (n, P): one call where the backend has the closed form, else one by one."""
+    with torch.no_grad():
+        logp = log_posterior_batch(backend, spec, x)
+        return torch.stack([log_posterior(backend, spec, xi) for xi in x]) if logp is None else logp
+
+
+def _kept_plug_in(spec: HyperSpec, mode: Tensor, held: list[str], why: str) -> HyperPosterior:
+    """A point mass at the polished hyperparameters (the plug-in), with a ``HyperPosteriorWarning`` saying why."""
+    warnings.warn(f"{why}: the hyperparameter posterior is far from Gaussian here; predictions use the fitted "
+                  f"hyperparameters (the plug-in). hyper_posterior='nuts' samples it (pip install pyro-ppl)",
+                  guard.HyperPosteriorWarning, stacklevel=4)
+    return HyperPosterior("laplace", spec.labels, mode.detach()[None], mode.new_ones(1), mode.detach(), None,
+                          1.0, float("nan"), 0, {"held": held or list(spec.labels), "plug_in": why})
 
 
 class _SubSpec(HyperSpec):

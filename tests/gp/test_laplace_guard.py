@@ -1,0 +1,125 @@
+"""Where the Laplace approximation of the hyperparameter posterior fails (gp.laplace_guard): a noise driven to its
+wall by noise-free forces, a direction the plain likelihood leaves flat, proposals that are all impossible; each
+against a hand-derived case, the truth or the plug-in."""
+
+import math
+
+import pytest
+import torch
+
+import irft_torch as irft
+import irft_torch.gp.hyper_posterior as hyper_posterior
+from irft_torch.gp import laplace_guard as guard
+from irft_torch.rft import FourierStressMap
+
+from .test_backends_vs_dense import data
+
+F64 = torch.float64
+TRUTH = FourierStressMap.generic(0.452, 0.417)
+
+
+# ---- the pieces, by hand ------------------------------------------------------------------------------
+def test_proposal_covariance_floors_flat_and_convex_directions_by_hand():
+    R = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(0), dtype=F64))[0]
+    lam = torch.tensor([4.0, 1e-9, -2.0], dtype=F64)  # curved, flat, convex
+    cov = guard.proposal_covariance(R @ torch.diag(lam) @ R.T)
+    expected = R @ torch.diag(torch.tensor([0.25, guard.MAX_LOG_SD**2, guard.MAX_LOG_SD**2], dtype=F64)) @ R.T
+    torch.testing.assert_close(cov, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_walls_are_the_coordinates_one_sd_from_an_impossible_setting():
+    def log_p(x):  # a Gaussian, impossible below -1 in coordinate 0 and above 3 in coordinate 2
+        lp = -0.5 * x.pow(2).sum(-1)
+        return torch.where((x[:, 0] < -1) | (x[:, 2] > 3), torch.full_like(lp, -math.inf), lp)
+
+    mode = torch.zeros(3, dtype=F64)
+    assert guard.walls(log_p, mode, torch.tensor([2.0, 2.0, 2.0], dtype=F64)).tolist() == [True, False, False]
+    assert guard.walls(log_p, mode, torch.tensor([0.5, 2.0, 4.0], dtype=F64)).tolist() == [False, False, True]
+
+
+def test_possible_draws_are_finite_and_above_their_bounds():
+    theta = torch.tensor([[0.0, 0.0], [800.0, 0.0], [0.0, math.log(0.5)], [-1.0, 1.0]], dtype=F64)
+    lower = torch.tensor([0.0, 0.5], dtype=F64)
+    assert guard.possible(theta, lower).tolist() == [True, False, False, True]
+
+
+def test_the_warning_names_only_what_failed():
+    assert guard.reliability_message(40.0, 0.3, 128, []) is None
+    m = guard.reliability_message(40.0, 0.9, 128, [])
+    assert "k-hat 0.90 > 0.7" in m and "effective sample size" not in m and "nuts" in m
+    m = guard.reliability_message(1.0, 0.3, 128, ["noise_x"])
+    assert "effective sample size 1.0 < 2" in m and "k-hat" not in m and "noise_x" in m
+
+
+# ---- on models ----------------------------------------------------------------------------------------
+def gait1_noise_free():
+    toe = irft.rft.CToe(radius=0.02, width=0.008, n_segments=10)
+    c = irft.rft.contacts(toe, irft.rft.rectangle_path(0.05, 0.40, 0.05, n_steps=100))
+    return c, irft.rft.forces(TRUTH, c)
+
+
+def coverage95(model):
+    """(2,) the share of a 40 x 40 grid of the square whose truth lies in the 95 % interval."""
+    g = torch.linspace(-math.pi / 2, math.pi / 2, 40, dtype=F64)
+    B, G = torch.meshgrid(g, g, indexing="ij")
+    with torch.no_grad():
+        lo, hi = model.stress_map(B, G).interval(0.95)
+    truth = TRUTH(B, G)
+    return ((truth >= lo) & (truth <= hi)).double().mean((0, 1))
+
+
+def test_noise_free_forces_hold_the_noise_at_its_wall_and_the_weights_stay_healthy():
+    """Noise-free forces push the noise variance down until the kernel matrix is not positive definite: no
+    mode, and a Gaussian in log-noise that is mostly impossible. Before the guard, the importance weights
+    collapsed onto one proposal far from the fit (ESS 1.00, k-hat 9.3): the "posterior" was one random setting."""
+    c, f = gait1_noise_free()
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model.fit(n_iter=150, lr=0.05, progress=False)
+    plug_in = coverage95(model)  # measured 0.614 (x) and 1.0 (z)
+    with pytest.warns(guard.HyperPosteriorWarning, match="held at their fitted values.*noise_x"):
+        hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
+    assert {"noise_x", "noise_z"} <= set(hp.extra["held"])
+    for lab in ("noise_x", "noise_z"):  # held: every draw at the polished value
+        i = hp.labels.index(lab)
+        assert torch.equal(hp.theta[:, i], hp.mode[i].expand(hp.n_draws))
+    assert hp.ess >= 4 and hp.n_draws >= 4  # was 1.00: one proposal
+    ours = coverage95(model)  # against the truth: measured 0.712 and 1.0
+    assert (ours >= plug_in).all() and ours[0] > plug_in[0] + 0.05, (ours, plug_in)
+
+
+def test_a_direction_the_plain_likelihood_leaves_flat_gets_finite_draws():
+    """priors=None after 5 steps: a lengthscale the likelihood hardly constrains. Before, its Gaussian was 1000
+    wide in log(lengthscale); a draw at theta = 906 (a lengthscale of e^906) was kept and loading it raised."""
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map")
+    model.fit(n_iter=5, progress=False)
+    hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(hp.theta.exp()).all()
+    assert float(hp.covariance.diagonal().max()) <= guard.MAX_LOG_SD**2 * (1 + 1e-9)
+    B, G = torch.meshgrid(torch.linspace(-1.5, 1.5, 7, dtype=F64), torch.linspace(-1.5, 1.5, 7, dtype=F64),
+                          indexing="ij")
+    post = model.stress_map(B, G)
+    assert torch.isfinite(post.mean).all() and torch.isfinite(post.variance).all()
+
+
+def test_every_proposal_impossible_keeps_the_plug_in_and_says_so(monkeypatch):
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model.fit(n_iter=30, progress=False)
+    B, G = torch.meshgrid(torch.linspace(-1.5, 1.5, 5, dtype=F64), torch.linspace(-1.5, 1.5, 5, dtype=F64),
+                          indexing="ij")
+    real = hyper_posterior._log_posterior_many
+
+    def proposals_impossible(backend, spec, x):  # the wall check (2P rows) sees the real density
+        lp = real(backend, spec, x)
+        return torch.full_like(lp, -math.inf) if x.shape[0] == 64 else lp
+
+    monkeypatch.setattr(hyper_posterior, "_log_posterior_many", proposals_impossible)
+    with pytest.warns(guard.HyperPosteriorWarning, match="every one of the 64 Laplace proposals.*plug-in"):
+        hp = model.fit_hyper_posterior("laplace", n_proposals=64)
+    assert hp.n_draws == 1 and torch.equal(hp.theta[0], hp.mode) and float(hp.weights[0]) == 1.0
+    ours = model.stress_map(B, G)
+    model.fit_hyper_posterior("map")  # the plug-in at the same (polished) hyperparameters
+    plug = model.stress_map(B, G)
+    torch.testing.assert_close(ours.mean, plug.mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(ours.variance, plug.variance, rtol=1e-12, atol=1e-14)
