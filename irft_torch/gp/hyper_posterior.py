@@ -41,7 +41,7 @@ from torch import Tensor
 
 from . import laplace_guard as guard
 from .hyper_density import closed_form_log_posterior, log_posterior_batch
-from .importance import _merge, _student_t, _systematic
+from .importance import _merge, _systematic, importance_sample
 from .pareto import pareto_khat
 
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
@@ -299,7 +299,7 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
 
 def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None, max_iter: int = 100,
             df: float = 30.0, inflate: float = 1.5, qmc: bool = True,
-            generator: torch.Generator | None = None) -> HyperPosterior:
+            generator: torch.Generator | None = None, adapt: bool = True) -> HyperPosterior:
     """The Laplace approximation at the mode, importance-reweighted (module docstring).
 
     Args:
@@ -318,6 +318,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
             Laplace Gaussian itself.
         qmc: proposals from a scrambled Sobol sequence (``_student_t``) rather than pseudo-random.
         generator: a ``torch.Generator`` for reproducible draws.
+        adapt: where the first ``n_proposals`` weights are unreliable (Pareto k-hat above 0.7 or ESS below 2),
+            a second stage of as many proposals, moved to the weighted draws (``gp.importance.importance_sample``).
     """
     spec = hyper_spec(backend.hypers)
     P = spec.size
@@ -341,11 +343,15 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     spec.load(backend.hypers, mode)
     if not mask.any():  # every coordinate at a wall: nothing to marginalise
         return _kept_plug_in(spec, mode, held, "every hyperparameter is at a wall")
-    x, logq = _student_t(mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
-    logp = _log_posterior_many(backend, sub_spec, x)
+    lower = guard.lower_bounds(spec)
+
+    def log_p_many(x: Tensor) -> Tensor:  # -inf at impossible values (overflowing, at or below a bound)
+        lp = _log_posterior_many(backend, sub_spec, x)
+        return torch.where(guard.possible(sub_spec.full(x), lower), lp, torch.full_like(lp, -math.inf))
+
+    x, logp, logw, stages = importance_sample(log_p_many, mode_sub, float(inflate) * cov, df, int(n_proposals),
+                                              generator, qmc, adapt=guard.unreliable if adapt else None)
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
-    logw = torch.where(guard.possible(sub_spec.full(x), guard.lower_bounds(spec)), logp - logq,
-                       torch.full_like(logp, -math.inf))
     ok = torch.isfinite(logw)
     if not ok.any():
         return _kept_plug_in(spec, mode, held, f"every one of the {int(n_proposals)} Laplace proposals is an "
@@ -355,7 +361,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     w = w / w.sum()
     ess = float(1 / w.pow(2).sum())
     khat = pareto_khat(logw)
-    message = guard.reliability_message(ess, khat, int(n_proposals), held)
+    message = guard.reliability_message(ess, khat, x.shape[0], held)
     if message:
         warnings.warn(message, guard.HyperPosteriorWarning, stacklevel=3)
     thetas = sub_spec.full(x)
@@ -368,7 +374,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     full_cov = theta0.new_zeros(P, P)
     full_cov[idx[:, None], idx[None, :]] = cov
     return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
-                          int(n_proposals), {"log_posterior_mode": float(lp_mode), "held": held,
+                          x.shape[0], {"log_posterior_mode": float(lp_mode), "held": held, "stages": stages,
                                              "hessian": H.detach() if bool(mask.all()) else None})
 
 

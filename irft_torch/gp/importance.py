@@ -1,15 +1,17 @@
 """Importance sampling of the hyperparameter posterior (``gp.hyper_posterior.laplace``): Student-t
-proposals from a scrambled Sobol sequence, their log density, systematic resampling of the weighted draws and
+proposals from a scrambled Sobol sequence, their log density, a second adaptive stage where the first stage's
+weights are unreliable, systematic resampling of the weighted draws and
 the merging of identical ones."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-__all__ = ["_student_t", "_systematic", "_merge"]
+__all__ = ["importance_sample", "_student_t", "_systematic", "_merge"]
 
 
 def _generator_device(generator: torch.Generator | None) -> torch.device:
@@ -38,11 +40,50 @@ def _student_t(mean: Tensor, cov: Tensor, df: float, n: int, generator, qmc: boo
         z = torch.randn(n, P, generator=generator, dtype=mean.dtype, device=gd).to(mean.device)
         v = torch.randn(n, int(df), generator=generator, dtype=mean.dtype, device=gd).pow(2).sum(-1).to(mean.device)
     x = mean + (z @ L.mT) * (df / v).sqrt()[:, None]
+    return x, _student_t_log_density(x, mean, L, df)
+
+
+def _student_t_log_density(x: Tensor, mean: Tensor, L: Tensor, df: float) -> Tensor:
+    """log density (n,) at x (n, P) of the multivariate Student-t with location ``mean`` (P,), scale
+    L L^T (L (P, P) lower) and ``df`` degrees of freedom."""
+    P = mean.numel()
     d = torch.linalg.solve_triangular(L, (x - mean).mT, upper=False).pow(2).sum(0)
     logdet = 2 * torch.log(torch.diagonal(L)).sum()
-    logq = (math.lgamma((df + P) / 2) - math.lgamma(df / 2) - 0.5 * P * math.log(df * math.pi) - 0.5 * logdet
+    return (math.lgamma((df + P) / 2) - math.lgamma(df / 2) - 0.5 * P * math.log(df * math.pi) - 0.5 * logdet
             - 0.5 * (df + P) * torch.log1p(d / df))
-    return x, logq
+
+
+def importance_sample(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov: Tensor, df: float, n: int,
+                      generator, qmc: bool = True, adapt: Callable[[Tensor], bool] | None = None
+                      ) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Proposals x (N, P), their log posterior (N,) and log importance weights (N,) (unnormalised), and the
+    number of stages. Stage 1: n draws of the Student-t (``mean``, ``cov``, ``df``). Where ``adapt(log
+    weights)`` says the weights are unreliable, stage 2 draws n more from a Student-t moved to the weighted
+    draws' mean with the average of their weighted covariance and ``cov`` (the covariance of a few effective
+    draws alone can be near singular), and every draw of both stages is weighed against the equal mixture of the
+    two proposals (the balance heuristic: Owen & Zhou 2000; adaptive multiple importance sampling, Cornuet et
+    al. 2012). ``log_p_many``: (n, P) -> (n,), -inf where impossible."""
+    L1 = torch.linalg.cholesky(cov)
+    x1, logq1 = _student_t(mean, cov, df, n, generator, qmc)
+    logp1 = log_p_many(x1)
+    logw1 = logp1 - logq1
+    if adapt is None or not adapt(logw1) or not torch.isfinite(logw1).any():
+        return x1, logp1, logw1, 1
+    ok = torch.isfinite(logw1)
+    w = torch.where(ok, (logw1 - logw1[ok].max()).exp(), torch.zeros_like(logw1))
+    w = w / w.sum()
+    mu = (w[:, None] * x1).sum(0)
+    dev = x1 - mu
+    C = (w[:, None, None] * dev[:, :, None] * dev[:, None, :]).sum(0)
+    cov2 = 0.5 * (C + C.mT) / 2 + 0.5 * cov
+    L2 = torch.linalg.cholesky(cov2)
+    x2, _ = _student_t(mu, cov2, df, n, generator, qmc)
+    logp2 = log_p_many(x2)
+    x = torch.cat([x1, x2])
+    logp = torch.cat([logp1, logp2])
+    logq = torch.logaddexp(_student_t_log_density(x, mean, L1, df), _student_t_log_density(x, mu, L2, df)) \
+        - math.log(2)
+    return x, logp, logp - logq, 2
 
 
 def _systematic(weights: Tensor, n: int, generator) -> Tensor:

@@ -15,7 +15,9 @@ silently wrong mixture:
   lengthscale of e^900). The proposal's standard deviation is capped at ``MAX_LOG_SD`` in every direction
   (``proposal_covariance``): such a direction is explored within a factor e^5 of its mode.
 - **Unreliable weights.** Pareto k-hat above 0.7 (PSIS's threshold) or an effective sample size below 2:
-  the mixture rests on one or two proposals. ``HyperPosteriorWarning`` says so, with the numbers and what
+  the mixture rests on a few proposals. A second stage of proposals, moved to where the first stage's weights
+  lie (``gp.importance.importance_sample``), is drawn first; where the weights stay unreliable,
+  ``HyperPosteriorWarning`` says so, with the numbers and what
   to do (``hyper_posterior="nuts"``); where every proposal is impossible, the plug-in at the mode is kept
   (a point mass) with the same warning instead of an error in the middle of ``fit``.
 """
@@ -27,8 +29,10 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .pareto import pareto_khat
+
 __all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "proposal_covariance",
-           "possible", "lower_bounds", "reliability_message"]
+           "possible", "lower_bounds", "unreliable", "reliability_message"]
 
 MAX_LOG_SD = 5.0  # the Laplace Gaussian's widest standard deviation in theta = log(value)
 KHAT_RELIABLE = 0.7  # PSIS (Vehtari et al.): above it the importance weights' estimates are unreliable
@@ -73,6 +77,17 @@ def possible(theta: Tensor, lower: Tensor) -> Tensor:
     """(n,) bool: draws theta (n, P) whose values exp(theta) are finite and above their lower bounds (P,)."""
     v = theta.exp()
     return (torch.isfinite(v) & (v > lower.to(v))).all(-1)
+
+
+def unreliable(log_weights: Tensor) -> bool:
+    """Whether importance weights (unnormalised logs (n,), -inf where impossible) are unreliable: Pareto k-hat
+    above ``KHAT_RELIABLE`` or an effective sample size below ``MIN_ESS``."""
+    ok = torch.isfinite(log_weights)
+    if not ok.any():
+        return True
+    w = (log_weights[ok] - log_weights[ok].max()).exp()
+    ess = float(w.sum() ** 2 / w.pow(2).sum())
+    return ess < MIN_ESS or pareto_khat(log_weights) > KHAT_RELIABLE
 
 
 def reliability_message(ess: float, khat: float, n_proposals: int, held: list[str]) -> str | None:

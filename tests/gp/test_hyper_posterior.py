@@ -9,7 +9,8 @@ from scipy.optimize import brentq
 from scipy.stats import norm
 
 import irft_torch as irft
-from irft_torch.gp.hyper_posterior import _student_t, hyper_spec, log_posterior, point_mass
+from irft_torch.gp.hyper_posterior import hyper_spec, log_posterior, point_mass
+from irft_torch.gp.importance import _student_t
 from irft_torch.gp.inputs import _data_scales
 from irft_torch.gp.mixture import mixture_moments, mixture_quantile
 from irft_torch.gp.pareto import gpd_shape, pareto_khat

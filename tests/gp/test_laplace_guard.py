@@ -123,3 +123,39 @@ def test_every_proposal_impossible_keeps_the_plug_in_and_says_so(monkeypatch):
     plug = model.stress_map(B, G)
     torch.testing.assert_close(ours.mean, plug.mean, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(ours.variance, plug.variance, rtol=1e-12, atol=1e-14)
+
+
+# ---- the adaptive second stage, on a target known in closed form -----------------------------------------
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
+    """Target N(m, S) in 3-D; the first proposal is centred 2 target sds off in one coordinate: its weights are
+    unreliable (k-hat 1.3-1.5, ESS 5-10 of 256). With the second stage the weighted mean and covariance approach
+    the target's (closed form) and the effective sample size grows (measured: mean error 0.3-0.7 -> 0.05-0.1,
+    ESS -> 56-162 of 512)."""
+    from irft_torch.gp.importance import importance_sample
+    from irft_torch.gp.pareto import pareto_khat
+
+    m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
+    A = torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.2, 0.5]], dtype=F64)
+    S = A @ A.T
+    target = torch.distributions.MultivariateNormal(m, S)
+    start = m + torch.tensor([2.0, 0.0, 0.0], dtype=F64) * S.diagonal().sqrt()
+
+    def moments(x, lw):
+        w = (lw - lw.max()).exp()
+        w = w / w.sum()
+        mu = (w[:, None] * x).sum(0)
+        d = x - mu
+        return mu, (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), float(1 / w.pow(2).sum())
+
+    x1, lp1, lw1, n1 = importance_sample(target.log_prob, start, S, 30.0, 256, torch.Generator().manual_seed(seed))
+    x2, lp2, lw2, n2 = importance_sample(target.log_prob, start, S, 30.0, 256, torch.Generator().manual_seed(seed),
+                                         adapt=guard.unreliable)
+    assert n1 == 1 and n2 == 2 and x2.shape == (512, 3)
+    torch.testing.assert_close(lp2, target.log_prob(x2))  # the log posterior of every draw is returned
+    assert guard.unreliable(lw1) and pareto_khat(lw1) > 0.7
+    mu1, C1, ess1 = moments(x1, lw1)
+    mu2, C2, ess2 = moments(x2, lw2)
+    assert ess2 > 3 * ess1
+    assert (mu2 - m).abs().max() < min(0.12, 0.5 * float((mu1 - m).abs().max()))
+    assert (C2 - S).abs().max() < 0.2
