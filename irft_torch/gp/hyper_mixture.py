@@ -70,12 +70,13 @@ class HyperMixtureMixin(nn.Module):
 
         Args:
             method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
-            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
+            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each); as many again
+                where their weights are unreliable (``gp.importance.importance_sample``).
             n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
                 plug-in's); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for reproducible draws.
             options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
-                ``qmc``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
+                ``qmc``, ``adapt``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With
             ``prior_mean="average"`` the physics-mean companion gets the same and the weights are taken again.

@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["importance_sample", "_student_t", "_systematic", "_merge"]
+__all__ = ["importance_sample", "first_stage", "second_stage", "_student_t", "_systematic", "_merge"]
 
 
 def _generator_device(generator: torch.Generator | None) -> torch.device:
@@ -57,33 +57,47 @@ def importance_sample(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov:
                       generator, qmc: bool = True, adapt: Callable[[Tensor], bool] | None = None
                       ) -> tuple[Tensor, Tensor, Tensor, int]:
     """Proposals x (N, P), their log posterior (N,) and log importance weights (N,) (unnormalised), and the
-    number of stages. Stage 1: n draws of the Student-t (``mean``, ``cov``, ``df``). Where ``adapt(log
-    weights)`` says the weights are unreliable, stage 2 draws n more from a Student-t moved to the weighted
-    draws' mean with the average of their weighted covariance and ``cov`` (the covariance of a few effective
-    draws alone can be near singular), and every draw of both stages is weighed against the equal mixture of the
-    two proposals (the balance heuristic: Owen & Zhou 2000; adaptive multiple importance sampling, Cornuet et
-    al. 2012). ``log_p_many``: (n, P) -> (n,), -inf where impossible."""
-    L1 = torch.linalg.cholesky(cov)
-    x1, logq1 = _student_t(mean, cov, df, n, generator, qmc)
-    logp1 = log_p_many(x1)
+    number of stages. Stage 1 (``first_stage``): n draws of the Student-t (``mean``, ``cov``, ``df``). Where
+    ``adapt(log weights)`` says they are unreliable, stage 2 (``second_stage``). ``log_p_many``: (n, P) -> (n,),
+    -inf where impossible."""
+    first = first_stage(log_p_many, mean, cov, df, n, generator, qmc)
+    logw1 = first[2] - first[1]
+    if adapt is None or not torch.isfinite(logw1).any() or not adapt(logw1):
+        return first[0], first[2], logw1, 1
+    return (*second_stage(log_p_many, *first, mean, cov, df, generator, qmc), 2)
+
+
+def first_stage(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov: Tensor, df: float, n: int, generator,
+                qmc: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+    """n proposals x (n, P) of the Student-t (``mean``, ``cov``, ``df``), their log density (n,) and log
+    posterior (n,)."""
+    x, logq = _student_t(mean, cov, df, n, generator, qmc)
+    return x, logq, log_p_many(x)
+
+
+def second_stage(log_p_many: Callable[[Tensor], Tensor], x1: Tensor, logq1: Tensor, logp1: Tensor, mean: Tensor,
+                 cov: Tensor, df: float, generator, qmc: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+    """As many proposals again, from a Student-t moved to the first stage's weighted draws, with the average of
+    their weighted covariance and ``cov`` (the covariance of a few effective draws alone can be near singular);
+    every draw of both stages is weighed against the equal mixture of the two proposals (the balance heuristic:
+    Owen & Zhou 2000; adaptive multiple importance sampling, Cornuet et al. 2012). Returns x (2n, P), log
+    posterior (2n,) and log weights (2n,)."""
     logw1 = logp1 - logq1
-    if adapt is None or not adapt(logw1) or not torch.isfinite(logw1).any():
-        return x1, logp1, logw1, 1
     ok = torch.isfinite(logw1)
     w = torch.where(ok, (logw1 - logw1[ok].max()).exp(), torch.zeros_like(logw1))
     w = w / w.sum()
     mu = (w[:, None] * x1).sum(0)
     dev = x1 - mu
     C = (w[:, None, None] * dev[:, :, None] * dev[:, None, :]).sum(0)
-    cov2 = 0.5 * (C + C.mT) / 2 + 0.5 * cov
-    L2 = torch.linalg.cholesky(cov2)
-    x2, _ = _student_t(mu, cov2, df, n, generator, qmc)
+    cov2 = 0.25 * (C + C.mT) + 0.5 * cov
+    x2, _ = _student_t(mu, cov2, df, x1.shape[0], generator, qmc)
     logp2 = log_p_many(x2)
     x = torch.cat([x1, x2])
     logp = torch.cat([logp1, logp2])
+    L1, L2 = torch.linalg.cholesky(cov), torch.linalg.cholesky(cov2)
     logq = torch.logaddexp(_student_t_log_density(x, mean, L1, df), _student_t_log_density(x, mu, L2, df)) \
         - math.log(2)
-    return x, logp, logp - logq, 2
+    return x, logp, logp - logq
 
 
 def _systematic(weights: Tensor, n: int, generator) -> Tensor:

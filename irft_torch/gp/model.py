@@ -108,8 +108,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             ``model.hyper_posterior`` holds the draws, weights, ESS and Pareto k-hat. The calibration
             harness (``experiments/calibration_harness.py``) favours "laplace": on media and motions the
             priors were not tuned for, the plug-in's intervals are overconfident far more often. It is
-            not yet the default because it roughly doubles a fit and design/ does not yet average over
-            its draws (docs/calibration.md says what is measured and what is left).
+            not yet the default: it doubled the test suite's time and would move every reported number
+            (README, docs/calibration.md say what is measured and what is left).
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)
