@@ -260,9 +260,7 @@ def _positive_definite(H: Tensor, floor: float = 1e-6) -> Tensor:
 def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Tensor, Tensor, Tensor]:
     """The mode of log p(theta | F) from theta: L-BFGS (strong Wolfe line search, torch.optim) to a
     gradient below 1e-6, then Newton steps on the exact Hessian while the posterior still rises. Adam's last
-    iterate is near, not at, the mode, and the Laplace Gaussian belongs at the mode. L-BFGS runs in the backend's
-    basis as the fit left it, held as a fit holds it (a spectral backend is not re-checked at every line-search probe); the
-    Newton steps and the Hessian check it again."""
+    iterate is near, not at, the mode, and the Laplace Gaussian belongs at the mode."""
     x = theta.detach().clone().requires_grad_(True)
     opt = torch.optim.LBFGS([x], lr=1.0, max_iter=int(max_iter), tolerance_grad=1e-6, tolerance_change=1e-12,
                             history_size=20, line_search_fn="strong_wolfe")
@@ -276,14 +274,10 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
         return loss
 
     if max_iter > 0:
-        was_in_fit = backend.in_fit
-        backend.in_fit = True  # the basis held as a fit holds it
         try:
             opt.step(closure)
         except (torch.linalg.LinAlgError, NotPSDError):  # a line-search probe too far: keep the start
             x = theta.detach().clone()
-        finally:
-            backend.in_fit = was_in_fit
     cand = x.detach()
     with torch.no_grad():
         lp_c = log_posterior(backend, spec, cand)
