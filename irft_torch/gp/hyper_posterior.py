@@ -327,7 +327,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     theta0 = spec.theta(backend.hypers)
     held: list[str] = []
     lower = guard.lower_bounds(spec)
-    for _ in range(3):  # polish and propose; coordinates at a wall are held there and the rest done again
+    for attempt in range(3):  # polish and propose; coordinates at a wall are held there and the rest done again
         idx = mask.nonzero()[:, 0].to(theta0.device)
         sub_spec = _SubSpec(spec, theta0, idx)
         mode_sub, H, lp_mode = _polish(backend, sub_spec, theta0[idx], max_iter)
@@ -340,6 +340,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
 
         first = first_stage(log_p_many, mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
         if bool(torch.isfinite(first[2]).all()):
+            break
+        if attempt == 2:  # the proposals drawn stand (impossible ones weigh nothing)
             break
         at_wall = guard.walls(log_p_many, mode_sub, cov.diagonal().sqrt())  # only where some are impossible
         if not at_wall.any():

@@ -159,3 +159,29 @@ def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
     assert ess2 > 3 * ess1
     assert (mu2 - m).abs().max() < min(0.12, 0.5 * float((mu1 - m).abs().max()))
     assert (C2 - S).abs().max() < 0.2
+
+
+def test_held_coordinates_are_exactly_those_the_draws_keep_fixed(monkeypatch):
+    """Some proposal always impossible and a new wall at every check: two rounds of holding, then the third round's
+    proposals stand. Every coordinate reported held is constant across the draws, and the others are not."""
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model.fit(n_iter=30, progress=False)
+    real = hyper_posterior._log_posterior_many
+
+    def one_impossible(backend, spec, x):
+        lp = real(backend, spec, x)
+        return torch.cat([lp.new_full((1,), -math.inf), lp[1:]]) if x.shape[0] == 64 else lp
+
+    def first_at_wall(log_p_many, mode, sd):
+        out = torch.zeros(mode.numel(), dtype=torch.bool)
+        out[0] = True
+        return out
+
+    monkeypatch.setattr(hyper_posterior, "_log_posterior_many", one_impossible)
+    monkeypatch.setattr(guard, "walls", first_at_wall)
+    with pytest.warns(guard.HyperPosteriorWarning, match="held at their fitted values"):
+        hp = model.fit_hyper_posterior("laplace", n_proposals=64, n_draws=None)
+    assert hp.extra["held"] == hp.labels[:2]
+    spread = (hp.theta - hp.mode).abs().amax(0)
+    assert (spread[:2] == 0).all() and (spread[2:] > 0).all()
