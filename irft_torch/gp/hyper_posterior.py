@@ -249,14 +249,6 @@ def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, T
     return lp.detach(), g.detach(), 0.5 * (H + H.mT).detach()
 
 
-def _positive_definite(H: Tensor, floor: float = 1e-6) -> Tensor:
-    """H with eigenvalues below ``floor`` x the largest raised to it (a direction the posterior is flat or
-    convex in at the point gets a wide, finite Gaussian: the importance weights then correct it)."""
-    lam, V = torch.linalg.eigh(H)
-    lam = lam.clamp_min(floor * lam.abs().max().clamp_min(1e-300))
-    return (V * lam) @ V.mT
-
-
 def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Tensor, Tensor, Tensor]:
     """The mode of log p(theta | F) from theta: L-BFGS (strong Wolfe line search, torch.optim) to a
     gradient below 1e-6, then Newton steps on the exact Hessian while the posterior still rises. Adam's last
@@ -286,7 +278,7 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
     for _ in range(3):  # Newton on the exact Hessian: quadratic convergence near the mode
         if float(g.abs().max()) < 1e-6:
             break
-        step = torch.linalg.solve(_positive_definite(H), g)
+        step = torch.linalg.solve(guard.positive_definite(H), g)
         step = step / max(1.0, float(step.abs().max()))
         with torch.no_grad():
             lp_c = log_posterior(backend, spec, theta + step)
@@ -538,12 +530,12 @@ def log_evidence(backend, hessian: Tensor | None = None) -> Tensor:
     axes = [label_axis(lab) for lab in spec.labels]
     if any(a is None for a in axes):  # a shared hyperparameter: one joint evidence
         d = len(axes)
-        joint = lp.sum() + 0.5 * d * math.log(2 * math.pi) - 0.5 * torch.linalg.slogdet(_positive_definite(H))[1]
+        joint = lp.sum() + 0.5 * d * math.log(2 * math.pi) - 0.5 * torch.linalg.slogdet(guard.positive_definite(H))[1]
         return (joint / 2).expand(2).clone()
     out = []
     for c in range(2):
         idx = torch.tensor([i for i, a in enumerate(axes) if a == c], device=H.device)
-        Hc = _positive_definite(H[idx][:, idx])
+        Hc = guard.positive_definite(H[idx][:, idx])
         out.append(lp[c] + 0.5 * len(idx) * math.log(2 * math.pi) - 0.5 * torch.linalg.slogdet(Hc)[1])
     return torch.stack(out)
 

@@ -31,8 +31,8 @@ from torch import Tensor
 
 from .pareto import pareto_khat
 
-__all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "proposal_covariance",
-           "possible", "lower_bounds", "unreliable", "reliability_message"]
+__all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "positive_definite",
+           "proposal_covariance", "possible", "lower_bounds", "unreliable", "reliability_message"]
 
 MAX_LOG_SD = 5.0  # the Laplace Gaussian's widest standard deviation in theta = log(value)
 KHAT_RELIABLE = 0.7  # PSIS (Vehtari et al.): above it the importance weights' estimates are unreliable
@@ -44,13 +44,19 @@ class HyperPosteriorWarning(UserWarning):
     weights, coordinates held at a wall, or the plug-in kept where every proposal was impossible."""
 
 
-def proposal_covariance(H: Tensor, floor: float = 1e-6) -> Tensor:
-    """H^-1 (P, P) of a Hessian H of -log p, with H's eigenvalues raised to at least ``floor`` x the largest
-    and to 1 / MAX_LOG_SD^2 (a flat or convex direction gets a wide, finite Gaussian; the importance weights
-    correct it)."""
+def positive_definite(H: Tensor, floor: float = 1e-6, min_eigenvalue: float = 0.0) -> Tensor:
+    """H (P, P) with eigenvalues below ``floor`` x the largest, and below ``min_eigenvalue``, raised to them (a
+    direction the posterior is flat or convex in at the point gets a wide, finite Gaussian: the importance
+    weights then correct it)."""
     lam, V = torch.linalg.eigh(0.5 * (H + H.mT))
-    lam = lam.clamp_min(floor * lam.abs().max().clamp_min(1e-300)).clamp_min(1.0 / MAX_LOG_SD**2)
-    cov = (V / lam) @ V.mT
+    lam = lam.clamp_min(floor * lam.abs().max().clamp_min(1e-300)).clamp_min(min_eigenvalue)
+    return (V * lam) @ V.mT
+
+
+def proposal_covariance(H: Tensor, floor: float = 1e-6) -> Tensor:
+    """H^-1 (P, P) of a Hessian H of -log p, of ``positive_definite(H)`` with eigenvalues also at least
+    1 / MAX_LOG_SD^2: no direction wider than MAX_LOG_SD."""
+    cov = torch.linalg.inv(positive_definite(H, floor, 1.0 / MAX_LOG_SD**2))
     return 0.5 * (cov + cov.mT)
 
 
