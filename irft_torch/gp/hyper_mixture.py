@@ -13,7 +13,8 @@ import torch
 from torch import Tensor, nn
 
 from .backends import RFTBackend, make_backend
-from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace, nuts
+from .hyper_nuts import nuts
+from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace
 from .hyperparameters import RFTHyperparameters
 
 if TYPE_CHECKING:
@@ -76,7 +77,8 @@ class HyperMixtureMixin(nn.Module):
                 plug-in's); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for reproducible draws.
             options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
-                ``qmc``, ``adapt``) or ``nuts`` (``free``, ``n_samples``, ``warmup``, ``num_chains``, ``seed``).
+                ``qmc``, ``adapt``) or ``gp.hyper_nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
+                ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With
             ``prior_mean="average"`` the physics-mean companion gets the same and the weights are taken again.

@@ -21,7 +21,8 @@ value itself would add sum(theta)). Without priors (``priors=None``) the prior i
   means the weights are reliable). The draws kept for prediction are a systematic resample.
   Where the approximation does not hold (a hyperparameter at a wall, a flat direction, unreliable weights)
   ``gp.laplace_guard`` holds, caps or warns (``HyperPosteriorWarning``) instead of a silently wrong mixture.
-- ``nuts``: pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install pyro-ppl``);
+- ``nuts`` (``gp.hyper_nuts``): pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install
+  pyro-ppl``), started at the mode with the Laplace covariance as its metric, chains in worker processes;
   the reference and the fallback when the Laplace weights are unreliable.
 
 Predictions are then the mixture over the draws (``gp.mixture``).
@@ -44,10 +45,11 @@ from .hyper_density import closed_form_log_posterior, log_posterior_batch
 from .importance import _merge, _systematic, first_stage, second_stage
 from .pareto import pareto_khat
 
-__all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace", "nuts",
+__all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace",
            "point_mass", "log_evidence", "HYPER_POSTERIORS"]
 
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
+
 
 
 @dataclass
@@ -426,54 +428,6 @@ def _free_mask(spec: HyperSpec, free) -> Tensor:
     if mask.numel() != P or not mask.any():
         raise ValueError(f"free must select some of the {P} hyperparameters {spec.labels}")
     return mask
-
-
-def nuts(backend, n_samples: int = 256, warmup: int = 512, n_draws: int = 16, num_chains: int = 1, free=None,
-         seed: int = 0, progress: bool = False) -> HyperPosterior:
-    """NUTS (pyro) on -log p(theta | F), each chain started at the fitted hyperparameters; ``n_samples``
-    after ``warmup`` per chain (chains run one after the other in this process), all draws thinned
-    evenly to ``n_draws`` equal-weight draws (botorch's ``fit_fully_bayesian_model_nuts`` defaults: 512
-    warm-up, 256 draws, 16 kept). ``free``: as in ``laplace``. Needs pyro-ppl (``pip install pyro-ppl``,
-    or the ``bayes`` extra)."""
-    try:
-        from pyro.infer.mcmc import MCMC, NUTS
-        from pyro.ops.stats import effective_sample_size
-    except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("hyper_posterior='nuts' needs pyro: pip install pyro-ppl (or irft-torch[bayes])") from e
-    spec = hyper_spec(backend.hypers)
-    theta0 = spec.theta(backend.hypers)
-    mask = _free_mask(spec, free)
-    idx = mask.nonzero()[:, 0].to(theta0.device)
-    sub = _SubSpec(spec, theta0, idx)
-
-    def potential(params):
-        lp = log_posterior(backend, sub, params["theta"])
-        return -lp if torch.isfinite(lp) else params["theta"].sum() * 0 + 1e30
-
-    chains = []
-    for chain in range(int(num_chains)):
-        torch.manual_seed(seed + chain)
-        kernel = NUTS(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=True, full_mass=False)
-        mcmc = MCMC(kernel, num_samples=int(n_samples), warmup_steps=int(warmup),
-                    initial_params={"theta": theta0[idx].detach().clone()}, disable_progbar=not progress)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            mcmc.run()
-        chains.append(mcmc.get_samples()["theta"].detach().reshape(-1, len(idx)))
-    spec.load(backend.hypers, theta0)
-    by_chain = torch.stack(chains)  # (C, n, P_free)
-    draws = by_chain.reshape(-1, len(idx))
-    S = draws.shape[0]
-    pick = torch.linspace(0, S - 1, min(int(n_draws), S)).round().long().to(draws.device)
-    full = theta0.detach().expand(len(pick), -1).clone()
-    full[:, idx] = draws[pick]
-    w = torch.full((len(pick),), 1 / len(pick), dtype=full.dtype, device=full.device)
-    c = draws - draws.mean(0)
-    cov = theta0.new_zeros(spec.size, spec.size)
-    cov[idx[:, None], idx[None, :]] = c.mT @ c / max(S - 1, 1)
-    ess = float(effective_sample_size(by_chain, chain_dim=0, sample_dim=1).min())
-    return HyperPosterior("nuts", spec.labels, full, w, theta0.detach(), cov, ess, float("nan"), S,
-                          {"all_draws": draws})
 
 
 def label_axis(label: str) -> int | None:

@@ -363,3 +363,82 @@ def test_nuts_agrees_with_brute_force_on_one_hyperparameter(fitted):
     # within 4 Monte Carlo standard errors at the chain's effective sample size
     assert abs(float(draws.mean()) - mean) < 4 * sd / math.sqrt(max(hp.ess, 1.0))
     assert float(draws.std()) == pytest.approx(sd, rel=0.25)
+
+
+def _grid_moments(m, c, f, grid):
+    """Posterior mean and sd (2,) of (log outputscale_z, log noise_z) by summation over a fine grid (P, 2):
+    dense reference likelihood + the priors written by hand."""
+    h = m.hypers
+    cen = prior_centres(c, f, _data_scales(c, f)[1], False)
+    lps = []
+    for point in grid:
+        mll, _, _ = axis_reference(c, f[:, 1], c.weight_z, h.lengthscale[1, 0].detach(), point[0].exp(),
+                                   point[1].exp())
+        lps.append(float(mll) * len(f) - 0.5 * float((point[0] - cen["outputscale"][1].log()) / OUTPUTSCALE_LOG_SD) ** 2
+                   - 0.5 * float((point[1] - cen["noise"][1].log()) / NOISE_LOG_SD) ** 2)
+    lw = torch.tensor(lps, dtype=F64)
+    w = (lw - lw.max()).exp()
+    w = w / w.sum()
+    mean = (w[:, None] * grid).sum(0)
+    return mean, (w[:, None] * (grid - mean) ** 2).sum(0).sqrt()
+
+
+def test_nuts_with_the_laplace_metric_in_worker_processes_agrees_with_brute_force_on_two_hyperparameters(fitted):
+    """Two chains in two worker processes, each from the polished mode with the Laplace covariance as its
+    dense metric: the draws' moments against summation over a 61 x 61 grid."""
+    pytest.importorskip("pyro")
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    free = ["outputscale_z", "noise_z"]
+    hp = m.fit_hyper_posterior("nuts", n_draws=16, free=free, n_samples=300, warmup=150, num_chains=2, processes=2)
+    assert hp.extra["metric"] == "laplace" and len(hp.extra["gradient_evaluations"]) == 2
+    spec = hyper_spec(m.hypers)
+    cols = [spec.labels.index(k) for k in free]
+    draws = hp.extra["all_draws"]  # (600, 2): the free coordinates
+    assert draws.shape == (600, 2) and hp.theta.shape == (16, spec.size)
+    held = [k for k in range(spec.size) if k not in cols]
+    assert torch.equal(hp.theta[:, held], hp.mode[held].expand(16, -1))  # the rest stay at the fitted values
+    lo, hi = draws.mean(0) - 8 * draws.std(0), draws.mean(0) + 8 * draws.std(0)
+    grid = torch.cartesian_prod(*(torch.linspace(float(lo[k]), float(hi[k]), 61, dtype=F64) for k in range(2)))
+    mean, sd = _grid_moments(m, c, f, grid)
+    err = (draws.mean(0) - mean).abs() / (sd / math.sqrt(max(hp.ess, 1.0)))
+    assert bool((err < 4).all()), err  # within 4 Monte Carlo standard errors
+    torch.testing.assert_close(draws.std(0), sd, rtol=0.2, atol=0)
+    # the chains started at the polished mode, not at the fitted point (Adam's last iterate)
+    assert not torch.equal(hp.extra["start"][cols], hp.mode[cols])
+
+
+def test_nuts_metric_and_processes_arguments_and_the_in_process_fallback(fitted, monkeypatch):
+    pytest.importorskip("pyro")
+    from concurrent.futures.process import BrokenProcessPool
+
+    from irft_torch.gp import hyper_nuts
+
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    with pytest.raises(ValueError, match="metric must be one of"):
+        hyper_nuts.nuts(m.backend, metric="dense")
+    with pytest.raises(ValueError, match="processes must be"):
+        hyper_nuts.nuts(m.backend, processes=0)
+    # pyro's own diagonal metric from the fitted point still runs
+    hp = hyper_nuts.nuts(m.backend, n_samples=20, warmup=20, free=["outputscale_z"], metric="diagonal")
+    assert hp.extra["metric"] == "diagonal" and torch.equal(hp.extra["start"], hp.mode)
+
+    class Broken:  # workers that cannot start (a script without a main guard): the chains run here, with a warning
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            raise BrokenProcessPool("no workers")
+
+        def __exit__(self, *a):
+            return False
+
+    monkeypatch.setattr("concurrent.futures.ProcessPoolExecutor", Broken)
+    with pytest.warns(RuntimeWarning, match="main"):
+        hp = hyper_nuts.nuts(m.backend, n_samples=10, warmup=10, num_chains=2, processes=2, free=["outputscale_z"])
+    assert hp.extra["all_draws"].shape == (20, 1)
+    # in a script the default is one process (its workers would import the script again)
+    assert hyper_nuts._processes(None, 4, torch.device("cpu")) == 1

@@ -18,7 +18,8 @@ import torch
 from torch import Tensor
 
 from ..hyper_mixture import backends_at_draws
-from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec, laplace, nuts
+from ..hyper_nuts import nuts
+from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec, laplace
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
 
