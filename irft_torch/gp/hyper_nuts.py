@@ -46,18 +46,30 @@ def _kernel(potential, inverse_mass: Tensor | None, adapt_mass: bool):
         return NUTS(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=True, full_mass=False)
 
     class _FromLaplace(NUTS):
+        metric_set = False  # whether pyro took the metric (its adapter is pyro's internals, 1.9)
+
         def _initialize_adapter(self):  # pyro sets an identity metric here: replace it, then find a step size
             super()._initialize_adapter()
-            (sites,) = self._adapter.mass_matrix_adapter.inverse_mass_matrix.keys()
-            self._adapter.mass_matrix_adapter.inverse_mass_matrix = {sites: inverse_mass}
-            self._adapter.reset_step_size_adaptation(self._initial_params)
+            adapter = getattr(self._adapter, "mass_matrix_adapter", None)
+            before = getattr(adapter, "inverse_mass_matrix", None)
+            try:
+                (sites,) = before.keys()
+                adapter.inverse_mass_matrix = {sites: inverse_mass}
+                self._adapter.reset_step_size_adaptation(self._initial_params)
+                self.metric_set = True
+            except (AttributeError, ValueError, RuntimeError):  # another pyro: its own metric (``_chain`` says so)
+                if before is not None:
+                    adapter.inverse_mass_matrix = before
+                    self._adapter.reset_step_size_adaptation(self._initial_params)
 
     return _FromLaplace(potential_fn=potential, adapt_step_size=True, adapt_mass_matrix=adapt_mass, full_mass=True)
 
 
 def _chain(backend, idx: Tensor, base: Tensor, start: Tensor, inverse_mass: Tensor | None, adapt_mass: bool,
-           seed: int, n_samples: int, warmup: int, progress: bool, threads: int | None = None) -> tuple[Tensor, int]:
-    """One chain: its draws (n_samples, P_free) and the number of gradient evaluations it took."""
+           seed: int, n_samples: int, warmup: int, progress: bool,
+           threads: int | None = None) -> tuple[Tensor, int, bool]:
+    """One chain: its draws (n_samples, P_free), the number of gradient evaluations it took and whether it
+    ran with the Laplace metric."""
     from pyro.infer.mcmc import MCMC
 
     if threads is not None:
@@ -71,15 +83,21 @@ def _chain(backend, idx: Tensor, base: Tensor, start: Tensor, inverse_mass: Tens
         return -lp if torch.isfinite(lp) else params["theta"].sum() * 0 + 1e30
 
     torch.manual_seed(seed)
-    mcmc = MCMC(_kernel(potential, inverse_mass, adapt_mass), num_samples=int(n_samples), warmup_steps=int(warmup),
+    kernel = _kernel(potential, inverse_mass, adapt_mass)
+    mcmc = MCMC(kernel, num_samples=int(n_samples), warmup_steps=int(warmup),
                 initial_params={"theta": start.detach().clone()}, disable_progbar=not progress)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("ignore")  # pyro's and the extreme draws' numerical warnings
         mcmc.run()
-    return mcmc.get_samples()["theta"].detach().reshape(-1, len(idx)), calls[0]
+    taken = bool(getattr(kernel, "metric_set", False))
+    if inverse_mass is not None and not taken:
+        warnings.warn("NUTS: this pyro did not take the Laplace metric (its adapter's internals differ from pyro "
+                      "1.9's); the chain ran with pyro's identity metric", RuntimeWarning,
+                      stacklevel=2)
+    return mcmc.get_samples()["theta"].detach().reshape(-1, len(idx)), calls[0], taken
 
 
-def _chain_from_bytes(payload: bytes, *args) -> tuple[Tensor, int]:
+def _chain_from_bytes(payload: bytes, *args) -> tuple[Tensor, int, bool]:
     return _chain(pickle.loads(payload), *args)
 
 
@@ -99,8 +117,8 @@ def _processes(processes: int | None, num_chains: int, device: torch.device) -> 
     return max(1, min(num_chains, os.cpu_count() or 1, 8))
 
 
-def _run_chains(backend, args: list[tuple], processes: int) -> list[tuple[Tensor, int]]:
-    """Each chain's (draws, gradient evaluations), in worker processes where ``processes`` > 1."""
+def _run_chains(backend, args: list[tuple], processes: int) -> list[tuple[Tensor, int, bool]]:
+    """Each chain's (draws, gradient evaluations, Laplace metric taken), in worker processes where ``processes`` > 1."""
     if processes > 1:
         try:
             payload = pickle.dumps(backend)
@@ -197,5 +215,5 @@ def nuts(backend, n_samples: int = 256, warmup: int = 512, n_draws: int = 16, nu
     start_full[idx] = start
     return HyperPosterior("nuts", spec.labels, full, w, theta0.detach(), cov, ess if math.isfinite(ess) else 0.0,
                           float("nan"), S, {"all_draws": draws, "gradient_evaluations": [r[1] for r in results],
-                                            "start": start_full, "metric": metric if inverse_mass is not None
-                                            else "diagonal"})
+                                            "start": start_full,
+                                            "metric": "laplace" if all(r[2] for r in results) else "diagonal"})

@@ -442,3 +442,32 @@ def test_nuts_metric_and_processes_arguments_and_the_in_process_fallback(fitted,
     assert hp.extra["all_draws"].shape == (20, 1)
     # in a script the default is one process (its workers would import the script again)
     assert hyper_nuts._processes(None, 4, torch.device("cpu")) == 1
+
+
+def test_nuts_says_when_pyro_does_not_take_the_laplace_metric(fitted, monkeypatch):
+    """The metric is set through pyro's adapter (its internals): where that fails, the chain runs pyro's own
+    metric and the posterior says so (``extra["metric"]``, a warning) instead of claiming the Laplace one."""
+    pytest.importorskip("pyro")
+    from pyro.infer.mcmc.adaptation import WarmupAdapter
+
+    from irft_torch.gp import hyper_nuts
+
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m.load_state_dict(m0.state_dict())
+    calls = []
+    reset = WarmupAdapter.reset_step_size_adaptation
+
+    def failing_second(self, z):  # pyro's own call passes; the one after the metric is set fails
+        calls.append(1)
+        if len(calls) == 2:
+            raise AttributeError("no such adapter")
+        return reset(self, z)
+
+    monkeypatch.setattr(WarmupAdapter, "reset_step_size_adaptation", failing_second)
+    with pytest.warns(RuntimeWarning, match="did not take the Laplace metric"):
+        hp = hyper_nuts.nuts(m.backend, n_samples=10, warmup=10, free=["outputscale_z"], processes=1)
+    assert hp.extra["metric"] == "diagonal" and len(calls) >= 3
+    monkeypatch.undo()
+    hp = hyper_nuts.nuts(m.backend, n_samples=10, warmup=10, free=["outputscale_z"], processes=1)
+    assert hp.extra["metric"] == "laplace"
