@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor
 
-from .backends.closed_form import closed_form_of, current_values, prior_terms
+from .backends.closed_form import _plan, closed_form_of, current_values, prior_terms
 
 __all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior"]
 
@@ -30,18 +30,19 @@ BATCH_ELEMENTS = 2**22  # a batch's largest intermediate (S x 2 x r x F numbers)
 def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
     """Every hyperparameter's value (name -> (*S, *shape)) for theta (*S, P_free), the fixed ones at their
     current values, and whether each draw is possible (every value above its constraint's lower bound)."""
-    full = spec.full(theta)
+    full = spec.full(theta).exp()
     batch = full.shape[:-1]
     values, valid, i = {}, torch.ones(batch, dtype=torch.bool, device=full.device), 0
     for name, shape, c in zip(spec.names, spec.shapes, spec.constraints):
         k = shape.numel()
-        v = full[..., i:i + k].exp().reshape(*batch, *shape)
+        v = full[..., i:i + k].reshape(*batch, *shape)
         valid &= (v > c.lower_bound.to(v)).reshape(*batch, -1).all(-1)
         values[name] = v
         i += k
-    for name, v in current_values(backend.hypers).items():
-        if name not in values:
-            values[name] = v.expand(*batch, *v.shape)
+    if any(name not in values for name, _, _ in _plan(backend.hypers).entries):  # some held at their values
+        for name, v in current_values(backend.hypers).items():
+            if name not in values:
+                values[name] = v.expand(*batch, *v.shape)
     return values, valid
 
 
