@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor
 
-from .backends.closed_form import _plan, closed_form_of, current_values, prior_terms
+from .backends.closed_form import closed_form_of, current_values, prior_terms
 
 __all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior"]
 
@@ -39,10 +39,8 @@ def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
         valid &= (v > c.lower_bound.to(v)).reshape(*batch, -1).all(-1)
         values[name] = v
         i += k
-    if any(name not in values for name, _, _ in _plan(backend.hypers).entries):  # some held at their values
-        for name, v in current_values(backend.hypers).items():
-            if name not in values:
-                values[name] = v.expand(*batch, *v.shape)
+    for name, v in current_values(backend.hypers, skip=values).items():  # those held at their values
+        values[name] = v.expand(*batch, *v.shape)
     return values, valid
 
 

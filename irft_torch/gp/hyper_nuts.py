@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import os
 import pickle
+import sys
 import warnings
 
 import torch
@@ -109,8 +110,6 @@ def _processes(processes: int | None, num_chains: int, device: torch.device) -> 
         if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
             raise ValueError(f"processes must be None or a positive integer, got {processes!r}")
         return min(processes, num_chains)
-    import sys
-
     interactive = getattr(sys.modules.get("__main__"), "__file__", None) is None
     if device.type != "cpu" or not interactive:
         return 1
@@ -126,6 +125,7 @@ def _run_chains(backend, args: list[tuple], processes: int) -> list[tuple[Tensor
             payload = None
         if payload is not None:
             from concurrent.futures import ProcessPoolExecutor
+            from concurrent.futures.process import BrokenProcessPool
             from multiprocessing import get_all_start_methods, get_context
             from multiprocessing.context import BaseContext
 
@@ -135,8 +135,6 @@ def _run_chains(backend, args: list[tuple], processes: int) -> list[tuple[Tensor
                 ctx: BaseContext = server
             else:
                 ctx = get_context("spawn")
-            from concurrent.futures.process import BrokenProcessPool
-
             threads = max(1, (os.cpu_count() or 1) // processes)
             try:
                 with ProcessPoolExecutor(max_workers=processes, mp_context=ctx) as pool:

@@ -42,14 +42,13 @@ from torch import Tensor
 
 from . import laplace_guard as guard
 from .hyper_density import closed_form_log_posterior, log_posterior_batch
-from .importance import _merge, _systematic, first_stage, second_stage
+from .importance import _merge, _systematic, first_stage, importance_sample
 from .pareto import pareto_khat
 
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace",
            "point_mass", "log_evidence", "HYPER_POSTERIORS"]
 
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
-
 
 
 @dataclass
@@ -348,9 +347,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     spec.load(backend.hypers, mode)
     if not mask.any():  # every coordinate at a wall: nothing to marginalise
         return _kept_plug_in(spec, mode, held, "every hyperparameter is at a wall")
-    x, logp, logw = first[0], first[2], first[2] - first[1]
-    if adapt and bool(torch.isfinite(logw).any()) and guard.unreliable(logw):
-        x, logp, logw = second_stage(log_p_many, *first, mode_sub, float(inflate) * cov, df, generator, qmc)
+    x, logp, logw, _ = importance_sample(log_p_many, first, mode_sub, float(inflate) * cov, df, generator, qmc,
+                                         guard.unreliable if adapt else None)
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
     ok = torch.isfinite(logw)
     if not ok.any():

@@ -53,14 +53,14 @@ def _student_t_log_density(x: Tensor, mean: Tensor, L: Tensor, df: float) -> Ten
             - 0.5 * (df + P) * torch.log1p(d / df))
 
 
-def importance_sample(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov: Tensor, df: float, n: int,
-                      generator, qmc: bool = True, adapt: Callable[[Tensor], bool] | None = None
-                      ) -> tuple[Tensor, Tensor, Tensor, int]:
+def importance_sample(log_p_many: Callable[[Tensor], Tensor], first: tuple[Tensor, Tensor, Tensor], mean: Tensor,
+                      cov: Tensor, df: float, generator, qmc: bool = True,
+                      adapt: Callable[[Tensor], bool] | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
     """Proposals x (N, P), their log posterior (N,) and log importance weights (N,) (unnormalised), and the
-    number of stages. Stage 1 (``first_stage``): n draws of the Student-t (``mean``, ``cov``, ``df``). Where
-    ``adapt(log weights)`` says they are unreliable, stage 2 (``second_stage``). ``log_p_many``: (n, P) -> (n,),
+    number of stages, from the first stage's draws ``first`` (``first_stage``: x, log proposal density, log
+    posterior) of the Student-t (``mean``, ``cov``, ``df``). Where ``adapt(log weights)`` says they are
+    unreliable, stage 2 (``second_stage``) is drawn and both are weighed together. ``log_p_many``: (n, P) -> (n,),
     -inf where impossible."""
-    first = first_stage(log_p_many, mean, cov, df, n, generator, qmc)
     logw1 = first[2] - first[1]
     if adapt is None or not torch.isfinite(logw1).any() or not adapt(logw1):
         return first[0], first[2], logw1, 1

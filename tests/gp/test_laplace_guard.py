@@ -132,7 +132,7 @@ def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
     unreliable (k-hat 1.3-1.5, ESS 5-10 of 256). With the second stage the weighted mean and covariance approach
     the target's (closed form) and the effective sample size grows (measured: mean error 0.3-0.7 -> 0.05-0.1,
     ESS -> 56-162 of 512)."""
-    from irft_torch.gp.importance import importance_sample
+    from irft_torch.gp.importance import first_stage, importance_sample
     from irft_torch.gp.pareto import pareto_khat
 
     m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
@@ -148,9 +148,10 @@ def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
         d = x - mu
         return mu, (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), float(1 / w.pow(2).sum())
 
-    x1, lp1, lw1, n1 = importance_sample(target.log_prob, start, S, 30.0, 256, torch.Generator().manual_seed(seed))
-    x2, lp2, lw2, n2 = importance_sample(target.log_prob, start, S, 30.0, 256, torch.Generator().manual_seed(seed),
-                                         adapt=guard.unreliable)
+    g = torch.Generator().manual_seed(seed)
+    first = first_stage(target.log_prob, start, S, 30.0, 256, g)
+    x1, lp1, lw1, n1 = importance_sample(target.log_prob, first, start, S, 30.0, g)
+    x2, lp2, lw2, n2 = importance_sample(target.log_prob, first, start, S, 30.0, g, adapt=guard.unreliable)
     assert n1 == 1 and n2 == 2 and x2.shape == (512, 3)
     torch.testing.assert_close(lp2, target.log_prob(x2))  # the log posterior of every draw is returned
     assert guard.unreliable(lw1) and pareto_khat(lw1) > 0.7

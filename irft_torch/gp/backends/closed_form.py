@@ -215,10 +215,12 @@ def _resolve_prior(prior, closure):
     return name, torch.as_tensor(closure.keywords["c"]) + loc, 1 / scale**2, -math.log(scale) - LOG_SQRT_2PI
 
 
-def current_values(hypers) -> dict[str, Tensor]:
-    """Each hyperparameter's value (its constraint's transform of the raw parameter), detached: name -> value."""
+def current_values(hypers, skip=()) -> dict[str, Tensor]:
+    """Each hyperparameter's value (its constraint's transform of the raw parameter), detached: name -> value;
+    none for the names in ``skip`` (values the caller has already)."""
     with torch.no_grad():
-        return {name: c.transform(p) if c is not None else p.detach() for name, p, c in _plan(hypers).entries}
+        return {name: c.transform(p) if c is not None else p.detach() for name, p, c in _plan(hypers).entries
+                if name not in skip}
 
 
 def prior_terms(hypers, values: dict[str, Tensor], grad: bool = True, plan: _Plan | None = None):
