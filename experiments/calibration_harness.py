@@ -77,6 +77,19 @@ def summarise(rows: list[dict]) -> dict:
     return table
 
 
+def coverage_table(rows: list[dict], posteriors) -> list[str]:
+    """A compact markdown table from ``summarise``: per family and per motion, each posterior's mean 95 %
+    coverage and share of fits overconfident beyond chance, x / z."""
+    table = summarise(rows)
+    lines = ["| group | " + " | ".join(posteriors) + " |", "|---" * (len(posteriors) + 1) + "|"]
+    for by in ("family", "motion"):
+        for g in sorted({k[1] for k in table if k[0] == by}):
+            cells = [" / ".join(f"{table[(by, g, hp, a)][3]:.3f}, {100 * table[(by, g, hp, a)][4]:.0f} %"
+                                for a in "xz") for hp in posteriors]
+            lines.append(f"| {g} ({table[(by, g, posteriors[0], 'x')][0]}) | " + " | ".join(cells) + " |")
+    return lines
+
+
 def write_report(rows: list[dict], out: Path, suffix: str) -> None:
     table = summarise(rows)
     posts = [hp for hp in POSTERIORS if any(r["posterior"] == hp for r in rows)]

@@ -22,7 +22,6 @@ import csv
 import statistics
 import sys
 import warnings
-from collections import defaultdict
 from pathlib import Path
 
 import torch
@@ -31,7 +30,7 @@ from irft_torch import InverseRFT
 from irft_torch.studies.calibration import medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from calibration_harness import cases  # noqa: E402
+from calibration_harness import cases, coverage_table  # noqa: E402
 
 
 def case_list(which: str) -> list:
@@ -57,20 +56,7 @@ def run(case) -> list[dict]:
 
 
 def summary(rows: list[dict]) -> str:
-    posts = ("map", "laplace_stage1", "laplace")
-    lines = ["| group | " + " | ".join(posts) + " |", "|---" * (len(posts) + 1) + "|"]
-    for by in ("family", "motion"):
-        g = defaultdict(list)
-        for r in rows:
-            g[(r[by], r["posterior"])].append(r)
-        for key in sorted({k[0] for k in g}):
-            cells = []
-            for post in posts:
-                rs = g[(key, post)]
-                cov = [statistics.mean(float(r[f"cover95_{a}"]) for r in rs) for a in "xz"]
-                over = [100 * sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs) for a in "xz"]
-                cells.append(f"{cov[0]:.3f}, {over[0]:.0f} % / {cov[1]:.3f}, {over[1]:.0f} %")
-            lines.append(f"| {key} ({len(g[(key, 'map')])}) | " + " | ".join(cells) + " |")
+    lines = coverage_table(rows, ("map", "laplace_stage1", "laplace"))
     one = [r for r in rows if r["posterior"] == "laplace_stage1"]
     two = [r for r in rows if r["posterior"] == "laplace"]
     lines += ["", f"stage 2 drawn in {sum(int(r['n']) > int(o['n']) for r, o in zip(two, one))} of {len(two)} fits; "

@@ -25,7 +25,6 @@ import statistics
 import sys
 import time
 import warnings
-from collections import defaultdict
 from pathlib import Path
 
 import torch
@@ -34,7 +33,7 @@ from irft_torch import InverseRFT
 from irft_torch.studies.calibration import medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from calibration_harness import cases  # noqa: E402
+from calibration_harness import cases, coverage_table  # noqa: E402
 
 POSTERIORS = ("map", "laplace", "nuts")
 
@@ -61,19 +60,7 @@ def run(case, chains: int, samples: int) -> list[dict]:
 
 
 def summary(rows: list[dict]) -> str:
-    lines = ["| group | " + " | ".join(POSTERIORS) + " |", "|---" * (len(POSTERIORS) + 1) + "|"]
-    for by in ("family", "motion"):
-        g = defaultdict(list)
-        for r in rows:
-            g[(r[by], r["posterior"])].append(r)
-        for key in sorted({k[0] for k in g}):
-            cells = []
-            for post in POSTERIORS:
-                rs = g[(key, post)]
-                cov = [statistics.mean(float(r[f"cover95_{a}"]) for r in rs) for a in "xz"]
-                over = [100 * sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs) for a in "xz"]
-                cells.append(f"{cov[0]:.3f}, {over[0]:.0f} % / {cov[1]:.3f}, {over[1]:.0f} %")
-            lines.append(f"| {key} ({len(g[(key, 'map')])}) | " + " | ".join(cells) + " |")
+    lines = coverage_table(rows, POSTERIORS)
     secs = [float(r["seconds"]) for r in rows if r["posterior"] == "nuts"]
     lap = [float(r["seconds"]) for r in rows if r["posterior"] == "laplace"]
     if secs:
