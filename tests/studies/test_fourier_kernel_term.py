@@ -1,0 +1,79 @@
+"""experiments/fourier_kernel_term.py: its Li-basis kernel spans Li et al.'s fitting functions, and its dense
+zero-mean model is the library's (the same posterior at the same hyperparameters)."""
+
+import importlib.util
+import math
+import pathlib
+import sys
+
+import torch
+
+from irft_torch import InverseRFT
+from irft_torch.rft import CToe, contacts, forces
+from irft_torch.rft.paths import pose_path
+from irft_torch.rft.stress_maps import FourierStressMap
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+F64 = torch.float64
+
+
+def _script():
+    path = ROOT / "experiments" / "fourier_kernel_term.py"
+    spec = importlib.util.spec_from_file_location("fourier_kernel_term", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["fourier_kernel_term"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _angles(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    return tuple((torch.rand(n, generator=g, dtype=F64) - 0.5) * math.pi for _ in range(2))
+
+
+def test_the_li_term_is_the_product_of_first_harmonics_and_spans_li_et_al_s_maps():
+    fk = _script()
+    b1, g1 = _angles(30, 0)
+    b2, g2 = _angles(20, 1)
+    p = {"ls": torch.zeros(4, dtype=F64), "os": torch.tensor(-80.0, dtype=F64), "li": torch.tensor(math.log(2.5))}
+    k = fk.kernel(p, b1, g1, b2, g2, li=True)  # the RBF part at variance e^-80: the Li term alone
+
+    def features(b, g):  # {1, cos 2b, sin 2b} x {1, cos g, sin g}, by hand
+        fb = torch.stack([torch.ones_like(b), torch.cos(2 * b), torch.sin(2 * b)], -1)
+        fg = torch.stack([torch.ones_like(g), torch.cos(g), torch.sin(g)], -1)
+        return (fb[:, :, None] * fg[:, None, :]).reshape(len(b), 9)
+
+    # sigma_L^2 / 4 times the features' inner product (1 + cos 2(b - b'))(1 + cos(g - g')) / 4
+    ref = 2.5 / 4 * features(b1, g1) @ features(b2, g2).T
+    assert torch.allclose(k, ref, atol=1e-12)
+    # Li et al.'s generic map and the poppy-seed set lie in that span over the canonical square: least squares
+    # on the 9 features leaves nothing (the RBF alone has no such finite span)
+    b, g = _angles(400, 2)
+    Phi = features(b, g)
+    for m in (FourierStressMap.generic().double(), FourierStressMap.poppy_seeds_loose().double()):
+        a = m(b, g)  # (400, 2)
+        coef = torch.linalg.lstsq(Phi, a).solution
+        assert float((Phi @ coef - a).abs().max()) < 1e-10 * float(a.abs().max())
+
+
+def test_the_dense_zero_mean_model_is_the_library_s_at_the_same_hyperparameters():
+    fk = _script()
+    t = torch.linspace(0, 1, 30, dtype=F64)
+    c = contacts(CToe(0.02, 0.01, n_segments=6), pose_path(t, -0.06 + 0.12 * t, 0.01 - 0.05 * torch.sin(math.pi * t),
+                                                            0.6 * t))
+    f = forces(FourierStressMap.generic().double(), c)
+    f = f + 0.02 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(3), dtype=F64)
+    model = InverseRFT(c, f, method="observations")
+    ls = torch.tensor([[0.9, 1.3, 0.7, 2.0], [1.1, 0.8, 1.6, 0.6]], dtype=F64)
+    os, noise = torch.tensor([0.03, 0.2], dtype=F64), torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
+    model.hypers.lengthscale = ls[:, None, :]
+    model.hypers.outputscale = os
+    model.hypers.noise = noise
+    b, g = _angles(25, 4)
+    post = model.stress_map(b, g)
+    for a, w in enumerate((c.weight_x, c.weight_z)):
+        ax = fk.DenseAxis(c.beta, c.gamma, w, f[:, a], li=False)
+        ax.p.update(ls=ls[a].log(), os=os[a].log(), noise=model.hypers.noise[a].log())
+        mean, cov = ax.posterior(b, g)
+        assert torch.allclose(mean, post.mean[:, a], rtol=1e-6, atol=1e-9)
+        assert torch.allclose(cov.diagonal(), post.variance[:, a], rtol=1e-6, atol=1e-12)
