@@ -27,7 +27,7 @@ grid, and the percentile among 200 maps drawn from the fit's own posterior (over
 below 0.025). Plug-in predictions only (no hyperparameter posterior).
 
     python experiments/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2]
-        [--held-out] [--no-library] [--out DIR]
+        [--held-out | --held-out-1] [--laplace N] [--no-library] [--out DIR]
 
 Rows go to ``fourier_kernel_term.csv`` under --out as each case finishes (a rerun skips those there).
 """
@@ -242,6 +242,8 @@ def main() -> None:
     p.add_argument("--motions", default="short,rotating,turning", help="comma-separated harness motions")
     p.add_argument("--seeds", type=int, default=2, help="seeds per family x motion")
     p.add_argument("--held-out", action="store_true", help="the harness' second held-out set instead")
+    p.add_argument("--held-out-1", action="store_true", help="the harness' first held-out set (sharp media, the "
+                   "figure-eight) instead")
     p.add_argument("--no-library", action="store_true", help="skip the library's own plug-in fit (the map row)")
     p.add_argument("--laplace", type=int, default=0, metavar="N",
                    help="also score each model's Laplace mixture (N importance-weighted proposals; the library's "
@@ -251,8 +253,9 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(2)
     kinds = set(a.motions.split(","))
-    todo = [c for c in cases(False, a.seeds, False, held_out_2=a.held_out)
-            if (a.held_out or c.kind in kinds) and c.seed < a.seeds][:a.limit]
+    held = a.held_out or a.held_out_1
+    todo = [c for c in cases(a.held_out_1, a.seeds, False, held_out_2=a.held_out)
+            if (held or c.kind in kinds) and c.seed < a.seeds][:a.limit]
     a.out.mkdir(parents=True, exist_ok=True)
     path = a.out / ("fourier_kernel_term_laplace.csv" if a.laplace else "fourier_kernel_term.csv")
     rows = list(csv.DictReader(path.open())) if path.exists() else []
