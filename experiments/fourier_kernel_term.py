@@ -78,7 +78,8 @@ def kernel(p: dict, b1, g1, b2, g2, li: bool):
 class DenseAxis:
     """One map's zero-mean GP on the segments in contact: forces y (T,) = W alpha + noise."""
 
-    def __init__(self, beta, gamma, weight, y, li: bool) -> None:
+    def __init__(self, beta, gamma, weight, y, li: bool, li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> None:
+        """``li_prior``: the k_Li variance's log-normal prior, (its centre over the outputscale's, log-sd)."""
         T, M = weight.shape
         keep = weight.reshape(-1) != 0
         self.b, self.g = beta.reshape(-1)[keep], gamma.reshape(-1)[keep]
@@ -88,7 +89,8 @@ class DenseAxis:
         self.y, self.li = y, li
         self.centre = float((y.pow(2).mean() / weight.abs().sum(-1).pow(2).mean()).log())
         self.p = {"ls": torch.full((4,), LS_CENTRE, dtype=F64), "os": torch.tensor(self.centre, dtype=F64),
-                  "li": torch.tensor(self.centre, dtype=F64), "noise": (1e-2 * y.var()).log()}
+                  "li": torch.tensor(self.centre + math.log(li_prior[0]), dtype=F64), "noise": (1e-2 * y.var()).log()}
+        self.li_centre, self.li_log_sd = self.centre + math.log(li_prior[0]), li_prior[1]
 
     @property
     def names(self) -> list[str]:
@@ -108,7 +110,7 @@ class DenseAxis:
         loss = loss + 0.5 * ((p["ls"] - LS_CENTRE) / LS_LOG_SD).pow(2).sum()
         loss = loss + 0.5 * ((p["os"] - self.centre) / OS_LOG_SD).pow(2)
         if self.li:
-            loss = loss + 0.5 * ((p["li"] - self.centre) / LI_LOG_SD).pow(2)
+            loss = loss + 0.5 * ((p["li"] - self.li_centre) / self.li_log_sd).pow(2)
         return loss
 
     def unflatten(self, theta) -> dict:
@@ -178,14 +180,15 @@ def _root(cov: Tensor) -> Tensor:
     return evecs * evals.clamp_min(0).sqrt()
 
 
-def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int = 200) -> list[dict]:
+def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int = 200,
+                li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> list[dict]:
     """The plug-in's scores, and with ``laplace`` proposals the Laplace mixture's too (one dict each)."""
     B, G = (t.reshape(-1) for t in grid(41))
     true = truth(B, G)
     outs: list[dict] = [{}, {}] if laplace else [{}]
     gen = torch.Generator().manual_seed(10_000 + seed)
     for a, (name, w) in enumerate((("x", c.weight_x), ("z", c.weight_z))):
-        ax = DenseAxis(c.beta, c.gamma, w, f[:, a], li)
+        ax = DenseAxis(c.beta, c.gamma, w, f[:, a], li, li_prior)
         ax.fit()
         with torch.no_grad():
             mean, cov = ax.posterior(B, G)
@@ -219,7 +222,7 @@ def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int =
     return outs
 
 
-def run(case, library: bool, laplace: int) -> list[dict]:
+def run(case, library: bool, laplace: int, li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> list[dict]:
     truth, label = medium(case.family, case.seed)
     c = motion(case.kind, case.seed)
     f = simulate(truth, c, case.noise, case.seed)
@@ -233,7 +236,7 @@ def run(case, library: bool, laplace: int) -> list[dict]:
             m.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
             rows.append({**base, "posterior": "laplace", **score(m, truth, 41, 200, case.seed)})
     for name, li in (("rbf", False), ("rbf+li", True)):
-        scored = dense_score(c, f, truth, li, case.seed, laplace)
+        scored = dense_score(c, f, truth, li, case.seed, laplace, li_prior=li_prior)
         rows.append({**base, "posterior": name, **scored[0]})
         if laplace:
             rows.append({**base, "posterior": name + " laplace", **scored[1]})
@@ -252,6 +255,9 @@ def main() -> None:
     p.add_argument("--laplace", type=int, default=0, metavar="N",
                    help="also score each model's Laplace mixture (N importance-weighted proposals; the library's "
                         "own Laplace row beside them)")
+    p.add_argument("--li-prior", type=float, nargs=2, default=(1.0, LI_LOG_SD), metavar=("FACTOR", "LOG_SD"),
+                   help="the k_Li variance's prior: its centre as a factor of the outputscale's, and its log-sd "
+                        "(default 1 and log 2; a sensitivity check)")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args()
@@ -261,7 +267,8 @@ def main() -> None:
     todo = [c for c in cases(a.held_out_1, a.seeds, False, held_out_2=a.held_out)
             if (not kinds or c.kind in kinds) and c.seed < a.seeds][:a.limit]
     a.out.mkdir(parents=True, exist_ok=True)
-    path = a.out / ("fourier_kernel_term_laplace.csv" if a.laplace else "fourier_kernel_term.csv")
+    tag = "" if tuple(a.li_prior) == (1.0, LI_LOG_SD) else f"_prior{a.li_prior[0]:g}_{a.li_prior[1]:.3g}"
+    path = a.out / (f"fourier_kernel_term{tag}_laplace.csv" if a.laplace else f"fourier_kernel_term{tag}.csv")
     rows = list(csv.DictReader(path.open())) if path.exists() else []
     done = {(r["family"], r["motion"], r["seed"]) for r in rows}
     for i, case in enumerate(todo):
@@ -269,7 +276,7 @@ def main() -> None:
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            new = run(case, not a.no_library, a.laplace)
+            new = run(case, not a.no_library, a.laplace, tuple(a.li_prior))
         rows += [{k: str(v) for k, v in r.items()} for r in new]
         fields = list(dict.fromkeys(k for r in rows for k in r))
         with path.open("w", newline="") as fh:
