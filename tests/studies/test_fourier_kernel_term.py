@@ -12,6 +12,7 @@ from irft_torch import InverseRFT
 from irft_torch.rft import CToe, contacts, forces
 from irft_torch.rft.paths import pose_path
 from irft_torch.rft.stress_maps import FourierStressMap
+from irft_torch.studies.calibration import medium
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 F64 = torch.float64
@@ -46,14 +47,19 @@ def test_the_li_term_is_the_product_of_first_harmonics_and_spans_li_et_al_s_maps
     # sigma_L^2 / 4 times the features' inner product (1 + cos 2(b - b'))(1 + cos(g - g')) / 4
     ref = 2.5 / 4 * features(b1, g1) @ features(b2, g2).T
     assert torch.allclose(k, ref, atol=1e-12)
-    # Li et al.'s generic map and the poppy-seed set lie in that span over the canonical square: least squares
+    # Li et al.'s generic map and both poppy-seed sets lie in that span over the canonical square: least squares
     # on the 9 features leaves nothing (the RBF alone has no such finite span)
     b, g = _angles(400, 2)
     Phi = features(b, g)
-    for m in (FourierStressMap.generic().double(), FourierStressMap.poppy_seeds_loose().double()):
+    for m in (FourierStressMap.generic().double(), FourierStressMap.poppy_seeds_loose().double(),
+              FourierStressMap.poppy_seeds_close().double()):
         a = m(b, g)  # (400, 2)
         coef = torch.linalg.lstsq(Phi, a).solution
         assert float((Phi @ coef - a).abs().max()) < 1e-10 * float(a.abs().max())
+    sharp, _ = medium("sharp", 0)  # the harness' tanh-shaped media are not: the check has power
+    a = sharp(b, g)
+    coef = torch.linalg.lstsq(Phi, a).solution
+    assert float((Phi @ coef - a).abs().max()) > 1e-2 * float(a.abs().max())
 
 
 def test_the_dense_zero_mean_model_is_the_library_s_at_the_same_hyperparameters():
