@@ -38,10 +38,8 @@ Results and what they mean: docs/calibration.md, "The kernel, not the mean".
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
-import warnings
 from pathlib import Path
 
 import torch
@@ -53,7 +51,7 @@ from irft_torch.gp.mixture import mixture_moments, mixture_quantile
 from irft_torch.studies.calibration import grid, medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from calibration_harness import cases, coverage_table  # noqa: E402
+from calibration_harness import cases, coverage_table, run_resumable  # noqa: E402
 
 F64 = torch.float64
 LS_CENTRE, LS_LOG_SD = math.log(1.5), 1.5
@@ -269,24 +267,7 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     tag = "" if tuple(a.li_prior) == (1.0, LI_LOG_SD) else f"_prior{a.li_prior[0]:g}_{a.li_prior[1]:.3g}"
     path = a.out / (f"fourier_kernel_term{tag}_laplace.csv" if a.laplace else f"fourier_kernel_term{tag}.csv")
-    rows = list(csv.DictReader(path.open())) if path.exists() else []
-    done = {(r["family"], r["motion"], r["seed"]) for r in rows}
-    for i, case in enumerate(todo):
-        if (case.family, case.kind, str(case.seed)) in done:
-            continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            new = run(case, not a.no_library, a.laplace, tuple(a.li_prior))
-        rows += [{k: str(v) for k, v in r.items()} for r in new]
-        fields = list(dict.fromkeys(k for r in rows for k in r))
-        with path.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields, restval="nan")
-            w.writeheader()
-            w.writerows(rows)
-        cov = {r["posterior"]: f"{float(r['cover95_x']):.3f}/{float(r['cover95_z']):.3f}" for r in new}
-        print(f"[{i + 1}/{len(todo)}] {case.family} {case.kind} seed {case.seed}: {cov}", flush=True)
-    keys = {(c.family, c.kind, str(c.seed)) for c in todo}
-    kept = [r for r in rows if (r["family"], r["motion"], r["seed"]) in keys]
+    kept = run_resumable(todo, path, lambda case: run(case, not a.no_library, a.laplace, tuple(a.li_prior)))
     order = ("map", "laplace", "rbf", "rbf laplace", "rbf+li", "rbf+li laplace")
     posts = [hp for hp in order if any(r["posterior"] == hp for r in kept)]
     print("\n".join(coverage_table(kept, posts)))

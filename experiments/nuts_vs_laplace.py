@@ -19,12 +19,10 @@ from __future__ import annotations
 
 import argparse
 import copy
-import csv
 import os
 import statistics
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import torch
@@ -33,7 +31,7 @@ from irft_torch import InverseRFT
 from irft_torch.studies.calibration import medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from calibration_harness import cases, coverage_table  # noqa: E402
+from calibration_harness import cases, coverage_table, run_resumable  # noqa: E402
 
 POSTERIORS = ("map", "laplace", "nuts")
 
@@ -82,23 +80,7 @@ def main() -> None:
     todo = [c for c in cases(False, 2, False) if c.kind in kinds and c.seed < a.seeds][:a.limit]
     a.out.mkdir(parents=True, exist_ok=True)
     path = a.out / "nuts_vs_laplace.csv"
-    rows = list(csv.DictReader(path.open())) if path.exists() else []
-    done = {(r["family"], r["motion"], r["seed"]) for r in rows}
-    for i, case in enumerate(todo):
-        if (case.family, case.kind, str(case.seed)) in done:
-            continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            new = run(case, a.chains, a.samples)
-        rows += [{k: str(v) for k, v in r.items()} for r in new]
-        with path.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-        cov = {r["posterior"]: f"{float(r['cover95_x']):.3f}/{float(r['cover95_z']):.3f}" for r in new}
-        print(f"[{i + 1}/{len(todo)}] {case.family} {case.kind} seed {case.seed}: {cov}", flush=True)
-    kept = [r for r in rows if (r["family"], r["motion"], r["seed"]) in
-            {(c.family, c.kind, str(c.seed)) for c in todo}]
+    kept = run_resumable(todo, path, lambda case: run(case, a.chains, a.samples))
     print(summary(kept))
 
 
