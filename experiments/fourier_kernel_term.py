@@ -43,6 +43,7 @@ import sys
 from pathlib import Path
 
 import torch
+from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
 from irft_torch import InverseRFT, metrics
@@ -166,18 +167,6 @@ class DenseAxis:
         return [self.unflatten(t) for t in thetas[keep]], w
 
 
-def _root(cov: Tensor) -> Tensor:
-    """A square root of a PSD covariance (n, n): Cholesky with a growing jitter, else the eigendecomposition."""
-    jitter = 1e-10 * float(cov.diagonal().mean())
-    for _ in range(4):
-        try:
-            return torch.linalg.cholesky(cov + jitter * torch.eye(len(cov), dtype=cov.dtype))
-        except torch.linalg.LinAlgError:
-            jitter *= 100
-    evals, evecs = torch.linalg.eigh(cov)
-    return evecs * evals.clamp_min(0).sqrt()
-
-
 def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int = 200,
                 li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> list[dict]:
     """The plug-in's scores, and with ``laplace`` proposals the Laplace mixture's too (one dict each)."""
@@ -202,7 +191,7 @@ def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int =
                 lo, hi = (mixture_quantile(q, M, V, wts) for q in (0.025, 0.975))
                 inside = ((true[:, a] >= lo) & (true[:, a] <= hi)).double().mean()
                 pick = torch.multinomial(wts, draws, replacement=True, generator=gen)
-                roots = {int(k): _root(covs[int(k)]) for k in pick.unique()}  # only the components drawn
+                roots = {int(k): psd_safe_cholesky(covs[int(k)]) for k in pick.unique()}  # the components drawn
                 maps = torch.stack([M[k] + roots[int(k)] @ torch.randn(len(mean), generator=gen, dtype=F64)
                                     for k in pick])
                 own = ((maps >= lo) & (maps <= hi)).double().mean(1)
