@@ -60,6 +60,7 @@ class _StackedHyperparameters(RFTHyperparameters):
         self.likelihood = GaussianLikelihood(batch_shape=torch.Size([per * B]),
                                              noise_constraint=ScaledGreaterThan(floor, scale))
         self.mean = None
+        self.li = None  # Li et al.'s term is not batched (shares_fit)
         with torch.no_grad():
             self.kernel.raw_outputscale.copy_(torch.cat([h.kernel.raw_outputscale for h in hs]))
             self.kernel.base_kernel.raw_lengthscale.copy_(torch.cat([h.kernel.base_kernel.raw_lengthscale for h in hs]))
@@ -113,6 +114,8 @@ def shares_fit(models: Sequence) -> str | None:
             return f"backend {m.method!r} (only 'pairs' is batched)"
         if m.surface is not None or m.hypers.mean is not None:
             return "a learned surface or a physics mean"
+        if m.hypers.li is not None:
+            return "Li et al.'s kernel term (li_basis=True)"
         if m.priors != m0.priors or m.hypers.tied != m0.hypers.tied:
             return "different priors or noise tying"
         p0, p = m0.hypers.kernel.raw_outputscale, m.hypers.kernel.raw_outputscale

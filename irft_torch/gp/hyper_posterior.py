@@ -104,7 +104,8 @@ class HyperSpec:
 
 def _label(name: str, shape: torch.Size) -> list[str]:
     base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",
-            "likelihood.noise_covar.raw_noise": "noise", "mean.raw_scales": "mean_scale"}.get(name, name)
+            "likelihood.noise_covar.raw_noise": "noise", "mean.raw_scales": "mean_scale",
+            "li.raw_variance": "li_variance"}.get(name, name)
     n = shape.numel()
     if base == "lengthscale":
         dims = ("sin2b", "cos2b", "sing", "cosg")

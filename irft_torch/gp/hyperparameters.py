@@ -14,6 +14,7 @@ from torch import Tensor
 
 from .constraints import ScaledGreaterThan
 from .kernels import BATCH, AngleKernel
+from .li_basis import LiBasisVariance
 from .means import GenericShapeMean
 
 __all__ = ["RFTHyperparameters", "force_likelihood"]
@@ -36,10 +37,12 @@ class RFTHyperparameters(Module):
         kernel: :class:`AngleKernel` (lengthscale (2, 1, 4), outputscale (2,) in (N/cm^3)^2).
         likelihood: gpytorch ``GaussianLikelihood`` (noise in N^2).
         mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
+        li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.li_basis``) or None
+            (the RBF alone).
     """
 
     def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6,
-                 force_scale=1.0, map_scale=1.0) -> None:
+                 force_scale=1.0, map_scale=1.0, li_basis: bool = False) -> None:
         """``force_scale`` (2,) N and ``map_scale`` (2,) N/cm^3: the data's typical force and stress per
         depth per axis; the raw parameters are measured in them (``ScaledGreaterThan``), so a fit does
         not depend on the units the data come in."""
@@ -49,6 +52,7 @@ class RFTHyperparameters(Module):
         self.kernel = AngleKernel(outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
         self.likelihood = force_likelihood(tied_noise, noise_floor, fs.pow(2))
         self.mean = GenericShapeMean(scale=ms) if physics_mean else None
+        self.li = LiBasisVariance(scale=ms.pow(2)) if li_basis else None
 
     @property
     def tied(self) -> bool:
@@ -87,6 +91,11 @@ class RFTHyperparameters(Module):
         self.likelihood.noise = value.reshape(raw.shape)
 
     @property
+    def li_variance(self) -> Tensor | None:
+        """(2,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
+        return None if self.li is None else self.li.variance
+
+    @property
     def mean_scales(self) -> Tensor | None:
         """(2,) scales of the generic shape in the physics mean, or None for the zero mean."""
         return None if self.mean is None else self.mean.scales
@@ -105,4 +114,6 @@ class RFTHyperparameters(Module):
                "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist()}
         if self.mean is not None:
             out["mean_scales"] = self.mean.scales.tolist()
+        if self.li is not None:
+            out["li_variance"] = self.li.variance.tolist()
         return out

@@ -147,3 +147,48 @@ def _data_scales(c: Contacts, f: Tensor) -> tuple[Tensor, Tensor]:
     s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
     force_scale = f.T.pow(2).mean(-1).sqrt().clamp_min(1e-300)
     return force_scale, force_scale / s.pow(2).mean(-1).sqrt().clamp_min(1e-300)
+
+
+def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver: str, lengthscale: float,
+                   surface: bool, tied_noise: bool, li_basis: bool, retired_grid: bool) -> tuple[str, str]:
+    """``InverseRFT``'s options checked (ValueError naming the argument, NotImplementedError for a combination
+    that is not built); returns (method, hyper_posterior) with the retired and default values resolved."""
+    from .hyper_posterior import HYPER_POSTERIORS
+    from .mean_average import check_average_options
+    from .priors import PRIORS
+
+    if prior_mean not in ("zero", "physics", "average"):
+        raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
+    if prior_mean == "average":
+        check_average_options(priors, surface, tied_noise)
+    if not (math.isfinite(lengthscale) and lengthscale > 0.05):
+        raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
+    if method == "grid":
+        warnings.warn("method='grid' (bilinear interpolation) was retired in 0.2; using 'spectral', which is "
+                      "exact to a reported truncation error", FutureWarning, stacklevel=3)
+        method = "spectral"
+    if method not in ("auto", "exact", "observations", "pairs", "spectral"):
+        raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', got {method!r}")
+    if priors not in PRIORS:
+        raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
+    if hyper_posterior is None:  # the default (see InverseRFT's docstring for why it is still the plug-in)
+        hyper_posterior = "map"
+    if hyper_posterior not in HYPER_POSTERIORS:
+        raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
+    if hyper_posterior != "map" and surface:
+        raise NotImplementedError("hyper_posterior with a learned surface offset: the offset has its own Laplace "
+                                  "std (model.surface_offset); use hyper_posterior='map' with surface_offset")
+    if solver not in ("cholesky", "gpytorch"):
+        raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
+    if not isinstance(li_basis, bool):
+        raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
+    if li_basis and surface:
+        raise NotImplementedError("li_basis=True with a learned surface offset is not built (gp.surface's kernel is "
+                                  "the RBF alone); use li_basis=False with surface_offset")
+    if li_basis and method == "spectral":
+        raise NotImplementedError("li_basis=True is not available on the spectral backend (its Kronecker prior would "
+                                  "lose its product form): use method='observations', 'pairs' or 'auto'")
+    if retired_grid:
+        warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
+                      FutureWarning, stacklevel=3)
+    return method, hyper_posterior

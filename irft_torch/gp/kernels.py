@@ -6,10 +6,12 @@ from __future__ import annotations
 import torch
 from gpytorch.constraints import GreaterThan, Interval
 from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
+from linear_operator.operators import MatmulLinearOperator
 from torch import Tensor
 
 from .embedding import embed_angles, rbf
 from .encoding import decode_rows
+from .li_basis import li_features, weighted_li_features
 from .operators import RFTKernelLinearOperator
 
 __all__ = ["embed_angles", "AngleKernel", "RFTCompositeKernel", "angle_covariance", "composite_covariance"]
@@ -70,18 +72,25 @@ def angle_covariance(kernel: AngleKernel, beta1: Tensor, gamma1: Tensor, beta2: 
                kernel.outputscale[..., None, None])
 
 
-def composite_covariance(kernel: AngleKernel, c1, c2=None) -> RFTKernelLinearOperator:
+def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
     """Lazy prior covariance (2, N1, N2) of the weighted sums of two sets of contacts (N, M) (c2 None:
     of c1 with itself), x and z axes, at the kernel's current hyperparameters (no gradient in them;
-    differentiable in the contacts)."""
+    differentiable in the contacts). ``li``: a ``LiBasisVariance`` whose rank-9 term (``gp.li_basis``) is
+    added (the sum of the two operators), or None."""
     ls, os = kernel.lengthscale.detach(), kernel.outputscale.detach()
     w1 = torch.stack([c1.weight_x, c1.weight_z])
     if c2 is None:
-        return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c1.beta[None], c1.gamma[None],
-                                                     w1, ls, os, BATCH, same_inputs=True)
-    w2 = torch.stack([c2.weight_x, c2.weight_z])
-    return RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
-                                                 w2, ls, os, BATCH)
+        op = RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c1.beta[None], c1.gamma[None],
+                                                   w1, ls, os, BATCH, same_inputs=True)
+    else:
+        w2 = torch.stack([c2.weight_x, c2.weight_z])
+        op = RFTKernelLinearOperator.from_segments(c1.beta[None], c1.gamma[None], w1, c2.beta[None], c2.gamma[None],
+                                                   w2, ls, os, BATCH)
+    if li is None:
+        return op
+    f1 = weighted_li_features(c1)
+    f2 = f1 if c2 is None else weighted_li_features(c2)
+    return op + MatmulLinearOperator(f1 * li.variance.detach()[:, None, None], f2.mT)
 
 
 class RFTCompositeKernel(Kernel):
@@ -95,6 +104,8 @@ class RFTCompositeKernel(Kernel):
 
     Args:
         base_kernel: the :class:`AngleKernel` (its hyperparameters are this kernel's).
+        li: a ``LiBasisVariance``: Li et al.'s rank-9 term (``gp.li_basis``) is added, (W f) diag(v) (W f)^T,
+            differentiable in its variance; None (default): the RBF alone.
 
     Example:
         >>> kern = RFTCompositeKernel(AngleKernel())
@@ -102,9 +113,10 @@ class RFTCompositeKernel(Kernel):
         >>> K = kern(rows)                                   # lazy (2, T, T)
     """
 
-    def __init__(self, base_kernel: AngleKernel, **kwargs) -> None:
+    def __init__(self, base_kernel: AngleKernel, li=None, **kwargs) -> None:
         super().__init__(batch_shape=base_kernel.batch_shape, **kwargs)
         self.base_kernel = base_kernel
+        self.li = li
         self._structure_key: tuple | None = None
         self._structure: dict | None = None
 
@@ -114,7 +126,11 @@ class RFTCompositeKernel(Kernel):
         b1, g1, w1 = decode_rows(x1)
         b2, g2, w2 = decode_rows(x2)
         if diag:
-            return _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
+            out = _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
+            if self.li is not None:
+                f1, f2 = _li_rows(b1, g1, w1), _li_rows(b2, g2, w2)
+                out = out + ((f1 * f2) * self.li.variance[:, None, None]).sum(-1)
+            return out
         batch = torch.broadcast_shapes(x1.shape[:-2], x2.shape[:-2], self.batch_shape)
         # The index structure (compressed segments, distinct angle pairs) depends only on the
         # inputs, not on the hyperparameters: reuse it while the same input tensors come back
@@ -131,11 +147,20 @@ class RFTCompositeKernel(Kernel):
                 self._structure_key, self._structure = key, structure
         else:
             structure = self._structure
-        return RFTKernelLinearOperator.from_structure(
+        op = RFTKernelLinearOperator.from_structure(
             structure, self.base_kernel.lengthscale, self.base_kernel.outputscale, batch)
+        if self.li is None:
+            return op
+        f1, f2 = _li_rows(b1, g1, w1), _li_rows(b2, g2, w2)
+        return op + MatmulLinearOperator(f1 * self.li.variance[:, None, None], f2.mT)
 
     def num_outputs_per_input(self, x1: Tensor, x2: Tensor) -> int:
         return 1
+
+
+def _li_rows(beta: Tensor, gamma: Tensor, w: Tensor) -> Tensor:
+    """(2, T, 9): Li et al.'s features summed with the rows' weights (decoded rows (2, T, M))."""
+    return torch.einsum("...tm,...tmk->...tk", w, li_features(beta, gamma))
 
 
 def _composite_diag(base: AngleKernel, b1, g1, w1, b2, g2, w2) -> Tensor:

@@ -20,13 +20,14 @@ from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning, adam, copy_into
 from .hyper_mixture import HyperMixtureMixin
-from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
+from .hyper_posterior import HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
 from .inputs import (
     _as_forces,
     _as_noise_scale,
     _check_angles,
     _check_dtype,
+    _check_options,
     _check_query,
     _check_statistics,
     _check_units,
@@ -34,10 +35,10 @@ from .inputs import (
     _noise_scale,
     _whiten,
 )
-from .mean_average import MeanAverageMixin, check_average_options
+from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
-from .priors import PRIORS, prior_centres, register_physical_priors
+from .priors import prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
@@ -110,6 +111,11 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             priors were not tuned for, the plug-in's intervals are overconfident far more often. It is
             not yet the default: it doubled the test suite's time and would move every reported number
             (README, docs/calibration.md say what is measured and what is left).
+        li_basis: add Li et al.'s own basis, {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma}, to the
+            kernel as a rank-9 term with its own variance per map (``gp.li_basis``; ``model.hypers.li_variance``,
+            (N/cm^3)^2), fitted with the rest. On media and motions nobody tuned for it raises the intervals'
+            coverage where the plain RBF is overconfident (docs/calibration.md); media outside Li et al.'s span
+            can lose a little. Observations and pairs backends only (``method="auto"`` picks between them).
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)
@@ -132,39 +138,16 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None) -> None:
+                 surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None,
+                 li_basis: bool = False) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
             raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
-        if prior_mean not in ("zero", "physics", "average"):
-            raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
-        if prior_mean == "average":
-            check_average_options(priors, surface_offset or surface_groups is not None, tied_noise)
-        if not (math.isfinite(lengthscale) and lengthscale > 0.05):
-            raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
-        if method == "grid":
-            warnings.warn("method='grid' (bilinear interpolation) was retired in 0.2; using 'spectral', which is "
-                          "exact to a reported truncation error", FutureWarning, stacklevel=2)
-            method = "spectral"
-        if method not in ("auto", "exact", "observations", "pairs", "spectral"):
-            raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', "
-                             f"got {method!r}")
-        if priors not in PRIORS:
-            raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
-        if hyper_posterior is None:  # the default (see the docstring for why it is still the plug-in)
-            hyper_posterior = "map"
-        if hyper_posterior not in HYPER_POSTERIORS:
-            raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
-        if hyper_posterior != "map" and (surface_offset or surface_groups is not None):
-            raise NotImplementedError("hyper_posterior with a learned surface offset: the offset has its own Laplace "
-                                      "std (model.surface_offset); use hyper_posterior='map' with surface_offset")
-        if solver not in ("cholesky", "gpytorch"):
-            raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
-        if grid_size is not None or exact_max_segments is not None:
-            warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
-                          FutureWarning, stacklevel=2)
+        method, hyper_posterior = _check_options(prior_mean, priors, method, hyper_posterior, solver, lengthscale,
+                                                 surface_offset or surface_groups is not None, tied_noise, li_basis,
+                                                 grid_size is not None or exact_max_segments is not None)
         _check_dtype(dtype)
         T = len(contacts)
         if T < 2:
@@ -208,7 +191,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
         force_scale, map_scale = _data_scales(c, f)
         self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
-                                         map_scale.cpu()).to(device=device, dtype=dtype)
+                                         map_scale.cpu(), li_basis).to(device=device, dtype=dtype)
         with torch.no_grad():
             resid = y
             if prior_mean == "physics":
@@ -225,6 +208,9 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             centres = self._register_priors(c, f)
             with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
                 self.hypers.outputscale = centres["outputscale"].to(dtype)
+        if self.hypers.li is not None:  # Li et al.'s term starts at the RBF part's variance (its prior's centre)
+            with torch.no_grad():
+                self.hypers.li.variance = self.hypers.outputscale
         self.auto = method == "auto"
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "

@@ -41,6 +41,8 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   is the centre: the map keeps correlation exp(-4 / (2 * 1.5^2)) = 0.41 between beta = 0 and
   beta = +-pi/2 (exp(-1/4.5) = 0.80 at +-pi/4), so it extrapolates part of what it saw and reverts
   to the prior's variance beyond, and that is what the posterior std then says.
+- **Li et al.'s term** (``li_basis=True``, ``gp.li_basis``): its variance per map has the outputscale's
+  centre and width: the 9 functions are given as much prior variance as the RBF part.
 - **mean scale** (with the physics mean, ``prior_mean="physics"`` or ``"average"``): the generic shape's
   scale per axis, centre the medium's zeta (as above), log-sd ln 2. A proper prior, so that a model with
   the physics mean has a marginal likelihood (evidence) to weigh against the zero mean's.
@@ -161,6 +163,11 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
                                              functools.partial(_log_lengthscale_ratio, c=log_ls))
     hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
                                                  functools.partial(_log_noise_ratio, c=log_noise))
+    if getattr(hypers, "li", None) is not None:
+        # Li et al.'s 9-function term (``gp.li_basis``): the same centre and width as the outputscale; the
+        # evidence for this centre (x 0.25 to x 4 all raise coverage): docs/calibration.md
+        hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
+                                 functools.partial(_log_li_ratio, c=log_os))
     if physics_mean and hypers.mean is not None:
         # a proper prior on the generic shape's scale per axis (a model's evidence needs one: ``prior_mean=
         # "average"`` weighs the physics mean against the zero mean by it): around the medium's zeta, a factor 2
@@ -171,6 +178,10 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
 
 def _log_outputscale_ratio(m, c):
     return m.outputscale.log() - c.to(m.outputscale)
+
+
+def _log_li_ratio(m, c):
+    return m.variance.log() - c.to(m.variance)
 
 
 def _log_lengthscale_ratio(m, c):

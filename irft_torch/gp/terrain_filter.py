@@ -135,6 +135,9 @@ class TerrainFilter(nn.Module):
         if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
             raise ValueError(f"window must be None or a positive integer number of samples, got {window!r}")
         hypers = model.hypers
+        if hypers.li is not None:
+            raise NotImplementedError("model: a TerrainFilter carries the RBF kernel alone; a model with "
+                                      "li_basis=True is not supported (fit one with li_basis=False)")
         self.dtype = model.dtype
         self.device = torch.device(model._device)
         self.n_envs = B = n_envs

@@ -18,9 +18,10 @@ from torch import Tensor
 
 from ..embedding import embed_angles
 from ..fourier import GRID, _analysis, _grid
+from ..li_basis import LI_VARIANCE
 
 __all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF",
-           "KroneckerFourier", "RowSeparable"]
+           "KroneckerFourier", "RowSeparable", "LiBasisTerm"]
 
 LENGTHSCALE = "kernel.base_kernel.raw_lengthscale"  # value (*S, 2, 1, 4)
 OUTPUTSCALE = "kernel.raw_outputscale"  # value (*S, 2)
@@ -164,6 +165,26 @@ class PairsRBF(CovarianceTerm):
         GK = adj.sigma * K
         return {OUTPUTSCALE: GK.sum((-1, -2)) / values[OUTPUTSCALE],
                 LENGTHSCALE: lengthscale_gradient(GK, self.D, values[LENGTHSCALE][..., 0, :])[..., None, :]}
+
+
+class LiBasisTerm(CovarianceTerm):
+    """Li et al.'s 9-function term (``gp.li_basis``): Sigma = H diag(v) H^T per map, H (2, n, 9) or (n, 9) the
+    features at the space's coordinates (the distinct pairs; with R None, the observations' weighted sums).
+
+    d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = sum((G (R H)) o (R H)).
+    """
+
+    names = (LI_VARIANCE,)
+
+    def __init__(self, features: Tensor) -> None:
+        self.H = features
+
+    def forward(self, values, R):
+        RH = self.H if R is None else R @ self.H  # (2, r, 9)
+        return (RH * values[LI_VARIANCE][..., None, None]) @ RH.mT, RH
+
+    def backward(self, values, adj, RH):
+        return {LI_VARIANCE: ((adj.G @ RH) * RH).sum((-1, -2))}
 
 
 class KroneckerFourier(CovarianceTerm):

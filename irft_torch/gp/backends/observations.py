@@ -18,6 +18,7 @@ from torch import Tensor
 from ...rft.contacts import Contacts
 from ..encoding import encode_contacts
 from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
+from ..li_basis import li_covariance, li_features, weighted_li_features
 from ..operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
 from .base import FunctionalPosterior, RFTBackend
 
@@ -61,7 +62,7 @@ class ObservationsBackend(RFTBackend):
         self.n_segments = contacts.n_segments
         mean = hypers.mean if hypers.mean is not None else gpytorch.means.ZeroMean(batch_shape=BATCH)
         self.gp = CompositeExactGP(encode_contacts(contacts), forces.T.contiguous(), hypers.likelihood, mean,
-                                   RFTCompositeKernel(hypers.kernel))
+                                   RFTCompositeKernel(hypers.kernel, hypers.li))
 
     def _settings(self):
         stack = contextlib.ExitStack()
@@ -102,7 +103,7 @@ class ObservationsBackend(RFTBackend):
         per pair, ``PairsRBF`` with R = W_U, the operator's own dense-weights case); else None (autograd).
         Only with the Cholesky solver."""
         from .closed_form import ClosedForm
-        from .covariance_terms import PairsRBF, RowSeparable
+        from .covariance_terms import LiBasisTerm, PairsRBF, RowSeparable
 
         if self.solver != "cholesky":
             return None
@@ -115,7 +116,9 @@ class ObservationsBackend(RFTBackend):
             g = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
         R = None
         if "separable" in side:
-            terms = [RowSeparable(side["separable"][0])]
+            terms: list = [RowSeparable(side["separable"][0])]
+            if self.hypers.li is not None:
+                terms.append(LiBasisTerm(side["li"]))
         else:
             U, M = side["pairs1"].shape[0], side["i1"].shape[-1]
             if not _use_dense_weights(U, M, U, M):
@@ -123,6 +126,8 @@ class ObservationsBackend(RFTBackend):
                 return None
             R = _dense_weights(side["i1"].expand(2, *side["i1"].shape[-2:]), side["w1"], U)
             terms = [PairsRBF(side["pairs1"])]
+            if self.hypers.li is not None:
+                terms.append(LiBasisTerm(li_features(side["pairs1"][:, 0], side["pairs1"][:, 1])))
         cf = ClosedForm(R, y, g, y.new_zeros(2, 3), self.n_samples, terms, symmetrize=False)
         self._closed_form_cache = (c, self.train_forces, cf)
         return cf
@@ -134,12 +139,15 @@ class ObservationsBackend(RFTBackend):
             self.n_segments = M
 
     # ---- prediction: the training covariance factored once per set of hyperparameters --------
-    @staticmethod
-    def _side(c: Contacts) -> dict:
-        """One side of a W1 K W2^T: the contacts' non-zero segments and their distinct angle pairs."""
+    def _side(self, c: Contacts) -> dict:
+        """One side of a W1 K W2^T: the contacts' non-zero segments and their distinct angle pairs (and, with
+        Li et al.'s term, the features summed with the weights, "li" (2, N, 9))."""
         w = torch.stack([c.weight_x, c.weight_z])
-        return RFTKernelLinearOperator.segment_structure(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None],
+        side = RFTKernelLinearOperator.segment_structure(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None],
                                                          w, BATCH, same_inputs=True)
+        if self.hypers.li is not None:
+            side["li"] = weighted_li_features(c)
+        return side
 
     def _block(self, side1: dict, side2: dict) -> Tensor:
         """Prior covariance (2, N1, N2) of two sets of weighted sums (the lazy operator, made dense)."""
@@ -148,8 +156,11 @@ class ObservationsBackend(RFTBackend):
         if "separable" in side1 and "separable" in side2:  # both toes translate: the product form
             structure["separable"] = (side1["separable"][0], side2["separable"][0])
         k = self.hypers.kernel
-        return RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
-                                                      BATCH).to_dense()
+        K = RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
+                                                   BATCH).to_dense()
+        if self.hypers.li is not None:
+            K = K + li_covariance(self.hypers.li.variance.detach(), side1["li"], side2["li"])
+        return K
 
     def _factor(self):
         """(train side, L (2, T, T) with L L^T = W K W^T + noise, alpha = (.)^-1 (y - m)), cached by value."""
@@ -210,7 +221,8 @@ class ObservationsBackend(RFTBackend):
             out.covariance = 0.5 * (cov + cov.mT)
             out.variance = torch.diagonal(out.covariance, dim1=-2, dim2=-1)
         elif variance:
-            out.variance = composite_covariance(self.hypers.kernel, contacts).diagonal() - A.pow(2).sum(-2)
+            out.variance = composite_covariance(self.hypers.kernel, contacts, li=self.hypers.li).diagonal() - A.pow(
+                2).sum(-2)
         return out
 
     def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
@@ -250,7 +262,7 @@ class PriorBackend(RFTBackend):
         nn_init(self, hypers, empty, empty.beta.new_zeros(0, 2))
 
     def _op(self, c1: Contacts, c2: Contacts | None):
-        return composite_covariance(self.hypers.kernel, c1, c2)
+        return composite_covariance(self.hypers.kernel, c1, c2, li=self.hypers.li)
 
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
         mean = self.hypers.mean_of(contacts, detach=True)

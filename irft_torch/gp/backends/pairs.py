@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..kernels import angle_covariance, composite_covariance
+from ..li_basis import li_covariance, li_features
 from ..operators import unique_pairs
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
@@ -82,27 +83,32 @@ class PairsBackend(WeightSpaceBackend):
     # ---- the weight-space pieces ------------------------------------------------------------
     def _K(self) -> Tensor:
         t = self.table
-        return angle_covariance(self.hypers.kernel, t[:, 0], t[:, 1], t[:, 0], t[:, 1])
+        K = angle_covariance(self.hypers.kernel, t[:, 0], t[:, 1], t[:, 0], t[:, 1])
+        if self.hypers.li is not None:
+            f = li_features(t[:, 0], t[:, 1])
+            K = K + li_covariance(self.hypers.li.variance, f, f)
+        return K
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return X @ self._K()
 
     def _closed_form_terms(self, f) -> list:
-        from .covariance_terms import PairsRBF
+        from .covariance_terms import LiBasisTerm, PairsRBF
 
-        return [PairsRBF(self.table.to(f.R))]
+        t = self.table.to(f.R)
+        return [PairsRBF(t)] + ([LiBasisTerm(li_features(t[:, 0], t[:, 1]))] if self.hypers.li is not None else [])
 
     def _cross(self, c: Contacts) -> Tensor:
         """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""
         pairs = Contacts.points(self.table[:, 0], self.table[:, 1])  # the map at each pair: weight 1
-        return composite_covariance(self.hypers.kernel, c, pairs).to_dense()
+        return composite_covariance(self.hypers.kernel, c, pairs, li=self.hypers.li).to_dense()
 
     def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
-        op = composite_covariance(self.hypers.kernel, c)
+        op = composite_covariance(self.hypers.kernel, c, li=self.hypers.li)
         return op.to_dense() if full else op.diagonal()
 
     def _prior_cross(self, c1: Contacts, c2: Contacts) -> Tensor:
-        return composite_covariance(self.hypers.kernel, c1, c2).to_dense()
+        return composite_covariance(self.hypers.kernel, c1, c2, li=self.hypers.li).to_dense()
 
     # ---- more data ---------------------------------------------------------------------------
     def _grown(self, c: Contacts) -> tuple[Tensor, Tensor]:

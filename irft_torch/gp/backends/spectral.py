@@ -109,6 +109,10 @@ class SpectralBackend(WeightSpaceBackend):
                  basis: FourierBasis | None = None, keep_data: bool = True,
                  statistics: FeatureStatistics | None = None) -> None:
         super().__init__(hypers, contacts, forces)
+        if getattr(hypers, "li", None) is not None:
+            raise NotImplementedError("li_basis=True is not available on the spectral backend (its Kronecker prior "
+                                      "would lose its product form): use method='observations' or 'pairs' "
+                                      "('auto' then picks between them)")
         if not (0 < tol < 1):
             raise ValueError(f"tol must be in (0, 1), got {tol}")
         self.tol = float(tol)

@@ -1,0 +1,74 @@
+r"""Li et al.'s own basis as a kernel term (``InverseRFT(..., li_basis=True)``, docs/calibration.md).
+
+Li, Zhang & Goldman (Science 2013) fit the stress-per-depth maps of every medium they measured with the
+9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma}. The RBF on the embedding
+(sin 2beta, cos 2beta, sin gamma, cos gamma) gives their products (sin 2beta cos gamma, ...) almost no prior
+variance once its lengthscales are long (a smooth map), so a medium whose map differs from the data's
+mostly in those directions is extrapolated with false confidence (``experiments/fourier_kernel_term.py``).
+This term gives the 9 functions a prior variance of their own, one per map:
+
+.. math::
+    k_{Li}(\theta, \theta') = v \, \tfrac14 (1 + \cos 2(\beta - \beta')) (1 + \cos(\gamma - \gamma'))
+                            = v \, f(\theta)^\top f(\theta'),
+
+with f the 9 functions divided by 2 (``li_features``). It is a rank-9 kernel: every backend adds
+(W f) diag(v) (W f)^T to the force covariance, W f (2, N, 9) the features summed with the contacts' weights
+(``weighted_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
+prior at the outputscale's centre (``gp.priors``).
+"""
+
+from __future__ import annotations
+
+import torch
+from gpytorch import Module
+from torch import Tensor
+
+from .constraints import ScaledGreaterThan
+
+__all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "li_covariance"]
+
+LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
+
+
+def li_features(beta: Tensor, gamma: Tensor) -> Tensor:
+    """The 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} / 2 at angles (...,) in
+    radians: (..., 9), ordered beta-major. f(theta) . f(theta') = (1 + cos 2(dbeta)) (1 + cos dgamma) / 4."""
+    b = torch.stack([torch.ones_like(beta), torch.cos(2 * beta), torch.sin(2 * beta)], -1)
+    g = torch.stack([torch.ones_like(gamma), torch.cos(gamma), torch.sin(gamma)], -1)
+    return 0.5 * (b[..., :, None] * g[..., None, :]).flatten(-2)
+
+
+def weighted_li_features(contacts) -> Tensor:
+    """(2, N, 9): sum_m w_a[t, m] f(beta[t, m], gamma[t, m]) for the x and z weights of ``contacts``
+    (N, M) (cm^3 per function): the term's features of each weighted sum (a force, or a map value)."""
+    f = li_features(contacts.beta, contacts.gamma)  # (N, M, 9)
+    w = torch.stack([contacts.weight_x, contacts.weight_z])  # (2, N, M)
+    return torch.einsum("anm,nmk->ank", w, f)
+
+
+def li_covariance(variance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:
+    """(*S, 2, N1, N2) = f1 diag(v) f2^T per map, for features (2, N, 9) (or (N, 9), shared by both maps)
+    and v (*S, 2) in (N/cm^3)^2."""
+    return (f1 * variance[..., None, None]) @ f2.mT
+
+
+class LiBasisVariance(Module):
+    """The term's prior variance per map, v (2,) in (N/cm^3)^2, positive through ``ScaledGreaterThan``
+    (measured in the data's map scale, like the outputscale). A gpytorch ``Module``: its prior is
+    registered on it (``gp.priors``) and it is saved in state dicts."""
+
+    def __init__(self, scale=1.0) -> None:
+        super().__init__()
+        scale = torch.as_tensor(scale, dtype=torch.get_default_dtype()).expand(2).clone()
+        self.register_parameter("raw_variance", torch.nn.Parameter(torch.zeros(2)))
+        self.register_constraint("raw_variance", ScaledGreaterThan(0.0, scale))
+
+    @property
+    def variance(self) -> Tensor:
+        """(2,) v_x, v_z in (N/cm^3)^2."""
+        return self.raw_variance_constraint.transform(self.raw_variance)
+
+    @variance.setter
+    def variance(self, value) -> None:
+        value = torch.as_tensor(value, dtype=self.raw_variance.dtype, device=self.raw_variance.device).expand(2)
+        self.initialize(raw_variance=self.raw_variance_constraint.inverse_transform(value))
