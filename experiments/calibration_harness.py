@@ -10,13 +10,13 @@ most 10 % overconfident fits, for every family, motion and map.
 
     python experiments/calibration_harness.py [--quick] [--held-out] [--seeds 2] [--out DIR]
 
-``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.li_basis``), scored as the plug-in
-and the Laplace mixture. ``--prior-mean physics`` fits with the generic shape times learned scales as the prior mean (the scales
-are hyperparameters: Laplace integrates over them). ``--held-out`` runs the families kept aside while
-the defaults were chosen (the ``sharp`` media, the ``figure8`` motion) instead. Rows are appended to
-``calibration_harness[_held_out].csv`` as each case finishes; a rerun skips the cases already there
-(interrupt and resume freely). Writes the summary ``calibration_harness[_held_out].md`` and
-``calibration_harness[_held_out].png``.
+``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.li_basis``), scored as the
+plug-in and the Laplace mixture. ``--prior-mean physics`` fits with the generic shape times learned
+scales as the prior mean (the scales are hyperparameters: Laplace integrates over them). ``--held-out``
+runs the families kept aside while the defaults were chosen (the ``sharp`` media, the ``figure8``
+motion) instead. Rows are appended to ``calibration_harness[_held_out].csv`` as each case finishes; a
+rerun skips the cases already there (interrupt and resume freely). Writes the summary
+``calibration_harness[_held_out].md`` and ``calibration_harness[_held_out].png``.
 """
 
 from __future__ import annotations

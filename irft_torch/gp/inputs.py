@@ -185,9 +185,6 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
     if li_basis and surface:
         raise NotImplementedError("li_basis=True with a learned surface offset is not built (gp.surface's kernel is "
                                   "the RBF alone); use li_basis=False with surface_offset")
-    if li_basis and method == "spectral":
-        raise NotImplementedError("li_basis=True is not available on the spectral backend (its Kronecker prior would "
-                                  "lose its product form): use method='observations', 'pairs' or 'auto'")
     if retired_grid:
         warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
                       FutureWarning, stacklevel=3)

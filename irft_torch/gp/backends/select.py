@@ -58,8 +58,7 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
     r = min(T, U)
     pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
     spectral = _spectral_flops(T, F, Fb, Fg)
-    # capped: the tolerance is out of reach; Li et al.'s term (``gp.li_basis``) has no spectral form
-    spectral = float("inf") if capped or getattr(hypers, "li", None) is not None else float(spectral * SPECTRAL_PENALTY)
+    spectral = float("inf") if capped else float(spectral * SPECTRAL_PENALTY)
     costs = {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
     return {m: v + STEP_OVERHEAD[m] for m, v in costs.items()}
 

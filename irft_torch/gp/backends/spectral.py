@@ -109,14 +109,15 @@ class SpectralBackend(WeightSpaceBackend):
                  basis: FourierBasis | None = None, keep_data: bool = True,
                  statistics: FeatureStatistics | None = None) -> None:
         super().__init__(hypers, contacts, forces)
-        if getattr(hypers, "li", None) is not None:
-            raise NotImplementedError("li_basis=True is not available on the spectral backend (its Kronecker prior "
-                                      "would lose its product form): use method='observations' or 'pairs' "
-                                      "('auto' then picks between them)")
         if not (0 < tol < 1):
             raise ValueError(f"tol must be in (0, 1), got {tol}")
         self.tol = float(tol)
         self.basis = basis or FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
+        if getattr(hypers, "li", None) is not None and min(self.basis.n_beta, self.basis.n_gamma) < 1:
+            if basis is not None:
+                raise ValueError(f"basis {basis} has no first harmonic of 2 beta or gamma: Li et al.'s term "
+                                 f"(li_basis=True) needs FourierBasis(n_beta >= 1, n_gamma >= 1)")
+            self.basis = FourierBasis(max(self.basis.n_beta, 1), max(self.basis.n_gamma, 1))  # it never shrinks
         self._data = [(contacts, forces)] if keep_data else None
         self._stored = statistics if statistics is not None and self._covers(statistics, self.basis) else None
         self._set_stats(self._stored_or_pass(self.basis, [(contacts, forces)]))
@@ -190,13 +191,34 @@ class SpectralBackend(WeightSpaceBackend):
         Y = (Sb.mT @ Y).reshape(2, Fb, k, Fg).transpose(1, 2)
         return s[:, None, None] * Y.reshape(X.shape)
 
+    def _li_index(self) -> Tensor:
+        """(9,) the positions of Li et al.'s functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in this
+        basis (beta-major, as ``li_basis.li_features``): the term is diagonal here, v / 4 on those 9 weights."""
+        Fg = self.basis.sizes[1]
+        return (torch.arange(3)[:, None] * Fg + torch.arange(3)[None, :]).reshape(-1).to(self.stats.P.device)
+
+    def _sigma_apply(self, X: Tensor, detach: bool) -> Tensor:
+        """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, ``gp.li_basis``)."""
+        Y = self._kron(X, *self._sigma_factors(detach=detach))
+        li = self.hypers.li
+        if li is None:
+            return Y
+        v = li.variance.detach() if detach else li.variance
+        idx = self._li_index()
+        return Y.index_add(-1, idx, X[..., idx] * (v / 4)[:, None, None])
+
     def _apply_sigma(self, X: Tensor) -> Tensor:
-        return self._kron(X, *self._sigma_factors())
+        return self._sigma_apply(X, detach=False)
 
     def _closed_form_terms(self, f) -> list:
-        from .covariance_terms import KroneckerFourier
+        from .covariance_terms import KroneckerFourier, LiBasisTerm
 
-        return [KroneckerFourier(self.basis, f.R)]
+        terms: list = [KroneckerFourier(self.basis, f.R)]
+        if self.hypers.li is not None:  # H (F, 9): 1/2 at each function's own weight (li_features = psi / 2)
+            H = f.R.new_zeros(self.basis.size, 9)
+            H[self._li_index().to(H.device), torch.arange(9, device=H.device)] = 0.5
+            terms.append(LiBasisTerm(H))
+        return terms
 
     def prepare(self, values: dict) -> None:
         """Outside a fit loop, grow the basis so that its truncation error is below ``tol`` for every
@@ -221,7 +243,7 @@ class SpectralBackend(WeightSpaceBackend):
         return Phi
 
     def _cross(self, c: Contacts) -> Tensor:
-        return self._kron(self._features_of(c), *self._sigma_factors(detach=True))
+        return self._sigma_apply(self._features_of(c), detach=True)
 
     def _prior_cov(self, c: Contacts, full: bool) -> Tensor:
         C, _ = self._query(c)  # Phi Sigma, remembered
@@ -257,7 +279,7 @@ class SpectralBackend(WeightSpaceBackend):
         with torch.no_grad():
             F = self.basis.size
             eye = torch.eye(F, dtype=H.dtype, device=H.device).expand(2, F, F)
-            Sigma = self._kron(eye, *self._sigma_factors(detach=True))
+            Sigma = self._sigma_apply(eye, detach=True)
             HS = H @ Sigma
             A = Sigma - HS.mT @ HS
             A = 0.5 * (A + A.mT)
