@@ -217,6 +217,8 @@ def main(argv=None) -> None:
                    "scoop and drag motions)")
     p.add_argument("--li-basis", action="store_true", help="InverseRFT(..., li_basis=True): Li et al.'s basis as a "
                    "kernel term (files get the suffix _li; scored as the plug-in and Laplace)")
+    p.add_argument("--posteriors", default=None, help="comma-separated subset of " + ",".join(POSTERIORS) +
+                   " (default: all four for the zero mean, map,laplace otherwise)")
     p.add_argument("--case", type=int, default=None, help="run only case number N of the list (0-based; for "
                    "running the cases one per process), then write the report")
     args = p.parse_args(argv)
@@ -242,7 +244,10 @@ def main(argv=None) -> None:
             if args.li_basis:
                 opts["li_basis"] = True
             plain = args.prior_mean == "zero" and not args.li_basis
-            new = run_case(case, POSTERIORS if plain else ("map", "laplace"), model_options=opts)
+            chosen = POSTERIORS if plain else ("map", "laplace")
+            if args.posteriors:
+                chosen = tuple(args.posteriors.split(","))
+            new = run_case(case, chosen, model_options=opts)
             write_header = not path.exists() or path.stat().st_size == 0
             with path.open("a", newline="") as fh:
                 w = csv.DictWriter(fh, fieldnames=list(new[0]))

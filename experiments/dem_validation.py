@@ -233,7 +233,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
         if a.run_effect:
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
             continue
-        m = irft.InverseRFT(ctr, ftr, prior_mean=pm)
+        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, li_basis=bool(getattr(a, "li_basis", False)))
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
     # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
@@ -338,6 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--n-iter", type=int, default=300, help="Adam steps per I-RFT fit")
     ap.add_argument("--run-effect", action="store_true",
                     help="I-RFT with a per-run random stress learned by the marginal likelihood (experimental)")
+    ap.add_argument("--li-basis", action="store_true",
+                    help="the I-RFT rows (zero and physics mean) with Li et al.'s basis as a kernel term "
+                         "(InverseRFT(..., li_basis=True)); the learned-surface row is left as it is")
     ap.add_argument("--cv-refit", action="store_true",
                     help="the grouped-CV row refits both candidates without each left-out value (nested "
                          "cross-validation; about 2x the time) instead of using the fitted hyperparameters")
