@@ -359,3 +359,41 @@ def test_probe_scores_of_a_3d_model_on_cuda_match_cpu():
     assert on_cuda(out[1][0])
     close(out[1][0], out[0][0], rtol=1e-6)
     close(out[1][1], out[0][1], rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", BACKENDS)
+def test_li_basis_on_cuda_matches_cpu(method):
+    """Li et al.'s kernel term (``li_basis=True``) on each backend: likelihood, closed-form and autograd gradients,
+    posterior maps and a short fit with its Laplace posterior, on the GPU as on the CPU."""
+    models = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        m = irft.InverseRFT(c, f, method=method, li_basis=True)
+        with torch.no_grad():
+            m.hypers.lengthscale = torch.tensor([[[0.8, 1.1, 0.9, 1.3]], [[1.2, 0.7, 1.0, 0.9]]])
+            m.hypers.li.variance = torch.tensor([0.05, 0.3])
+        models.append(m)
+    cpu, gpu = models
+    assert gpu.method == cpu.method == method and on_cuda(gpu.hypers.li.raw_variance)
+    losses = [m.loss() for m in models]
+    close(losses[1], losses[0])
+    grads = [torch.autograd.grad(loss, [m.hypers.li.raw_variance]) for loss, m in zip(losses, models)]
+    close(grads[1][0], grads[0][0], rtol=1e-7, atol=1e-12)
+    for m in models:
+        m.hypers.zero_grad()
+        assert m.backend.loss_and_grad() is not None
+    close(gpu.hypers.li.raw_variance.grad, cpu.hypers.li.raw_variance.grad, rtol=1e-7, atol=1e-12)
+    beta, gamma = torch.linspace(-1.4, 1.4, 7), torch.linspace(-1.5, 1.5, 7)
+    p_cpu, p_gpu = cpu.stress_map(beta, gamma), gpu.stress_map(beta.to(CUDA), gamma.to(CUDA))
+    assert on_cuda(p_gpu.mean)
+    close(p_gpu.mean, p_cpu.mean, rtol=1e-7)
+    close(p_gpu.variance, p_cpu.variance, rtol=1e-6)
+    for m in models:
+        torch.manual_seed(0)  # the proposals are drawn from the CPU's default generator on either device
+        m.hyper_method = "laplace"
+        m.fit(n_iter=20, lr=0.05, progress=False)
+    assert {"li_variance_x", "li_variance_z"} <= set(gpu.hyper_posterior.labels)
+    close(gpu.hyper_posterior.weights, cpu.hyper_posterior.weights, rtol=1e-4, atol=1e-8)
+    p_cpu, p_gpu = cpu.stress_map(beta, gamma), gpu.stress_map(beta.to(CUDA), gamma.to(CUDA))
+    close(p_gpu.mean, p_cpu.mean, rtol=1e-5, atol=1e-8)
+    close(p_gpu.variance, p_cpu.variance, rtol=1e-4, atol=1e-10)
