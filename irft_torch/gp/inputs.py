@@ -182,9 +182,6 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
         raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
     if not isinstance(li_basis, bool):
         raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
-    if li_basis and surface:
-        raise NotImplementedError("li_basis=True with a learned surface offset is not built (gp.surface's kernel is "
-                                  "the RBF alone); use li_basis=False with surface_offset")
     if retired_grid:
         warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
                       FutureWarning, stacklevel=3)

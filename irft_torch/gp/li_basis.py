@@ -57,18 +57,21 @@ class LiBasisVariance(Module):
     (measured in the data's map scale, like the outputscale). A gpytorch ``Module``: its prior is
     registered on it (``gp.priors``) and it is saved in state dicts."""
 
-    def __init__(self, scale=1.0) -> None:
+    def __init__(self, scale=1.0, n_maps: int = 2) -> None:
+        """``scale``: the data's map scale squared per map ((N/cm^3)^2); ``n_maps``: 2 (x, z), or 2B for B models
+        stacked (``gp.batch_fit``)."""
         super().__init__()
-        scale = torch.as_tensor(scale, dtype=torch.get_default_dtype()).expand(2).clone()
-        self.register_parameter("raw_variance", torch.nn.Parameter(torch.zeros(2)))
+        scale = torch.as_tensor(scale, dtype=torch.get_default_dtype()).expand(n_maps).clone()
+        self.register_parameter("raw_variance", torch.nn.Parameter(torch.zeros(n_maps)))
         self.register_constraint("raw_variance", ScaledGreaterThan(0.0, scale))
 
     @property
     def variance(self) -> Tensor:
-        """(2,) v_x, v_z in (N/cm^3)^2."""
+        """(n_maps,) v_x, v_z (per model when stacked) in (N/cm^3)^2."""
         return self.raw_variance_constraint.transform(self.raw_variance)
 
     @variance.setter
     def variance(self, value) -> None:
-        value = torch.as_tensor(value, dtype=self.raw_variance.dtype, device=self.raw_variance.device).expand(2)
+        value = torch.as_tensor(value, dtype=self.raw_variance.dtype,
+                                device=self.raw_variance.device).expand(self.raw_variance.shape)
         self.initialize(raw_variance=self.raw_variance_constraint.inverse_transform(value))

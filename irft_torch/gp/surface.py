@@ -45,6 +45,7 @@ from ..rft.contacts import M_TO_CM, Contacts
 from .backends import make_backend
 from .backends.pairs import distinct_pairs
 from .kernels import angle_covariance
+from .li_basis import li_covariance, li_features
 
 if TYPE_CHECKING:
     from .backends import RFTBackend
@@ -157,6 +158,9 @@ def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, 
     w = torch.stack([contacts.weight_x, contacts.weight_z])  # (2, T, M)
     Phi = w.new_zeros(2, T, U).scatter_add(-1, index.expand(2, *index.shape), w)
     K = angle_covariance(hypers.kernel, table[:, 0], table[:, 1], table[:, 0], table[:, 1])  # (2, U, U)
+    if getattr(hypers, "li", None) is not None:  # Li et al.'s term (``gp.li_basis``) at the pairs
+        f = li_features(table[:, 0], table[:, 1])
+        K = K + li_covariance(hypers.li.variance, f, f)
     s2 = hypers.noise  # (2,)
     y = forces.T
     m = hypers.mean_of(contacts)

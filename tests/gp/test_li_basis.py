@@ -3,14 +3,13 @@ the model written densely with the term's closed form (1 + cos 2 dbeta)(1 + cos 
 gradient against autograd and finite differences, and the options around it."""
 
 import math
-import warnings
 
 import pytest
 import torch
 
 from irft_torch import InverseRFT
 from irft_torch.gp.backends.closed_form import autograd_only
-from irft_torch.gp.batch_fit import shares_fit
+from irft_torch.gp.batch_fit import fit_together, shares_fit
 from irft_torch.gp.li_basis import li_features
 from irft_torch.rft import CToe, IToe, contacts, forces
 from irft_torch.rft.paths import pose_path
@@ -210,16 +209,62 @@ def test_options_that_do_not_carry_the_term_say_so():
         SpectralBackend(model.hypers, c, f, basis=FourierBasis(0, 3))
     with pytest.raises(TypeError, match="li_basis"):
         InverseRFT(c, f, li_basis="yes")
-    with pytest.raises(NotImplementedError, match="li_basis"):
-        InverseRFT(c, f, li_basis=True, surface_offset=True)  # refused before the depths are needed
     from irft_torch.gp.terrain_filter import TerrainFilter
 
     model = InverseRFT(c, f, li_basis=True)
     with pytest.raises(NotImplementedError, match="li_basis"):
         TerrainFilter(model, n_envs=2)
     c2, f2 = _data("itoe")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        a = InverseRFT(c2, f2, method="pairs", li_basis=True)
-        b = InverseRFT(c2, 1.1 * f2, method="pairs", li_basis=True)
-    assert "li_basis" in shares_fit([a, b])
+    a = InverseRFT(c2, f2, method="pairs", li_basis=True)
+    b = InverseRFT(c2, 1.1 * f2, method="pairs")
+    assert "li_basis" in shares_fit([a, b])  # the term in one model and not the other: not one batch
+
+
+@pytest.mark.parametrize("tied", [False, True])
+def test_fit_together_with_the_term_ends_where_each_fit_ends(tied):
+    """``gp.fit_together`` stacks the term's variance with the other hyperparameters: the same losses at every step
+    and the same hyperparameters as each model's own fit."""
+    c, f = _data("itoe")
+    fs = [f, 1.3 * f * (1 + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1), dtype=F64))]
+    alone = [InverseRFT(c, x, method="pairs", li_basis=True, tied_noise=tied) for x in fs]
+    together = [InverseRFT(c, x, method="pairs", li_basis=True, tied_noise=tied) for x in fs]
+    assert shares_fit(together) is None
+    start = [m.hypers.li.raw_variance.detach().clone() for m in together]
+    histories = [m.fit(n_iter=25, lr=0.1, progress=False) for m in alone]
+    batch = fit_together(together, n_iter=25, lr=0.1)
+    for a, b, ha, hb, v0 in zip(alone, together, histories, batch, start):
+        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
+        for (name, pa), (_, pb) in zip(a.hypers.named_parameters(), b.hypers.named_parameters()):
+            torch.testing.assert_close(pb, pa, rtol=1e-8, atol=1e-12, msg=name)
+        assert float((b.hypers.li.raw_variance - v0).abs().max()) > 1e-3  # the batch moved the term's variance
+
+
+def test_the_learned_surface_carries_the_term():
+    """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
+    at the shifted contacts, and its offset gradient equals central differences."""
+    from .test_surface import TRUTH, plates
+
+    c = plates()
+    f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
+    f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
+    m = InverseRFT(c, f, surface_offset=True, li_basis=True, priors=None)
+    noise = torch.tensor([3e-3, 5e-3], dtype=F64) * f.pow(2).mean(0)
+    _set(m, noise)
+    for delta in (-0.6, 0.2):  # cm
+        with torch.no_grad():
+            m.surface.offset.fill_(delta)
+        loss = m._surface_loss()
+        cd = c.with_surface_offset(torch.tensor(delta / 100))
+        ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
+        assert abs(float(loss.detach()) - float(ref)) < 1e-9
+        (g,) = torch.autograd.grad(loss, m.surface.offset)
+        h = 1e-5
+        with torch.no_grad():
+            m.surface.offset.fill_(delta + h)
+            up = m._surface_loss()
+            m.surface.offset.fill_(delta - h)
+            down = m._surface_loss()
+        torch.testing.assert_close(g[0], (up - down) / (2 * h), rtol=1e-5, atol=1e-8)
+    m.fit(n_iter=30, progress=False)  # the backend rebuilt at the fitted offset keeps the term
+    assert m.backend.hypers.li is not None
+    assert torch.isfinite(m.stress_map(c.beta[:3, 0], c.gamma[:3, 0]).variance).all()

@@ -400,9 +400,11 @@ class SpectralBackend(WeightSpaceBackend):
                               stacklevel=2)
             return False
         if max(need.n_beta, need.n_gamma) >= MAX_HARMONICS:  # not just the margin: the tolerance is out of reach
-            warnings.warn(f"lengthscales {ls.detach().reshape(-1).tolist()} need more than "
-                          f"{MAX_HARMONICS} harmonics per angle; the truncation error may exceed tol={self.tol:.0e}",
-                          stacklevel=2)
+            flat = ls.detach().reshape(-1)
+            what = (f"lengthscales {flat.tolist()}" if flat.numel() <= 8 else  # one model's 8; a batch: its shortest
+                    f"the shortest lengthscale {float(flat.min()):.3g} of a batch of {flat.numel() // 8} settings")
+            warnings.warn(f"{what} need more than {MAX_HARMONICS} harmonics per angle; the truncation error may "
+                          f"exceed tol={self.tol:.0e}", stacklevel=2)
         self.basis = grown
         self._set_stats(self._stored_or_pass(grown))
         return True
