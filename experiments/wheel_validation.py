@@ -120,7 +120,8 @@ def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts
 
 
 def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args, priors: str | None = "physical"):
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors)
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors,
+                            li_basis=bool(getattr(args, "li_basis", False)))
     model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
     return model
 
@@ -536,6 +537,8 @@ def main(argv=None) -> None:
     ap.add_argument("--lr", type=float, default=0.08)
     ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
     ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
+    ap.add_argument("--li-basis", action="store_true",
+                    help="planar study: I-RFT with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True))")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
     ap.add_argument("--contact-surface", default="envelope", choices=["envelope", "rim"],
                     help="what meets the sand: the wheel's convex hull (sand in the grouser pockets turns with "
