@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .embedding import embed_angles, rbf
 from .encoding import decode_rows
-from .li_basis import li_features, weighted_li_features
+from .li_basis import contact_li_features, weighted_li_features
 from .operators import RFTKernelLinearOperator
 
 __all__ = ["embed_angles", "AngleKernel", "RFTCompositeKernel", "angle_covariance", "composite_covariance"]
@@ -88,8 +88,8 @@ def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
                                                    w2, ls, os, BATCH)
     if li is None:
         return op
-    f1 = weighted_li_features(c1)
-    f2 = f1 if c2 is None else weighted_li_features(c2)
+    f1 = contact_li_features(c1)
+    f2 = f1 if c2 is None else contact_li_features(c2)
     return op + MatmulLinearOperator(f1 * li.variance.detach()[:, None, None], f2.mT)
 
 
@@ -128,7 +128,7 @@ class RFTCompositeKernel(Kernel):
         if diag:
             out = _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
             if self.li is not None:
-                f1, f2 = _li_rows(b1, g1, w1), _li_rows(b2, g2, w2)
+                f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
                 out = out + ((f1 * f2) * self.li.variance[:, None, None]).sum(-1)
             return out
         batch = torch.broadcast_shapes(x1.shape[:-2], x2.shape[:-2], self.batch_shape)
@@ -151,16 +151,11 @@ class RFTCompositeKernel(Kernel):
             structure, self.base_kernel.lengthscale, self.base_kernel.outputscale, batch)
         if self.li is None:
             return op
-        f1, f2 = _li_rows(b1, g1, w1), _li_rows(b2, g2, w2)
+        f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
         return op + MatmulLinearOperator(f1 * self.li.variance[:, None, None], f2.mT)
 
     def num_outputs_per_input(self, x1: Tensor, x2: Tensor) -> int:
         return 1
-
-
-def _li_rows(beta: Tensor, gamma: Tensor, w: Tensor) -> Tensor:
-    """(2, T, 9): Li et al.'s features summed with the rows' weights (decoded rows (2, T, M))."""
-    return torch.einsum("...tm,...tmk->...tk", w, li_features(beta, gamma))
 
 
 def _composite_diag(base: AngleKernel, b1, g1, w1, b2, g2, w2) -> Tensor:

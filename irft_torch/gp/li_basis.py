@@ -13,7 +13,7 @@ This term gives the 9 functions a prior variance of their own, one per map:
 
 with f the 9 functions divided by 2 (``li_features``). It is a rank-9 kernel: every backend adds
 (W f) diag(v) (W f)^T to the force covariance, W f (2, N, 9) the features summed with the contacts' weights
-(``weighted_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
+(``contact_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
 prior at the outputscale's centre (``gp.priors``).
 """
 
@@ -24,26 +24,35 @@ from gpytorch import Module
 from torch import Tensor
 
 from .constraints import ScaledGreaterThan
+from .fourier import FourierBasis
 
-__all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "li_covariance"]
+__all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "contact_li_features",
+           "li_covariance"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
 
 
+FIRST_HARMONICS = FourierBasis(1, 1)  # the spectral basis' own first harmonics: the same 9 functions, same order
+
+
 def li_features(beta: Tensor, gamma: Tensor) -> Tensor:
     """The 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} / 2 at angles (...,) in
-    radians: (..., 9), ordered beta-major. f(theta) . f(theta') = (1 + cos 2(dbeta)) (1 + cos dgamma) / 4."""
-    b = torch.stack([torch.ones_like(beta), torch.cos(2 * beta), torch.sin(2 * beta)], -1)
-    g = torch.stack([torch.ones_like(gamma), torch.cos(gamma), torch.sin(gamma)], -1)
+    radians: (..., 9), ordered beta-major as the spectral basis (``FourierBasis(1, 1)``, the first 3 x 3 of
+    any larger one). f(theta) . f(theta') = (1 + cos 2(dbeta)) (1 + cos dgamma) / 4."""
+    b, g = FIRST_HARMONICS.features(beta, gamma)  # (..., 3) each: (1, cos x, sin x)
     return 0.5 * (b[..., :, None] * g[..., None, :]).flatten(-2)
 
 
-def weighted_li_features(contacts) -> Tensor:
-    """(2, N, 9): sum_m w_a[t, m] f(beta[t, m], gamma[t, m]) for the x and z weights of ``contacts``
-    (N, M) (cm^3 per function): the term's features of each weighted sum (a force, or a map value)."""
-    f = li_features(contacts.beta, contacts.gamma)  # (N, M, 9)
-    w = torch.stack([contacts.weight_x, contacts.weight_z])  # (2, N, M)
-    return torch.einsum("anm,nmk->ank", w, f)
+def weighted_li_features(beta: Tensor, gamma: Tensor, weight: Tensor) -> Tensor:
+    """(*batch, N, 9): sum_m w[t, m] f(beta[t, m], gamma[t, m]) for segments (N, M) (or with the batch of
+    the weights, e.g. (2, N, M) for the x and z weights) (cm^3 per function): the term's features of each
+    weighted sum (a force, or a map value)."""
+    return torch.einsum("...nm,...nmk->...nk", weight, li_features(beta, gamma))
+
+
+def contact_li_features(contacts) -> Tensor:
+    """(2, N, 9): ``weighted_li_features`` of contacts (N, M) with their x and z weights."""
+    return weighted_li_features(contacts.beta, contacts.gamma, torch.stack([contacts.weight_x, contacts.weight_z]))
 
 
 def li_covariance(variance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:

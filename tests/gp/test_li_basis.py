@@ -242,7 +242,7 @@ def test_fit_together_with_the_term_ends_where_each_fit_ends(tied):
 def test_the_learned_surface_carries_the_term():
     """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
     at the shifted contacts, and its offset gradient equals central differences."""
-    from .test_surface import TRUTH, plates
+    from .test_surface import TRUTH, assert_offset_gradient_is_central_differences, plates
 
     c = plates()
     f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
@@ -257,14 +257,7 @@ def test_the_learned_surface_carries_the_term():
         cd = c.with_surface_offset(torch.tensor(delta / 100))
         ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
         assert abs(float(loss.detach()) - float(ref)) < 1e-9
-        (g,) = torch.autograd.grad(loss, m.surface.offset)
-        h = 1e-5
-        with torch.no_grad():
-            m.surface.offset.fill_(delta + h)
-            up = m._surface_loss()
-            m.surface.offset.fill_(delta - h)
-            down = m._surface_loss()
-        torch.testing.assert_close(g[0], (up - down) / (2 * h), rtol=1e-5, atol=1e-8)
+        assert_offset_gradient_is_central_differences(m, loss, delta)
     m.fit(n_iter=30, progress=False)  # the backend rebuilt at the fitted offset keeps the term
     assert m.backend.hypers.li is not None
     assert torch.isfinite(m.stress_map(c.beta[:3, 0], c.gamma[:3, 0]).variance).all()

@@ -53,14 +53,18 @@ def test_surface_likelihood_matches_dense_reference_and_its_gradient():
         ref = sum(-axis_reference(cd, f[:, a], w, ls[a, 0], os[a], nz[a])[0]
                   for a, w in enumerate((cd.weight_x, cd.weight_z)))
         torch.testing.assert_close(loss.detach(), ref, rtol=1e-8, atol=1e-10)
-        (g,) = torch.autograd.grad(loss, m.surface.offset)
-        h = 1e-5
-        with torch.no_grad():
-            m.surface.offset.fill_(delta + h)
-            up = m._surface_loss()
-            m.surface.offset.fill_(delta - h)
-            down = m._surface_loss()
-        torch.testing.assert_close(g[0], (up - down) / (2 * h), rtol=1e-5, atol=1e-8)
+        assert_offset_gradient_is_central_differences(m, loss, delta)
+
+
+def assert_offset_gradient_is_central_differences(m, loss, delta: float, h: float = 1e-5) -> None:
+    """d loss / d offset by autograd (``loss``: ``m._surface_loss()`` at ``delta`` cm) against central differences."""
+    (g,) = torch.autograd.grad(loss, m.surface.offset)
+    with torch.no_grad():
+        m.surface.offset.fill_(delta + h)
+        up = m._surface_loss()
+        m.surface.offset.fill_(delta - h)
+        down = m._surface_loss()
+    torch.testing.assert_close(g[0], (up - down) / (2 * h), rtol=1e-5, atol=1e-8)
 
 
 def test_one_centimetre_error_is_recovered_to_a_millimetre():

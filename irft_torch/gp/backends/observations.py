@@ -18,7 +18,7 @@ from torch import Tensor
 from ...rft.contacts import Contacts
 from ..encoding import encode_contacts
 from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
-from ..li_basis import li_covariance, li_features, weighted_li_features
+from ..li_basis import contact_li_features, li_covariance, li_features
 from ..operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
 from .base import FunctionalPosterior, RFTBackend
 
@@ -146,7 +146,7 @@ class ObservationsBackend(RFTBackend):
         side = RFTKernelLinearOperator.segment_structure(c.beta[None], c.gamma[None], w, c.beta[None], c.gamma[None],
                                                          w, BATCH, same_inputs=True)
         if self.hypers.li is not None:
-            side["li"] = weighted_li_features(c)
+            side["li"] = contact_li_features(c)
         return side
 
     def _block(self, side1: dict, side2: dict) -> Tensor:
