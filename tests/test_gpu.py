@@ -172,12 +172,13 @@ def test_fit_together_with_the_default_priors_on_cuda_matches_cpu():
     close(out[1], out[0], rtol=1e-6)
 
 
-def test_terrain_filter_on_cuda_matches_cpu():
+@pytest.mark.parametrize("li_basis", [False, True])
+def test_terrain_filter_on_cuda_matches_cpu(li_basis):
     B = 6
     res = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        model = irft.InverseRFT(c, f, prior_mean="physics")
+        model = irft.InverseRFT(c, f, prior_mean="physics", li_basis=li_basis)
         filt = irft.TerrainFilter(model, B, window=5)
         idx = torch.arange(B * 8).reshape(8, B) % len(c)
         for t in range(8):

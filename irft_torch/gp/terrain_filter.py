@@ -36,6 +36,10 @@ exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
 The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
 copied when the filter is built.
 
+A model with ``li_basis=True`` (``gp.li_basis``) adds Li et al.'s rank-9 term v_a f(theta) . f(theta') to
+the kernel: each sample keeps its 9 weighted features per axis (``weighted_li_features``, cm^3), and every
+covariance above gains v_a (W f) . (W' f): 9 multiply-adds per pair beside the RBF's M^2 kernel values.
+
 Gradients: the filter's state carries none (``update`` runs without autograd: a policy does not
 differentiate through the terrain's past). ``stress_map`` and ``predict_forces`` are differentiable in
 their inputs (the query angles, the contacts' angles and weights); the hyperparameters are constants.
@@ -53,6 +57,7 @@ from torch import Tensor, nn
 
 from ..rft.contacts import Contacts
 from .embedding import embed_angles
+from .li_basis import li_features
 from .model import InverseRFT
 from .posterior import Posterior
 
@@ -113,6 +118,7 @@ class TerrainFilter(nn.Module):
     outputscale: Tensor
     noise: Tensor
     mean_scales: Tensor | None
+    li_variance: Tensor | None
     count: Tensor
     start: Tensor
     U: Tensor
@@ -120,6 +126,7 @@ class TerrainFilter(nn.Module):
     emb: Tensor
     cp: Tensor
     wt: Tensor
+    lf: Tensor
     At: Tensor
     post_mean: Tensor
     post_var: Tensor
@@ -135,9 +142,6 @@ class TerrainFilter(nn.Module):
         if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
             raise ValueError(f"window must be None or a positive integer number of samples, got {window!r}")
         hypers = model.hypers
-        if hypers.li is not None:
-            raise NotImplementedError("model: a TerrainFilter carries the RBF kernel alone; a model with "
-                                      "li_basis=True is not supported (fit one with li_basis=False)")
         self.dtype = model.dtype
         self.device = torch.device(model._device)
         self.n_envs = B = n_envs
@@ -154,6 +158,8 @@ class TerrainFilter(nn.Module):
             scales = hypers.mean_scales
             self.register_buffer("mean_scales",
                                  None if scales is None else scales.detach().clone().to(dtype=dt, device=dev))
+            li = hypers.li_variance  # (2,) (N/cm^3)^2: Li et al.'s term, or None
+            self.register_buffer("li_variance", None if li is None else li.detach().clone().to(dtype=dt, device=dev))
         self._shape = (None if hypers.mean is None
                        else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
         # The state of environment b, map axis a (the module docstring): n = capacity sample positions
@@ -166,11 +172,14 @@ class TerrainFilter(nn.Module):
         self.register_buffer("emb", torch.zeros(B, 5, 0, dtype=dt, device=dev))
         self.register_buffer("cp", torch.zeros(B, 2, 0, dtype=dt, device=dev))  # -|phi / l_a|^2 / 2 of the same
         self.register_buffer("wt", torch.zeros(B, 2, N, 0, dtype=dt, device=dev))  # their weights (x, z), by slot
+        # Li et al.'s term: each sample's weighted features per axis (B, 2, N, 9) by slot (9 -> 0 without it)
+        self.register_buffer("lf", torch.zeros(B, 2, N, 0 if li is None else 9, dtype=dt, device=dev))
         # the tracked map points: A^T (B, 2, Q, n) and the posterior there (B, 2, Q), kept current
         self.register_buffer("At", torch.zeros(B, 2, 0, N, dtype=dt, device=dev))
         self.register_buffer("post_mean", torch.zeros(B, 2, 0, dtype=dt, device=dev))
         self.register_buffer("post_var", torch.zeros(B, 2, 0, dtype=dt, device=dev))
-        self._query: dict | None = None  # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), prior mean / var (2, Q)
+        # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), li (2, Q, 9) or None, prior mean / var (2, Q)
+        self._query: dict | None = None
         self._exported = False  # a query's autograd graph holds the state: copy it before writing in place
 
     # ---- sizes -------------------------------------------------------------------------------------
@@ -226,6 +235,17 @@ class TerrainFilter(nn.Module):
         r = (w_left[..., None, :] @ E.view(X, 2, P, Ml, R * Mr)).view(X, 2, P, R, Mr)
         return (r * w_right.unsqueeze(2)).sum(-1)
 
+    def _li_features(self, beta: Tensor, gamma: Tensor, w: Tensor) -> Tensor | None:
+        """The term's features of weighted sums: angles (..., P, M), weights (..., 2, P, M) -> (..., 2, P, 9)
+        (cm^3), or None without the term."""
+        if self.li_variance is None:
+            return None
+        return torch.einsum("...apm,...pmk->...apk", w, li_features(beta, gamma))
+
+    def _li_cross(self, f_left: Tensor, f_right: Tensor) -> Tensor:
+        """v_a f_left f_right^T: (X, 2, P, 9), (X, 2, R, 9) (X may be 1 on the right) -> (X, 2, P, R)."""
+        return (f_left * self.li_variance[:, None, None]) @ f_right.mT
+
     def _blocks(self, per_env: int) -> list[tuple[int, int]]:
         """Ranges of environments whose working set (``per_env`` elements each) fits ``block_bytes``; one
         range on a GPU. Blocks of many environments, each computed at once (never one environment at a time)."""
@@ -273,7 +293,7 @@ class TerrainFilter(nn.Module):
         return self
 
     def _state_names(self) -> tuple[str, ...]:
-        return ("U", "z", "emb", "cp", "wt", "At", "post_mean", "post_var")
+        return ("U", "z", "emb", "cp", "wt", "lf", "At", "post_mean", "post_var")
 
     def _own_state(self) -> None:
         """Copy the state before writing it in place if a query's autograd graph may hold it."""
@@ -295,6 +315,7 @@ class TerrainFilter(nn.Module):
         self.emb = _pad_slots(self.emb, N, M, N2, M2)
         self.cp = _pad_slots(self.cp, N, M, N2, M2)
         self.wt = torch.nn.functional.pad(self.wt, (0, M2 - M, 0, N2 - N))
+        self.lf = torch.nn.functional.pad(self.lf, (0, 0, 0, N2 - N))
 
     def _append(self, c: Contacts, f: Tensor, mask: Tensor | None) -> None:
         """One sample per environment (c (B, M), f (B, 2)); ``mask`` (B,) or None."""
@@ -312,6 +333,7 @@ class TerrainFilter(nn.Module):
         c = c.pad_segments(M)
         left, right, c_right = self._sides(c.beta, c.gamma)  # (B, 2, M, 5), (B, 5, M), (B, 2, 1, M)
         w = torch.stack([c.weight_x, c.weight_z], 1)  # (B, 2, M)
+        fl = self._li_features(c.beta[:, None], c.gamma[:, None], w[:, :, None])  # (B, 2, 1, 9) or None
         m = self._prior_mean(c)
         y = f if m is None else f - m
         # where each sample goes, after the oldest is forgotten in the full environments
@@ -322,12 +344,13 @@ class TerrainFilter(nn.Module):
         per_env = 2 * (2 * N * N + 2 * M * N * M + 2 * N * max(1, self.At.shape[-2])) + 8 * N * M
         for i, j in self._blocks(per_env):
             sl = slice(i, j)
-            self._step(sl, left[sl], right[sl], c_right[sl], w[sl], y[sl], None if mask is None else add[sl],
-                       full[sl] if any_full else None, start[sl], held[sl], pos[sl], slot[sl])
+            self._step(sl, left[sl], right[sl], c_right[sl], w[sl], None if fl is None else fl[sl], y[sl],
+                       None if mask is None else add[sl], full[sl] if any_full else None, start[sl], held[sl],
+                       pos[sl], slot[sl])
         self.start = start
         self.count = held + add.long()
 
-    def _step(self, sl: slice, left, right, c_right, w, y, add, full, start, held, pos, slot) -> None:
+    def _step(self, sl: slice, left, right, c_right, w, fl, y, add, full, start, held, pos, slot) -> None:
         """The update of the environments ``sl`` (one block: everything below stays in cache)."""
         b = left.shape[0]
         N, M = self.capacity, self.n_segments
@@ -337,6 +360,9 @@ class TerrainFilter(nn.Module):
         w4 = w.view(b, 2, 1, M)
         k_new = self._kernel(left, w4, right, c_right, w4).view(b, 2)
         k = self._kernel(left, w4, self.emb[sl], self.cp[sl].unsqueeze(-2), self.wt[sl]).view(b, 2, N)
+        if fl is not None:  # Li et al.'s term (by slot, like k)
+            k_new = k_new + self._li_cross(fl, fl).view(b, 2)
+            k = k + self._li_cross(fl, self.lf[sl]).view(b, 2, N)
         order = (start[:, None] + torch.arange(N, device=self.device)) % N  # Cholesky position -> ring slot
         k = k.gather(-1, order[:, None, :].expand(b, 2, N))
         k.mul_((torch.arange(N, device=self.device) < held[:, None])[:, None, :])  # only the samples held
@@ -361,10 +387,14 @@ class TerrainFilter(nn.Module):
         put(self.emb[sl], -1, cols[:, None, :].expand(b, 5, M), right)
         put(self.cp[sl], -1, cols[:, None, :].expand(b, 2, M), c_right[:, :, 0])
         put(self.wt[sl], -2, slot.view(b, 1, 1, 1).expand(b, 2, 1, M), w4)
+        if fl is not None:
+            put(self.lf[sl], -2, slot.view(b, 1, 1, 1).expand(b, 2, 1, 9), fl)
         q = self._query
         if q is not None:  # the tracked points: a new row of A, and the posterior there
             Q = q["w"].shape[-1]
             kq = self._kernel(left, w4, q["emb"][None], q["cp"][None], q["w"][None, :, :, None]).view(b, 2, Q)
+            if fl is not None:
+                kq = kq + self._li_cross(fl, q["li"][None]).view(b, 2, Q)
             a_new = torch.baddbmm(kq.view(X, Q, 1), At.view(X, Q, N), l.view(X, N, 1), alpha=-1).view(b, 2, Q)
             put(At, -1, pos.view(b, 1, 1, 1).expand(b, 2, Q, 1), a_new.div_(d[..., None])[..., None])
             self._posterior_into(At, z, self.post_mean[sl], self.post_var[sl])
@@ -411,7 +441,7 @@ class TerrainFilter(nn.Module):
             return self
         self._own_state()
         self.U[ids] = torch.eye(self.capacity, dtype=self.dtype, device=self.device)
-        for t in (self.z, self.emb, self.cp, self.wt, self.At):
+        for t in (self.z, self.emb, self.cp, self.wt, self.lf, self.At):
             t[ids] = 0.0
         if self._query is not None:  # the prior, exactly
             self.post_mean[ids] = self._query["prior_mean"]
@@ -421,10 +451,10 @@ class TerrainFilter(nn.Module):
         return self
 
     # ---- queries ----------------------------------------------------------------------------------
-    def _cross_t(self, left: Tensor, w: Tensor) -> Tensor:
+    def _cross_t(self, left: Tensor, w: Tensor, fl: Tensor | None) -> Tensor:
         """K^T (B, 2, P, n): the prior covariance of P functionals per environment (left sides
-        (B, 2, P * Ml, 5), weights (B, 2, P, Ml); expanded views are fine) with the samples held, in Cholesky
-        order (zero past them)."""
+        (B, 2, P * Ml, 5), weights (B, 2, P, Ml), the term's features (B, 2, P, 9) or None; expanded views are
+        fine) with the samples held, in Cholesky order (zero past them)."""
         B, N, M = self.n_envs, self.capacity, self.n_segments
         P = w.shape[-2]
         if torch.is_grad_enabled() and (left.requires_grad or w.requires_grad):
@@ -435,6 +465,8 @@ class TerrainFilter(nn.Module):
         parts = [self._kernel(left[i:j], w[i:j], self.emb[i:j], self.cp[i:j].unsqueeze(-2), self.wt[i:j])
                  for i, j in self._blocks(per_env)]
         K = torch.cat(parts) if len(parts) > 1 else parts[0]
+        if fl is not None:
+            K = K + self._li_cross(fl, self.lf)  # zero features in the empty slots
         order = (self.start[:, None] + torch.arange(N, device=self.device)) % N
         return K.gather(-1, order[:, None, None, :].expand(B, 2, P, N))
 
@@ -462,14 +494,18 @@ class TerrainFilter(nn.Module):
             prior = self._prior_mean(pts)
             prior = w.new_zeros(2, Q) if prior is None else prior.T
             prior_var = self.outputscale[:, None] * w.pow(2)  # k(theta, theta) w^2 = s
+            fq = self._li_features(pts.beta, pts.gamma, w[..., None])  # (2, Q, 9) or None
+            if fq is not None:
+                prior_var = prior_var + self.li_variance[:, None] * fq.pow(2).sum(-1)
             left, right, c_right = self._sides(pts.beta[:, 0], pts.gamma[:, 0])  # (2, Q, 5), (5, Q), (2, 1, Q)
-            K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1))
+            K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1),
+                                None if fq is None else fq.expand(B, 2, Q, 9))
             At = K_t @ self.U
             if grad:
                 mean = prior[..., None] + At @ self.z[..., None]
                 return Posterior((mean[..., 0]).mT.reshape(B, *S, 2),
                                  (prior_var - At.pow(2).sum(-1)).mT.reshape(B, *S, 2))
-            self._query = {"key": key.clone(), "emb": right, "cp": c_right, "w": w, "prior_mean": prior,
+            self._query = {"key": key.clone(), "emb": right, "cp": c_right, "w": w, "li": fq, "prior_mean": prior,
                            "prior_var": prior_var}
             self.At = At
             self.post_mean, self.post_var = At.new_empty(B, 2, Q), At.new_empty(B, 2, Q)
@@ -486,7 +522,8 @@ class TerrainFilter(nn.Module):
         B, T, M = c.shape
         left, right, c_right = self._sides(c.beta, c.gamma)  # (B, T, 2, M, 5), (B, T, 5, M), (B, T, 2, 1, M)
         w = torch.stack([c.weight_x, c.weight_z], 1)  # (B, 2, T, M)
-        At = self._cross_t(left.transpose(1, 2).reshape(B, 2, T * M, 5), w) @ self.U  # (B, 2, T, n)
+        fl = self._li_features(c.beta, c.gamma, w)  # (B, 2, T, 9) or None
+        At = self._cross_t(left.transpose(1, 2).reshape(B, 2, T * M, 5), w, fl) @ self.U  # (B, 2, T, n)
         mean = (At @ self.z[..., None])[..., 0]
         prior = self._prior_mean(c)
         if prior is not None:
@@ -494,6 +531,8 @@ class TerrainFilter(nn.Module):
         w_own = w.transpose(1, 2).reshape(B * T, 2, 1, M)
         own = self._kernel(left.reshape(B * T, 2, M, 5), w_own, right.reshape(B * T, 5, M),
                            c_right.reshape(B * T, 2, 1, M), w_own).view(B, T, 2)
+        if fl is not None:
+            own = own + (self.li_variance[:, None] * fl.pow(2).sum(-1)).mT
         var = own - At.pow(2).sum(-1).mT
         if include_noise:
             var = var + self.noise

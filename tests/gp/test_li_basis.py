@@ -209,11 +209,6 @@ def test_options_that_do_not_carry_the_term_say_so():
         SpectralBackend(model.hypers, c, f, basis=FourierBasis(0, 3))
     with pytest.raises(TypeError, match="li_basis"):
         InverseRFT(c, f, li_basis="yes")
-    from irft_torch.gp.terrain_filter import TerrainFilter
-
-    model = InverseRFT(c, f, li_basis=True)
-    with pytest.raises(NotImplementedError, match="li_basis"):
-        TerrainFilter(model, n_envs=2)
     c2, f2 = _data("itoe")
     a = InverseRFT(c2, f2, method="pairs", li_basis=True)
     b = InverseRFT(c2, 1.1 * f2, method="pairs")

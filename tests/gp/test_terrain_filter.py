@@ -12,7 +12,7 @@ import irft_torch as irft
 from irft_torch.gp import TerrainFilter
 from irft_torch.rft import Contacts, FourierStressMap
 
-from .dense_reference import axis_reference
+from .dense_reference import W_dense, axis_reference, k_dense
 from .test_backends_vs_dense import random_contacts, set_hypers
 
 P = math.pi
@@ -113,6 +113,89 @@ def test_each_environment_is_its_own_inverse_rft_and_the_dense_formula(prior_mea
             close(post.variance[b, :, a], var)
             close(pred.mean[b, :, a], fmu)
             close(pred.variance[b, :, a], fvar + model.hypers.noise.detach()[a])
+
+
+def li_dense(model, c, f, th, cq):
+    """The dense formula with Li et al.'s term written from angle differences (not from the features):
+    k = RBF + v (1 + cos 2 dbeta)(1 + cos dgamma) / 4, per axis; zero prior mean."""
+    ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
+    v = model.hypers.li_variance.detach()
+
+    def flat(x):
+        return torch.stack([x.beta.reshape(-1), x.gamma.reshape(-1)], -1)
+
+    out = []
+    for a, (w, wq) in enumerate(((c.weight_x, cq.weight_x), (c.weight_z, cq.weight_z))):
+        def k(t1, t2):
+            db, dg = t1[:, None, 0] - t2[None, :, 0], t1[:, None, 1] - t2[None, :, 1]
+            return k_dense(t1, t2, ls[a, 0], os[a]) + v[a] * (1 + torch.cos(2 * db)) * (1 + torch.cos(dg)) / 4
+
+        th_c, th_q = flat(c), flat(cq)
+        W, Wq = W_dense(w), W_dense(wq)
+        L = torch.linalg.cholesky(W @ k(th_c, th_c) @ W.T + noise[a] * torch.eye(len(f), dtype=torch.float64))
+        alpha = torch.cholesky_solve(f[:, a:a + 1], L)[:, 0]
+        ks = k(th, th_c) @ W.T
+        kf = Wq @ k(th_q, th_c) @ W.T
+        out.append(((ks @ alpha, k(th, th).diagonal() - (ks * torch.cholesky_solve(ks.T, L).T).sum(-1)),
+                    (kf @ alpha, (Wq @ k(th_q, th_q) @ Wq.T).diagonal()
+                     - (kf * torch.cholesky_solve(kf.T, L).T).sum(-1))))
+    return out
+
+
+@pytest.mark.parametrize("window", [None, 3])
+def test_li_basis_term_each_environment_is_its_own_inverse_rft_and_the_dense_formula(window):
+    """A model with ``li_basis=True``: the filter carries v (W f) . (W' f) in every covariance (appends, the
+    window's forgetting, tracked and fresh map points, forces), checked against each environment's own
+    InverseRFT with the term and the dense formula written from angle differences."""
+    c0, f0 = env_data(0, T=20)
+    model = irft.InverseRFT(c0, f0, li_basis=True)
+    set_hypers(model, seed=1)
+    model.hypers.li.variance = torch.tensor([0.04, 0.3])
+    data = [env_data(b) for b in range(B)]
+    filt = TerrainFilter(model, B, window=window, capacity=2)
+    th = (torch.rand(6, 2, generator=torch.Generator().manual_seed(5)) - 0.5) * P
+    prior = filt.stress_map(th[:, 0], th[:, 1])  # tracked from the prior on
+    k_prior = model.hypers.outputscale.detach() + model.hypers.li_variance.detach()  # k(theta, theta), w = +-1
+    close(prior.variance, k_prior.expand(B, 6, 2), 1e-12)
+    kept = [list(range(7)), [t for t in range(7) if t != 2], list(range(7))]
+    for t in range(7):
+        filt.update(stack([d[0] for d in data], t), torch.stack([d[1][t] for d in data]),
+                    mask=torch.tensor([True, t != 2, True]))
+    tracked = filt.stress_map(th[:, 0], th[:, 1])
+    fresh = filt.stress_map(th[:, 0].clone().requires_grad_(True), th[:, 1])  # computed afresh (autograd path)
+    cq = Contacts(*(torch.stack([getattr(d[0], k)[:4] for d in data])
+                    for k in ("beta", "gamma", "weight_x", "weight_z")))
+    pred = filt.predict_forces(cq)
+    for b in range(B):
+        idx = torch.tensor(kept[b][-window:] if window else kept[b])
+        c, f = data[b][0][idx], data[b][1][idx]
+        own = irft.InverseRFT(c[:2], f[:2], li_basis=True, priors=None)
+        for name in ("lengthscale", "outputscale", "noise"):
+            setattr(own.hypers, name, getattr(model.hypers, name).detach())
+        own.hypers.li.variance = model.hypers.li_variance.detach()
+        if len(c) > 2:
+            own.add_data(c[2:], f[2:])
+        ref_map, ref_forces = own.stress_map(th[:, 0], th[:, 1]), own.predict_forces(data[b][0][:4])
+        for post in (tracked, fresh):
+            close(post.mean[b], ref_map.mean)
+            close(post.variance[b], ref_map.variance)
+        close(pred.mean[b], ref_forces.mean)
+        close(pred.variance[b], ref_forces.variance)
+        for a, ((mu, var), (fmu, fvar)) in enumerate(li_dense(model, c, f, th, data[b][0][:4])):
+            close(tracked.mean[b, :, a], mu)
+            close(tracked.variance[b, :, a], var)
+            close(pred.mean[b, :, a], fmu)
+            close(pred.variance[b, :, a], fvar)
+    # the term matters here: the same samples without it give another posterior
+    plain = irft.InverseRFT(c0, f0)
+    set_hypers(plain, seed=1)
+    other = TerrainFilter(plain, B, window=window, capacity=2)
+    for t in range(7):
+        other.update(stack([d[0] for d in data], t), torch.stack([d[1][t] for d in data]),
+                     mask=torch.tensor([True, t != 2, True]))
+    assert float((other.stress_map(th[:, 0], th[:, 1]).variance - tracked.variance).abs().max()) > 1e-3
+    filt.reset([1])
+    close(filt.stress_map(th[:, 0], th[:, 1]).variance[1], k_prior.expand(6, 2), 1e-12)
 
 
 def test_spectral_model_within_its_truncation():
