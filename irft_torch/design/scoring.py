@@ -85,7 +85,9 @@ class ProbeScorer:
 
     Attributes:
         method: the backend's name.
-        outputscale: (2,) prior variances s_a of the maps, (N/cm^3)^2.
+        outputscale: (2,) the RBF kernel's variances s_a of the maps, (N/cm^3)^2.
+        prior_variance: (2,) the maps' prior variances, (N/cm^3)^2: s_a, plus Li et al.'s v_a where the model
+            has that term (``li_basis=True``); the integrated variances are divided by it.
         noise: (2,) force noise variances sigma_a^2 of a sample of scale 1, N^2.
     """
 
@@ -161,6 +163,10 @@ class ProbeScorer:
     @property
     def outputscale(self) -> Tensor:
         return self.backend.hypers.outputscale.detach()
+
+    @property
+    def prior_variance(self) -> Tensor:
+        return self.backend.hypers.prior_variance.detach()
 
     @property
     def noise(self) -> Tensor:
@@ -326,7 +332,7 @@ class ProbeScorer:
         the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
         if contacts is None:
             region, _, var = self._region(region)
-            iv = (var * region.weight.to(var)).sum(-1) / self.outputscale
+            iv = (var * region.weight.to(var)).sum(-1) / self.prior_variance
         else:
             iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
@@ -381,7 +387,7 @@ class ProbeScorer:
         kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
         L = psd_safe_cholesky(_plus_noise(S, self.noise))
         B = torch.linalg.solve_triangular(L, kb.mT, upper=False)  # (B, 2, T, N)
-        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.outputscale  # (B, 2)
+        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.prior_variance  # (B, 2)
 
     def _score_root_batch(self, Z: Tensor, sizes: list[int], criterion: str, region: Region | None) -> Tensor:
         """The same scores in the root's F dimensions (fewer than a candidate's samples): with Z_i (T_i, F)
@@ -396,7 +402,7 @@ class ProbeScorer:
         if criterion == "eig":
             return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         omega = self._region_omega(region)  # (2, F, F)
-        return (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self.outputscale  # (B, 2)
+        return (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self.prior_variance  # (B, 2)
 
     def _region_omega(self, region: Region | None) -> Tensor:
         """Z_r^T diag(w) Z_r (2, F, F) of the region's points, cached with the region and the root."""
@@ -516,8 +522,13 @@ class MixtureScorer:
 
     @property
     def outputscale(self) -> Tensor:
-        """(2,) the draws' prior map variances, weighted mean per map, (N/cm^3)^2."""
+        """(2,) the draws' RBF variances, weighted mean per map, (N/cm^3)^2."""
         return self._average([s.outputscale for s in self._current()])
+
+    @property
+    def prior_variance(self) -> Tensor:
+        """(2,) the draws' prior map variances (with Li et al.'s term, if any), weighted mean per map, (N/cm^3)^2."""
+        return self._average([s.prior_variance for s in self._current()])
 
     @property
     def n_draws(self) -> int:

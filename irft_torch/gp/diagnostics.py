@@ -34,7 +34,8 @@ class MapDiagnostics:
         uninformed_lengthscales: embedding dimensions the training segments never vary (std of that
             coordinate below 1e-3): the likelihood cannot move their lengthscales, whose initial
             value alone sets how the map extrapolates along them.
-        signal_to_noise: prior force signal variance (outputscale x the mean squared weight sum) over
+        signal_to_noise: prior force signal variance (the prior map variance, ``hypers.prior_variance``: the
+            outputscale, plus Li et al.'s v with ``li_basis=True``, x the mean squared weight sum) over
             the noise variance; below 1 the outputscale has collapsed below what the noise resolves
             (the whole map's prior signal is smaller than one sample's noise).
         unidentified: no part of the square constrained, or a collapsed signal.
@@ -81,7 +82,7 @@ def diagnose(model, n: int = 24) -> Diagnostics:
     B, G = torch.meshgrid(c, c, indexing="ij")
     with torch.no_grad():
         var = model.stress_map(B, G).variance.reshape(-1, 2)  # (n^2, 2)
-        prior = model.hypers.outputscale.detach()
+        prior = model.hypers.prior_variance.detach()  # (2,): with Li et al.'s term, s + v
         noise = model.hypers.noise.detach()
         tc: Contacts = model.train_contacts
         scale = model.noise_scale

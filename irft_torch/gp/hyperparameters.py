@@ -96,6 +96,13 @@ class RFTHyperparameters(Module):
         return None if self.li is None else self.li.variance
 
     @property
+    def prior_variance(self) -> Tensor:
+        """(2,) the prior variance of each map at any angle pair, (N/cm^3)^2: the outputscale, plus Li et al.'s
+        v where the model has the term (its 9 functions have |f(theta)|^2 = 1 at every theta, ``gp.li_basis``)."""
+        s = self.outputscale
+        return s if self.li is None else s + self.li.variance
+
+    @property
     def mean_scales(self) -> Tensor | None:
         """(2,) scales of the generic shape in the physics mean, or None for the zero mean."""
         return None if self.mean is None else self.mean.scales

@@ -199,6 +199,38 @@ def test_fit_laplace_and_save_load_keep_the_term(tmp_path):
                                                                                  atol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+def test_the_prior_variance_is_s_plus_v_in_scores_and_diagnostics(method):
+    """k(theta, theta) = s + v (1 + 1)(1 + 1) / 4 = s + v at every angle pair (by hand): the prior map variance
+    that the probe scores and the diagnostics divide by. With data that say nothing (noise 1e9 x the forces'
+    power) the integrated variance is the prior's, 1 per map, and nothing is constrained; with the data, the
+    diagnostics' constrained share is that of the posterior variance below (s + v) / 2 on their grid."""
+    from irft_torch.design import ProbeScorer
+
+    c, f = _data("rotating")
+    model = InverseRFT(c, f, method=method, li_basis=True)
+    _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0))
+    prior = OS + LI
+    torch.testing.assert_close(model.hypers.prior_variance.detach(), prior, rtol=1e-12, atol=0)
+    d = model.diagnostics()
+    e = torch.linspace(-math.pi / 2, math.pi / 2, 25, dtype=F64)
+    mid = (e[1:] + e[:-1]) / 2
+    B, G = torch.meshgrid(mid, mid, indexing="ij")
+    var = model.stress_map(B, G).variance.reshape(-1, 2)
+    for a, m in enumerate(d.maps):
+        assert m.constrained_fraction == pytest.approx(float((var[:, a] < prior[a] / 2).double().mean()), abs=1e-12)
+        assert m.variance_ratio == pytest.approx(float((var[:, a] / prior[a]).clamp(0, 1).mean()), rel=1e-9)
+    assert 0 < d.maps[1].constrained_fraction < 1
+    with torch.no_grad():
+        model.hypers.noise = 1e9 * f.pow(2).mean(0)
+    tol = 1e-4 if method == "spectral" else 1e-7  # the data's residual information, and the scoring basis
+    post = model.stress_map(B, G).variance
+    torch.testing.assert_close(post, prior.expand_as(post), rtol=tol, atol=0)
+    iv = ProbeScorer.from_model(model).integrated_variance(per_axis=True)
+    torch.testing.assert_close(iv, torch.ones(2, dtype=F64), rtol=tol, atol=0)
+    assert [m.constrained_fraction for m in model.diagnostics().maps] == [0.0, 0.0]
+
+
 def test_options_that_do_not_carry_the_term_say_so():
     c, f = _data("rotating")
     from irft_torch.gp.backends.spectral import SpectralBackend
