@@ -32,12 +32,10 @@ A model with a hyperparameter posterior gives a ``MixtureScorer``: the same scor
 
 from __future__ import annotations
 
-import math
 import warnings
 import weakref
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, cast
 
 import torch
 from linear_operator.utils.cholesky import psd_safe_cholesky
@@ -49,6 +47,7 @@ from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
 from ..gp.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
+from .force_noise import force_relative
 from .region import Region, _as_contacts
 
 if TYPE_CHECKING:
@@ -583,25 +582,3 @@ class MixtureScorer:
         second = (w * (torch.stack([p.variance for p in posts]) + means.pow(2))).sum(0)
         mean = (w * means).sum(0)
         return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, 2)
-
-
-@dataclass
-class _ForceRelative:
-    """sqrt(F^2 + floor^2) of the model's predicted force (a class, not a closure: a scorer pickles)."""
-
-    model: Any  # an InverseRFT (design/ never imports the front door)
-    floor: float
-
-    def __call__(self, c: Contacts) -> Tensor:
-        with torch.no_grad():
-            f = self.model.predict_forces(c).mean
-        return (f.pow(2) + self.floor**2).sqrt()
-
-
-def force_relative(model, floor: float) -> Callable[[Contacts], Tensor]:
-    """A candidate noise scale proportional to the model's predicted force, sqrt(F^2 + floor^2) (N),
-    a function of the candidate's contacts returning (T, 2): the counterpart of fitting with
-    ``noise_scale=(forces**2 + floor**2).sqrt()``."""
-    if not (math.isfinite(floor) and floor > 0):
-        raise ValueError(f"floor must be a positive force in N, got {floor}")
-    return _ForceRelative(model, float(floor))
