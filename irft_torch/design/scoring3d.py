@@ -10,9 +10,9 @@ the rows' noise variances (sigma_x^2, sigma_y^2 or sigma_z^2). Then
 
 with c over the maps (alpha_x, alpha_y, alpha_z), b(c) the block that sees map c, v_c the current map variance at
 the region's points theta_j (weights r_j), k_cj the posterior covariance between map c there and the candidate's
-block rows, and s_c the prior variance: IV is 3 for the prior and 0 for maps known exactly (alpha_y a constant:
-its variance, the same at every point). Every posterior number comes from the 3-D backend
-(``gp.inverse3d.joint.BlockRows``); the scorer factors only the candidate's own matrices.
+block rows, and s_c the prior variance (with Li et al.'s term: s_c + v_c): IV is 3 for the prior and 0 for maps
+known exactly (alpha_y a constant: its variance, the same at every point). Every posterior number comes from the
+3-D backend (``gp.inverse3d.joint.BlockRows``); the scorer factors only the candidate's own matrices.
 
 Example:
     >>> scorer = ProbeScorer3D.from_model(model_3d)
@@ -52,7 +52,9 @@ class ProbeScorer3D:
     differentiable in the candidates (no gradient-based 3-D design yet).
 
     Attributes:
-        outputscale: (3,) prior variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
+        outputscale: (3,) the kernel's variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
+        prior_variance: (3,) the maps' prior variances (s_c, plus Li et al.'s v_c with ``li_basis=True``): the
+            integrated variances are divided by it.
         noise: (3,) force-noise variances of (F_x, F_y, F_z), N^2.
     """
 
@@ -81,6 +83,10 @@ class ProbeScorer3D:
     @property
     def outputscale(self) -> Tensor:
         return self.backend.hypers.outputscale.detach()
+
+    @property
+    def prior_variance(self) -> Tensor:
+        return self.backend.hypers.prior_variance.detach()
 
     @property
     def noise(self) -> Tensor:
@@ -145,7 +151,7 @@ class ProbeScorer3D:
                 B = torch.linalg.solve_triangular(L, ext.cov(1, 0), upper=False)
                 var = var - B.pow(2).sum(0)
             out.append(var.reshape(len(BLOCKS[b].maps), N))
-        iv = (torch.cat(out) * w).sum(-1) / self.outputscale
+        iv = (torch.cat(out) * w).sum(-1) / self.prior_variance
         return iv if per_map else iv.sum()
 
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:

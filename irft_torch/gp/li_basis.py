@@ -27,7 +27,7 @@ from .constraints import ScaledGreaterThan
 from .fourier import FourierBasis
 
 __all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "contact_li_features",
-           "li_covariance"]
+           "li_covariance", "li_index"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
 
@@ -53,6 +53,13 @@ def weighted_li_features(beta: Tensor, gamma: Tensor, weight: Tensor) -> Tensor:
 def contact_li_features(contacts) -> Tensor:
     """(2, N, 9): ``weighted_li_features`` of contacts (N, M) with their x and z weights."""
     return weighted_li_features(contacts.beta, contacts.gamma, torch.stack([contacts.weight_x, contacts.weight_z]))
+
+
+def li_index(basis: FourierBasis, device=None) -> Tensor:
+    """(9,) the positions of the 9 functions in a Fourier basis' beta-major features (``gp.fourier``; the basis
+    needs n_beta, n_gamma >= 1): there the term is diagonal, v / 4 on those weights (f = the functions / 2)."""
+    Fg = basis.sizes[1]
+    return (torch.arange(3, device=device)[:, None] * Fg + torch.arange(3, device=device)[None, :]).reshape(-1)
 
 
 def li_covariance(variance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:

@@ -27,11 +27,17 @@ def _embed(b, g):
     return torch.stack([torch.sin(2 * b), torch.cos(2 * b), torch.sin(g), torch.cos(g)], -1)
 
 
-def _k(b1, g1, b2, g2, ls, s, constant):
+def _k_map(b1, g1, b2, g2, ls, s, constant, v=None):
+    """The RBF on the embedding (+ Li et al.'s term v (1 + cos 2 dbeta)(1 + cos dgamma) / 4, from the angle
+    differences); a constant map: s."""
     if constant:
         return s * torch.ones(b1.shape[0], b2.shape[0], dtype=b1.dtype)
     a, c = _embed(b1, g1) / ls, _embed(b2, g2) / ls
-    return s * torch.exp(-0.5 * ((a[:, None] - c[None]) ** 2).sum(-1))
+    k = s * torch.exp(-0.5 * ((a[:, None] - c[None]) ** 2).sum(-1))
+    if v is not None:
+        db, dg = b1[:, None] - b2[None], g1[:, None] - g2[None]
+        k = k + v * (1 + torch.cos(2 * db)) * (1 + torch.cos(dg)) / 4
+    return k
 
 
 def _W(w):
@@ -53,11 +59,16 @@ def _rows(c):
     return (Wx, Wy, Wz), c.beta.reshape(-1), c.gamma.reshape(-1)
 
 
-def dense(c, f, ls, os, noise, constant_y):
-    """(nll / T summed, posterior function of (contacts) -> mean (T, 3), full covariance (3T, 3T))."""
+def dense(c, f, ls, os, noise, constant_y, li=None):
+    """(nll / T summed, posterior function of (contacts) -> mean (T, 3), full covariance (3T, 3T)); ``li`` (3,):
+    Li et al.'s term's variance per map."""
     Ws, b, g = _rows(c)
     T = len(c)
-    Ks = [_k(b, g, b, g, ls[m, 0], os[m], constant_y and m == 1) for m in range(3)]
+
+    def _k(b1, g1, b2, g2, ls_m, s, constant, m=None):
+        return _k_map(b1, g1, b2, g2, ls_m, s, constant, None if li is None or m is None else li[m])
+
+    Ks = [_k(b, g, b, g, ls[m, 0], os[m], constant_y and m == 1, m) for m in range(3)]
     C = sum(W @ K @ W.T for W, K in zip(Ws, Ks)) + torch.diag(noise.repeat_interleave(T))
     y = f.T.reshape(-1)
     L = torch.linalg.cholesky(C)
@@ -66,9 +77,10 @@ def dense(c, f, ls, os, noise, constant_y):
 
     def post(q):
         Wq, bq, gq = _rows(q)
-        Kqt = sum(Wa @ _k(bq, gq, b, g, ls[m, 0], os[m], constant_y and m == 1) @ Wt.T
+        Kqt = sum(Wa @ _k(bq, gq, b, g, ls[m, 0], os[m], constant_y and m == 1, m) @ Wt.T
                   for m, (Wa, Wt) in enumerate(zip(Wq, Ws)))
-        Kqq = sum(Wa @ _k(bq, gq, bq, gq, ls[m, 0], os[m], constant_y and m == 1) @ Wa.T for m, Wa in enumerate(Wq))
+        Kqq = sum(Wa @ _k(bq, gq, bq, gq, ls[m, 0], os[m], constant_y and m == 1, m) @ Wa.T
+                  for m, Wa in enumerate(Wq))
         mean = Kqt @ alpha
         cov = Kqq - Kqt @ torch.cholesky_solve(Kqt.T, L)
         return mean.reshape(3, -1).T, cov

@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
+from ..li_basis import li_index
 from .base import FunctionalPosterior, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
@@ -194,8 +195,7 @@ class SpectralBackend(WeightSpaceBackend):
     def _li_index(self) -> Tensor:
         """(9,) the positions of Li et al.'s functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in this
         basis (beta-major, as ``li_basis.li_features``): the term is diagonal here, v / 4 on those 9 weights."""
-        Fg = self.basis.sizes[1]
-        return (torch.arange(3)[:, None] * Fg + torch.arange(3)[None, :]).reshape(-1).to(self.stats.P.device)
+        return li_index(self.basis, self.stats.P.device)
 
     def _sigma_apply(self, X: Tensor, detach: bool) -> Tensor:
         """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, ``gp.li_basis``)."""

@@ -11,6 +11,9 @@ Gaussian linear model F_b = sum_c W_bc alpha_c + eps with one noise variance per
   kron Sigma_gamma: exact up to the reported truncation; the wheels' tens of thousands of elements per run
   enter once, as T x F features.
 
+With ``li_basis=True`` each map over (beta, gamma) adds Li et al.'s rank-9 term (``gp.li_basis``): v_c (W f)(W' f)^T
+in the observations' space, f_U diag(v_c) f_U^T on the pairs table, v_c / 4 on the 9 first-harmonic weights.
+
 The weight-space pair (pairs, spectral) share one algebra. Per block, the rows of each axis a (group g)
 are reduced once, hyperparameter-free, to R_g (r_g x F), c_g = Q_g^T y_g and rho_g = |y_g|^2 - |c_g|^2
 (a thin SVD of Phi_g, ``weight_space.data_factor_from_rows``). With R~ = [R_g / sigma_g], c~ = [c_g /
@@ -38,6 +41,7 @@ from ...rft.contacts3d import Contacts3D
 from ..backends.weight_space import data_factor_from_rows
 from ..embedding import embed_angles, rbf
 from ..fourier import MAX_HARMONICS, FourierBasis
+from ..li_basis import li_features, li_index, weighted_li_features
 from ..operators import RFTKernelLinearOperator, unique_pairs
 from .features import BankRows, SpectralFeatureBank, spectral_features
 from .hyperparameters import BLOCKS, RFT3DHyperparameters
@@ -119,14 +123,16 @@ class Backend3D(nn.Module):
             return RFTKernelLinearOperator.segment_structure(b1[None], g1[None], w1[None], b2[None], g2[None],
                                                              w2[None], ONE, same_inputs=same)
 
-    def _term(self, c: int, structure, w1: Tensor, w2: Tensor, detach: bool) -> Tensor:
-        """Prior covariance of two row sets through map c (n1, n2)."""
+    def _term(self, c: int, structure, r1: tuple, r2: tuple, detach: bool) -> Tensor:
+        """Prior covariance of two row sets r = (beta, gamma, weights of map c) (n, K) through map c (n1, n2)."""
         ls, os = self.hypers.lengthscale[c:c + 1], self.hypers.outputscale[c:c + 1]
         if detach:
             ls, os = ls.detach(), os.detach()
         if self.hypers.constant_map(c):
-            return os[0] * w1.sum(-1)[:, None] * w2.sum(-1)[None, :]
-        return RFTKernelLinearOperator.from_structure(structure, ls, os, ONE).to_dense()[0]
+            return os[0] * r1[2].sum(-1)[:, None] * r2[2].sum(-1)[None, :]
+        K = RFTKernelLinearOperator.from_structure(structure, ls, os, ONE).to_dense()[0]
+        v = self.hypers.li_of(c, detach)
+        return K if v is None else K + v * weighted_li_features(*r1) @ weighted_li_features(*r2).mT
 
     def _cross(self, b: int, q: tuple, t: tuple, same: bool) -> Tensor:
         """Prior covariance (n_q, n_t) of two row sets of block b (``block_rows``: beta, gamma, weights per map)."""
@@ -134,7 +140,7 @@ class Backend3D(nn.Module):
         for i, c in enumerate(BLOCKS[b].maps):
             s = None if self.hypers.constant_map(c) else \
                 self._structure(q[0], q[1], q[2][i], t[0], t[1], t[2][i], same=same)
-            out = out + self._term(c, s, q[2][i], t[2][i], detach=True)
+            out = out + self._term(c, s, (q[0], q[1], q[2][i]), (t[0], t[1], t[2][i]), detach=True)
         return cast(Tensor, out)  # a block has at least one map
 
     # ---- streaming and hyperparameter draws ------------------------------------------------------------------------
@@ -201,8 +207,9 @@ class Observations3D(Backend3D):
         self._factor_cache = None
 
     def _train_cov(self, b: int, detach: bool) -> Tensor:
-        block, (_, _, ws) = BLOCKS[b], self._train[b]
-        K = cast(Tensor, sum(self._term(c, s, w, w, detach) for c, s, w in zip(block.maps, self._structures[b], ws)))
+        block, (beta, gamma, ws) = BLOCKS[b], self._train[b]
+        K = cast(Tensor, sum(self._term(c, s, (beta, gamma, w), (beta, gamma, w), detach)
+                             for c, s, w in zip(block.maps, self._structures[b], ws)))
         noise = self.hypers.noise.detach() if detach else self.hypers.noise
         d = torch.cat([noise[a].expand(self.n_samples) for a in block.axes])
         return 0.5 * (K + K.mT) + torch.diag(d)
@@ -385,7 +392,10 @@ class Spectral3D(WeightSpace3D):
 
     def _basis_for(self, lengthscale: Tensor, shrink: float = 1.0) -> FourierBasis:
         ls = lengthscale.detach()[self._maps_rbf()] * shrink
-        return FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
+        basis = FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
+        if self.hypers.li is None:
+            return basis
+        return FourierBasis(max(basis.n_beta, 1), max(basis.n_gamma, 1))  # Li et al.'s 9 functions are in it
 
     def describe(self) -> str:
         return (f"spectral: T={self.n_samples}, {self.basis.size} Fourier features per map, kernel truncation "
@@ -432,6 +442,10 @@ class Spectral3D(WeightSpace3D):
             Fb, Fg = self.basis.sizes
             Y = X[:, start:start + Fb * Fg].reshape(-1, Fb, Fg)
             out.append(s * (Sb[0].mT @ Y @ Sg[0]).reshape(-1, Fb * Fg))
+            v = self.hypers.li_of(m, detach)
+            if v is not None:  # Li et al.'s term: v / 4 on its 9 weights
+                idx = li_index(self.basis, X.device)
+                out[-1] = out[-1].index_add(-1, idx, X[:, start + idx] * (v / 4))
             start += Fb * Fg
         return torch.cat(out, -1)
 
@@ -490,7 +504,11 @@ class Pairs3D(WeightSpace3D):
         if detach:
             ls, s = ls.detach(), s.detach()
         z = embed_angles(self.table[:, 0], self.table[:, 1]) / ls
-        return rbf(z, z, s)
+        v = self.hypers.li_of(m, detach)
+        if v is None:
+            return rbf(z, z, s)
+        f = li_features(self.table[:, 0], self.table[:, 1])  # (U, 9)
+        return rbf(z, z, s) + v * f @ f.mT
 
     def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
         out, start, U = [], 0, self.table.shape[0]
@@ -528,7 +546,7 @@ def table_columns(backend: Pairs3D, b: int, q: tuple) -> Tensor:
             cols.append(ws[i].sum(-1, keepdim=True) * backend.hypers.outputscale[m].detach())
         else:
             st = backend._structure(beta, gamma, ws[i], tb, tg, ones)
-            cols.append(backend._term(m, st, ws[i], ones, detach=True))
+            cols.append(backend._term(m, st, (beta, gamma, ws[i]), (tb, tg, ones), detach=True))
     return torch.cat(cols, -1)
 
 

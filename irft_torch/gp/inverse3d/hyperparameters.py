@@ -10,6 +10,8 @@ in-plane direction u) and alpha_y (through e1). So the force covariance is block
 and the planar model is the special case where the F_y rows see no map (they add only their own noise
 term). alpha_y is either a third map over (beta, gamma) (an ARD RBF on the embedding, like the others) or
 a constant with a zero-mean normal prior of variance s_y (a rank-one kernel term s_y (W_y 1)(W_y 1)^T).
+With ``li_basis=True`` each map over (beta, gamma) also has Li et al.'s rank-9 term v_c f(theta) . f(theta')
+(``gp.li_basis``; not a constant alpha_y).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from torch import Tensor
 
 from ..constraints import ScaledGreaterThan
 from ..kernels import AngleKernel
+from ..li_basis import LiBasisVariance
 
 __all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "RFT3DHyperparameters"]
 
@@ -49,10 +52,12 @@ class RFT3DHyperparameters(Module):
     (N/cm^3)^2) and the noise of the three force axes (a batched gpytorch ``GaussianLikelihood``, (3,) N^2).
 
     With ``alpha_y="constant"`` only the alpha_y outputscale is used for that map (the prior variance of the
-    constant); its lengthscale has no gradient and stays where it is.
+    constant); its lengthscale has no gradient and stays where it is. ``li_basis``: ``li``, a
+    ``LiBasisVariance`` (3,) (N/cm^3)^2 of Li et al.'s term per map (alpha_y's unused when it is a constant).
     """
 
-    def __init__(self, alpha_y: str = "map", noise_floor: float = 1e-6, force_scale=1.0, map_scale=1.0) -> None:
+    def __init__(self, alpha_y: str = "map", noise_floor: float = 1e-6, force_scale=1.0, map_scale=1.0,
+                 li_basis: bool = False) -> None:
         super().__init__()
         if alpha_y not in ALPHA_Y:
             raise ValueError(f"alpha_y must be one of {ALPHA_Y}, got {alpha_y!r}")
@@ -63,6 +68,7 @@ class RFT3DHyperparameters(Module):
                                   outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
         self.likelihood = GaussianLikelihood(batch_shape=torch.Size([3]),
                                              noise_constraint=ScaledGreaterThan(noise_floor, fs.pow(2).reshape(3, 1)))
+        self.li = LiBasisVariance(scale=ms.pow(2), n_maps=3) if li_basis else None
 
     @property
     def lengthscale(self) -> Tensor:
@@ -81,6 +87,28 @@ class RFT3DHyperparameters(Module):
     @outputscale.setter
     def outputscale(self, value) -> None:
         self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(3)
+
+    @property
+    def li_variance(self) -> Tensor | None:
+        """(3,) Li et al.'s term's variance per map, (N/cm^3)^2, or None without it."""
+        return None if self.li is None else self.li.variance
+
+    def li_of(self, c: int, detach: bool) -> Tensor | None:
+        """() map c's Li et al.'s variance, or None (no term, or a constant alpha_y)."""
+        if self.li is None or self.constant_map(c):
+            return None
+        v = self.li.variance[c]
+        return v.detach() if detach else v
+
+    @property
+    def prior_variance(self) -> Tensor:
+        """(3,) each map's prior variance at any angle pair, (N/cm^3)^2: the outputscale, plus Li et al.'s v where
+        the map has the term (|f(theta)|^2 = 1, ``gp.li_basis``)."""
+        s = self.outputscale
+        if self.li is None:
+            return s
+        keep = torch.tensor([not self.constant_map(c) for c in range(3)], device=s.device)
+        return s + torch.where(keep, self.li.variance, torch.zeros_like(s))
 
     @property
     def noise(self) -> Tensor:
@@ -103,7 +131,7 @@ class RFT3DHyperparameters(Module):
         ``lengthscale_{x,y,z}[sin2b|cos2b|sing|cosg]``, ``outputscale_{x,y,z}`` (the maps alpha_x, alpha_y,
         alpha_z) and ``noise_{x,y,z}`` (the force axes F_x, F_y, F_z)."""
         base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",
-                "likelihood.noise_covar.raw_noise": "noise"}.get(name)
+                "likelihood.noise_covar.raw_noise": "noise", "li.raw_variance": "li_variance"}.get(name)
         if base is None:
             raise ValueError(f"no label for the 3-D hyperparameter {name!r}")
         if base == "lengthscale":
@@ -113,10 +141,11 @@ class RFT3DHyperparameters(Module):
 
     def fixed_labels(self) -> list[str]:
         """Coordinates no likelihood sees: alpha_y's lengthscales when alpha_y is a constant (a hyperparameter
-        posterior leaves them where they are)."""
+        posterior leaves them where they are), and its Li et al.'s variance."""
         if self.alpha_y != "constant":
             return []
-        return self.hyper_labels("kernel.base_kernel.raw_lengthscale", torch.Size([12]))[4:8]
+        return self.hyper_labels("kernel.base_kernel.raw_lengthscale", torch.Size([12]))[4:8] + \
+            (["li_variance_y"] if self.li is not None else [])
 
     def as_dict(self) -> dict[str, list | str]:
         ls = self.lengthscale.detach()
@@ -124,4 +153,6 @@ class RFT3DHyperparameters(Module):
                "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist(), "alpha_y": self.alpha_y}
         if self.alpha_y == "map":
             out["lengthscale_y"] = ls[1, 0].tolist()
+        if self.li is not None:
+            out["li_variance"] = self.li.variance.tolist()
         return out

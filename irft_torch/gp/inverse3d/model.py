@@ -123,6 +123,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
             then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
             ``gp.hyper_posterior`` machinery) and every prediction is a mixture over its draws.
+        li_basis: add Li et al.'s 9 functions as a kernel term of each map over (beta, gamma) (``gp.li_basis``,
+            as the planar model's option; variances ``model.hypers.li_variance`` (3,), labels ``li_variance_x``...).
 
     Example:
         >>> model = InverseRFT(contacts_3d, forces)       # (T, 3) forces: a 3-D model
@@ -134,7 +136,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
                  priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
                  tol: float = 1e-7, features=None, max_harmonics: int | None = None,
-                 hyper_posterior: str | None = None, prior_mean: str = "physics") -> None:
+                 hyper_posterior: str | None = None, prior_mean: str = "physics", li_basis: bool = False) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
@@ -149,6 +151,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
         if prior_mean not in ("zero", *MEAN_MAPS):
             raise ValueError(f"prior_mean must be one of {('zero', *MEAN_MAPS)} for a 3-D model, got {prior_mean!r}")
+        if not isinstance(li_basis, bool):
+            raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
         _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > 0.05):
             raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
@@ -180,12 +184,14 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         self._noise_floor = noise_floor
         force_scale, map_scale = data_scales_3d(c, f)
         self.hypers = RFT3DHyperparameters(alpha_y, noise_floor, force_scale.clamp_min(1e-6).cpu(),
-                                           map_scale.cpu()).to(device=device, dtype=dtype)
+                                           map_scale.cpu(), li_basis=li_basis).to(device=device, dtype=dtype)
         centres = prior_centres_3d(c, f, map_scale, noise_floor)
         with torch.no_grad():
             self.hypers.outputscale = centres["outputscale"].to(dtype)
             self.hypers.lengthscale = torch.full((3, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = centres["noise"].to(dtype)
+            if li_basis:  # its prior's centre (``gp.inverse3d.priors``)
+                self.hypers.li.variance = self.hypers.outputscale
         if priors == "physical":
             register_priors_3d(self.hypers, centres)
         from ..fourier import MAX_HARMONICS
@@ -419,7 +425,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
-        prior = self.hypers.outputscale.detach().sqrt()
+        prior = self.hypers.prior_variance.detach().sqrt()  # with Li et al.'s term: s + v
         share = (post.stddev < 0.5 * prior).reshape(-1, 3).to(self.dtype).mean(0)
         out = {name: {"constrained_share": float(s), "prior_std": float(p)}
                for name, s, p in zip(MAPS, share, prior)}
@@ -432,7 +438,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def _options(self) -> dict:
         return {"alpha_y": self.alpha_y, "method": self.method_arg, "priors": self.priors, "dtype": self.dtype,
                 "lengthscale": self.init_lengthscale, "tol": self.tol, "max_harmonics": self.max_harmonics,
-                "hyper_posterior": self.hyper_method, "prior_mean": self.prior_mean}
+                "hyper_posterior": self.hyper_method, "prior_mean": self.prior_mean,
+                "li_basis": self.hypers.li is not None}
 
     def save(self, path) -> None:
         """Training data (after ``add_data``: all of it), options, hyperparameters and any hyperparameter

@@ -6,7 +6,8 @@ reasons) with the third map added.
   rover-wheel authors' form), rms_c the generic map's rms over the square per unit zeta (alpha_x 0.209,
   alpha_y 0.136: the constant, alpha_z 0.381), s_c the data's own stress per depth of map c; log-sd ln 2;
 - lengthscales: centre 1.5, log-sd 1.5 (as planar);
-- noise of each axis: centre 1e-2 of its mean squared force (floored), log-sd ln 10.
+- noise of each axis: centre 1e-2 of its mean squared force (floored), log-sd ln 10;
+- Li et al.'s term (``li_basis=True``): its variance per map has the outputscale's centre and width (as planar).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from ..priors import (
     NOISE_RELATIVE,
     OUTPUTSCALE_LOG_SD,
     _log_lengthscale_ratio,
+    _log_li_ratio,
     _log_noise_ratio,
     _log_outputscale_ratio,
     _stateless,
@@ -88,3 +90,6 @@ def register_priors_3d(hypers, centres: dict) -> None:
                                                                c=float(torch.tensor(centres["lengthscale"]).log())))
     hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
                                                  functools.partial(_log_noise_ratio, c=log_noise))
+    if getattr(hypers, "li", None) is not None:
+        hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), OUTPUTSCALE_LOG_SD)),
+                                 functools.partial(_log_li_ratio, c=log_os))
