@@ -538,7 +538,7 @@ def main(argv=None) -> None:
     ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
     ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
     ap.add_argument("--li-basis", action="store_true",
-                    help="planar study: I-RFT with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True))")
+                    help="I-RFT with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True)), both studies")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
     ap.add_argument("--contact-surface", default="envelope", choices=["envelope", "rim"],
                     help="what meets the sand: the wheel's convex hull (sand in the grouser pockets turns with "

@@ -95,7 +95,8 @@ def warm_bank(d: dict, n: int) -> None:
 def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "physics") -> InverseRFT3D:
     i = torch.as_tensor(idx)
     model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, method="spectral", tol=args.tol,
-                         features=d["bank"].rows(i), max_harmonics=args.harmonics, prior_mean=prior_mean)
+                         features=d["bank"].rows(i), max_harmonics=args.harmonics, prior_mean=prior_mean,
+                         li_basis=bool(getattr(args, "li_basis", False)))
     with warnings.catch_warnings():  # the truncation is reported in the table instead
         warnings.filterwarnings("ignore", message="the lengthscales need more")
         model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
@@ -207,6 +208,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
     _choose_variants(getattr(args, "variants", ""))
     t0 = time.perf_counter()
     lines = ["## 3-D: every run, every slip angle (issue 31)", ""]
+    if getattr(args, "li_basis", False):
+        lines += ["I-RFT with Li et al.'s basis as a kernel term (`--li-basis`: InverseRFT(..., li_basis=True)).", ""]
     models, summary = {}, {}
     for wheel in wheels:
         print(f"3-D {wheel} wheel ...", flush=True)
