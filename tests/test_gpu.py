@@ -268,9 +268,11 @@ def test_average_prior_mean_on_cuda_matches_cpu():
     close(out[1].variance, out[0].variance, rtol=1e-3, atol=1e-3 * float(out[0].variance.max()))
 
 
+@pytest.mark.parametrize("li_basis", [False, True])
 @pytest.mark.parametrize("method", BACKENDS)
-def test_inverse_3d_on_cuda_matches_cpu(method):
-    """3-D RFT forward (a turning C-toe mesh) and the 3-D inverse model on the GPU against the CPU."""
+def test_inverse_3d_on_cuda_matches_cpu(method, li_basis):
+    """3-D RFT forward (a turning C-toe mesh) and the 3-D inverse model (with Li et al.'s term or without) on the
+    GPU against the CPU."""
     from irft_torch.rft import Mesh, contacts_3d, forces_3d
 
     T = 16
@@ -288,7 +290,7 @@ def test_inverse_3d_on_cuda_matches_cpu(method):
                          rotation=R.to(dev))
         f = forces_3d(FourierStressMap.generic(0.5, 0.6).to(dev), cc, alpha_y=0.1)
         f = f + 0.02 * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype).to(dev)
-        m = irft.InverseRFT(cc, f, method=method)
+        m = irft.InverseRFT(cc, f, method=method, li_basis=li_basis)
         loss = m.loss()
         params = [p for p in m.hypers.parameters() if p.requires_grad]
         grads = torch.autograd.grad(loss, params)
