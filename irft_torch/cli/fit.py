@@ -124,7 +124,8 @@ def cmd_fit(a) -> int:
     elif a.dask is not None:
         print("--dask: nothing to reduce (the fit does not start in the spectral space: its statistics are not used)")
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
-                       priors=None if a.priors == "none" else a.priors)
+                       priors=None if a.priors == "none" else a.priors, li_basis=a.li_basis,
+                       hyper_posterior=a.hyper_posterior)
     print(f"backend {model.backend.describe()}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -201,6 +202,14 @@ def register(sub) -> None:
     p.add_argument("--priors", choices=["physical", "none"], default="physical",
                    help="hyperparameter priors (default physical: MAP, gp.priors; none: the paper's plain marginal "
                         "likelihood)")
+    p.add_argument("--li-basis", action="store_true",
+                   help="add Li et al.'s 9 fitting functions to the kernel as a term with its own variance "
+                        "(InverseRFT(..., li_basis=True): intervals that hold better on media unlike the generic one; "
+                        "docs/calibration.md)")
+    p.add_argument("--hyper-posterior", choices=["map", "laplace", "nuts"], default="map",
+                   help="map (default): predict at the fitted hyperparameters; laplace or nuts: average the map and "
+                        "its uncertainty over the hyperparameters' posterior too (wider, more honest intervals; "
+                        "laplace costs about 2-3x the fit)")
     p.add_argument("--max-samples", type=int, default=0,
                    help="thin to this many evenly spaced samples (default 0: use every sample; the backend picked "
                         "by method='auto' keeps long recordings fast)")
