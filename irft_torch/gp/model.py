@@ -134,6 +134,15 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             return InverseRFT3D(contacts, forces, *args, **kwargs)
         return super().__new__(cls)
 
+    @classmethod
+    def load(cls, path, map_location=None):
+        """Rebuild a model written by ``save`` (``gp.model_file``); ``InverseRFT.load`` of a 3-D model's file
+        gives the 3-D model, as ``InverseRFT(contacts_3d, forces)`` builds one."""
+        from .inverse3d.model import FORMAT_3D, InverseRFT3D
+        from .model_file import load_model
+
+        return load_model(cls, path, map_location, {FORMAT_3D: InverseRFT3D._from_file} if cls is InverseRFT else None)
+
     def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
                  dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,

@@ -88,9 +88,11 @@ def save_model(model, path) -> None:
     atomic_write(path, lambda fh: torch.save(blob, fh), "model")
 
 
-def load_model(cls, path, map_location=None):
+def load_model(cls, path, map_location=None, others: dict | None = None):
     """Rebuild an ``InverseRFT`` (``cls``) written by ``save_model`` (format 2, or 0.1.0's format,
-    whose hyperparameters are translated). Raises ``ModelFileError`` naming what is wrong otherwise."""
+    whose hyperparameters are translated). ``others``: format -> builder(file dict, path) for the files of other
+    models the caller reads too (the front door: the 3-D model's). Raises ``ModelFileError`` naming what is wrong
+    otherwise."""
     try:
         d = torch.load(path, map_location=map_location, weights_only=True)
     except FileNotFoundError:
@@ -103,6 +105,8 @@ def load_model(cls, path, map_location=None):
         raise ModelFileError(f"{path}: not an irft_torch model file (holds a {type(d).__name__})")
     if "state_dict" in d and "options" in d and "format" not in d:
         return _load_v1(cls, d, path)
+    if others and d.get("format") in others:
+        return others[d["format"]](d, path)
     if d.get("format") != FILE_FORMAT:
         raise ModelFileError(f"{path}: not an irft_torch model file (format {d.get('format')!r})")
     if d.get("version") != FILE_VERSION:

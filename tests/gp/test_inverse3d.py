@@ -208,6 +208,16 @@ def test_fit_recovers_the_medium_and_round_trips(tmp_path):
     model.save(tmp_path / "m3.pt")
     back = InverseRFT3D.load(tmp_path / "m3.pt")
     torch.testing.assert_close(back.predict_forces(c).mean, pred.mean, rtol=1e-10, atol=1e-12)
+    # the front door reads the file it wrote (as it builds the 3-D model from Contacts3D); a damaged file: named
+    front = irft.InverseRFT.load(tmp_path / "m3.pt")
+    assert isinstance(front, InverseRFT3D) and front.alpha_y == "constant"
+    torch.testing.assert_close(front.predict_forces(c).covariance, pred.covariance, rtol=1e-10, atol=1e-12)
+    (tmp_path / "bad.pt").write_bytes((tmp_path / "m3.pt").read_bytes()[:200])
+    from irft_torch.gp.model_file import ModelFileError
+
+    for load in (irft.InverseRFT.load, InverseRFT3D.load):
+        with pytest.raises(ModelFileError, match="bad.pt"):
+            load(tmp_path / "bad.pt")
     cv = model.cross_validate(torch.arange(len(c)) // 6)
     assert cv.mean.shape == (len(c), 3) and (cv.variance > 0).all()
 

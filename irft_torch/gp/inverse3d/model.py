@@ -455,11 +455,23 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
 
     @classmethod
     def load(cls, path, map_location=None) -> InverseRFT3D:
-        d = torch.load(path, map_location=map_location, weights_only=False)
-        if not isinstance(d, dict) or d.get("format") != FORMAT_3D:
-            from ..model_file import ModelFileError
+        """Rebuild a model written by ``save`` (``InverseRFT.load`` reads these files too). Tensors and plain
+        values only (``weights_only``); ``ModelFileError`` for a damaged or foreign file."""
+        from ..model_file import ModelFileError
 
+        try:
+            d = torch.load(path, map_location=map_location, weights_only=True)
+        except FileNotFoundError:
+            raise
+        except Exception as e:  # noqa: BLE001 - torch raises many kinds for damaged files
+            raise ModelFileError(f"{path}: not a readable irft_torch model file ({type(e).__name__}: {e})") from None
+        if not isinstance(d, dict) or d.get("format") != FORMAT_3D:
             raise ModelFileError(f"{path} is not a 3-D I-RFT model file ({FORMAT_3D})")
+        return cls._from_file(d, path)
+
+    @classmethod
+    def _from_file(cls, d: dict, path=None) -> InverseRFT3D:
+        """The model of a loaded 3-D file's dict (``load``; ``InverseRFT.load`` of a 3-D file)."""
         opts = {"prior_mean": "zero", **d["options"]}  # files from before prior_mean: a zero mean
         model = cls(Contacts3D(**d["contacts"]), d["forces"], **opts)
         if "mean_scales" in d:  # the scales it was built with (after add_data, not those of all its data)
