@@ -177,6 +177,9 @@ def _better_than_before(path: Path, model, replace: bool, kept: list) -> bool:
     except (ModelFileError, OSError, ValueError, RuntimeError) as e:
         print(f"replacing {path}: it is not a model this version reads ({' '.join(str(e).split())[:120]})")
         return True
+    if not isinstance(old, InverseRFT):  # a 3-D model's file (InverseRFT.load reads those too)
+        print(f"replacing {path} (a fit of a 3-D model)")
+        return True
     same_data = torch.equal(old.state_dict()["data_digest"], model.state_dict()["data_digest"])
     if not same_data or old._options() != model._options():
         print(f"replacing {path} (a fit of {'other data' if not same_data else 'other options'})")

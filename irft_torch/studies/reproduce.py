@@ -168,7 +168,7 @@ def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, t
     if keep_maps:
         res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
                     "truth": true, "B": B, "G": G, "coverage": metrics.coverage_area(c),
-                    "prior_std": model.hypers.outputscale.detach().sqrt().cpu(),  # (2,) N/cm^3, the map prior's sd
+                    "prior_std": model.hypers.prior_variance.detach().sqrt().cpu(),  # (2,) N/cm^3, the map prior's sd
                     "redundancy": metrics.redundancy(c)}
     if keep_model:  # in this process only (a fitted model is not sent back from a worker)
         res.maps["model"] = model

@@ -160,3 +160,20 @@ def test_fit_keeps_a_better_model_and_never_mixes_two_runs(capsys, tmp_path, dat
     monkeypatch.setattr(plotting, "plot_forces", drawing)
     assert main([*args, "--n-iter", "2", "--replace"]) == 0
     assert all(_files(out)[k] != good[k] for k in good)
+    # a 3-D model's file in the folder (InverseRFT.load reads it as the 3-D model): replaced, said (was: KeyError)
+    import torch
+
+    import irft_torch as irft
+    from irft_torch.gp.inverse3d import InverseRFT3D
+    from irft_torch.rft import CToe, FourierStressMap, Mesh, contacts_3d, forces_3d
+
+    t = torch.linspace(0, 1, 8, dtype=torch.float64)
+    o, z = torch.ones_like(t), torch.zeros_like(t)
+    c3 = contacts_3d(Mesh.from_toe(CToe(0.02, 0.01, n_segments=4), n_across=2).to(dtype=torch.float64),
+                     torch.stack([0.02 * o, 0.01 * o, -0.01 * o], -1), torch.stack([z, z, 0.5 * o], -1), surface=0.0,
+                     position=torch.stack([0.02 * t, z, -0.015 - 0.01 * t], -1))
+    irft.InverseRFT(c3, forces_3d(FourierStressMap.generic(0.5, 0.6), c3)).save(out / "model.pt")
+    capsys.readouterr()
+    assert main([*args, "--n-iter", "2"]) == 0
+    assert "(a fit of a 3-D model)" in capsys.readouterr().out
+    assert not isinstance(irft.InverseRFT.load(out / "model.pt"), InverseRFT3D)

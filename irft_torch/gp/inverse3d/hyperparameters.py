@@ -153,6 +153,7 @@ class RFT3DHyperparameters(Module):
                "outputscale": self.outputscale.tolist(), "noise": self.noise.tolist(), "alpha_y": self.alpha_y}
         if self.alpha_y == "map":
             out["lengthscale_y"] = ls[1, 0].tolist()
-        if self.li is not None:
-            out["li_variance"] = self.li.variance.tolist()
+        if self.li is not None:  # a constant alpha_y has no term: its entry (unused) is left out
+            v = self.li.variance.tolist()
+            out["li_variance"] = [v[0], v[2]] if self.alpha_y == "constant" else v
         return out
