@@ -63,6 +63,14 @@ _e2 = _torch.stack([_p2[:, 0] - leg_t[:, 0], -leg_t[:, 1], _p2[:, 1] - leg_t[:, 
 print("KEY" + _json.dumps({"planar": _e2.pow(2).mean(0).sqrt().tolist(),
                            "three_d": (_l3 - leg_t).pow(2).mean(0).sqrt().tolist()}))
 """, lambda k: all(t < 0.5 * p for t, p in zip(k["three_d"], k["planar"]))),  # 0.06/0.06/0.22 vs 0.86/1.75/0.82
+    "05_honest_intervals": (1, RMSE_CODE + """
+_t = truth(_B, _G)
+def _cover(m):
+    _lo, _hi = m.stress_map(_B, _G).interval(0.95)
+    return ((_t >= _lo) & (_t <= _hi)).double().mean((0, 1)).tolist()
+print("KEY" + _json.dumps({name: _cover(m) for name, m in fits.items()}))
+""", lambda k: (k["default"][0] < 0.8 and k["li_basis"][0] >= 0.9           # measured 0.54, 0.97, 1.00 (alpha_x)
+                and k["li_basis + laplace"][0] >= k["li_basis"][0])),
 }
 
 
