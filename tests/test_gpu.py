@@ -196,6 +196,28 @@ def test_terrain_filter_on_cuda_matches_cpu(li_basis):
     close(f_gpu.variance, f_cpu.variance, rtol=1e-6)
 
 
+def test_terrain_filter_mixture_on_cuda_matches_cpu():
+    """Each environment's mixture over Laplace draws, weighed by its own samples, on the GPU as on the CPU."""
+    B = 5
+    res = []
+    for dev in ("cpu", CUDA):
+        c, f = recording(device=dev)
+        model = irft.InverseRFT(c, f, hyper_posterior="laplace")
+        torch.manual_seed(0)
+        model.fit(n_iter=20, progress=False)
+        filt = irft.gp.TerrainFilterMixture(model, B, window=4)
+        idx = torch.arange(B * 6).reshape(6, B) % len(c)
+        for t in range(6):
+            filt.update(c[idx[t].to(c.beta.device)], f[idx[t].to(f.device)])
+        b = torch.linspace(-1.2, 1.2, 5, device=dev)
+        res.append((filt.weights, filt.stress_map(b, b.flip(0))))
+    (w_cpu, p_cpu), (w_gpu, p_gpu) = res
+    assert on_cuda(w_gpu) and on_cuda(p_gpu.mean)
+    close(w_gpu, w_cpu, rtol=1e-5, atol=1e-8)
+    close(p_gpu.mean, p_cpu.mean, rtol=1e-5, atol=1e-8)
+    close(p_gpu.variance, p_cpu.variance, rtol=1e-4, atol=1e-10)
+
+
 def test_learned_surface_estimate_on_cuda():
     c, f = recording(device=CUDA)
     m = irft.InverseRFT(c, f, surface_offset=True)

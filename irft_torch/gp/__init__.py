@@ -25,6 +25,7 @@ from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
 from .surface_profile import profile_surface
 from .terrain_filter import TerrainFilter
+from .terrain_mixture import TerrainFilterMixture
 
 __all__ = [
     "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",
@@ -34,4 +35,5 @@ __all__ = [
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
     "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface", "TerrainFilter",
+    "TerrainFilterMixture",
 ]

@@ -11,7 +11,8 @@ bisection (a mixture's quantile is not mu + z sigma: that would be the moment-ma
 
 The weights are (S,), one per draw, or (S, K) with K the outputs' last dimension (the two maps or force
 axes): a mixture per axis, for draws whose weight differs between the maps (models averaged per map,
-``InverseRFT(..., prior_mean="average")``).
+``InverseRFT(..., prior_mean="average")``); or already shaped like the components, with 1 where they are
+shared (``TerrainFilterMixture``: (S, B, 1, 2), each environment's own weights).
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ def broadcast_weights(weights: Tensor, means: Tensor) -> Tensor:
         return w.reshape(-1, *([1] * (means.ndim - 1)))
     if w.ndim == 2 and w.shape[0] == means.shape[0] and means.ndim >= 2 and w.shape[1] == means.shape[-1]:
         return w.reshape(w.shape[0], *([1] * (means.ndim - 2)), w.shape[1])
+    if w.ndim == means.ndim and w.shape[0] == means.shape[0] and all(
+            a in (1, b) for a, b in zip(w.shape, means.shape)):  # already shaped: per item (e.g. per environment)
+        return w
     raise ValueError(f"weights must be (S,) or (S, K) for components {tuple(means.shape)}, got {tuple(w.shape)}")
 
 

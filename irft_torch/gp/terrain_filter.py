@@ -105,6 +105,8 @@ class TerrainFilter(nn.Module):
             estimate leaves out the step's temporaries, and each block costs a few hundred small operations;
             on this project's 2-core EPYC (32 MiB L3), B = 4096, M = 10, window 16: 8 / 16 / 32 / 64 MiB gave
             19.7k / 27.1k / 28.9k env-steps/s in float64 and 32.1k / 38.9k / 43.6k / 48.1k in float32).
+        hypers: the hyperparameters to use instead of the model's own (an ``RFTHyperparameters``: one draw of
+            its hyperparameter posterior, as ``TerrainFilterMixture`` builds one filter per draw).
 
     Example:
         >>> filt = irft.TerrainFilter(model, n_envs=4096, window=16)
@@ -132,7 +134,7 @@ class TerrainFilter(nn.Module):
     post_var: Tensor
 
     def __init__(self, model: InverseRFT, n_envs: int, window: int | None = None, capacity: int = 32,
-                 block_bytes: int = 32 << 20) -> None:
+                 block_bytes: int = 32 << 20, hypers=None) -> None:
         super().__init__()
         if not isinstance(model, InverseRFT):
             raise TypeError(f"model must be an irft_torch.InverseRFT (fitted), got {type(model).__name__}")
@@ -141,7 +143,7 @@ class TerrainFilter(nn.Module):
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
             raise ValueError(f"window must be None or a positive integer number of samples, got {window!r}")
-        hypers = model.hypers
+        hypers = model.hypers if hypers is None else hypers  # another draw's (``TerrainFilterMixture``)
         self.dtype = model.dtype
         self.device = torch.device(model._device)
         self.n_envs = B = n_envs
