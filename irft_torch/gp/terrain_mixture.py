@@ -44,7 +44,10 @@ class TerrainFilterMixture(nn.Module):
     Args:
         model: a fitted ``InverseRFT``; its draws (``model.hyper_posterior``, or the averaged prior means) and
             their weights are copied. A plug-in model has one draw: the same numbers as ``TerrainFilter``.
-        n_envs, window, capacity, block_bytes: as ``TerrainFilter``'s.
+        n_envs: B, the number of environments.
+        window: keep each environment's last ``window`` samples (None: all since its last ``reset``).
+        capacity: initial room for samples per environment without a window.
+        block_bytes: CPU only: the working set per block of environments (``TerrainFilter``'s).
 
     Attributes:
         filters: one ``TerrainFilter`` per draw (S).
