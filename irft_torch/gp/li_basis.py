@@ -27,7 +27,7 @@ from .constraints import ScaledGreaterThan
 from .fourier import FourierBasis
 
 __all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "contact_li_features",
-           "li_covariance", "li_index"]
+           "li_covariance", "li_index", "with_li_functions"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
 
@@ -53,6 +53,12 @@ def weighted_li_features(beta: Tensor, gamma: Tensor, weight: Tensor) -> Tensor:
 def contact_li_features(contacts) -> Tensor:
     """(2, N, 9): ``weighted_li_features`` of contacts (N, M) with their x and z weights."""
     return weighted_li_features(contacts.beta, contacts.gamma, torch.stack([contacts.weight_x, contacts.weight_z]))
+
+
+def with_li_functions(basis: FourierBasis) -> FourierBasis:
+    """``basis`` grown to hold the 9 functions (at least one harmonic of 2 beta and of gamma): where a model has
+    the term, its spectral basis never drops them, however long its lengthscales."""
+    return FourierBasis(max(basis.n_beta, 1), max(basis.n_gamma, 1))
 
 
 def li_index(basis: FourierBasis, device=None) -> Tensor:

@@ -57,7 +57,7 @@ from torch import Tensor, nn
 
 from ..rft.contacts import Contacts
 from .embedding import embed_angles
-from .li_basis import li_features
+from .li_basis import weighted_li_features
 from .model import InverseRFT
 from .posterior import Posterior
 
@@ -242,7 +242,7 @@ class TerrainFilter(nn.Module):
         (cm^3), or None without the term."""
         if self.li_variance is None:
             return None
-        return torch.einsum("...apm,...pmk->...apk", w, li_features(beta, gamma))
+        return weighted_li_features(beta.unsqueeze(-3), gamma.unsqueeze(-3), w)  # the angles shared by both axes
 
     def _li_cross(self, f_left: Tensor, f_right: Tensor) -> Tensor:
         """v_a f_left f_right^T: (X, 2, P, 9), (X, 2, R, 9) (X may be 1 on the right) -> (X, 2, P, R)."""

@@ -141,27 +141,33 @@ def test_backends_match_the_dense_reference(method, alpha_y):
     torch.testing.assert_close(loss, ref, rtol=rtol, atol=0)
     for g, p in zip(grads, raw):
         torch.testing.assert_close(g, p.grad, rtol=1e-6 if method != "spectral" else 1e-5, atol=1e-9)
-    # forces of new contacts: mean and each sample's 3 x 3 covariance, and the joint block covariances
+    assert_predictions_match(model, post, rtol)
+
+
+def assert_predictions_match(model, post, rtol):
+    """Forces of new contacts (mean, each sample's 3 x 3 covariance, the joint block covariances) and map
+    posteriors at points off the data (alpha_x with its mirror sign, alpha_y, alpha_z) against the dense
+    posterior ``post``; returns the stress map's posterior at those points."""
+    from irft_torch.gp.inverse3d import point_contacts
+
     q, _ = turning_toe(T=6, seed=2)
     q = q[1:5]
+    b = torch.tensor([-1.2, 0.3, 1.0, 0.1], dtype=torch.float64)
+    gm = torch.tensor([0.4, -1.1, 2.5, 0.0], dtype=torch.float64)
     with torch.no_grad():
         mean_ref, cov_ref = post(q)
         pred = model.predict_forces(q)
         torch.testing.assert_close(pred.mean, mean_ref, rtol=rtol, atol=1e-10)
         torch.testing.assert_close(pred.covariance, per_sample(cov_ref, len(q)), rtol=1e-6, atol=1e-10)
-        m, cv, joints = model.backend.posterior(q, joint=True)
+        _, _, joints = model.backend.posterior(q, joint=True)
         T = len(q)
         torch.testing.assert_close(joints[0], cov_ref[:2 * T, :2 * T], rtol=1e-6, atol=1e-10)
         torch.testing.assert_close(joints[1], cov_ref[2 * T:, 2 * T:], rtol=1e-6, atol=1e-10)
-        # map posteriors at points off the data: alpha_x (mirror sign included), alpha_y, alpha_z
-        b = torch.tensor([-1.2, 0.3, 1.0, 0.1])
-        gm = torch.tensor([0.4, -1.1, 2.5, 0.0])
         sm = model.stress_map(b, gm)
-        from irft_torch.gp.inverse3d import point_contacts
-
         pm, pc = post(point_contacts(b, gm))
         torch.testing.assert_close(sm.mean, pm, rtol=rtol, atol=1e-10)
         torch.testing.assert_close(sm.covariance, per_sample(pc, 4), rtol=1e-6, atol=1e-10)
+    return sm, point_contacts(b, gm)
 
 
 def test_planar_motion_is_the_planar_model():

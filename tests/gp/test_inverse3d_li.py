@@ -10,7 +10,7 @@ from irft_torch.design import ProbeScorer3D
 from irft_torch.gp.hyper_posterior import hyper_spec
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
 
-from .test_inverse3d import CASES, _set, dense, per_sample, turning_toe
+from .test_inverse3d import CASES, _set, assert_predictions_match, dense, per_sample, turning_toe
 
 LI = torch.tensor([0.05, 0.03, 0.3], dtype=torch.float64)
 OS = torch.tensor([0.09, 0.02, 0.2], dtype=torch.float64)
@@ -47,26 +47,11 @@ def test_backends_match_the_dense_reference_with_the_term(method, alpha_y):
     for g, p in zip(grads, raw):  # the term's variance included (a constant alpha_y's: no gradient either way)
         torch.testing.assert_close(g, p.grad, rtol=1e-6 if method != "spectral" else 1e-5, atol=1e-9)
     assert float(h.li.raw_variance.grad.abs()[[0, 2]].min()) > 0
-    q, _ = turning_toe(T=6, seed=2)
-    q = q[1:5]
-    b = torch.tensor([-1.2, 0.3, 1.0, 0.1], dtype=torch.float64)
-    gm = torch.tensor([0.4, -1.1, 2.5, 0.0], dtype=torch.float64)
+    sm, pts = assert_predictions_match(model, post, rtol)
     with torch.no_grad():
-        mean_ref, cov_ref = post(q)
-        pred = model.predict_forces(q)
-        torch.testing.assert_close(pred.mean, mean_ref, rtol=rtol, atol=1e-10)
-        torch.testing.assert_close(pred.covariance, per_sample(cov_ref, len(q)), rtol=1e-6, atol=1e-10)
-        _, _, joints = model.backend.posterior(q, joint=True)
-        T = len(q)
-        torch.testing.assert_close(joints[0], cov_ref[:2 * T, :2 * T], rtol=1e-6, atol=1e-10)
-        torch.testing.assert_close(joints[1], cov_ref[2 * T:, 2 * T:], rtol=1e-6, atol=1e-10)
-        sm = model.stress_map(b, gm)
-        pm, pc = post(point_contacts(b, gm))
-        torch.testing.assert_close(sm.mean, pm, rtol=rtol, atol=1e-10)
-        torch.testing.assert_close(sm.covariance, per_sample(pc, 4), rtol=1e-6, atol=1e-10)
         # the term matters here: the model without it (the same other hyperparameters) differs
         _, post0 = dense(c, f, h.lengthscale, h.outputscale, h.noise, alpha_y == "constant")
-        assert float((per_sample(post0(point_contacts(b, gm))[1], 4) - sm.covariance).abs().max()) > 1e-3
+        assert float((per_sample(post0(pts)[1], 4) - sm.covariance).abs().max()) > 1e-3
 
 
 def test_prior_variance_is_s_plus_v_in_diagnostics_scores_and_far_from_the_data():

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..fourier import MAX_HARMONICS, FourierBasis
-from ..li_basis import li_index
+from ..li_basis import li_index, with_li_functions
 from .base import FunctionalPosterior, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
@@ -118,7 +118,7 @@ class SpectralBackend(WeightSpaceBackend):
             if basis is not None:
                 raise ValueError(f"basis {basis} has no first harmonic of 2 beta or gamma: Li et al.'s term "
                                  f"(li_basis=True) needs FourierBasis(n_beta >= 1, n_gamma >= 1)")
-            self.basis = FourierBasis(max(self.basis.n_beta, 1), max(self.basis.n_gamma, 1))  # it never shrinks
+            self.basis = with_li_functions(self.basis)  # it never shrinks
         self._data = [(contacts, forces)] if keep_data else None
         self._stored = statistics if statistics is not None and self._covers(statistics, self.basis) else None
         self._set_stats(self._stored_or_pass(self.basis, [(contacts, forces)]))

@@ -41,7 +41,7 @@ from ...rft.contacts3d import Contacts3D
 from ..backends.weight_space import data_factor_from_rows
 from ..embedding import embed_angles, rbf
 from ..fourier import MAX_HARMONICS, FourierBasis
-from ..li_basis import li_features, li_index, weighted_li_features
+from ..li_basis import li_features, li_index, weighted_li_features, with_li_functions
 from ..operators import RFTKernelLinearOperator, unique_pairs
 from .features import BankRows, SpectralFeatureBank, spectral_features
 from .hyperparameters import BLOCKS, RFT3DHyperparameters
@@ -393,9 +393,7 @@ class Spectral3D(WeightSpace3D):
     def _basis_for(self, lengthscale: Tensor, shrink: float = 1.0) -> FourierBasis:
         ls = lengthscale.detach()[self._maps_rbf()] * shrink
         basis = FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
-        if self.hypers.li is None:
-            return basis
-        return FourierBasis(max(basis.n_beta, 1), max(basis.n_gamma, 1))  # Li et al.'s 9 functions are in it
+        return basis if self.hypers.li is None else with_li_functions(basis)
 
     def describe(self) -> str:
         return (f"spectral: T={self.n_samples}, {self.basis.size} Fourier features per map, kernel truncation "
