@@ -219,19 +219,28 @@ def main(argv=None) -> None:
                    "kernel term (files get the suffix _li; scored as the plug-in and Laplace)")
     p.add_argument("--posteriors", default=None, help="comma-separated subset of " + ",".join(POSTERIORS) +
                    " (default: all four for the zero mean, map,laplace otherwise)")
+    p.add_argument("--motions", default=None, help="comma-separated motions: only these (files get the suffix "
+                   "_<motions>)")
+    p.add_argument("--first-seed", type=int, default=0, help="skip the seeds below this: fresh seeds for a setting "
+                   "chosen on the first ones (--seeds 4 --first-seed 2 runs seeds 2 and 3; files get the suffix "
+                   "_seeds2-3)")
     p.add_argument("--case", type=int, default=None, help="run only case number N of the list (0-based; for "
                    "running the cases one per process), then write the report")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = ("_held_out" if args.held_out else "") + ("_held_out_2" if args.held_out_2 else "") + \
-        ("_physics" if args.prior_mean == "physics" else "") + ("_li" if args.li_basis else "")
+        ("_physics" if args.prior_mean == "physics" else "") + ("_li" if args.li_basis else "") + \
+        (f"_seeds{args.first_seed}-{args.seeds - 1}" if args.first_seed else "") + \
+        ("_" + args.motions.replace(",", "_") if args.motions else "")
     path = args.out / f"calibration_harness{suffix}.csv"
     rows: list[dict] = []
     if path.exists():
         with path.open() as fh:
             rows = list(csv.DictReader(fh))
     done = {(r["family"], r["motion"], float(r["noise"]), int(r["seed"])) for r in rows}
-    every = cases(args.held_out, args.seeds, args.quick, args.held_out_2)
+    kinds = set(args.motions.split(",")) if args.motions else None
+    every = [c for c in cases(args.held_out, args.seeds, args.quick, args.held_out_2)
+             if c.seed >= args.first_seed and (kinds is None or c.kind in kinds)]
     if args.case is not None:
         if not 0 <= args.case < len(every):
             raise SystemExit(f"--case must be in [0, {len(every)}): there are {len(every)} cases")

@@ -20,7 +20,13 @@ This script fits, per axis and per harness case, two zero-mean GPs on the same f
   library's own plug-in fit of the same case, is beside it);
 - ``rbf+li``: the same plus the k_Li term, its sigma_L^2 under a log-normal prior at the same centre, log-sd
   log 2 (without a prior, the marginal likelihood took sigma_L^2 to 0 on the first case tried: the RBF explains
-  the slice as well, with fewer effective dimensions).
+  the slice as well, with fewer effective dimensions);
+- ``rbf+li+generic`` (``--generic``): the same plus Li et al.'s generic map g_a of each axis as a rank-one term,
+  u_a g_a(theta) g_a(theta'): the generic shape with a scale of prior N(0, u_a), integrated out exactly (Rasmussen
+  & Williams 2006, section 2.7: a mean with a Gaussian prior on its coefficient is a kernel term), u_a under a
+  log-normal prior at the medium's zeta squared (``gp.priors.medium_scale``), log-sd log 2. Unlike the physics
+  mean (``prior_mean="physics"``), whose scale is a fitted point, the scale's uncertainty is in every interval,
+  and a medium of another shape keeps the zero mean.
 
 Each is scored as the harness scores (``studies.calibration``): 95 % coverage of the truth over the 41 x 41
 grid, and the percentile among 200 maps drawn from the fit's own posterior (overconfident beyond chance
@@ -28,11 +34,12 @@ below 0.025). By default the plug-in predictions; ``--laplace N`` adds each mode
 proposals from N(mode, 1.5 H^-1) in log-hyperparameters, H the autograd Hessian, self-normalised importance
 weights; intervals from the mixture CDF, ``gp.mixture``) and the library's own Laplace posterior.
 
-    python experiments/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2]
-        [--held-out | --held-out-1] [--laplace N] [--no-library] [--out DIR]
+    python experiments/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2] [--first-seed 0]
+        [--held-out | --held-out-1] [--laplace N] [--generic] [--only-models rbf+li,...] [--no-library] [--out DIR]
 
 Rows go to ``fourier_kernel_term[_laplace].csv`` under --out as each case finishes (a rerun skips those there).
-Results and what they mean: docs/calibration.md, "The kernel, not the mean".
+Results and what they mean: docs/calibration.md, "The kernel, not the mean" and "Fresh seeds: the generic shape
+with an uncertain scale".
 """
 
 from __future__ import annotations
@@ -49,6 +56,8 @@ from torch import Tensor
 from irft_torch import InverseRFT, metrics
 from irft_torch.gp.laplace_guard import proposal_covariance
 from irft_torch.gp.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.priors import medium_scale
+from irft_torch.rft.stress_maps import FourierStressMap
 from irft_torch.studies.calibration import grid, medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -58,47 +67,58 @@ F64 = torch.float64
 LS_CENTRE, LS_LOG_SD = math.log(1.5), 1.5
 OS_LOG_SD = 2 * math.log(2.0)
 LI_LOG_SD = math.log(2.0)
+GEN_LOG_SD = math.log(2.0)
+GENERIC = FourierStressMap.generic().to(F64)
+MODELS = ("rbf", "rbf+li", "rbf+li+generic")
 
 
 def embed(b, g):
     return torch.stack([torch.sin(2 * b), torch.cos(2 * b), torch.sin(g), torch.cos(g)], -1)
 
 
-def kernel(p: dict, b1, g1, b2, g2, li: bool):
-    """Prior covariance of one map between angle sets (n1,), (n2,): (n1, n2), (N/cm^3)^2."""
+def kernel(p: dict, b1, g1, b2, g2, li: bool, generic: int | None = None):
+    """Prior covariance of one map between angle sets (n1,), (n2,): (n1, n2), (N/cm^3)^2. ``generic``: the
+    axis (0: x, 1: z) whose generic-shape term u g(theta) g(theta') is added (None: none)."""
     d = (embed(b1, g1)[:, None, :] - embed(b2, g2)[None]) / p["ls"].exp()
     k = p["os"].exp() * torch.exp(-0.5 * d.pow(2).sum(-1))
     if li:
         db, dg = b1[:, None] - b2[None], g1[:, None] - g2[None]
         k = k + p["li"].exp() / 4 * (1 + torch.cos(2 * db)) * (1 + torch.cos(dg))
+    if generic is not None:
+        k = k + p["gen"].exp() * GENERIC(b1, g1)[:, generic, None] * GENERIC(b2, g2)[None, :, generic]
     return k
 
 
 class DenseAxis:
     """One map's zero-mean GP on the segments in contact: forces y (T,) = W alpha + noise."""
 
-    def __init__(self, beta, gamma, weight, y, li: bool, li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> None:
-        """``li_prior``: the k_Li variance's log-normal prior, (its centre over the outputscale's, log-sd)."""
+    def __init__(self, beta, gamma, weight, y, li: bool, li_prior: tuple[float, float] = (1.0, LI_LOG_SD),
+                 generic: int | None = None, zeta: float = 1.0) -> None:
+        """``li_prior``: the k_Li variance's log-normal prior, (its centre over the outputscale's, log-sd);
+        ``generic``: add the generic-shape term of this axis (0: x, 1: z), its variance u under a log-normal
+        prior at ``zeta`` squared (the medium's scale, ``gp.priors.medium_scale``), log-sd log 2."""
         T, M = weight.shape
         keep = weight.reshape(-1) != 0
         self.b, self.g = beta.reshape(-1)[keep], gamma.reshape(-1)[keep]
         rows = torch.nonzero(keep).squeeze(1) // M
         self.W = torch.zeros(T, len(self.b), dtype=F64)
         self.W[rows, torch.arange(len(self.b))] = weight.reshape(-1)[keep]
-        self.y, self.li = y, li
+        self.y, self.li, self.generic = y, li, generic
         self.centre = float((y.pow(2).mean() / weight.abs().sum(-1).pow(2).mean()).log())
         self.p = {"ls": torch.full((4,), LS_CENTRE, dtype=F64), "os": torch.tensor(self.centre, dtype=F64),
-                  "li": torch.tensor(self.centre + math.log(li_prior[0]), dtype=F64), "noise": (1e-2 * y.var()).log()}
+                  "li": torch.tensor(self.centre + math.log(li_prior[0]), dtype=F64), "noise": (1e-2 * y.var()).log(),
+                  "gen": torch.tensor(2 * math.log(max(zeta, 1e-3)), dtype=F64)}
         self.li_centre, self.li_log_sd = self.centre + math.log(li_prior[0]), li_prior[1]
+        self.gen_centre = float(self.p["gen"])
 
     @property
     def names(self) -> list[str]:
-        return ["ls", "os", "noise"] + (["li"] if self.li else [])
+        return ["ls", "os", "noise"] + (["li"] if self.li else []) + (["gen"] if self.generic is not None else [])
 
     def covariance(self, p: dict | None = None):
         p = self.p if p is None else p
         T = len(self.y)
-        return self.W @ kernel(p, self.b, self.g, self.b, self.g, self.li) @ self.W.T \
+        return self.W @ kernel(p, self.b, self.g, self.b, self.g, self.li, self.generic) @ self.W.T \
             + p["noise"].exp() * torch.eye(T, dtype=F64)
 
     def loss(self, p: dict):
@@ -110,6 +130,8 @@ class DenseAxis:
         loss = loss + 0.5 * ((p["os"] - self.centre) / OS_LOG_SD).pow(2)
         if self.li:
             loss = loss + 0.5 * ((p["li"] - self.li_centre) / self.li_log_sd).pow(2)
+        if self.generic is not None:
+            loss = loss + 0.5 * ((p["gen"] - self.gen_centre) / GEN_LOG_SD).pow(2)
         return loss
 
     def unflatten(self, theta) -> dict:
@@ -138,10 +160,10 @@ class DenseAxis:
         """Mean (n,) and covariance (n, n) of the map at angles (n,) (at hyperparameters ``p``, default the fit)."""
         p = self.p if p is None else p
         L = torch.linalg.cholesky(self.covariance(p))
-        ks = kernel(p, B, G, self.b, self.g, self.li) @ self.W.T  # (n, T)
+        ks = kernel(p, B, G, self.b, self.g, self.li, self.generic) @ self.W.T  # (n, T)
         mean = ks @ torch.cholesky_solve(self.y[:, None], L).squeeze(1)
         V = torch.linalg.solve_triangular(L, ks.T, upper=False)
-        return mean, kernel(p, B, G, B, G, self.li) - V.T @ V
+        return mean, kernel(p, B, G, B, G, self.li, self.generic) - V.T @ V
 
     def laplace(self, n_proposals: int, gen: torch.Generator) -> tuple[list[dict], Tensor]:
         """Hyperparameter draws and their self-normalised importance weights: proposals from N(mode, 1.5 H^-1)
@@ -168,14 +190,15 @@ class DenseAxis:
 
 
 def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int = 200,
-                li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> list[dict]:
+                li_prior: tuple[float, float] = (1.0, LI_LOG_SD), generic: bool = False) -> list[dict]:
     """The plug-in's scores, and with ``laplace`` proposals the Laplace mixture's too (one dict each)."""
     B, G = (t.reshape(-1) for t in grid(41))
     true = truth(B, G)
     outs: list[dict] = [{}, {}] if laplace else [{}]
     gen = torch.Generator().manual_seed(10_000 + seed)
+    zeta = medium_scale(c, f)
     for a, (name, w) in enumerate((("x", c.weight_x), ("z", c.weight_z))):
-        ax = DenseAxis(c.beta, c.gamma, w, f[:, a], li, li_prior)
+        ax = DenseAxis(c.beta, c.gamma, w, f[:, a], li, li_prior, a if generic else None, zeta)
         ax.fit()
         with torch.no_grad():
             mean, cov = ax.posterior(B, G)
@@ -202,6 +225,7 @@ def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int =
             out[f"std_{name}"] = float(mvar.sqrt().mean())
             out[f"n_draws_{name}"] = len(means)
             out[f"sigma_L_{name}"] = float(ax.p["li"].exp().sqrt()) if li else float("nan")
+            out[f"u_{name}"] = float(ax.p["gen"].exp()) if generic else float("nan")
             out[f"lengthscale_{name}"] = str([round(v, 2) for v in ax.p["ls"].exp().tolist()])
     for out in outs:
         for lv in (50, 90):  # the harness' summary reads them; this script scores the 95 % interval only
@@ -209,7 +233,8 @@ def dense_score(c, f, truth, li: bool, seed: int, laplace: int = 0, draws: int =
     return outs
 
 
-def run(case, library: bool, laplace: int, li_prior: tuple[float, float] = (1.0, LI_LOG_SD)) -> list[dict]:
+def run(case, library: bool, laplace: int, li_prior: tuple[float, float] = (1.0, LI_LOG_SD),
+        models=MODELS[:2]) -> list[dict]:
     truth, label = medium(case.family, case.seed)
     c = motion(case.kind, case.seed)
     f = simulate(truth, c, case.noise, case.seed)
@@ -222,8 +247,9 @@ def run(case, library: bool, laplace: int, li_prior: tuple[float, float] = (1.0,
         if laplace:
             m.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
             rows.append({**base, "posterior": "laplace", **score(m, truth, 41, 200, case.seed)})
-    for name, li in (("rbf", False), ("rbf+li", True)):
-        scored = dense_score(c, f, truth, li, case.seed, laplace, li_prior=li_prior)
+    for name in models:
+        li, generic = "+li" in name, "+generic" in name
+        scored = dense_score(c, f, truth, li, case.seed, laplace, li_prior=li_prior, generic=generic)
         rows.append({**base, "posterior": name, **scored[0]})
         if laplace:
             rows.append({**base, "posterior": name + " laplace", **scored[1]})
@@ -245,6 +271,13 @@ def main() -> None:
     p.add_argument("--li-prior", type=float, nargs=2, default=(1.0, LI_LOG_SD), metavar=("FACTOR", "LOG_SD"),
                    help="the k_Li variance's prior: its centre as a factor of the outputscale's, and its log-sd "
                         "(default 1 and log 2; a sensitivity check)")
+    p.add_argument("--generic", action="store_true",
+                   help="also fit rbf+li+generic: Li et al.'s generic map as a rank-one term u g g^T per map (the "
+                        "generic shape with an uncertain scale), u under a log-normal prior at the medium's zeta "
+                        "squared, log-sd log 2 (files get the suffix _generic)")
+    p.add_argument("--first-seed", type=int, default=0, help="skip the seeds below this (fresh seeds: a run "
+                   "with --seeds 6 --first-seed 2 scores seeds 2-5 only)")
+    p.add_argument("--only-models", default=None, help="comma-separated subset of rbf,rbf+li,rbf+li+generic")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args()
@@ -252,12 +285,18 @@ def main() -> None:
     held = a.held_out or a.held_out_1
     kinds = set((a.motions or ("" if held else "short,rotating,turning")).split(",")) - {""}
     todo = [c for c in cases(a.held_out_1, a.seeds, False, held_out_2=a.held_out)
-            if (not kinds or c.kind in kinds) and c.seed < a.seeds][:a.limit]
+            if (not kinds or c.kind in kinds) and a.first_seed <= c.seed < a.seeds][:a.limit]
+    models = MODELS if a.generic else MODELS[:2]
+    if a.only_models:
+        models = tuple(m for m in models if m in a.only_models.split(","))
     a.out.mkdir(parents=True, exist_ok=True)
     tag = "" if tuple(a.li_prior) == (1.0, LI_LOG_SD) else f"_prior{a.li_prior[0]:g}_{a.li_prior[1]:.3g}"
+    tag += "_generic" if a.generic else ""
+    tag += f"_seeds{a.first_seed}-{a.seeds - 1}" if a.first_seed else ""
     path = a.out / (f"fourier_kernel_term{tag}_laplace.csv" if a.laplace else f"fourier_kernel_term{tag}.csv")
-    kept = run_resumable(todo, path, lambda case: run(case, not a.no_library, a.laplace, tuple(a.li_prior)))
-    order = ("map", "laplace", "rbf", "rbf laplace", "rbf+li", "rbf+li laplace")
+    kept = run_resumable(todo, path, lambda case: run(case, not a.no_library, a.laplace, tuple(a.li_prior), models))
+    order = ("map", "laplace", "rbf", "rbf laplace", "rbf+li", "rbf+li laplace", "rbf+li+generic",
+             "rbf+li+generic laplace")
     posts = [hp for hp in order if any(r["posterior"] == hp for r in kept)]
     print("\n".join(coverage_table(kept, posts)))
 

@@ -83,3 +83,35 @@ def test_the_dense_zero_mean_model_is_the_library_s_at_the_same_hyperparameters(
         mean, cov = ax.posterior(b, g)
         assert torch.allclose(mean, post.mean[:, a], rtol=1e-6, atol=1e-9)
         assert torch.allclose(cov.diagonal(), post.variance[:, a], rtol=1e-6, atol=1e-12)
+
+
+def test_the_generic_term_is_a_scale_with_a_gaussian_prior_on_li_et_al_s_generic_shape():
+    """rbf+li+generic: u g_a(theta) g_a(theta') per map; alone (RBF variance e^-80, no k_Li) it is Bayesian
+    linear regression of the forces on the generic shape's forces, whose posterior is known by hand."""
+    fk = _script()
+    generic = FourierStressMap.generic().double()
+    b1, g1 = _angles(30, 5)
+    b2, g2 = _angles(20, 6)
+    p = {"ls": torch.zeros(4, dtype=F64), "os": torch.tensor(-80.0, dtype=F64), "gen": torch.tensor(math.log(0.7))}
+    for a in (0, 1):
+        k = fk.kernel(p, b1, g1, b2, g2, li=False, generic=a)
+        assert torch.allclose(k, 0.7 * generic(b1, g1)[:, a, None] * generic(b2, g2)[None, :, a], atol=1e-12)
+    t = torch.linspace(0, 1, 25, dtype=F64)
+    c = contacts(CToe(0.02, 0.01, n_segments=5), pose_path(t, -0.05 + 0.1 * t, 0.01 - 0.04 * torch.sin(math.pi * t),
+                                                            0.8 * t))
+    zeta, u, noise = 0.6, 0.5, 1e-3
+    f = zeta * forces(generic, c)
+    f = f + math.sqrt(noise) * torch.randn(f.shape, generator=torch.Generator().manual_seed(7), dtype=F64)
+    b, g = _angles(15, 8)
+    for a, w in enumerate((c.weight_x, c.weight_z)):
+        ax = fk.DenseAxis(c.beta, c.gamma, w, f[:, a], li=False, generic=a, zeta=1.0)
+        ax.p.update(os=torch.tensor(-80.0, dtype=F64), gen=torch.tensor(math.log(u), dtype=F64),
+                    noise=torch.tensor(math.log(noise), dtype=F64))
+        mean, cov = ax.posterior(b, g)
+        h = (w * generic(c.beta, c.gamma)[..., a]).sum(-1)  # (T,) the generic shape's forces per unit scale
+        post_var = 1 / (1 / u + h @ h / noise)  # the scale's posterior, by hand
+        post_mean = post_var * (h @ f[:, a]) / noise
+        shape = generic(b, g)[:, a]
+        assert abs(post_mean - zeta) < 0.05  # the data recover the scale
+        assert torch.allclose(mean, post_mean * shape, rtol=1e-8, atol=1e-10)
+        assert torch.allclose(cov, post_var * shape[:, None] * shape[None, :], rtol=1e-6, atol=1e-12)
