@@ -284,11 +284,15 @@ def main() -> None:
     torch.set_num_threads(2)
     held = a.held_out or a.held_out_1
     kinds = set((a.motions or ("" if held else "short,rotating,turning")).split(",")) - {""}
-    todo = [c for c in cases(a.held_out_1, a.seeds, False, held_out_2=a.held_out)
-            if (not kinds or c.kind in kinds) and a.first_seed <= c.seed < a.seeds][:a.limit]
+    todo = [c for c in cases(a.held_out_1, a.seeds, False, held_out_2=a.held_out, first_seed=a.first_seed)
+            if not kinds or c.kind in kinds][:a.limit]
     models = MODELS if a.generic else MODELS[:2]
     if a.only_models:
-        models = tuple(m for m in models if m in a.only_models.split(","))
+        asked = a.only_models.split(",")
+        if any(m not in models for m in asked):
+            p.error(f"--only-models must name some of {', '.join(models)} (rbf+li+generic needs --generic), "
+                    f"got {a.only_models!r}")
+        models = tuple(m for m in models if m in asked)
     a.out.mkdir(parents=True, exist_ok=True)
     tag = "" if tuple(a.li_prior) == (1.0, LI_LOG_SD) else f"_prior{a.li_prior[0]:g}_{a.li_prior[1]:.3g}"
     tag += "_generic" if a.generic else ""
