@@ -11,9 +11,10 @@ most 10 % overconfident fits, for every family, motion and map.
     python experiments/calibration_harness.py [--quick] [--held-out] [--seeds 2] [--out DIR]
 
 ``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.li_basis``), scored as the
-plug-in and the Laplace mixture. ``--prior-mean physics`` fits with the generic shape times learned
-scales as the prior mean (the scales are hyperparameters: Laplace integrates over them). ``--held-out``
-runs the families kept aside while the defaults were chosen (the ``sharp`` media, the ``figure8``
+plug-in and the Laplace mixture; ``--generic-shape`` adds the generic shape with an uncertain scale to that
+term (``generic_shape=True``, files get the suffix _generic). ``--prior-mean physics`` fits with the generic
+shape times learned scales as the prior mean (the scales are hyperparameters: Laplace integrates over
+them). ``--held-out`` runs the families kept aside while the defaults were chosen (the ``sharp`` media, the ``figure8``
 motion) instead. Rows are appended to ``calibration_harness[_held_out].csv`` as each case finishes; a
 rerun skips the cases already there (interrupt and resume freely). Writes the summary
 ``calibration_harness[_held_out].md`` and ``calibration_harness[_held_out].png``.
@@ -218,6 +219,8 @@ def main(argv=None) -> None:
                    "scoop and drag motions)")
     p.add_argument("--li-basis", action="store_true", help="InverseRFT(..., li_basis=True): Li et al.'s basis as a "
                    "kernel term (files get the suffix _li; scored as the plug-in and Laplace)")
+    p.add_argument("--generic-shape", action="store_true", help="with --li-basis: InverseRFT(..., generic_shape=True), "
+                   "the generic shape with an uncertain scale as a rank-one term (files get the suffix _generic)")
     p.add_argument("--posteriors", default=None, help="comma-separated subset of " + ",".join(POSTERIORS) +
                    " (default: all four for the zero mean, map,laplace otherwise)")
     p.add_argument("--motions", default=None, help="comma-separated motions: only these (files get the suffix "
@@ -228,9 +231,12 @@ def main(argv=None) -> None:
     p.add_argument("--case", type=int, default=None, help="run only case number N of the list (0-based; for "
                    "running the cases one per process), then write the report")
     args = p.parse_args(argv)
+    if args.generic_shape and not args.li_basis:
+        p.error("--generic-shape needs --li-basis (the generic shape is a rank-one update of Li et al.'s term)")
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = ("_held_out" if args.held_out else "") + ("_held_out_2" if args.held_out_2 else "") + \
         ("_physics" if args.prior_mean == "physics" else "") + ("_li" if args.li_basis else "") + \
+        ("_generic" if args.generic_shape else "") + \
         (f"_seeds{args.first_seed}-{args.seeds - 1}" if args.first_seed else "") + \
         ("_" + args.motions.replace(",", "_") if args.motions else "")
     path = args.out / f"calibration_harness{suffix}.csv"
@@ -253,6 +259,8 @@ def main(argv=None) -> None:
             opts: dict = {} if args.prior_mean == "zero" else {"prior_mean": args.prior_mean}
             if args.li_basis:
                 opts["li_basis"] = True
+            if args.generic_shape:
+                opts["generic_shape"] = True
             plain = args.prior_mean == "zero" and not args.li_basis
             chosen = POSTERIORS if plain else ("map", "laplace")
             if args.posteriors:

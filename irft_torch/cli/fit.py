@@ -124,8 +124,8 @@ def cmd_fit(a) -> int:
     elif a.dask is not None:
         print("--dask: nothing to reduce (the fit does not start in the spectral space: its statistics are not used)")
     model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
-                       priors=None if a.priors == "none" else a.priors, li_basis=a.li_basis,
-                       hyper_posterior=a.hyper_posterior)
+                       priors=None if a.priors == "none" else a.priors, li_basis=a.li_basis or a.generic_shape,
+                       generic_shape=a.generic_shape, hyper_posterior=a.hyper_posterior)
     print(f"backend {model.backend.describe()}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -209,6 +209,9 @@ def register(sub) -> None:
                    help="add Li et al.'s 9 fitting functions to the kernel as a term with its own variance "
                         "(InverseRFT(..., li_basis=True): intervals that hold better on media unlike the generic one; "
                         "docs/calibration.md)")
+    p.add_argument("--generic-shape", action="store_true",
+                   help="also give Li et al.'s generic map a scale of its own, integrated out (InverseRFT(..., "
+                        "li_basis=True, generic_shape=True); implies --li-basis; docs/calibration.md)")
     p.add_argument("--hyper-posterior", choices=["map", "laplace", "nuts"], default="map",
                    help="map (default): predict at the fitted hyperparameters; laplace or nuts: average the map and "
                         "its uncertainty over the hyperparameters' posterior too (wider, more honest intervals; "

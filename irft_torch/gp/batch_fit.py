@@ -124,6 +124,8 @@ def shares_fit(models: Sequence) -> str | None:
             return "a learned surface or a physics mean"
         if (m.hypers.li is None) != (m0.hypers.li is None):
             return "Li et al.'s kernel term in some models and not in others (li_basis)"
+        if m.hypers.li is not None and m.hypers.li.generic:
+            return "the generic shape's kernel term (generic_shape=True is fitted one model at a time)"
         if m.priors != m0.priors or m.hypers.tied != m0.hypers.tied:
             return "different priors or noise tying"
         p0, p = m0.hypers.kernel.raw_outputscale, m.hypers.kernel.raw_outputscale

@@ -105,7 +105,7 @@ class HyperSpec:
 def _label(name: str, shape: torch.Size) -> list[str]:
     base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",
             "likelihood.noise_covar.raw_noise": "noise", "mean.raw_scales": "mean_scale",
-            "li.raw_variance": "li_variance"}.get(name, name)
+            "li.raw_variance": "li_variance", "li.raw_generic_variance": "generic_variance"}.get(name, name)
     n = shape.numel()
     if base == "lengthscale":
         dims = ("sin2b", "cos2b", "sing", "cosg")

@@ -37,12 +37,12 @@ class RFTHyperparameters(Module):
         kernel: :class:`AngleKernel` (lengthscale (2, 1, 4), outputscale (2,) in (N/cm^3)^2).
         likelihood: gpytorch ``GaussianLikelihood`` (noise in N^2).
         mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
-        li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.li_basis``) or None
-            (the RBF alone).
+        li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.li_basis``, and with
+            ``generic_shape`` the generic shape's variance (2,) too) or None (the RBF alone).
     """
 
     def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6,
-                 force_scale=1.0, map_scale=1.0, li_basis: bool = False) -> None:
+                 force_scale=1.0, map_scale=1.0, li_basis: bool = False, generic_shape: bool = False) -> None:
         """``force_scale`` (2,) N and ``map_scale`` (2,) N/cm^3: the data's typical force and stress per
         depth per axis; the raw parameters are measured in them (``ScaledGreaterThan``), so a fit does
         not depend on the units the data come in."""
@@ -52,7 +52,10 @@ class RFTHyperparameters(Module):
         self.kernel = AngleKernel(outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
         self.likelihood = force_likelihood(tied_noise, noise_floor, fs.pow(2))
         self.mean = GenericShapeMean(scale=ms) if physics_mean else None
-        self.li = LiBasisVariance(scale=ms.pow(2)) if li_basis else None
+        if generic_shape and not li_basis:
+            raise ValueError("generic_shape=True needs li_basis=True: the generic shape is a rank-one update of Li et "
+                             "al.'s 9-function term (gp.li_basis)")
+        self.li = LiBasisVariance(scale=ms.pow(2), generic=generic_shape) if li_basis else None
 
     @property
     def tied(self) -> bool:
@@ -95,12 +98,27 @@ class RFTHyperparameters(Module):
         """(2,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
         return None if self.li is None else self.li.variance
 
+    def start_li(self, zeta: float) -> None:
+        """Start Li et al.'s term at the RBF part's variance and the generic shape's at zeta^2 (the centres of their
+        priors, ``gp.priors``; zeta the medium's scale, ``priors.prior_centres``)."""
+        with torch.no_grad():
+            self.li.variance = self.outputscale
+            if self.li.generic:
+                self.li.generic_variance = torch.as_tensor(float(zeta) ** 2).to(self.outputscale).clamp_min(
+                    1e-6 * float(self.li.raw_generic_variance_constraint.scale.max()))
+
+    @property
+    def generic_variance(self) -> Tensor | None:
+        """(2,) prior variances u of the generic shape's scale per map, (N/cm^3)^2, or None without the term."""
+        return None if self.li is None else self.li.generic_variance
+
     @property
     def prior_variance(self) -> Tensor:
-        """(2,) the prior variance of each map at any angle pair, (N/cm^3)^2: the outputscale, plus Li et al.'s
-        v where the model has the term (its 9 functions have |f(theta)|^2 = 1 at every theta, ``gp.li_basis``)."""
+        """(2,) the prior variance of each map, (N/cm^3)^2: the outputscale, plus Li et al.'s v where the model has
+        the term (its 9 functions have |f(theta)|^2 = 1 at every theta, ``gp.li_basis``); with the generic shape,
+        plus u times its mean square over the canonical square (the one part that varies with the angles)."""
         s = self.outputscale
-        return s if self.li is None else s + self.li.variance
+        return s if self.li is None else s + self.li.mean_variance()
 
     @property
     def mean_scales(self) -> Tensor | None:
@@ -123,4 +141,6 @@ class RFTHyperparameters(Module):
             out["mean_scales"] = self.mean.scales.tolist()
         if self.li is not None:
             out["li_variance"] = self.li.variance.tolist()
+            if self.li.generic:
+                out["generic_variance"] = self.li.generic_variance.tolist()
         return out

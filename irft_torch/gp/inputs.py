@@ -150,7 +150,7 @@ def _data_scales(c: Contacts, f: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver: str, lengthscale: float,
-                   surface: bool, tied_noise: bool, li_basis: bool, retired_grid: bool) -> tuple[str, str]:
+                   surface: bool, tied_noise: bool, li_terms: tuple[bool, bool], retired_grid: bool) -> tuple[str, str]:
     """``InverseRFT``'s options checked (ValueError naming the argument, NotImplementedError for a combination
     that is not built); returns (method, hyper_posterior) with the retired and default values resolved."""
     from .hyper_posterior import HYPER_POSTERIORS
@@ -180,8 +180,12 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
                                   "std (model.surface_offset); use hyper_posterior='map' with surface_offset")
     if solver not in ("cholesky", "gpytorch"):
         raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
-    if not isinstance(li_basis, bool):
-        raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
+    for name, flag in zip(("li_basis", "generic_shape"), li_terms):
+        if not isinstance(flag, bool):
+            raise TypeError(f"{name} must be True or False, got {flag!r}")
+    if li_terms[1] and not li_terms[0]:
+        raise ValueError("generic_shape=True needs li_basis=True: the generic shape is a rank-one update of Li et "
+                         "al.'s 9-function term (gp.li_basis)")
     if retired_grid:
         warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
                       FutureWarning, stacklevel=3)

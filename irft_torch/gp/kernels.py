@@ -75,8 +75,8 @@ def angle_covariance(kernel: AngleKernel, beta1: Tensor, gamma1: Tensor, beta2: 
 def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
     """Lazy prior covariance (2, N1, N2) of the weighted sums of two sets of contacts (N, M) (c2 None:
     of c1 with itself), x and z axes, at the kernel's current hyperparameters (no gradient in them;
-    differentiable in the contacts). ``li``: a ``LiBasisVariance`` whose rank-9 term (``gp.li_basis``) is
-    added (the sum of the two operators), or None."""
+    differentiable in the contacts). ``li``: a ``LiBasisVariance`` whose rank-9 term (``gp.li_basis``, with the
+    generic shape where it has one: (W f) P (W f)^T) is added (the sum of the two operators), or None."""
     ls, os = kernel.lengthscale.detach(), kernel.outputscale.detach()
     w1 = torch.stack([c1.weight_x, c1.weight_z])
     if c2 is None:
@@ -90,7 +90,7 @@ def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
         return op
     f1 = contact_li_features(c1)
     f2 = f1 if c2 is None else contact_li_features(c2)
-    return op + MatmulLinearOperator(f1 * li.variance.detach()[:, None, None], f2.mT)
+    return op + MatmulLinearOperator(f1 @ li.covariance.detach(), f2.mT)
 
 
 class RFTCompositeKernel(Kernel):
@@ -104,7 +104,8 @@ class RFTCompositeKernel(Kernel):
 
     Args:
         base_kernel: the :class:`AngleKernel` (its hyperparameters are this kernel's).
-        li: a ``LiBasisVariance``: Li et al.'s rank-9 term (``gp.li_basis``) is added, (W f) diag(v) (W f)^T,
+        li: a ``LiBasisVariance``: Li et al.'s rank-9 term (``gp.li_basis``) is added, (W f) P (W f)^T with
+            P = diag(v) (+ u c c^T, the generic shape),
             differentiable in its variance; None (default): the RBF alone.
 
     Example:
@@ -129,7 +130,7 @@ class RFTCompositeKernel(Kernel):
             out = _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
             if self.li is not None:
                 f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
-                out = out + ((f1 * f2) * self.li.variance[:, None, None]).sum(-1)
+                out = out + ((f1 @ self.li.covariance) * f2).sum(-1)
             return out
         batch = torch.broadcast_shapes(x1.shape[:-2], x2.shape[:-2], self.batch_shape)
         # The index structure (compressed segments, distinct angle pairs) depends only on the
@@ -152,7 +153,7 @@ class RFTCompositeKernel(Kernel):
         if self.li is None:
             return op
         f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
-        return op + MatmulLinearOperator(f1 * self.li.variance[:, None, None], f2.mT)
+        return op + MatmulLinearOperator(f1 @ self.li.covariance, f2.mT)
 
     def num_outputs_per_input(self, x1: Tensor, x2: Tensor) -> int:
         return 1

@@ -15,9 +15,24 @@ with f the 9 functions divided by 2 (``li_features``). It is a rank-9 kernel: ev
 (W f) diag(v) (W f)^T to the force covariance, W f (2, N, 9) the features summed with the contacts' weights
 (``contact_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
 prior at the outputscale's centre (``gp.priors``).
+
+**The generic shape with an uncertain scale** (``InverseRFT(..., li_basis=True, generic_shape=True)``). Li et al.
+found that the media they measured share one generic map g_a (``FourierStressMap.generic``) up to a scale per
+medium. That shape is one direction in the span of the 9 functions, g_a(theta) = f(theta) . c_a
+(``generic_coefficients``), and the term above gives it no more prior variance than any other direction. Adding
+u_a g_a(theta) g_a(theta') is a mean m_a g_a with m_a ~ N(0, u_a) integrated out exactly (Rasmussen & Williams
+2006, section 2.7): the 9 coefficients' prior covariance per map becomes
+
+.. math::
+    P_a = \operatorname{diag}(v_a) + u_a c_a c_a^\top,
+
+so every backend adds (W f) P_a (W f)^T (``li_covariance``). u (2,) in (N/cm^3)^2 has a log-normal prior at the
+medium's zeta squared (``gp.priors``). docs/calibration.md has the evidence (the rotating leg's alpha_z).
 """
 
 from __future__ import annotations
+
+import functools
 
 import torch
 from gpytorch import Module
@@ -26,10 +41,11 @@ from torch import Tensor
 from .constraints import ScaledGreaterThan
 from .fourier import FourierBasis
 
-__all__ = ["LI_VARIANCE", "LiBasisVariance", "li_features", "weighted_li_features", "contact_li_features",
-           "li_covariance", "li_index", "with_li_functions"]
+__all__ = ["LI_VARIANCE", "LI_GENERIC", "LiBasisVariance", "li_features", "weighted_li_features",
+           "contact_li_features", "generic_coefficients", "li_covariance", "li_index", "with_li_functions"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
+LI_GENERIC = "li.raw_generic_variance"  # the generic shape's variance u (``generic_shape=True``); value (*S, 2)
 
 
 FIRST_HARMONICS = FourierBasis(1, 1)  # the spectral basis' own first harmonics: the same 9 functions, same order
@@ -68,24 +84,102 @@ def li_index(basis: FourierBasis, device=None) -> Tensor:
     return (torch.arange(3, device=device)[:, None] * Fg + torch.arange(3, device=device)[None, :]).reshape(-1)
 
 
-def li_covariance(variance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:
-    """(*S, 2, N1, N2) = f1 diag(v) f2^T per map, for features (2, N, 9) (or (N, 9), shared by both maps)
-    and v (*S, 2) in (N/cm^3)^2."""
-    return (f1 * variance[..., None, None]) @ f2.mT
+@functools.cache
+def _generic_coefficients_f64() -> Tensor:
+    from ..rft.stress_maps import FourierStressMap
+
+    x = torch.linspace(-torch.pi, torch.pi, 13, dtype=torch.float64)[:-1]
+    beta, gamma = (t.reshape(-1) for t in torch.meshgrid(x / 2, x, indexing="ij"))
+    F = li_features(beta, gamma)  # (144, 9): a full period of 2 beta and of gamma
+    g = FourierStressMap.generic().to(torch.float64)(beta, gamma)  # (144, 2)
+    c = torch.linalg.lstsq(F, g).solution  # (9, 2)
+    if float((F @ c - g).abs().max()) > 1e-10:  # the generic map is in the span: exact
+        raise AssertionError("the generic map is not a combination of Li et al.'s 9 functions")
+    return c.T.contiguous()
+
+
+def generic_coefficients(dtype=None, device=None) -> Tensor:
+    """(2, 9) c_a with Li et al.'s generic map (``FourierStressMap.generic``, per unit zeta) g_a(theta) =
+    ``li_features``(theta) . c_a, x then z (dimensionless; exact: the map is in the 9 functions' span)."""
+    return _generic_coefficients_f64().to(dtype=dtype or torch.get_default_dtype(), device=device)
+
+
+def li_covariance(covariance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:
+    """(*S, 2, N1, N2) = f1 P f2^T per map, for features (2, N, 9) (or (N, 9), shared by both maps) and the
+    9 coefficients' prior covariance P (*S, 2, 9, 9) (``LiBasisVariance.covariance``), or its diagonal
+    v (*S, 2) (the term without the generic shape), in (N/cm^3)^2."""
+    if covariance.dim() >= 3 and covariance.shape[-2:] == (9, 9):
+        return (f1 @ covariance) @ f2.mT
+    return (f1 * covariance[..., None, None]) @ f2.mT
+
+
+def generic_features(features: Tensor, dtype=None) -> Tensor:
+    """(2, ..., N, 1): the generic shape's value (or weighted sum) g_a = f . c_a per map, from features (2, ..., N, 9)
+    or (N, 9) (shared by both maps): the generic term's one feature per map."""
+    c = generic_coefficients(features.dtype, features.device)  # (2, 9)
+    if features.dim() == 2:
+        return (features @ c.T).mT[..., None]  # (2, N, 1)
+    return features @ c.reshape(2, *([1] * (features.dim() - 3)), 9, 1)
 
 
 class LiBasisVariance(Module):
-    """The term's prior variance per map, v (2,) in (N/cm^3)^2, positive through ``ScaledGreaterThan``
-    (measured in the data's map scale, like the outputscale). A gpytorch ``Module``: its prior is
-    registered on it (``gp.priors``) and it is saved in state dicts."""
+    """The term's prior variance per map, v (2,) in (N/cm^3)^2, and with ``generic``, the generic shape's u (2,)
+    too, each positive through ``ScaledGreaterThan`` (measured in the data's map scale, like the outputscale).
+    A gpytorch ``Module``: its priors are registered on it (``gp.priors``) and it is saved in state dicts."""
 
-    def __init__(self, scale=1.0, n_maps: int = 2) -> None:
+    def __init__(self, scale=1.0, n_maps: int = 2, generic: bool = False) -> None:
         """``scale``: the data's map scale squared per map ((N/cm^3)^2); ``n_maps``: 2 (x, z), or 2B for B models
-        stacked (``gp.batch_fit``)."""
+        stacked (``gp.batch_fit``; the 3-D model's 3 maps have no generic shape); ``generic``: add the generic
+        shape's variance u (module docstring)."""
         super().__init__()
+        if generic and n_maps % 2:
+            raise ValueError(f"the generic shape has an x and a z map per model: n_maps must be even, got {n_maps}")
         scale = torch.as_tensor(scale, dtype=torch.get_default_dtype()).expand(n_maps).clone()
         self.register_parameter("raw_variance", torch.nn.Parameter(torch.zeros(n_maps)))
         self.register_constraint("raw_variance", ScaledGreaterThan(0.0, scale))
+        self.generic = bool(generic)
+        if self.generic:
+            self.register_parameter("raw_generic_variance", torch.nn.Parameter(torch.zeros(n_maps)))
+            self.register_constraint("raw_generic_variance", ScaledGreaterThan(0.0, scale.clone()))
+
+    @property
+    def generic_variance(self) -> Tensor | None:
+        """(n_maps,) u_x, u_z (per model when stacked) in (N/cm^3)^2: the generic shape's prior variance, or None
+        without it."""
+        if not self.generic:
+            return None
+        return self.raw_generic_variance_constraint.transform(self.raw_generic_variance)
+
+    @generic_variance.setter
+    def generic_variance(self, value) -> None:
+        if not self.generic:
+            raise AttributeError("this term has no generic shape (generic_shape=False)")
+        value = torch.as_tensor(value, dtype=self.raw_generic_variance.dtype,
+                                device=self.raw_generic_variance.device).expand(self.raw_generic_variance.shape)
+        self.initialize(raw_generic_variance=self.raw_generic_variance_constraint.inverse_transform(value))
+
+    @property
+    def covariance(self) -> Tensor:
+        """(n_maps, 9, 9) the 9 coefficients' prior covariance per map, P = diag(v) + u c c^T (without the generic
+        shape, diag(v)), (N/cm^3)^2."""
+        v = self.variance
+        P = torch.diag_embed(v[:, None].expand(-1, 9))
+        if self.generic:
+            c = generic_coefficients(v.dtype, v.device).repeat(v.shape[0] // 2, 1)  # (n_maps, 9)
+            P = P + self.generic_variance[:, None, None] * (c[:, :, None] * c[:, None, :])
+        return P
+
+    def mean_variance(self) -> Tensor:
+        """(n_maps,) the term's prior variance of a map averaged over the canonical square, (N/cm^3)^2:
+        v (|f(theta)|^2 = 1 everywhere) plus u times the mean square of the generic shape there
+        (``gp.priors.GENERIC_RMS``)."""
+        v = self.variance
+        if not self.generic:
+            return v
+        from .priors import GENERIC_RMS
+
+        rms2 = torch.tensor(GENERIC_RMS, dtype=v.dtype, device=v.device).pow(2).repeat(v.shape[0] // 2)
+        return v + self.generic_variance * rms2
 
     @property
     def variance(self) -> Tensor:

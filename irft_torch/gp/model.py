@@ -115,7 +115,11 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             kernel as a rank-9 term with its own variance per map (``gp.li_basis``; ``model.hypers.li_variance``,
             (N/cm^3)^2), fitted with the rest. On media and motions nobody tuned for it raises the intervals'
             coverage where the plain RBF is overconfident (docs/calibration.md); media outside Li et al.'s span
-            can lose a little. Observations and pairs backends only (``method="auto"`` picks between them).
+            can lose a little.
+        generic_shape: with ``li_basis``, also give Li et al.'s generic map g_a a scale of its own, m_a ~ N(0, u_a),
+            integrated out: the kernel term u_a g_a(theta) g_a(theta') (``gp.li_basis``; ``model.hypers.
+            generic_variance``, (N/cm^3)^2, prior at the medium's zeta^2). Media share that shape (Li et al.), so
+            what the forces leave unseen follows it rather than any of the 9 functions (docs/calibration.md).
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)
@@ -148,14 +152,15 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
                  surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None,
-                 li_basis: bool = False) -> None:
+                 li_basis: bool = False, generic_shape: bool = False) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
             raise ValueError(f"contacts must be (T, M) for training, got {tuple(contacts.shape)}")
         method, hyper_posterior = _check_options(prior_mean, priors, method, hyper_posterior, solver, lengthscale,
-                                                 surface_offset or surface_groups is not None, tied_noise, li_basis,
+                                                 surface_offset or surface_groups is not None, tied_noise,
+                                                 (li_basis, generic_shape),
                                                  grid_size is not None or exact_max_segments is not None)
         _check_dtype(dtype)
         T = len(contacts)
@@ -200,7 +205,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
         force_scale, map_scale = _data_scales(c, f)
         self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
-                                         map_scale.cpu(), li_basis).to(device=device, dtype=dtype)
+                                         map_scale.cpu(), li_basis, generic_shape).to(device=device, dtype=dtype)
         with torch.no_grad():
             resid = y
             if prior_mean == "physics":
@@ -217,9 +222,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             centres = self._register_priors(c, f)
             with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
                 self.hypers.outputscale = centres["outputscale"].to(dtype)
-        if self.hypers.li is not None:  # Li et al.'s term starts at the RBF part's variance (its prior's centre)
-            with torch.no_grad():
-                self.hypers.li.variance = self.hypers.outputscale
+        if self.hypers.li is not None:  # Li et al.'s term at the RBF part's variance, the generic shape's at zeta^2
+            self.hypers.start_li(prior_centres(c, f, map_scale)["zeta"])
         self.auto = method == "auto"
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "

@@ -216,7 +216,8 @@ class PersistenceMixin(nn.Module):
         model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
         return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
                 "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
-                "priors": self.priors, "hyper_posterior": self.hyper_method, "li_basis": self.hypers.li is not None}
+                "priors": self.priors, "hyper_posterior": self.hyper_method, "li_basis": self.hypers.li is not None,
+                "generic_shape": self.hypers.li is not None and self.hypers.li.generic}
 
     def _measured(self) -> tuple[Contacts, Tensor]:
         """The training data as measured (the whitening undone)."""

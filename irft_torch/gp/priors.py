@@ -43,6 +43,8 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   to the prior's variance beyond, and that is what the posterior std then says.
 - **Li et al.'s term** (``li_basis=True``, ``gp.li_basis``): its variance per map has the outputscale's
   centre and width: the 9 functions are given as much prior variance as the RBF part.
+- **the generic shape's variance** u (``generic_shape=True``, ``gp.li_basis``): the variance of the shape's
+  scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2.
 - **mean scale** (with the physics mean, ``prior_mean="physics"`` or ``"average"``): the generic shape's
   scale per axis, centre the medium's zeta (as above), log-sd ln 2. A proper prior, so that a model with
   the physics mean has a marginal likelihood (evidence) to weigh against the zero mean's.
@@ -81,6 +83,7 @@ OUTPUTSCALE_LOG_SD = math.log(2.0)  # of sigma^2: sigma within a factor 2 at two
 JOINT_FRACTION = 0.5  # an axis' centre is at least this share of what the other axis' data scale implies
 NOISE_RELATIVE = 1e-2
 NOISE_LOG_SD = math.log(10.0)
+GENERIC_LOG_SD = math.log(2.0)  # of u, the generic shape's variance, around zeta^2
 MEAN_SCALE_LOG_SD = math.log(2.0)  # the physics mean's scale per axis, around the medium's zeta
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
 
@@ -168,6 +171,10 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
         # evidence for this centre (x 0.25 to x 4 all raise coverage): docs/calibration.md
         hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
                                  functools.partial(_log_li_ratio, c=log_os))
+        if hypers.li.generic:  # the generic shape's scale: real media's zeta (the module docstring)
+            log_zeta2 = torch.full_like(log_os, 2 * math.log(max(float(centres["zeta"]), 1e-300)))
+            hypers.li.register_prior("generic_variance_prior", _stateless(NormalPrior(zero.clone(), GENERIC_LOG_SD)),
+                                     functools.partial(_log_generic_ratio, c=log_zeta2))
     if physics_mean and hypers.mean is not None:
         # a proper prior on the generic shape's scale per axis (a model's evidence needs one: ``prior_mean=
         # "average"`` weighs the physics mean against the zero mean by it): around the medium's zeta, a factor 2
@@ -182,6 +189,10 @@ def _log_outputscale_ratio(m, c):
 
 def _log_li_ratio(m, c):
     return m.variance.log() - c.to(m.variance)
+
+
+def _log_generic_ratio(m, c):
+    return m.generic_variance.log() - c.to(m.generic_variance)
 
 
 def _log_lengthscale_ratio(m, c):

@@ -160,7 +160,7 @@ def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, 
     K = angle_covariance(hypers.kernel, table[:, 0], table[:, 1], table[:, 0], table[:, 1])  # (2, U, U)
     if getattr(hypers, "li", None) is not None:  # Li et al.'s term (``gp.li_basis``) at the pairs
         f = li_features(table[:, 0], table[:, 1])
-        K = K + li_covariance(hypers.li.variance, f, f)
+        K = K + li_covariance(hypers.li.covariance, f, f)
     s2 = hypers.noise  # (2,)
     y = forces.T
     m = hypers.mean_of(contacts)

@@ -36,9 +36,10 @@ exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
 The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
 copied when the filter is built.
 
-A model with ``li_basis=True`` (``gp.li_basis``) adds Li et al.'s rank-9 term v_a f(theta) . f(theta') to
-the kernel: each sample keeps its 9 weighted features per axis (``weighted_li_features``, cm^3), and every
-covariance above gains v_a (W f) . (W' f): 9 multiply-adds per pair beside the RBF's M^2 kernel values.
+A model with ``li_basis=True`` (``gp.li_basis``) adds Li et al.'s rank-9 term f(theta)^T P_a f(theta') to
+the kernel (P_a = diag(v_a), plus u_a c_a c_a^T with ``generic_shape``): each sample keeps its 9 weighted
+features per axis (``weighted_li_features``, cm^3), and every covariance above gains (W f)^T P_a (W' f): 81
+multiply-adds per pair at most beside the RBF's M^2 kernel values.
 
 Gradients: the filter's state carries none (``update`` runs without autograd: a policy does not
 differentiate through the terrain's past). ``stress_map`` and ``predict_forces`` are differentiable in
@@ -121,6 +122,7 @@ class TerrainFilter(nn.Module):
     noise: Tensor
     mean_scales: Tensor | None
     li_variance: Tensor | None
+    li_covariance: Tensor | None
     count: Tensor
     start: Tensor
     U: Tensor
@@ -162,6 +164,8 @@ class TerrainFilter(nn.Module):
                                  None if scales is None else scales.detach().clone().to(dtype=dt, device=dev))
             li = hypers.li_variance  # (2,) (N/cm^3)^2: Li et al.'s term, or None
             self.register_buffer("li_variance", None if li is None else li.detach().clone().to(dtype=dt, device=dev))
+            P = None if hypers.li is None else hypers.li.covariance  # (2, 9, 9): diag(v) (+ the generic shape)
+            self.register_buffer("li_covariance", None if P is None else P.detach().clone().to(dtype=dt, device=dev))
         self._shape = (None if hypers.mean is None
                        else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
         # The state of environment b, map axis a (the module docstring): n = capacity sample positions
@@ -245,8 +249,8 @@ class TerrainFilter(nn.Module):
         return weighted_li_features(beta.unsqueeze(-3), gamma.unsqueeze(-3), w)  # the angles shared by both axes
 
     def _li_cross(self, f_left: Tensor, f_right: Tensor) -> Tensor:
-        """v_a f_left f_right^T: (X, 2, P, 9), (X, 2, R, 9) (X may be 1 on the right) -> (X, 2, P, R)."""
-        return (f_left * self.li_variance[:, None, None]) @ f_right.mT
+        """f_left P_a f_right^T: (X, 2, P, 9), (X, 2, R, 9) (X may be 1 on the right) -> (X, 2, P, R)."""
+        return (f_left @ self.li_covariance) @ f_right.mT
 
     def _blocks(self, per_env: int) -> list[tuple[int, int]]:
         """Ranges of environments whose working set (``per_env`` elements each) fits ``block_bytes``; one
@@ -498,7 +502,7 @@ class TerrainFilter(nn.Module):
             prior_var = self.outputscale[:, None] * w.pow(2)  # k(theta, theta) w^2 = s
             fq = self._li_features(pts.beta, pts.gamma, w[..., None])  # (2, Q, 9) or None
             if fq is not None:
-                prior_var = prior_var + self.li_variance[:, None] * fq.pow(2).sum(-1)
+                prior_var = prior_var + ((fq @ self.li_covariance) * fq).sum(-1)
             left, right, c_right = self._sides(pts.beta[:, 0], pts.gamma[:, 0])  # (2, Q, 5), (5, Q), (2, 1, Q)
             K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1),
                                 None if fq is None else fq.expand(B, 2, Q, 9))
@@ -534,7 +538,7 @@ class TerrainFilter(nn.Module):
         own = self._kernel(left.reshape(B * T, 2, M, 5), w_own, right.reshape(B * T, 5, M),
                            c_right.reshape(B * T, 2, 1, M), w_own).view(B, T, 2)
         if fl is not None:
-            own = own + (self.li_variance[:, None] * fl.pow(2).sum(-1)).mT
+            own = own + ((fl @ self.li_covariance) * fl).sum(-1).mT
         var = own - At.pow(2).sum(-1).mT
         if include_noise:
             var = var + self.noise

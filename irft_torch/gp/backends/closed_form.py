@@ -45,7 +45,7 @@ from gpytorch.constraints.constraints import softplus as _gpytorch_softplus
 from gpytorch.priors import NormalPrior
 from torch import Tensor
 
-from ..li_basis import LI_VARIANCE
+from ..li_basis import LI_GENERIC, LI_VARIANCE
 from .covariance_terms import LENGTHSCALE, MEAN, NOISE, OUTPUTSCALE, Adjoint, CovarianceTerm
 
 __all__ = ["ClosedForm", "autograd_only", "closed_form_enabled", "closed_form_of", "current_values", "loss_and_grad",
@@ -209,7 +209,8 @@ def _resolve_prior(prior, closure):
     if not isinstance(closure, functools.partial) or closure.args or set(closure.keywords) != {"c"}:
         return None
     name = {physical._log_outputscale_ratio: OUTPUTSCALE, physical._log_lengthscale_ratio: LENGTHSCALE,
-            physical._log_noise_ratio: NOISE, physical._log_li_ratio: LI_VARIANCE}.get(closure.func)
+            physical._log_noise_ratio: NOISE, physical._log_li_ratio: LI_VARIANCE,
+            physical._log_generic_ratio: LI_GENERIC}.get(closure.func)
     if name is None or prior.loc.numel() != 1 or prior.scale.numel() != 1:
         return None
     loc, scale = float(prior.loc), float(prior.scale)

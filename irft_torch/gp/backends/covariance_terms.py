@@ -18,10 +18,10 @@ from torch import Tensor
 
 from ..embedding import embed_angles
 from ..fourier import GRID, _analysis, _grid
-from ..li_basis import LI_VARIANCE
+from ..li_basis import LI_GENERIC, LI_VARIANCE, generic_features
 
 __all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF",
-           "KroneckerFourier", "RowSeparable", "LiBasisTerm"]
+           "KroneckerFourier", "RowSeparable", "LiBasisTerm", "li_terms"]
 
 LENGTHSCALE = "kernel.base_kernel.raw_lengthscale"  # value (*S, 2, 1, 4)
 OUTPUTSCALE = "kernel.raw_outputscale"  # value (*S, 2)
@@ -172,19 +172,37 @@ class LiBasisTerm(CovarianceTerm):
     features at the space's coordinates (the distinct pairs; with R None, the observations' weighted sums).
 
     d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = sum((G (R H)) o (R H)).
+
+    The generic shape's term (``generic_shape=True``) is the same with one feature per map, H c_a (2, n, 1), and
+    its variance u (``name=LI_GENERIC``): ``li_terms`` builds both.
     """
 
-    names = (LI_VARIANCE,)
+    names: tuple[str, ...] = (LI_VARIANCE,)
 
-    def __init__(self, features: Tensor) -> None:
+    def __init__(self, features: Tensor, name: str = LI_VARIANCE) -> None:
         self.H = features
+        self.name = name
+        self.names = (name,)
 
     def forward(self, values, R):
-        RH = self.H if R is None else R @ self.H  # (2, r, 9)
-        return (RH * values[LI_VARIANCE][..., None, None]) @ RH.mT, RH
+        RH = self.H if R is None else R @ self.H  # (2, r, K)
+        return (RH * values[self.name][..., None, None]) @ RH.mT, RH
 
     def backward(self, values, adj, RH):
-        return {LI_VARIANCE: ((adj.G @ RH) * RH).sum((-1, -2))}
+        return {self.name: ((adj.G @ RH) * RH).sum((-1, -2))}
+
+
+def li_terms(hypers, features: Tensor) -> list[CovarianceTerm]:
+    """The closed-form terms of Li et al.'s 9 functions (``gp.li_basis``) with ``features`` (2, n, 9) or (n, 9) at
+    the space's coordinates: none without the term, the rank-9 term, and the generic shape's rank-one term where
+    the model has it."""
+    li = getattr(hypers, "li", None)
+    if li is None:
+        return []
+    terms: list[CovarianceTerm] = [LiBasisTerm(features)]
+    if li.generic:
+        terms.append(LiBasisTerm(generic_features(features), LI_GENERIC))
+    return terms
 
 
 class KroneckerFourier(CovarianceTerm):

@@ -103,7 +103,7 @@ class ObservationsBackend(RFTBackend):
         per pair, ``PairsRBF`` with R = W_U, the operator's own dense-weights case); else None (autograd).
         Only with the Cholesky solver."""
         from .closed_form import ClosedForm
-        from .covariance_terms import LiBasisTerm, PairsRBF, RowSeparable
+        from .covariance_terms import PairsRBF, RowSeparable, li_terms
 
         if self.solver != "cholesky":
             return None
@@ -118,7 +118,7 @@ class ObservationsBackend(RFTBackend):
         if "separable" in side:
             terms: list = [RowSeparable(side["separable"][0])]
             if self.hypers.li is not None:
-                terms.append(LiBasisTerm(side["li"]))
+                terms += li_terms(self.hypers, side["li"])
         else:
             U, M = side["pairs1"].shape[0], side["i1"].shape[-1]
             if not _use_dense_weights(U, M, U, M):
@@ -127,7 +127,7 @@ class ObservationsBackend(RFTBackend):
             R = _dense_weights(side["i1"].expand(2, *side["i1"].shape[-2:]), side["w1"], U)
             terms = [PairsRBF(side["pairs1"])]
             if self.hypers.li is not None:
-                terms.append(LiBasisTerm(li_features(side["pairs1"][:, 0], side["pairs1"][:, 1])))
+                terms += li_terms(self.hypers, li_features(side["pairs1"][:, 0], side["pairs1"][:, 1]))
         cf = ClosedForm(R, y, g, y.new_zeros(2, 3), self.n_samples, terms, symmetrize=False)
         self._closed_form_cache = (c, self.train_forces, cf)
         return cf
@@ -159,7 +159,7 @@ class ObservationsBackend(RFTBackend):
         K = RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
                                                    BATCH).to_dense()
         if self.hypers.li is not None:
-            K = K + li_covariance(self.hypers.li.variance.detach(), side1["li"], side2["li"])
+            K = K + li_covariance(self.hypers.li.covariance.detach(), side1["li"], side2["li"])
         return K
 
     def _factor(self):

@@ -86,17 +86,17 @@ class PairsBackend(WeightSpaceBackend):
         K = angle_covariance(self.hypers.kernel, t[:, 0], t[:, 1], t[:, 0], t[:, 1])
         if self.hypers.li is not None:
             f = li_features(t[:, 0], t[:, 1])
-            K = K + li_covariance(self.hypers.li.variance, f, f)
+            K = K + li_covariance(self.hypers.li.covariance, f, f)
         return K
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return X @ self._K()
 
     def _closed_form_terms(self, f) -> list:
-        from .covariance_terms import LiBasisTerm, PairsRBF
+        from .covariance_terms import PairsRBF, li_terms
 
         t = self.table.to(f.R)
-        return [PairsRBF(t)] + ([LiBasisTerm(li_features(t[:, 0], t[:, 1]))] if self.hypers.li is not None else [])
+        return [PairsRBF(t)] + li_terms(self.hypers, li_features(t[:, 0], t[:, 1]))
 
     def _cross(self, c: Contacts) -> Tensor:
         """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""

@@ -198,26 +198,30 @@ class SpectralBackend(WeightSpaceBackend):
         return li_index(self.basis, self.stats.P.device)
 
     def _sigma_apply(self, X: Tensor, detach: bool) -> Tensor:
-        """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, ``gp.li_basis``)."""
+        """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, P / 4, ``gp.li_basis``:
+        diag(v) / 4, or with the generic shape the full 9 x 9 P / 4)."""
         Y = self._kron(X, *self._sigma_factors(detach=detach))
         li = self.hypers.li
         if li is None:
             return Y
-        v = li.variance.detach() if detach else li.variance
         idx = self._li_index()
-        return Y.index_add(-1, idx, X[..., idx] * (v / 4)[:, None, None])
+        if not li.generic:
+            v = li.variance.detach() if detach else li.variance
+            return Y.index_add(-1, idx, X[..., idx] * (v / 4)[:, None, None])
+        P = li.covariance.detach() if detach else li.covariance
+        return Y.index_add(-1, idx, X[..., idx] @ (P / 4))
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return self._sigma_apply(X, detach=False)
 
     def _closed_form_terms(self, f) -> list:
-        from .covariance_terms import KroneckerFourier, LiBasisTerm
+        from .covariance_terms import KroneckerFourier, li_terms
 
         terms: list = [KroneckerFourier(self.basis, f.R)]
         if self.hypers.li is not None:  # H (F, 9): 1/2 at each function's own weight (li_features = psi / 2)
             H = f.R.new_zeros(self.basis.size, 9)
             H[self._li_index().to(H.device), torch.arange(9, device=H.device)] = 0.5
-            terms.append(LiBasisTerm(H))
+            terms += li_terms(self.hypers, H)
         return terms
 
     def prepare(self, values: dict) -> None:
