@@ -233,7 +233,9 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
         if a.run_effect:
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
             continue
-        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, li_basis=bool(getattr(a, "li_basis", False)))
+        with_shape = bool(getattr(a, "generic_shape", False))
+        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, li_basis=bool(getattr(a, "li_basis", False)) or with_shape,
+                            generic_shape=with_shape)
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
     # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
@@ -341,6 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--li-basis", action="store_true",
                     help="the I-RFT rows (zero and physics mean) with Li et al.'s basis as a kernel term "
                          "(InverseRFT(..., li_basis=True)); the learned-surface row is left as it is")
+    ap.add_argument("--generic-shape", action="store_true",
+                    help="the same rows with the generic shape's uncertain scale too (li_basis=True, "
+                         "generic_shape=True)")
     ap.add_argument("--cv-refit", action="store_true",
                     help="the grouped-CV row refits both candidates without each left-out value (nested "
                          "cross-validation; about 2x the time) instead of using the fitted hyperparameters")

@@ -19,8 +19,8 @@ def cmd_reproduce(a) -> int:
     settings = StudySettings.quick_settings() if a.quick else StudySettings()
     if a.priors == "none":  # the paper's plain marginal likelihood for every fit
         settings = replace(settings, priors=None)
-    if a.li_basis:
-        settings = replace(settings, li_basis=True)
+    if a.li_basis or a.generic_shape:
+        settings = replace(settings, li_basis=True, generic_shape=a.generic_shape)
     if a.jobs < 0:
         raise UsageError("--jobs", f"must be 0 (one per CPU) or a positive number of processes, got {a.jobs}")
     workers = default_workers() if a.jobs == 0 else a.jobs
@@ -56,6 +56,9 @@ def register(sub) -> None:
     p.add_argument("--li-basis", action="store_true",
                    help="fit every model with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True); "
                         "docs/calibration.md); the paper's kernel is the RBF alone")
+    p.add_argument("--generic-shape", action="store_true",
+                   help="also give Li et al.'s generic map an uncertain scale of its own (InverseRFT(..., "
+                        "li_basis=True, generic_shape=True); implies --li-basis)")
     p.add_argument("--device", default="cpu",
                    help="where the models are fitted: cpu (default) or cuda[:N] (one process; needs a CUDA build "
                         "of torch); the data, metrics and figures stay on the CPU")

@@ -86,7 +86,8 @@ class ProbeScorer:
         method: the backend's name.
         outputscale: (2,) the RBF kernel's variances s_a of the maps, (N/cm^3)^2.
         prior_variance: (2,) the maps' prior variances, (N/cm^3)^2: s_a, plus Li et al.'s v_a where the model
-            has that term (``li_basis=True``); the integrated variances are divided by it.
+            has that term (``li_basis=True``), plus u_a times the generic shape's mean square over the square
+            with ``generic_shape=True``; the integrated variances are divided by it.
         noise: (2,) force noise variances sigma_a^2 of a sample of scale 1, N^2.
     """
 

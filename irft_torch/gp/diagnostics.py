@@ -35,7 +35,8 @@ class MapDiagnostics:
             coordinate below 1e-3): the likelihood cannot move their lengthscales, whose initial
             value alone sets how the map extrapolates along them.
         signal_to_noise: prior force signal variance (the prior map variance, ``hypers.prior_variance``: the
-            outputscale, plus Li et al.'s v with ``li_basis=True``, x the mean squared weight sum) over
+            outputscale, plus Li et al.'s v with ``li_basis=True`` and u mean(g^2) with ``generic_shape=True``,
+            x the mean squared weight sum) over
             the noise variance; below 1 the outputscale has collapsed below what the noise resolves
             (the whole map's prior signal is smaller than one sample's noise).
         unidentified: no part of the square constrained, or a collapsed signal.
@@ -82,7 +83,8 @@ def diagnose(model, n: int = 24) -> Diagnostics:
     B, G = torch.meshgrid(c, c, indexing="ij")
     with torch.no_grad():
         var = model.stress_map(B, G).variance.reshape(-1, 2)  # (n^2, 2)
-        prior = model.hypers.prior_variance.detach()  # (2,): with Li et al.'s term, s + v
+        prior = model.hypers.prior_variance.detach()  # (2,): with Li et al.'s term, s + v (+ u mean g^2)
+        prior_at = model.hypers.prior_variance_at(B, G).detach().reshape(-1, 2)  # (n^2, 2): the same pointwise
         noise = model.hypers.noise.detach()
         tc: Contacts = model.train_contacts
         scale = model.noise_scale
@@ -94,7 +96,7 @@ def diagnose(model, n: int = 24) -> Diagnostics:
         snr = prior * w.pow(2).mean(-1) / (noise * scale.pow(2).mean(0))
     out = []
     for a in range(2):
-        ratio = (var[:, a] / prior[a]).clamp(0, 1)
+        ratio = (var[:, a] / prior_at[:, a]).clamp(0, 1)
         frac = float((ratio < 0.5).double().mean())
         flat = [EMBEDDING[d] for d in range(4) if float(spread[d]) < 1e-3]
         s = float(snr[a])

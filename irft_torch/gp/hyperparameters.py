@@ -14,7 +14,7 @@ from torch import Tensor
 
 from .constraints import ScaledGreaterThan
 from .kernels import BATCH, AngleKernel
-from .li_basis import LiBasisVariance
+from .li_basis import LiBasisVariance, generic_coefficients, li_features
 from .means import GenericShapeMean
 
 __all__ = ["RFTHyperparameters", "force_likelihood"]
@@ -119,6 +119,16 @@ class RFTHyperparameters(Module):
         plus u times its mean square over the canonical square (the one part that varies with the angles)."""
         s = self.outputscale
         return s if self.li is None else s + self.li.mean_variance()
+
+    def prior_variance_at(self, beta: Tensor, gamma: Tensor) -> Tensor:
+        """(..., 2) the prior variance of each map at angle pairs (...,) in radians, (N/cm^3)^2: ``prior_variance``
+        everywhere, except with the generic shape, whose part is u g(theta)^2 (``gp.li_basis``)."""
+        s = self.outputscale if self.li is None else self.outputscale + self.li.variance
+        beta, gamma = torch.broadcast_tensors(beta, gamma)
+        if self.li is None or not self.li.generic:
+            return s.expand(*beta.shape, 2)
+        g = li_features(beta, gamma) @ generic_coefficients(s.dtype, s.device).T  # (..., 2)
+        return s + self.li.generic_variance * g.pow(2)
 
     @property
     def mean_scales(self) -> Tensor | None:

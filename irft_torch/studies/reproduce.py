@@ -76,6 +76,7 @@ class StudySettings:
     priors: str | None = "physical"  # ours: hyperparameter priors (gp.priors); None: the paper's plain likelihood
     hyper_posterior: str = "map"  # ours: "laplace" predicts with the hyperparameter posterior (gp.hyper_posterior)
     li_basis: bool = False  # ours: Li et al.'s basis as a kernel term (gp.li_basis); the paper's kernel is the RBF
+    generic_shape: bool = False  # ours: with li_basis, the generic shape's uncertain scale too (gp.li_basis)
     device: str = "cpu"  # where the models are fitted ("cuda": the GPU); data, metrics and figures stay on the CPU
     seed: int = 0
     quick: bool = False
@@ -147,7 +148,8 @@ def _build(config, prior_mean, noise, seed, truth_map, s, lengthscale=None, prio
     priors = s.priors if priors == "settings" else priors
     dev = torch.device(s.device)
     model = InverseRFT(c.to(device=dev), f.to(dev), prior_mean=prior_mean, tied_noise=s.tied_noise,
-                       lengthscale=ls, priors=priors, hyper_posterior=s.hyper_posterior, li_basis=s.li_basis)
+                       lengthscale=ls, priors=priors, hyper_posterior=s.hyper_posterior, li_basis=s.li_basis,
+                       generic_shape=s.generic_shape)
     return model, toe, path, c
 
 

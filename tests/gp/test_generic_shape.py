@@ -181,6 +181,11 @@ def test_the_prior_variance_averages_the_generic_shape_over_the_square():
     var = model.stress_map(th[:, 0], th[:, 1]).variance
     for a in range(2):
         torch.testing.assert_close(var[:, a], OS[a] + LI[a] + U[a] * _g(th, a).pow(2), rtol=1e-6, atol=0)
+    torch.testing.assert_close(model.hypers.prior_variance_at(th[:, 0], th[:, 1]).detach(), var, rtol=1e-6, atol=0)
+    # the diagnostics compare each point with its own prior: nothing learned reads as nothing learned
+    d = model.diagnostics()
+    assert [m.constrained_fraction for m in d.maps] == [0.0, 0.0]
+    assert [m.variance_ratio for m in d.maps] == pytest.approx([1.0, 1.0], abs=1e-5)
 
 
 def test_the_prior_is_centred_on_the_medium_s_scale_squared_and_the_fit_learns_it(tmp_path):
@@ -245,3 +250,22 @@ def test_options_around_the_generic_term():
     a = InverseRFT(c, f, method="pairs", li_basis=True, generic_shape=True)
     b = InverseRFT(c, 1.1 * f, method="pairs", li_basis=True, generic_shape=True)
     assert "generic_shape" in shares_fit([a, b])  # not stacked: each is fitted on its own
+
+
+def test_the_learned_surface_carries_the_generic_term():
+    """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
+    at the shifted contacts."""
+    from .test_surface import TRUTH, plates
+
+    c = plates()
+    f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
+    f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
+    m = InverseRFT(c, f, surface_offset=True, li_basis=True, generic_shape=True, priors=None)
+    _set(m, torch.tensor([3e-3, 5e-3], dtype=F64) * f.pow(2).mean(0))
+    for delta in (-0.6, 0.2):  # cm
+        with torch.no_grad():
+            m.surface.offset.fill_(delta)
+        loss = m._surface_loss()
+        cd = c.with_surface_offset(torch.tensor(delta / 100))
+        ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
+        assert abs(float(loss.detach()) - float(ref)) < 1e-9
