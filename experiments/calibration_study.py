@@ -126,7 +126,7 @@ def split_coverage(maps: dict, a: int, level: float = 0.95) -> dict:
     the prior's. Returns {"constrained": share of the grid constrained, "cover95_constrained",
     "cover95_prior": coverage in each part (NaN where a part is empty)}."""
     mean, std, true = maps["mean"][..., a], maps["std"][..., a], maps["truth"][..., a]
-    on = std.pow(2) < 0.5 * maps["prior_std"][a].pow(2)
+    on = std.pow(2) < 0.5 * maps["prior_std"][..., a].pow(2)  # the prior's sd: (2,) or per grid point
     out = {"constrained": float(on.double().mean())}
     for name, part in (("cover95_constrained", on), ("cover95_prior", ~on)):
         out[name] = metrics.calibration(mean[part], std[part], true[part], level) if part.any() else float("nan")

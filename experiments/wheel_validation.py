@@ -560,6 +560,8 @@ def main(argv=None) -> None:
                     help="3-D: at most this many Fourier harmonics per angle (the spectral kernel is truncated there "
                          "when the lengthscales need more; the report gives the truncation)")
     args = ap.parse_args(argv)
+    if args.generic_shape and args.study != "planar":
+        ap.error("--generic-shape is for --study planar (the 3-D model has no generic-shape term)")
     import matplotlib
 
     matplotlib.use("Agg")  # this script only writes files; set here, never at import

@@ -87,7 +87,8 @@ class ProbeScorer:
         outputscale: (2,) the RBF kernel's variances s_a of the maps, (N/cm^3)^2.
         prior_variance: (2,) the maps' prior variances, (N/cm^3)^2: s_a, plus Li et al.'s v_a where the model
             has that term (``li_basis=True``), plus u_a times the generic shape's mean square over the square
-            with ``generic_shape=True``; the integrated variances are divided by it.
+            with ``generic_shape=True``. The integrated variances over a region are divided by the prior's mean
+            over that region (this, but for the generic shape's part, which varies with the angles).
         noise: (2,) force noise variances sigma_a^2 of a sample of scale 1, N^2.
     """
 
@@ -332,7 +333,7 @@ class ProbeScorer:
         the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
         if contacts is None:
             region, _, var = self._region(region)
-            iv = (var * region.weight.to(var)).sum(-1) / self.prior_variance
+            iv = (var * region.weight.to(var)).sum(-1) / self._prior_over(region)
         else:
             iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
@@ -387,7 +388,7 @@ class ProbeScorer:
         kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
         L = psd_safe_cholesky(_plus_noise(S, self.noise))
         B = torch.linalg.solve_triangular(L, kb.mT, upper=False)  # (B, 2, T, N)
-        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self.prior_variance  # (B, 2)
+        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self._prior_over(region)  # (B, 2)
 
     def _score_root_batch(self, Z: Tensor, sizes: list[int], criterion: str, region: Region | None) -> Tensor:
         """The same scores in the root's F dimensions (fewer than a candidate's samples): with Z_i (T_i, F)
@@ -402,7 +403,17 @@ class ProbeScorer:
         if criterion == "eig":
             return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         omega = self._region_omega(region)  # (2, F, F)
-        return (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self.prior_variance  # (B, 2)
+        return (omega * torch.cholesky_inverse(L)).sum((-1, -2)) / self._prior_over(self._region(region)[0])
+
+    def _prior_over(self, region: Region) -> Tensor:
+        """(2,) the maps' prior variance averaged over ``region`` with its weights, (N/cm^3)^2: ``prior_variance``
+        (uniform) but with the generic shape (``generic_shape=True``), whose part u g(theta)^2 varies."""
+        h = self.backend.hypers
+        if h.li is None or not h.li.generic:
+            return self.prior_variance
+        w = region.weight.to(self.noise)
+        pv = h.prior_variance_at(region.beta.to(w), region.gamma.to(w)).detach()  # (N, 2)
+        return (pv * w[:, None]).sum(0)
 
     def _region_omega(self, region: Region | None) -> Tensor:
         """Z_r^T diag(w) Z_r (2, F, F) of the region's points, cached with the region and the root."""

@@ -90,7 +90,7 @@ def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
         return op
     f1 = contact_li_features(c1)
     f2 = f1 if c2 is None else contact_li_features(c2)
-    return op + MatmulLinearOperator(f1 @ li.covariance.detach(), f2.mT)
+    return op + MatmulLinearOperator(li.weigh(f1).detach(), f2.mT)
 
 
 class RFTCompositeKernel(Kernel):
@@ -130,7 +130,7 @@ class RFTCompositeKernel(Kernel):
             out = _composite_diag(self.base_kernel, b1, g1, w1, b2, g2, w2)
             if self.li is not None:
                 f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
-                out = out + ((f1 @ self.li.covariance) * f2).sum(-1)
+                out = out + (self.li.weigh(f1) * f2).sum(-1)
             return out
         batch = torch.broadcast_shapes(x1.shape[:-2], x2.shape[:-2], self.batch_shape)
         # The index structure (compressed segments, distinct angle pairs) depends only on the
@@ -153,7 +153,7 @@ class RFTCompositeKernel(Kernel):
         if self.li is None:
             return op
         f1, f2 = weighted_li_features(b1, g1, w1), weighted_li_features(b2, g2, w2)
-        return op + MatmulLinearOperator(f1 @ self.li.covariance, f2.mT)
+        return op + MatmulLinearOperator(self.li.weigh(f1), f2.mT)
 
     def num_outputs_per_input(self, x1: Tensor, x2: Tensor) -> int:
         return 1

@@ -26,7 +26,7 @@ u_a g_a(theta) g_a(theta') is a mean m_a g_a with m_a ~ N(0, u_a) integrated out
 .. math::
     P_a = \operatorname{diag}(v_a) + u_a c_a c_a^\top,
 
-so every backend adds (W f) P_a (W f)^T (``li_covariance``). u (2,) in (N/cm^3)^2 has a log-normal prior at the
+so every backend adds (W f) P_a (W f)^T (``LiBasisVariance.weigh``). u (2,) in (N/cm^3)^2 has a log-normal prior at the
 medium's zeta squared (``gp.priors``). docs/calibration.md has the evidence (the rotating leg's alpha_z).
 """
 
@@ -42,7 +42,7 @@ from .constraints import ScaledGreaterThan
 from .fourier import FourierBasis
 
 __all__ = ["LI_VARIANCE", "LI_GENERIC", "LiBasisVariance", "li_features", "weighted_li_features",
-           "contact_li_features", "generic_coefficients", "li_covariance", "li_index", "with_li_functions"]
+           "contact_li_features", "generic_coefficients", "generic_features", "li_index", "with_li_functions"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
 LI_GENERIC = "li.raw_generic_variance"  # the generic shape's variance u (``generic_shape=True``); value (*S, 2)
@@ -104,16 +104,7 @@ def generic_coefficients(dtype=None, device=None) -> Tensor:
     return _generic_coefficients_f64().to(dtype=dtype or torch.get_default_dtype(), device=device)
 
 
-def li_covariance(covariance: Tensor, f1: Tensor, f2: Tensor) -> Tensor:
-    """(*S, 2, N1, N2) = f1 P f2^T per map, for features (2, N, 9) (or (N, 9), shared by both maps) and the
-    9 coefficients' prior covariance P (*S, 2, 9, 9) (``LiBasisVariance.covariance``), or its diagonal
-    v (*S, 2) (the term without the generic shape), in (N/cm^3)^2."""
-    if covariance.dim() >= 3 and covariance.shape[-2:] == (9, 9):
-        return (f1 @ covariance) @ f2.mT
-    return (f1 * covariance[..., None, None]) @ f2.mT
-
-
-def generic_features(features: Tensor, dtype=None) -> Tensor:
+def generic_features(features: Tensor) -> Tensor:
     """(2, ..., N, 1): the generic shape's value (or weighted sum) g_a = f . c_a per map, from features (2, ..., N, 9)
     or (N, 9) (shared by both maps): the generic term's one feature per map."""
     c = generic_coefficients(features.dtype, features.device)  # (2, 9)
@@ -168,6 +159,13 @@ class LiBasisVariance(Module):
             c = generic_coefficients(v.dtype, v.device).repeat(v.shape[0] // 2, 1)  # (n_maps, 9)
             P = P + self.generic_variance[:, None, None] * (c[:, :, None] * c[:, None, :])
         return P
+
+    def weigh(self, features: Tensor) -> Tensor:
+        """features P per map: (..., 2, N, 9) (or (N, 9)) -> (..., 2, N, 9), f diag(v) without the generic shape
+        (9 products per row instead of 81), f P with it; ``f1 P f2^T = weigh(f1) @ f2.mT``."""
+        if not self.generic:
+            return features * self.variance[:, None, None]
+        return features @ self.covariance
 
     def mean_variance(self) -> Tensor:
         """(n_maps,) the term's prior variance of a map averaged over the canonical square, (N/cm^3)^2:

@@ -44,7 +44,9 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
 - **Li et al.'s term** (``li_basis=True``, ``gp.li_basis``): its variance per map has the outputscale's
   centre and width: the 9 functions are given as much prior variance as the RBF part.
 - **the generic shape's variance** u (``generic_shape=True``, ``gp.li_basis``): the variance of the shape's
-  scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2.
+  scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2. As for
+  the outputscale: with the physics mean (which already carries the shape at a fitted scale) the centre is
+  (0.3 zeta)^2 and the width a factor 10, and with a learned surface (zeta not trusted) the width is a factor 10.
 - **mean scale** (with the physics mean, ``prior_mean="physics"`` or ``"average"``): the generic shape's
   scale per axis, centre the medium's zeta (as above), log-sd ln 2. A proper prior, so that a model with
   the physics mean has a marginal likelihood (evidence) to weigh against the zero mean's.
@@ -172,8 +174,10 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
         hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
                                  functools.partial(_log_li_ratio, c=log_os))
         if hypers.li.generic:  # the generic shape's scale: real media's zeta (the module docstring)
-            log_zeta2 = torch.full_like(log_os, 2 * math.log(max(float(centres["zeta"]), 1e-300)))
-            hypers.li.register_prior("generic_variance_prior", _stateless(NormalPrior(zero.clone(), GENERIC_LOG_SD)),
+            zeta = max(float(centres["zeta"]), 1e-300) * (PHYSICS_MEAN_RESIDUAL if physics_mean else 1.0)
+            log_zeta2 = torch.full_like(log_os, 2 * math.log(zeta))
+            sd = NOISE_LOG_SD if (physics_mean or learned_surface) else GENERIC_LOG_SD
+            hypers.li.register_prior("generic_variance_prior", _stateless(NormalPrior(zero.clone(), sd)),
                                      functools.partial(_log_generic_ratio, c=log_zeta2))
     if physics_mean and hypers.mean is not None:
         # a proper prior on the generic shape's scale per axis (a model's evidence needs one: ``prior_mean=

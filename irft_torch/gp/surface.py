@@ -45,7 +45,7 @@ from ..rft.contacts import M_TO_CM, Contacts
 from .backends import make_backend
 from .backends.pairs import distinct_pairs
 from .kernels import angle_covariance
-from .li_basis import li_covariance, li_features
+from .li_basis import li_features
 
 if TYPE_CHECKING:
     from .backends import RFTBackend
@@ -160,7 +160,7 @@ def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, 
     K = angle_covariance(hypers.kernel, table[:, 0], table[:, 1], table[:, 0], table[:, 1])  # (2, U, U)
     if getattr(hypers, "li", None) is not None:  # Li et al.'s term (``gp.li_basis``) at the pairs
         f = li_features(table[:, 0], table[:, 1])
-        K = K + li_covariance(hypers.li.covariance, f, f)
+        K = K + hypers.li.weigh(f) @ f.mT
     s2 = hypers.noise  # (2,)
     y = forces.T
     m = hypers.mean_of(contacts)

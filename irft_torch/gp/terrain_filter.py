@@ -164,7 +164,7 @@ class TerrainFilter(nn.Module):
                                  None if scales is None else scales.detach().clone().to(dtype=dt, device=dev))
             li = hypers.li_variance  # (2,) (N/cm^3)^2: Li et al.'s term, or None
             self.register_buffer("li_variance", None if li is None else li.detach().clone().to(dtype=dt, device=dev))
-            P = None if hypers.li is None else hypers.li.covariance  # (2, 9, 9): diag(v) (+ the generic shape)
+            P = hypers.li.covariance if hypers.li is not None and hypers.li.generic else None  # (2, 9, 9) or None
             self.register_buffer("li_covariance", None if P is None else P.detach().clone().to(dtype=dt, device=dev))
         self._shape = (None if hypers.mean is None
                        else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
@@ -250,7 +250,11 @@ class TerrainFilter(nn.Module):
 
     def _li_cross(self, f_left: Tensor, f_right: Tensor) -> Tensor:
         """f_left P_a f_right^T: (X, 2, P, 9), (X, 2, R, 9) (X may be 1 on the right) -> (X, 2, P, R)."""
-        return (f_left @ self.li_covariance) @ f_right.mT
+        return self._li_weigh(f_left) @ f_right.mT
+
+    def _li_weigh(self, f: Tensor) -> Tensor:
+        """f P_a per map (..., 2, P, 9): diag(v_a) without the generic shape (9 products a row), P_a with it."""
+        return f * self.li_variance[:, None, None] if self.li_covariance is None else f @ self.li_covariance
 
     def _blocks(self, per_env: int) -> list[tuple[int, int]]:
         """Ranges of environments whose working set (``per_env`` elements each) fits ``block_bytes``; one
@@ -502,7 +506,7 @@ class TerrainFilter(nn.Module):
             prior_var = self.outputscale[:, None] * w.pow(2)  # k(theta, theta) w^2 = s
             fq = self._li_features(pts.beta, pts.gamma, w[..., None])  # (2, Q, 9) or None
             if fq is not None:
-                prior_var = prior_var + ((fq @ self.li_covariance) * fq).sum(-1)
+                prior_var = prior_var + (self._li_weigh(fq) * fq).sum(-1)
             left, right, c_right = self._sides(pts.beta[:, 0], pts.gamma[:, 0])  # (2, Q, 5), (5, Q), (2, 1, Q)
             K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1),
                                 None if fq is None else fq.expand(B, 2, Q, 9))
@@ -538,7 +542,7 @@ class TerrainFilter(nn.Module):
         own = self._kernel(left.reshape(B * T, 2, M, 5), w_own, right.reshape(B * T, 5, M),
                            c_right.reshape(B * T, 2, 1, M), w_own).view(B, T, 2)
         if fl is not None:
-            own = own + ((fl @ self.li_covariance) * fl).sum(-1).mT
+            own = own + (self._li_weigh(fl) * fl).sum(-1).mT
         var = own - At.pow(2).sum(-1).mT
         if include_noise:
             var = var + self.noise

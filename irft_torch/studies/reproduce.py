@@ -160,6 +160,8 @@ def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, t
     with torch.no_grad():
         post = model.stress_map(B, G).to("cpu")
         true = truth_map(B, G)
+        h = model.hypers  # the map prior's sd per grid point (*B.shape, 2), N/cm^3: uniform but for the generic shape
+        prior_std = h.prior_variance_at(*(x.to(h.outputscale) for x in (B, G))).sqrt().cpu()
     res = FitResult(config, prior_mean, noise, seed, truth_name, lengthscale, priors, pinned)
     for a, axis in enumerate("XZ"):
         m = metrics.map_metrics(post.mean[..., a], true[..., a])
@@ -170,7 +172,7 @@ def _evaluate(model, toe, path, c, config, prior_mean, noise, seed, truth_map, t
     if keep_maps:
         res.maps = {"contacts": c, "toe": toe, "path": path, "mean": post.mean, "std": post.stddev,
                     "truth": true, "B": B, "G": G, "coverage": metrics.coverage_area(c),
-                    "prior_std": model.hypers.prior_variance.detach().sqrt().cpu(),  # (2,) N/cm^3, the map prior's sd
+                    "prior_std": prior_std,
                     "redundancy": metrics.redundancy(c)}
     if keep_model:  # in this process only (a fitted model is not sent back from a worker)
         res.maps["model"] = model

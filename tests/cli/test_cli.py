@@ -51,16 +51,20 @@ def test_simulate_output_is_a_dataset_fit_reads(tmp_path):
     np.testing.assert_allclose(ds.contacts.weight_z.numpy()[shear].sum(-1), 8.0, rtol=1e-9)
     assert main(["fit", str(out), "--out", str(tmp_path / "fit"), "--n-iter", "5", "--no-progress"]) == 0
     assert (tmp_path / "fit" / "model.pt").exists()
-    # the intervals' options (docs/calibration.md): Li et al.'s term with the generic shape and a Laplace
-    # hyperparameter posterior, kept
+    # the intervals' options (docs/calibration.md): Li et al.'s term and a Laplace hyperparameter posterior, kept
     assert main(["fit", str(out), "--out", str(tmp_path / "fit2"), "--n-iter", "5", "--no-progress", "--li-basis",
-                 "--generic-shape", "--hyper-posterior", "laplace"]) == 0
+                 "--hyper-posterior", "laplace"]) == 0
     from irft_torch import InverseRFT
 
     m = InverseRFT.load(tmp_path / "fit2" / "model.pt")
     assert m.hypers.li is not None and m.hyper_posterior is not None and m.hyper_posterior.method == "laplace"
     assert m.hyper_posterior.n_draws > 1 and "li_variance_x" in m.hyper_posterior.labels
-    assert m.hypers.li.generic and "generic_variance_z" in m.hyper_posterior.labels
+    assert not m.hypers.li.generic
+    # ... and the generic shape's uncertain scale (--generic-shape implies --li-basis)
+    assert main(["fit", str(out), "--out", str(tmp_path / "fit3"), "--n-iter", "5", "--no-progress",
+                 "--generic-shape"]) == 0
+    m = InverseRFT.load(tmp_path / "fit3" / "model.pt")
+    assert m.hypers.li is not None and m.hypers.li.generic and "generic_variance" in m.hypers.as_dict()
 
 
 def test_simulate_bad_input_is_a_clear_error(tmp_path, capsys):

@@ -186,6 +186,19 @@ def test_the_prior_variance_averages_the_generic_shape_over_the_square():
     d = model.diagnostics()
     assert [m.constrained_fraction for m in d.maps] == [0.0, 0.0]
     assert [m.variance_ratio for m in d.maps] == pytest.approx([1.0, 1.0], abs=1e-5)
+    # the probe scores divide a region's integrated variance by the prior's mean over that region: the prior
+    # scores 1 per map on the square and on a corner where g is far from its mean square (alpha_z near gamma = pi/2)
+    from irft_torch.design import ProbeScorer, Region
+
+    scorer = ProbeScorer.from_model(model)
+    corner = Region(torch.tensor([-0.2, 0.0, 0.3], dtype=F64), torch.tensor([1.2, 1.4, 1.5], dtype=F64),
+                    torch.tensor([1.0, 2.0, 1.0], dtype=F64))
+    for region in (None, corner):
+        iv = scorer.integrated_variance(region=region, per_axis=True)
+        torch.testing.assert_close(iv, torch.ones(2, dtype=F64), rtol=1e-5, atol=0)
+    plain = (scorer.integrated_variance(region=corner, per_axis=True) * scorer._prior_over(corner)
+             / model.hypers.prior_variance.detach())
+    assert float((plain - 1).abs().max()) > 0.1  # the square's mean would not say "the prior" there
 
 
 def test_the_prior_is_centred_on_the_medium_s_scale_squared_and_the_fit_learns_it(tmp_path):
@@ -269,3 +282,22 @@ def test_the_learned_surface_carries_the_generic_term():
         cd = c.with_surface_offset(torch.tensor(delta / 100))
         ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
         assert abs(float(loss.detach()) - float(ref)) < 1e-9
+
+
+@pytest.mark.parametrize("opts,factor,width", [({}, 1.0, math.log(2)), ({"prior_mean": "physics"}, 0.3, math.log(10)),
+                                               ({"surface_offset": True}, 1.0, math.log(10))])
+def test_the_prior_follows_the_outputscale_s_logic(opts, factor, width):
+    """u's prior: at zeta^2 (log-sd ln 2); with the physics mean, which carries the shape already, at (0.3 zeta)^2 and
+    a factor 10 wide, as the residual outputscale; with a learned surface (zeta not trusted) a factor 10 wide."""
+    from .test_surface import TRUTH, plates
+
+    c = plates()
+    f = forces(TRUTH, c)
+    f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
+    model = InverseRFT(c, f, li_basis=True, generic_shape=True, **opts)
+    G = forces(GENERIC, c)
+    zeta = float((f * G).sum() / G.pow(2).sum())
+    prior, closure = model.hypers.li._priors["generic_variance_prior"][:2]
+    assert float(prior.scale) == pytest.approx(width)
+    centre = model.hypers.generic_variance.detach() / closure(model.hypers.li).detach().exp()  # value / exp(log ratio)
+    torch.testing.assert_close(centre, torch.full((2,), (factor * zeta) ** 2, dtype=F64), rtol=1e-6, atol=0)

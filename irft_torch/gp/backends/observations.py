@@ -18,7 +18,7 @@ from torch import Tensor
 from ...rft.contacts import Contacts
 from ..encoding import encode_contacts
 from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
-from ..li_basis import contact_li_features, li_covariance, li_features
+from ..li_basis import contact_li_features, li_features
 from ..operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
 from .base import FunctionalPosterior, RFTBackend
 
@@ -159,7 +159,7 @@ class ObservationsBackend(RFTBackend):
         K = RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
                                                    BATCH).to_dense()
         if self.hypers.li is not None:
-            K = K + li_covariance(self.hypers.li.covariance.detach(), side1["li"], side2["li"])
+            K = K + self.hypers.li.weigh(side1["li"]).detach() @ side2["li"].mT
         return K
 
     def _factor(self):

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from ...rft.contacts import Contacts
 from ..kernels import angle_covariance, composite_covariance
-from ..li_basis import li_covariance, li_features
+from ..li_basis import li_features
 from ..operators import unique_pairs
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
@@ -86,7 +86,7 @@ class PairsBackend(WeightSpaceBackend):
         K = angle_covariance(self.hypers.kernel, t[:, 0], t[:, 1], t[:, 0], t[:, 1])
         if self.hypers.li is not None:
             f = li_features(t[:, 0], t[:, 1])
-            K = K + li_covariance(self.hypers.li.covariance, f, f)
+            K = K + self.hypers.li.weigh(f) @ f.mT
         return K
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
