@@ -301,3 +301,36 @@ def test_the_prior_follows_the_outputscale_s_logic(opts, factor, width):
     assert float(prior.scale) == pytest.approx(width)
     centre = model.hypers.generic_variance.detach() / closure(model.hypers.li).detach().exp()  # value / exp(log ratio)
     torch.testing.assert_close(centre, torch.full((2,), (factor * zeta) ** 2, dtype=F64), rtol=1e-6, atol=0)
+
+
+def test_add_data_and_cross_validation_carry_the_term():
+    """A model grown by ``add_data`` is the dense model on all its data; ``cross_validate`` predicts each group from
+    the dense model on the other groups (the same hyperparameters, the term included)."""
+    c, f = _data("rotating")
+    noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
+    model = InverseRFT(c[:12], f[:12], method="observations", li_basis=True, generic_shape=True)
+    _set(model, noise)
+    model.add_data(c[12:], f[12:])
+    th = (torch.rand(9, 2, generator=torch.Generator().manual_seed(6), dtype=F64) - 0.5) * math.pi
+    post = model.stress_map(th[:, 0], th[:, 1])
+    groups = torch.arange(len(f)) // 10
+    cv = model.cross_validate(groups)
+    for a in range(2):
+        _, map_post, _ = _dense(c, f, a, noise[a])
+        mean, var = map_post(th)
+        torch.testing.assert_close(post.mean[:, a], mean, rtol=1e-8, atol=1e-10)
+        torch.testing.assert_close(post.variance[:, a], var, rtol=1e-7, atol=1e-12)
+        for g in range(3):
+            keep = groups != g
+            _, _, force_post = _dense(c[keep], f[keep], a, noise[a])
+            fm, fv = force_post(c[~keep])
+            torch.testing.assert_close(cv.mean[~keep, a], fm, rtol=1e-7, atol=1e-9)
+            torch.testing.assert_close(cv.variance[~keep, a], fv, rtol=1e-6, atol=1e-12)
+
+
+def test_the_3d_model_says_it_has_no_generic_term():
+    from .test_inverse3d import turning_toe
+
+    c, f = turning_toe()
+    with pytest.raises(TypeError, match="generic_shape"):
+        InverseRFT(c, f, li_basis=True, generic_shape=True)
