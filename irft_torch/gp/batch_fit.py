@@ -64,10 +64,12 @@ class _StackedHyperparameters(RFTHyperparameters):
         self.li = None  # Li et al.'s term (gp.li_basis): one variance per map axis, as the outputscale
         if hs[0].li is not None:
             li_scale = torch.cat([h.li.raw_variance_constraint.scale.expand(2) for h in hs])
-            self.li = LiBasisVariance(li_scale, n_maps=2 * B)
+            self.li = LiBasisVariance(li_scale, n_maps=2 * B, generic=hs[0].li.generic)
         with torch.no_grad():
             if self.li is not None:
                 self.li.raw_variance.copy_(torch.cat([h.li.raw_variance for h in hs]))
+                if self.li.generic:  # the generic shape's variance (gp.li_basis), stacked the same way
+                    self.li.raw_generic_variance.copy_(torch.cat([h.li.raw_generic_variance for h in hs]))
             self.kernel.raw_outputscale.copy_(torch.cat([h.kernel.raw_outputscale for h in hs]))
             self.kernel.base_kernel.raw_lengthscale.copy_(torch.cat([h.kernel.base_kernel.raw_lengthscale for h in hs]))
             raw = torch.cat([h.likelihood.noise_covar.raw_noise.reshape(-1) for h in hs])
@@ -93,6 +95,8 @@ class _StackedHyperparameters(RFTHyperparameters):
                   "noise_prior": (lambda h: h.likelihood.noise_covar, self.likelihood.noise_covar)}
         if self.li is not None:
             places["variance_prior"] = (lambda h: h.li, self.li)
+            if self.li.generic:
+                places["generic_variance_prior"] = (lambda h: h.li, self.li)
         for name, (owner, target) in places.items():
             entries = [owner(h)._priors.get(name) for h in hs]
             if entries[0] is None:
@@ -124,8 +128,8 @@ def shares_fit(models: Sequence) -> str | None:
             return "a learned surface or a physics mean"
         if (m.hypers.li is None) != (m0.hypers.li is None):
             return "Li et al.'s kernel term in some models and not in others (li_basis)"
-        if m.hypers.li is not None and m.hypers.li.generic:
-            return "the generic shape's kernel term (generic_shape=True is fitted one model at a time)"
+        if m.hypers.li is not None and m.hypers.li.generic != m0.hypers.li.generic:
+            return "the generic shape's kernel term in some models and not in others (generic_shape)"
         if m.priors != m0.priors or m.hypers.tied != m0.hypers.tied:
             return "different priors or noise tying"
         p0, p = m0.hypers.kernel.raw_outputscale, m.hypers.kernel.raw_outputscale
@@ -134,11 +138,12 @@ def shares_fit(models: Sequence) -> str | None:
         if not all(q.requires_grad for q in m.hypers.parameters()):
             return "a hyperparameter held fixed (requires_grad=False)"
         known = {"kernel.outputscale_prior", "kernel.base_kernel.lengthscale_prior",
-                 "likelihood.noise_covar.noise_prior", "li.variance_prior"}
+                 "likelihood.noise_covar.noise_prior", "li.variance_prior", "li.generic_variance_prior"}
         for name, _, _, closure, _ in m.hypers.named_priors():  # only gp.priors' own (a user's is not stacked)
             if name not in known or not (isinstance(closure, functools.partial) and "c" in closure.keywords):
                 return f"a prior this batching does not know ({name})"
-        for name in ("outputscale_prior", "lengthscale_prior", "noise_prior", "variance_prior"):
+        for name in ("outputscale_prior", "lengthscale_prior", "noise_prior", "variance_prior",
+                     "generic_variance_prior"):
             pa, pb = _prior(m, name), _prior(m0, name)
             if (pa is None) != (pb is None) or (pa is not None and not (
                     torch.equal(pa.loc, pb.loc) and torch.equal(pa.scale, pb.scale))):
@@ -171,7 +176,7 @@ def _auto_may_switch(model) -> bool:
 def _prior(model, name):
     h = model.hypers
     owner = {"outputscale_prior": h.kernel, "lengthscale_prior": h.kernel.base_kernel,
-             "noise_prior": h.likelihood.noise_covar, "variance_prior": h.li}[name]
+             "noise_prior": h.likelihood.noise_covar, "variance_prior": h.li, "generic_variance_prior": h.li}[name]
     if owner is None:  # no Li et al.'s term
         return None
     e = owner._priors.get(name)
@@ -291,6 +296,8 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
                 own.copy_(raw[k * i:k * i + k].reshape(own.shape))
                 if h.li is not None:
                     h.li.raw_variance.copy_(hypers.li.raw_variance[2 * i:2 * i + 2])
+                    if h.li.generic:
+                        h.li.raw_generic_variance.copy_(hypers.li.raw_generic_variance[2 * i:2 * i + 2])
     if failed:  # each model's own fit: the one that breaks down raises its own NotPSDError (naming its
         # hyperparameters), the ones before it end fitted, as in a loop of InverseRFT.fit
         return [m.fit(n_iter=n_iter, lr=lr, progress=progress) for m in models]
@@ -317,4 +324,6 @@ def _raw_slices(hypers: _StackedHyperparameters, i: int) -> dict[str, Tensor]:
                hypers.likelihood.noise_covar.raw_noise[k * i:k * i + k].detach().clone()}
     if hypers.li is not None:
         out["li.raw_variance"] = hypers.li.raw_variance[2 * i:2 * i + 2].detach().clone()
+        if hypers.li.generic:
+            out["li.raw_generic_variance"] = hypers.li.raw_generic_variance[2 * i:2 * i + 2].detach().clone()
     return out

@@ -104,13 +104,14 @@ def generic_coefficients(dtype=None, device=None) -> Tensor:
     return _generic_coefficients_f64().to(dtype=dtype or torch.get_default_dtype(), device=device)
 
 
-def generic_features(features: Tensor) -> Tensor:
-    """(2, ..., N, 1): the generic shape's value (or weighted sum) g_a = f . c_a per map, from features (2, ..., N, 9)
-    or (N, 9) (shared by both maps): the generic term's one feature per map."""
-    c = generic_coefficients(features.dtype, features.device)  # (2, 9)
+def generic_features(features: Tensor, n_maps: int = 2) -> Tensor:
+    """(n_maps, ..., N, 1): the generic shape's value (or weighted sum) g_a = f . c_a per map, from features
+    (n_maps, ..., N, 9) or (N, 9) (shared by every map): the generic term's one feature per map. ``n_maps``: 2 (x, z),
+    or 2B for B models stacked (``gp.batch_fit``: x, z of model 0, then of model 1, ...)."""
+    c = generic_coefficients(features.dtype, features.device).repeat(n_maps // 2, 1)  # (n_maps, 9)
     if features.dim() == 2:
-        return (features @ c.T).mT[..., None]  # (2, N, 1)
-    return features @ c.reshape(2, *([1] * (features.dim() - 3)), 9, 1)
+        return (features @ c.T).mT[..., None]  # (n_maps, N, 1)
+    return features @ c.reshape(n_maps, *([1] * (features.dim() - 3)), 9, 1)
 
 
 class LiBasisVariance(Module):

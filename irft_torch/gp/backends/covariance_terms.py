@@ -201,7 +201,7 @@ def li_terms(hypers, features: Tensor) -> list[CovarianceTerm]:
         return []
     terms: list[CovarianceTerm] = [LiBasisTerm(features)]
     if li.generic:
-        terms.append(LiBasisTerm(generic_features(features), LI_GENERIC))
+        terms.append(LiBasisTerm(generic_features(features, li.raw_generic_variance.shape[-1]), LI_GENERIC))
     return terms
 
 
