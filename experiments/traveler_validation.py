@@ -100,6 +100,11 @@ def main(argv=None) -> None:
                     help="directory with the Traveler log (read, never copied)")
     ap.add_argument("--file", default="traveler_trial_2024-02-02.csv", help="the log's file name in --data")
     ap.add_argument("--out", type=FilePath, default="experiments/results", help="where the report and figure go")
+    ap.add_argument("--li-basis", action="store_true",
+                    help="the I-RFT fits with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True))")
+    ap.add_argument("--generic-shape", action="store_true",
+                    help="the I-RFT fits with the generic shape's uncertain scale too (li_basis=True, "
+                         "generic_shape=True)")
     ap.add_argument("--toe-length", type=float, default=0.08, help="flat toe length, m (assumed; not in the log)")
     ap.add_argument("--toe-width", type=float, default=0.008, help="flat toe width, m (assumed; not in the log)")
     ap.add_argument("--min-speed", type=float, default=0.02, help="m/s: slower samples are not 'moving'")
@@ -206,7 +211,8 @@ def main(argv=None) -> None:
     for key, kw in (("stated", {}), ("free", {"surface_offset": True}),
                     ("per stroke", {"surface_groups": torch.as_tensor(np.where(down_rows, 0, 1))})):
         torch.manual_seed(0)
-        m = irft.InverseRFT(c, fobs, **kw)
+        terms = {"li_basis": args.li_basis or args.generic_shape, "generic_shape": args.generic_shape}
+        m = irft.InverseRFT(c, fobs, **kw, **terms)
         if kw:  # the likelihood in the offset has local optima: start at the best of a coarse grid
             m.init_surface(torch.arange(-3.5, 2.0001, 0.1) / 100)  # m
         m.fit(n_iter=args.n_iter, lr=0.05, progress=False)
