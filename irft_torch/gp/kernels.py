@@ -90,7 +90,7 @@ def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
         return op
     f1 = contact_li_features(c1)
     f2 = f1 if c2 is None else contact_li_features(c2)
-    return op + MatmulLinearOperator(li.weigh(f1).detach(), f2.mT)
+    return op + MatmulLinearOperator(li.weigh(f1, detach=True), f2.mT)
 
 
 class RFTCompositeKernel(Kernel):

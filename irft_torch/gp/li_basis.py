@@ -161,12 +161,15 @@ class LiBasisVariance(Module):
             P = P + self.generic_variance[:, None, None] * (c[:, :, None] * c[:, None, :])
         return P
 
-    def weigh(self, features: Tensor) -> Tensor:
+    def weigh(self, features: Tensor, detach: bool = False) -> Tensor:
         """features P per map: (..., 2, N, 9) (or (N, 9)) -> (..., 2, N, 9), f diag(v) without the generic shape
-        (9 products per row instead of 81), f P with it; ``f1 P f2^T = weigh(f1) @ f2.mT``."""
+        (9 products per row instead of 81), f P with it; ``f1 P f2^T = weigh(f1) @ f2.mT``. ``detach``: P as a
+        constant (a prediction: differentiable in the features, i.e. the contacts, not the hyperparameters)."""
         if not self.generic:
-            return features * self.variance[:, None, None]
-        return features @ self.covariance
+            v = self.variance
+            return features * (v.detach() if detach else v)[:, None, None]
+        P = self.covariance
+        return features @ (P.detach() if detach else P)
 
     def mean_variance(self) -> Tensor:
         """(n_maps,) the term's prior variance of a map averaged over the canonical square, (N/cm^3)^2:

@@ -35,7 +35,8 @@ def _set(model, noise, u=U):
     model.hypers.outputscale = OS
     model.hypers.noise = noise
     model.hypers.li.variance = LI
-    model.hypers.li.generic_variance = u
+    if u is not None:
+        model.hypers.li.generic_variance = u
 
 
 def _dense(c, f, a, noise, u=U):
@@ -356,3 +357,30 @@ def test_the_3d_model_says_it_has_no_generic_term():
     c, f = turning_toe()
     with pytest.raises(TypeError, match="generic_shape"):
         InverseRFT(c, f, li_basis=True, generic_shape=True)
+
+
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+@pytest.mark.parametrize("generic", [False, True])
+def test_predictions_stay_differentiable_in_the_contacts_through_the_term(method, generic):
+    """The force posterior's mean and variance are differentiable in the query's weights (the hyperparameters
+    held): their gradient through Li et al.'s term (and the generic shape's) equals central differences."""
+    c, f = _data("rotating")
+    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=generic)
+    _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0), U if generic else None)
+    q = c[::7]
+
+    def value(wz):
+        p = model.predict_forces(Contacts(q.beta, q.gamma, q.weight_x, wz))
+        return p.mean[:, 1].sum() + p.variance[:, 1].sum()
+
+    wz = q.weight_z.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(value(wz), wz)
+    h = 1e-6
+    for k in q.weight_z.reshape(-1).topk(3).indices.tolist():  # segments in contact (a zero weight cannot go down)
+        i, j = divmod(k, q.weight_z.shape[1])
+        up, down = q.weight_z.clone(), q.weight_z.clone()
+        up[i, j] += h
+        down[i, j] -= h
+        with torch.no_grad():
+            fd = (value(up) - value(down)) / (2 * h)
+        assert float(grad[i, j]) == pytest.approx(float(fd), rel=1e-5, abs=1e-8)

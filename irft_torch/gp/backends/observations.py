@@ -159,7 +159,7 @@ class ObservationsBackend(RFTBackend):
         K = RFTKernelLinearOperator.from_structure(structure, k.lengthscale.detach(), k.outputscale.detach(),
                                                    BATCH).to_dense()
         if self.hypers.li is not None:
-            K = K + self.hypers.li.weigh(side1["li"]).detach() @ side2["li"].mT
+            K = K + self.hypers.li.weigh(side1["li"], detach=True) @ side2["li"].mT
         return K
 
     def _factor(self):

@@ -205,11 +205,7 @@ class SpectralBackend(WeightSpaceBackend):
         if li is None:
             return Y
         idx = self._li_index()
-        if not li.generic:
-            v = li.variance.detach() if detach else li.variance
-            return Y.index_add(-1, idx, X[..., idx] * (v / 4)[:, None, None])
-        P = li.covariance.detach() if detach else li.covariance
-        return Y.index_add(-1, idx, X[..., idx] @ (P / 4))
+        return Y.index_add(-1, idx, li.weigh(X[..., idx], detach=detach) / 4)
 
     def _apply_sigma(self, X: Tensor) -> Tensor:
         return self._sigma_apply(X, detach=False)
