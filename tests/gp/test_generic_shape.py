@@ -17,8 +17,8 @@ from irft_torch.gp.li_basis import generic_coefficients, li_features
 from irft_torch.rft import Contacts, forces
 from irft_torch.rft.stress_maps import FourierStressMap
 
-from .dense_reference import W_dense, k_dense
-from .test_li_basis import LI, LS, OS, _data, _k_li
+from .test_li_basis import LI, LS, OS, _data
+from .test_li_basis import _dense as _dense_li
 
 F64 = torch.float64
 U = torch.tensor([0.5, 1.7], dtype=F64)  # the generic shape's variance per map, (N/cm^3)^2
@@ -40,31 +40,9 @@ def _set(model, noise, u=U):
 
 
 def _dense(c, f, a, noise, u=U):
-    """nll per sample, map posterior and force posterior of axis a, written densely with the term."""
-    th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
-    W = W_dense((c.weight_x, c.weight_z)[a])
-
-    def k(t1, t2):
-        return k_dense(t1, t2, LS[a], OS[a]) + _k_li(t1, t2, LI[a]) + u[a] * _g(t1, a)[:, None] * _g(t2, a)[None, :]
-
-    S = W @ k(th, th) @ W.T + noise * torch.eye(len(f), dtype=F64)
-    L = torch.linalg.cholesky(S)
-    y = f[:, a]
-    alpha = torch.cholesky_solve(y[:, None], L)[:, 0]
-    nll = (0.5 * y @ alpha + L.diagonal().log().sum() + 0.5 * len(y) * math.log(2 * math.pi)) / len(y)
-
-    def map_post(th_s):
-        ks = k(th_s, th) @ W.T
-        return ks @ alpha, k(th_s, th_s).diagonal() - (ks * torch.cholesky_solve(ks.T, L).T).sum(-1)
-
-    def force_post(cs):
-        ths = torch.stack([cs.beta.reshape(-1), cs.gamma.reshape(-1)], -1)
-        Ws = W_dense((cs.weight_x, cs.weight_z)[a])
-        Ksx = Ws @ k(ths, th) @ W.T
-        Kss = Ws @ k(ths, ths) @ Ws.T
-        return Ksx @ alpha, Kss.diagonal() - (Ksx * torch.cholesky_solve(Ksx.T, L).T).sum(-1)
-
-    return nll, map_post, force_post
+    """``test_li_basis._dense`` (nll, map and force posteriors of axis a, written densely) with the generic shape's
+    term u_a g_a(theta) g_a(theta'), g from the published coefficients."""
+    return _dense_li(c, f, a, noise, extra=lambda t1, t2: u[a] * _g(t1, a)[:, None] * _g(t2, a)[None, :])
 
 
 def test_the_coefficients_give_the_published_generic_map():

@@ -52,14 +52,16 @@ def _set(model, noise):
     model.hypers.li.variance = LI
 
 
-def _dense(c, f, a, noise):
-    """nll per sample, map posterior at th_star and force posterior of c_star, axis a, written densely."""
+def _dense(c, f, a, noise, extra=None):
+    """nll per sample, map posterior at th_star and force posterior of c_star, axis a, written densely;
+    ``extra(t1, t2)``: one more kernel term of axis a's map (the generic shape's, ``test_generic_shape``)."""
     th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
     w = (c.weight_x, c.weight_z)[a]
     W = W_dense(w)
 
     def k(t1, t2):
-        return k_dense(t1, t2, LS[a], OS[a]) + _k_li(t1, t2, LI[a])
+        out = k_dense(t1, t2, LS[a], OS[a]) + _k_li(t1, t2, LI[a])
+        return out if extra is None else out + extra(t1, t2)
 
     S = W @ k(th, th) @ W.T + noise * torch.eye(len(f), dtype=F64)
     L = torch.linalg.cholesky(S)
