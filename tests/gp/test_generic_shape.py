@@ -244,28 +244,6 @@ def test_options_around_the_generic_term():
     assert "generic_shape" in shares_fit([a, b])  # the term in one model and not the other: not one batch
 
 
-@pytest.mark.parametrize("tied", [False, True])
-def test_fit_together_with_the_generic_term_ends_where_each_fit_ends(tied):
-    """``gp.fit_together`` stacks u with the other hyperparameters (and its prior's per-model centres): the same
-    losses at every step and the same hyperparameters as each model's own fit."""
-    from irft_torch.gp.batch_fit import fit_together
-
-    c, f = _data("itoe")
-    fs = [f, 0.4 * f * (1 + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1), dtype=F64))]
-    opts = {"method": "pairs", "li_basis": True, "generic_shape": True, "tied_noise": tied}
-    alone = [InverseRFT(c, x, **opts) for x in fs]
-    together = [InverseRFT(c, x, **opts) for x in fs]
-    assert shares_fit(together) is None
-    start = [m.hypers.li.raw_generic_variance.detach().clone() for m in together]
-    histories = [m.fit(n_iter=25, lr=0.1, progress=False) for m in alone]
-    batch = fit_together(together, n_iter=25, lr=0.1)
-    for a, b, ha, hb, u0 in zip(alone, together, histories, batch, start):
-        torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
-        for (name, pa), (_, pb) in zip(a.hypers.named_parameters(), b.hypers.named_parameters()):
-            torch.testing.assert_close(pb, pa, rtol=1e-8, atol=1e-12, msg=name)
-        assert float((b.hypers.li.raw_generic_variance - u0).abs().max()) > 1e-3  # the batch moved u
-
-
 def test_the_learned_surface_carries_the_generic_term():
     """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
     at the shifted contacts."""

@@ -250,22 +250,27 @@ def test_options_that_do_not_carry_the_term_say_so():
 
 
 @pytest.mark.parametrize("tied", [False, True])
-def test_fit_together_with_the_term_ends_where_each_fit_ends(tied):
-    """``gp.fit_together`` stacks the term's variance with the other hyperparameters: the same losses at every step
-    and the same hyperparameters as each model's own fit."""
+@pytest.mark.parametrize("generic", [False, True])
+def test_fit_together_with_the_term_ends_where_each_fit_ends(tied, generic):
+    """``gp.fit_together`` stacks the term's variance (and the generic shape's, with its prior's per-model centres)
+    with the other hyperparameters: the same losses at every step and the same hyperparameters as each model's own
+    fit."""
     c, f = _data("itoe")
     fs = [f, 1.3 * f * (1 + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1), dtype=F64))]
-    alone = [InverseRFT(c, x, method="pairs", li_basis=True, tied_noise=tied) for x in fs]
-    together = [InverseRFT(c, x, method="pairs", li_basis=True, tied_noise=tied) for x in fs]
+    opts = {"method": "pairs", "li_basis": True, "generic_shape": generic, "tied_noise": tied}
+    alone = [InverseRFT(c, x, **opts) for x in fs]
+    together = [InverseRFT(c, x, **opts) for x in fs]
     assert shares_fit(together) is None
-    start = [m.hypers.li.raw_variance.detach().clone() for m in together]
+    raw = ["raw_variance"] + (["raw_generic_variance"] if generic else [])
+    start = [[getattr(m.hypers.li, n).detach().clone() for n in raw] for m in together]
     histories = [m.fit(n_iter=25, lr=0.1, progress=False) for m in alone]
     batch = fit_together(together, n_iter=25, lr=0.1)
     for a, b, ha, hb, v0 in zip(alone, together, histories, batch, start):
         torch.testing.assert_close(torch.tensor(hb), torch.tensor(ha), rtol=1e-9, atol=1e-9)
         for (name, pa), (_, pb) in zip(a.hypers.named_parameters(), b.hypers.named_parameters()):
             torch.testing.assert_close(pb, pa, rtol=1e-8, atol=1e-12, msg=name)
-        assert float((b.hypers.li.raw_variance - v0).abs().max()) > 1e-3  # the batch moved the term's variance
+        for n, x0 in zip(raw, v0):  # the batch moved the term's variances
+            assert float((getattr(b.hypers.li, n) - x0).abs().max()) > 1e-3, n
 
 
 def test_the_learned_surface_carries_the_term():
