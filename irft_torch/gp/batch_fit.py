@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-import types
 import warnings
 from collections.abc import Sequence
 
@@ -30,7 +29,6 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .backends.pairs import PairsBackend
-from .backends.select import cheaper_space, estimated_costs
 from .backends.weight_space import WeightSpaceBackend, _DataFactor
 from .constraints import ScaledGreaterThan
 from .fit_control import adam
@@ -160,17 +158,9 @@ def shares_fit(models: Sequence) -> str | None:
 
 
 def _auto_may_switch(model) -> bool:
-    """Whether ``InverseRFT.fit`` could move this model out of the pairs space mid-fit: with
-    ``method="auto"`` it moves every 30 steps to ``select.cheaper_space`` (another space estimated at
-    under half the current one's cost). The observations and pairs costs do not depend on the hyperparameters; the
-    spectral cost falls as the lengthscales grow, to its cost for the smallest basis (lengthscales
-    without bound), which is what is checked: if even that is not 2x cheaper, the fit stays in pairs
-    whatever the lengthscales do, and the batch follows each model's own fit exactly."""
-    if not model.auto:
-        return False
-    widest = types.SimpleNamespace(lengthscale=torch.full_like(model.hypers.lengthscale.detach(), 1e6))
-    return cheaper_space(estimated_costs(model.train_contacts, widest, model.tol, model._pair_count()), "pairs") \
-        is not None
+    """Whether ``InverseRFT.fit`` could move this model out of the pairs space mid-fit (``method="auto"``,
+    ``select.pairs_may_move``): if not, the batch follows each model's own fit exactly."""
+    return model.auto and model._may_leave_pairs()
 
 
 def _prior(model, name):

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from .backends import RFTBackend, make_backend
-from .backends.select import cheaper_space, estimate_pairs, estimated_costs, spectral_step_cost
+from .backends.select import cheaper_space, estimate_pairs, estimated_costs, pairs_may_move, spectral_step_cost
 from .fourier import FourierBasis
 
 if TYPE_CHECKING:
@@ -77,6 +77,7 @@ class FitControlMixin:
 
     _held_cost: float | None  # the step cost "auto" holds with nearly noise-free data (_adapt)
     _hold_said: bool  # the hold's warning was given
+    _leave_pairs: tuple  # (the training contacts, whether "auto" could ever leave the pairs space) (_may_leave_pairs)
     _n_pairs: int | None  # the training contacts' distinct angle pairs (_pair_count)
 
     if TYPE_CHECKING:  # what the front door provides (gp.model)
@@ -146,7 +147,7 @@ class FitControlMixin:
         predictions after the fit keep it; its truncation error is reported and said once in a
         warning)."""
         bound = self._step_bound()
-        if self.auto:
+        if self.auto and (self.method != "pairs" or self._may_leave_pairs()):
             costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
             best = cheaper_space(costs, self.method)
             if best is not None and (bound is None or costs[best] <= bound):
@@ -191,6 +192,15 @@ class FitControlMixin:
                 self._held_cost = estimated_costs(self.train_contacts, self.hypers, self.tol,
                                                   self._pair_count())[self.method]
         return HOLD_FACTOR * self._held_cost
+
+    def _may_leave_pairs(self) -> bool:
+        """``select.pairs_may_move`` for the training contacts, kept while they are the same object (``add_data``
+        joins new ones)."""
+        c = self.train_contacts
+        hit = getattr(self, "_leave_pairs", None)
+        if hit is None or hit[0] is not c:
+            hit = self._leave_pairs = (c, pairs_may_move(c, self.tol, self._pair_count()))
+        return hit[1]
 
     def _pair_count(self) -> int:
         """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until

@@ -95,6 +95,46 @@ def test_auto_holds_its_step_cost_when_the_noise_collapses(gait2):
     assert m.method != "spectral" or m.backend.basis.size > basis.size
 
 
+def test_auto_asks_for_a_cheaper_space_only_where_one_could_exist(monkeypatch):
+    """``select.pairs_may_move`` (asked once per contacts) against the full estimate at every lengthscale from 0.05
+    to 1e4: a plate at 54 angle pairs in 810 samples (the DEM's shape) can never leave the pairs space, so its fit
+    skips the estimate (~1 ms every 30 steps, a tenth of a step); 300 scattered pairs can (long lengthscales make
+    the spectral basis cheap), and there the fit still estimates and moves."""
+    from irft_torch.gp.backends import select
+
+    def moves(c, ls):
+        h = type("H", (), {"lengthscale": torch.full((2, 1, 4), ls)})
+        return select.cheaper_space(select.estimated_costs(c, h, 1e-7), "pairs") is not None
+
+    g = torch.Generator().manual_seed(0)
+    k = torch.arange(810) % 54
+    b, gm = torch.linspace(-1.0, 1.4, 9)[k // 6], torch.linspace(-1.4, 1.4, 6)[k % 6]
+    w = torch.rand(810, 1, generator=g) * torch.linspace(0.5, 1.5, 5)
+    plate = Contacts(b[:, None].expand(810, 5), gm[:, None].expand(810, 5), -w, w)
+    U = 300
+    pb, pg = torch.rand(U, generator=g) * 3 - 1.5, torch.rand(U, generator=g) * 3 - 1.5
+    idx = torch.randint(0, U, (600,), generator=g)
+    scattered = Contacts(pb[idx, None], pg[idx, None], torch.ones(600, 1), torch.ones(600, 1))
+    lengthscales = [0.05, 0.2, 1.0, 5.0, 30.0, 1e4]
+    assert not select.pairs_may_move(plate) and not any(moves(plate, ls) for ls in lengthscales)
+    assert select.pairs_may_move(scattered) and any(moves(scattered, ls) for ls in lengthscales)
+    calls = []
+    real = select.estimated_costs
+    monkeypatch.setattr("irft_torch.gp.fit_control.estimated_costs", lambda *a, **k: calls.append(1) or real(*a, **k))
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(), plate)
+    m = irft.InverseRFT(plate, f)
+    assert m.method == "pairs"
+    m.fit(60, progress=False)
+    assert calls == [] and m.method == "pairs"
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(), scattered)
+    m = irft.InverseRFT(scattered, f)
+    assert m.method == "pairs"
+    with torch.no_grad():
+        m.hypers.lengthscale = 10.0
+    m.fit(30, lr=0.01, progress=False)
+    assert len(calls) == 1 and m.method == "spectral"
+
+
 def test_forces_in_a_slipped_unit_or_sign_are_named(gait2):
     """(was: forces in mN on a toe under 10 N passed; kN, m^3 and swapped columns passed silently: the
     checks were one-sided)"""

@@ -136,7 +136,10 @@ class ClosedForm:
             pre = self.rho[..., 0] - 2 * m * self.rho[..., 1] + m.pow(2) * self.rho[..., 2]
             rho = pre.clamp_min(0)
         n = self.n
-        z = torch.linalg.solve_triangular(L, c.expand(L.shape[:-1])[..., None], upper=False)
+        # where a gradient follows in a weight space, L^{-1} once serves z, alpha, H and the trace (``Adjoint``)
+        Linv = torch.linalg.solve_triangular(L, self.eye, upper=False) if grad and self.R is not None else None
+        cb = c.expand(L.shape[:-1])[..., None]
+        z = torch.linalg.solve_triangular(L, cb, upper=False) if Linv is None else Linv @ cb
         quad = rho / noise + z.pow(2).sum((-1, -2))
         logdet = (n - r) * torch.log(noise) + 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         nll = 0.5 * (quad + logdet + n * math.log(2 * math.pi)) / n
@@ -144,8 +147,8 @@ class ClosedForm:
             nll = torch.where(ok[..., None], nll, torch.full_like(nll, math.inf))
         if not grad:
             return nll, None, ok
-        alpha = torch.linalg.solve_triangular(L.mT, z, upper=True)  # (*S, 2, r, 1)
-        adj = Adjoint(L, alpha, self.R, n)
+        alpha = torch.linalg.solve_triangular(L.mT, z, upper=True) if Linv is None else Linv.mT @ z  # (*S, 2, r, 1)
+        adj = Adjoint(L, alpha, self.R, n, Linv)
         grads: dict[str, Tensor] = {}
         for t, (_, state) in zip(self.terms, parts):
             for name, g in t.backward(values, adj, state).items():
@@ -238,8 +241,11 @@ def prior_terms(hypers, values: dict[str, Tensor], grad: bool = True, plan: _Pla
         v = values[name]
         if name == NOISE:  # the closure reads m.noise.reshape(-1)
             v = v.reshape(*batch, -1)
-        d = v.log() - centre.to(v)
-        total = total + (d.pow(2) * (-0.5 * inv_var) + const).reshape(*batch, -1).sum(-1)
+        if centre.dtype != v.dtype or centre.device != v.device:
+            centre = centre.to(v)
+        d = v.log() - centre
+        total = total + (d.square().reshape(*batch, -1).sum(-1) * (-0.5 * inv_var) + const * (d.numel() // max(
+            batch.numel(), 1)))
         if grad:
             g = (d * (-inv_var) / v).reshape(values[name].shape)
             grads[name] = grads[name] + g if name in grads else g

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import types
+
 import torch
 
 from ...rft.contacts import Contacts
@@ -12,7 +14,8 @@ from .observations import ObservationsBackend
 from .pairs import PairsBackend, distinct_pairs
 from .spectral import SpectralBackend
 
-__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs", "estimate_pairs", "spectral_step_cost"]
+__all__ = ["METHODS", "choose_method", "make_backend", "estimated_costs", "estimate_pairs", "pairs_may_move",
+           "spectral_step_cost"]
 
 METHODS = ("observations", "pairs", "spectral")
 ALIASES = {"exact": "observations"}
@@ -55,12 +58,26 @@ def estimated_costs(contacts: Contacts, hypers, tol: float = 1e-7, n_pairs: int 
         obs = T**3 / 3 + T**2 * (sep["betas"].numel() + KERNEL_FLOPS / 10)
     else:
         obs = T**3 / 3 + KERNEL_FLOPS * S * min(U, S)
-    r = min(T, U)
-    pairs = r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
+    pairs = _pairs_flops(T, U)
     spectral = _spectral_flops(T, F, Fb, Fg)
     spectral = float("inf") if capped else float(spectral * SPECTRAL_PENALTY)
     costs = {"observations": float(obs), "pairs": float(pairs), "spectral": spectral}
     return {m: v + STEP_OVERHEAD[m] for m, v in costs.items()}
+
+
+def pairs_may_move(contacts: Contacts, tol: float = 1e-7, n_pairs: int | None = None) -> bool:
+    """Whether ``cheaper_space`` could ever move a fit with ``method="auto"`` out of the pairs space, whatever its
+    hyperparameters do. The observations and pairs costs do not depend on them; the spectral cost falls as the
+    lengthscales grow, to its cost for the smallest basis (lengthscales without bound), which is what is checked:
+    if even that is not 2x cheaper, the fit stays in pairs. Depends on the contacts only (a fit asks once, not every
+    30 steps: the basis for a lengthscale costs about 1 ms here)."""
+    widest = types.SimpleNamespace(lengthscale=torch.full((2, 1, 4), 1e6, dtype=torch.float64))
+    return cheaper_space(estimated_costs(contacts, widest, tol, n_pairs), "pairs") is not None
+
+
+def _pairs_flops(T: int, U: int) -> float:
+    r = min(T, U)
+    return r**3 / 3 + U**2 * (10 + r) + r**2 * U + (T * U**2 + U**3) / N_ITER
 
 
 def _spectral_flops(T: int, F: int, Fb: int, Fg: int) -> float:
