@@ -136,10 +136,7 @@ class ClosedForm:
             pre = self.rho[..., 0] - 2 * m * self.rho[..., 1] + m.pow(2) * self.rho[..., 2]
             rho = pre.clamp_min(0)
         n = self.n
-        # where a gradient follows in a weight space, L^{-1} once serves z, alpha, H and the trace (``Adjoint``)
-        Linv = torch.linalg.solve_triangular(L, self.eye, upper=False) if grad and self.R is not None else None
-        cb = c.expand(L.shape[:-1])[..., None]
-        z = torch.linalg.solve_triangular(L, cb, upper=False) if Linv is None else Linv @ cb
+        z = torch.linalg.solve_triangular(L, c.expand(L.shape[:-1])[..., None], upper=False)
         quad = rho / noise + z.pow(2).sum((-1, -2))
         logdet = (n - r) * torch.log(noise) + 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         nll = 0.5 * (quad + logdet + n * math.log(2 * math.pi)) / n
@@ -147,8 +144,8 @@ class ClosedForm:
             nll = torch.where(ok[..., None], nll, torch.full_like(nll, math.inf))
         if not grad:
             return nll, None, ok
-        alpha = torch.linalg.solve_triangular(L.mT, z, upper=True) if Linv is None else Linv.mT @ z  # (*S, 2, r, 1)
-        adj = Adjoint(L, alpha, self.R, n, Linv)
+        alpha = torch.linalg.solve_triangular(L.mT, z, upper=True)  # (*S, 2, r, 1)
+        adj = Adjoint(L, alpha, self.R, n)
         grads: dict[str, Tensor] = {}
         for t, (_, state) in zip(self.terms, parts):
             for name, g in t.backward(values, adj, state).items():

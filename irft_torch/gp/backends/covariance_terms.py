@@ -39,13 +39,10 @@ class Adjoint:
       solve, not G R (half the flops) nor R^T G R (F x F);
     - ``GR`` = G R and ``sigma`` = R^T G R (= G where R is None);
     - ``trace_inverse()``: tr (sigma^2 I + A)^{-1}, from whichever inverse is at hand.
-
-    With ``Linv`` = L^{-1} given (the weight-space backends compute it once: one triangular solve against I,
-    the same flops as ``trace_inverse``'s), H, G and the trace are products with it instead of more solves.
     """
 
-    def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int, Linv: Tensor | None = None) -> None:
-        self.L, self.alpha, self.R, self.n, self.Linv = L, alpha, R, n, Linv  # alpha (*S, 2, r, 1)
+    def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int) -> None:
+        self.L, self.alpha, self.R, self.n = L, alpha, R, n  # alpha (*S, 2, r, 1)
         self._G: Tensor | None = None
         self._Minv: Tensor | None = None
         self._H: Tensor | None = None
@@ -56,15 +53,14 @@ class Adjoint:
     @property
     def G(self) -> Tensor:
         if self._G is None:
-            self._Minv = torch.cholesky_inverse(self.L) if self.Linv is None else self.Linv.mT @ self.Linv
+            self._Minv = torch.cholesky_inverse(self.L)
             self._G = (self._Minv - self.alpha * self.alpha.mT) / (2 * self.n)
         return self._G
 
     @property
     def H(self) -> Tensor:
         if self._H is None:
-            self._H = (torch.linalg.solve_triangular(self.L, self.R, upper=False) if self.Linv is None
-                       else self.Linv @ self.R)
+            self._H = torch.linalg.solve_triangular(self.L, self.R, upper=False)
         return self._H
 
     @property
@@ -79,8 +75,7 @@ class Adjoint:
             if self.R is None:
                 self._GR = self.G
             elif self._G is None:  # L^-T H - alpha v^T: a triangular solve instead of a product with G
-                z = (torch.linalg.solve_triangular(self.L.mT, self.H, upper=True) if self.Linv is None
-                     else self.Linv.mT @ self.H)
+                z = torch.linalg.solve_triangular(self.L.mT, self.H, upper=True)
                 self._GR = (z - self.alpha * self.v[..., None, :]) / (2 * self.n)
             else:
                 self._GR = self._G @ self.R
@@ -100,8 +95,6 @@ class Adjoint:
         """tr (sigma^2 I + A)^{-1} (*S, 2)."""
         if self._Minv is not None:
             return torch.diagonal(self._Minv, dim1=-2, dim2=-1).sum(-1)
-        if self.Linv is not None:
-            return self.Linv.pow(2).sum((-1, -2))
         eye = torch.eye(self.L.shape[-1], dtype=self.L.dtype, device=self.L.device)
         return torch.linalg.solve_triangular(self.L, eye, upper=False).pow(2).sum((-1, -2))
 
