@@ -29,6 +29,7 @@ import statistics
 import warnings
 from pathlib import Path
 
+import torch
 from tqdm.auto import tqdm
 
 from irft_torch.studies.calibration import (
@@ -89,8 +90,50 @@ def run_resumable(todo: list[Case], path: Path, run_one) -> list[dict]:
     return [r for r in rows if (r["family"], r["motion"], r["seed"]) in keys]
 
 
+def append_rows(path: Path, new: list[dict]) -> None:
+    """Add ``new`` rows to the CSV at ``path``, rewriting it with the union of the columns (a row scored before a
+    column existed gets "nan" there): a resumed run whose rows carry more columns than the file's header (the
+    own-draw coverages since 2026-11-27) would otherwise be appended under the wrong headings."""
+    rows = list(csv.DictReader(path.open())) if path.exists() and path.stat().st_size else []
+    rows += [{k: str(v) for k, v in r.items()} for r in new]
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, restval="nan")
+        w.writeheader()
+        w.writerows(rows)
+
+
+def calibrated_band(rows: list[dict], axis: str, n_mc: int = 20_000) -> tuple[float, float] | None:
+    """Where the mean 95 % coverage of these fits would fall (central 95 %) were each truth a draw of its own
+    fit's posterior (``studies.calibration.score``'s ``own95_*``): Monte Carlo over the fits' own-coverage
+    quantile functions (``own95_q_*``; their atoms, all-or-nothing coverage, kept), or where rows have only the
+    mean and std, the normal approximation mean +- 1.96 sqrt(sum sd^2) / n clipped to [0, 1]. None for rows scored
+    before either existed. Issue 13's restated bar, per group: how far a calibrated model's mean coverage moves
+    from chance alone (coverage is correlated over the square within a fit, so a mean over a few fits moves far
+    more than one over independent points)."""
+    def has(key: str) -> bool:
+        return bool(rows) and all(str(r.get(f"{key}_{axis}", "")) not in ("", "nan", "None") for r in rows)
+
+    if has("own95_q"):
+        q = torch.tensor([[float(v) for v in str(r[f"own95_q_{axis}"]).split(";")] for r in rows], dtype=torch.float64)
+        u = torch.rand(n_mc, len(rows), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        pos = u * (q.shape[1] - 1)  # the quantile function, linear between the stored quantiles
+        lo_i = pos.floor().long().clamp(max=q.shape[1] - 2)
+        frac = pos - lo_i
+        rows_i = torch.arange(len(rows))[None, :].expand_as(lo_i)
+        draws = q[rows_i, lo_i] * (1 - frac) + q[rows_i, lo_i + 1] * frac
+        means = draws.mean(1)
+        return float(torch.quantile(means, 0.025)), float(torch.quantile(means, 0.975))
+    if not has("own95_mean"):
+        return None
+    centre = statistics.fmean(float(r[f"own95_mean_{axis}"]) for r in rows)
+    half = 1.96 * math.sqrt(sum(float(r[f"own95_sd_{axis}"]) ** 2 for r in rows)) / len(rows)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
 def summarise(rows: list[dict]) -> dict:
-    """(group kind, group, posterior, axis) -> (n, mean cover50, cover90, cover95, share pct95 < 0.025)."""
+    """(group kind, group, posterior, axis) -> (n, mean cover50, cover90, cover95, share pct95 < 0.025,
+    ``calibrated_band`` or None)."""
     out = {}
     for by in ("family", "motion"):
         for r in rows:
@@ -100,7 +143,7 @@ def summarise(rows: list[dict]) -> dict:
     for key, rs in out.items():
         a = key[3]
         table[key] = (len(rs), *(statistics.fmean(float(r[f"cover{lv}_{a}"]) for r in rs) for lv in (50, 90, 95)),
-                      sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs))
+                      sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs), calibrated_band(rs, a))
     return table
 
 
@@ -111,10 +154,30 @@ def coverage_table(rows: list[dict], posteriors) -> list[str]:
     lines = ["| group | " + " | ".join(posteriors) + " |", "|---" * (len(posteriors) + 1) + "|"]
     for by in ("family", "motion"):
         for g in sorted({k[1] for k in table if k[0] == by}):
-            cells = [" / ".join(f"{table[(by, g, hp, a)][3]:.3f}, {100 * table[(by, g, hp, a)][4]:.0f} %"
-                                for a in "xz") for hp in posteriors]
+            cells = [" / ".join(f"{table[(by, g, hp, a)][3]:.3f}{_band_mark(table[(by, g, hp, a)])}, "
+                                f"{100 * table[(by, g, hp, a)][4]:.0f} %" for a in "xz") for hp in posteriors]
             lines.append(f"| {g} ({table[(by, g, posteriors[0], 'x')][0]}) | " + " | ".join(cells) + " |")
     return lines
+
+
+def overconfident_limit(n: int, level: float = 0.975) -> int:
+    """The most fits of n that a calibrated model leaves below the 2.5th percentile of their own draws, at
+    ``level``: each fit is so with probability 0.025, so the count is Binomial(n, 0.025) and this is its
+    ``level`` quantile (1 of 8 fits, 2 of 12, 4 of 48)."""
+    k, cdf = 0, 0.0
+    while True:
+        cdf += math.comb(n, k) * 0.025**k * 0.975 ** (n - k)
+        if cdf >= level:
+            return k
+        k += 1
+
+
+def _band_mark(entry) -> str:
+    """" ‡" where the mean 95 % coverage is outside the calibrated band (``calibrated_band``) or more fits are
+    overconfident beyond chance than a calibrated model leaves (``overconfident_limit``), else ""."""
+    n, over, band = entry[0], entry[4], entry[5]
+    inside = band is None or band[0] <= entry[3] <= band[1]
+    return "" if inside and round(over * n) <= overconfident_limit(n) else " ‡"
 
 
 def write_report(rows: list[dict], out: Path, suffix: str) -> None:
@@ -126,7 +189,10 @@ def write_report(rows: list[dict], out: Path, suffix: str) -> None:
              f"{len(rows) // len(posts)} fits, each scored as the MAP plug-in and with the Laplace "
              "hyperparameter posterior. Cells: mean coverage at 50 / 90 / 95 % over the 41 x 41 grid; `over`: "
              "share of fits whose 95 % coverage is below the 2.5th percentile of their own posterior draws' "
-             "(overconfident beyond chance). Bar: 95 % coverage in 0.90-0.98, over <= 10 %.", ""]
+             "(overconfident beyond chance); `cal.`: where the mean 95 % coverage of a calibrated model would fall "
+             "(central 95 %: each truth a draw of its own fit's posterior). Bar (issue 30): 95 % coverage in "
+             "0.90-0.98, over <= 10 % (✗ where not); ‡: outside the calibrated band, or more fits overconfident than a "
+             "calibrated model leaves (the 97.5 % quantile of Binomial(n, 0.025): 1 of 8, 2 of 12).", ""]
     for by in ("family", "motion"):
         lines += [f"## By {by}", "", "| " + by + " | n | " + " | ".join(f"{hp} {a}" for hp in posts for a in "xz")
                   + " |", "|---|---|" + "---|" * (2 * len(posts))]
@@ -135,9 +201,11 @@ def write_report(rows: list[dict], out: Path, suffix: str) -> None:
             cells = []
             for hp in posts:
                 for a in "xz":
-                    n, c50, c90, c95, over = table[(by, g, hp, a)]
+                    n, c50, c90, c95, over, band = table[(by, g, hp, a)]
                     ok = 0.90 <= c95 <= 0.98 and over <= 0.10
-                    cells.append(f"{c50:.2f} / {c90:.2f} / **{c95:.3f}**, over {over:.0%}{'' if ok else ' ✗'}")
+                    cal = "" if band is None else f" (cal. {band[0]:.2f}-{band[1]:.2f})"
+                    cells.append(f"{c50:.2f} / {c90:.2f} / **{c95:.3f}**{cal}, over {over:.0%}{'' if ok else ' ✗'}"
+                                 f"{_band_mark(table[(by, g, hp, a)])}")
             lines.append(f"| {g} | {table[(by, g, posts[0], 'x')][0]} | " + " | ".join(cells) + " |")
         lines.append("")
     fit = {(r["family"], r["motion"], r["noise"], r["seed"]): float(r["fit_s"]) for r in rows
@@ -266,12 +334,7 @@ def main(argv=None) -> None:
             if args.posteriors:
                 chosen = tuple(args.posteriors.split(","))
             new = run_case(case, chosen, model_options=opts)
-            write_header = not path.exists() or path.stat().st_size == 0
-            with path.open("a", newline="") as fh:
-                w = csv.DictWriter(fh, fieldnames=list(new[0]))
-                if write_header:
-                    w.writeheader()
-                w.writerows(new)
+            append_rows(path, new)
             rows += [{k: str(v) for k, v in r.items()} for r in new]
     write_report(rows, args.out, suffix)
     print((args.out / f"calibration_harness{suffix}.md").read_text())

@@ -30,7 +30,7 @@ from irft_torch import InverseRFT
 from irft_torch.studies.calibration import medium, motion, score, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from calibration_harness import cases, coverage_table  # noqa: E402
+from calibration_harness import append_rows, cases, coverage_table  # noqa: E402
 
 
 def case_list(which: str) -> list:
@@ -82,11 +82,7 @@ def main(argv=None) -> None:
         warnings.simplefilter("ignore")  # the HyperPosteriorWarning of stage 1 alone is expected here
         for case in todo:
             new = run(case)
-            with path.open("a", newline="") as fh:
-                w = csv.DictWriter(fh, fieldnames=list(new[0]))
-                if fh.tell() == 0:
-                    w.writeheader()
-                w.writerows(new)
+            append_rows(path, new)
             rows += [{k: str(v) for k, v in r.items()} for r in new]
             print(case.key, [(r["posterior"], r["khat"], round(float(r["cover95_x"]), 3),
                               round(float(r["cover95_z"]), 3)) for r in new], flush=True)

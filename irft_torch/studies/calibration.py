@@ -325,10 +325,14 @@ def grid(n: int = 41) -> tuple[Tensor, Tensor]:
 
 def score(model: InverseRFT, truth, n_grid: int = 41, draws: int = 200, seed: int = 0) -> dict:
     """Coverage of ``truth`` at ``LEVELS`` over the grid, per map, its percentile among the 95 % coverages of
-    ``draws`` maps from the model's own posterior, map RMSE and mean posterior std (N/cm^3)."""
+    ``draws`` maps from the model's own posterior (``pct95_*``), the distribution of those own coverages (what this
+    fit's coverage would be, were the truth a draw of its posterior: ``own95_mean_*``, ``own95_sd_*`` and its 21
+    quantiles at 0, 5, .., 100 % as a ";"-joined string, ``own95_q_*``: coverage is correlated over the square
+    within a fit, so these say how far a group's mean coverage may stray by chance), map RMSE and mean posterior
+    std (N/cm^3)."""
     B, G = grid(n_grid)
     true = truth(B, G)
-    out = {}
+    out: dict[str, float | str] = {}
     with torch.no_grad():
         post = model.stress_map(B, G)
         for level in LEVELS:
@@ -341,6 +345,10 @@ def score(model: InverseRFT, truth, n_grid: int = 41, draws: int = 200, seed: in
                 own = ((maps >= lo) & (maps <= hi)).reshape(draws, -1, 2).double().mean(1)  # (draws, 2)
                 for a, name in enumerate("xz"):
                     out[f"pct95_{name}"] = float(metrics.percentile_among(inside[a], own[:, a]))
+                    out[f"own95_mean_{name}"] = float(own[:, a].mean())
+                    out[f"own95_sd_{name}"] = float(own[:, a].std())
+                    q = torch.quantile(own[:, a], torch.linspace(0, 1, 21, dtype=own.dtype))
+                    out[f"own95_q_{name}"] = ";".join(f"{float(v):.5f}" for v in q)
         err = (post.mean - true).reshape(-1, 2)
         std = post.variance.clamp_min(0).sqrt().reshape(-1, 2)
         for a, name in enumerate("xz"):

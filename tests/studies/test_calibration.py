@@ -1,7 +1,11 @@
 """The calibration harness (studies.calibration): its media against published coefficients, its motions,
 its percentile statistic on truths the model is calibrated for by construction, and one fast case."""
 
+import csv
+import importlib.util
 import math
+import pathlib
+import sys
 
 import pytest
 import torch
@@ -10,6 +14,17 @@ import irft_torch as irft
 from irft_torch.studies import calibration as cal
 
 F64 = torch.float64
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def harness():
+    """experiments/calibration_harness.py as a module."""
+    path = ROOT / "experiments" / "calibration_harness.py"
+    spec = importlib.util.spec_from_file_location("calibration_harness", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["calibration_harness"] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def test_fourier_medium_of_li_equals_the_published_generic_map_and_mirrors():
@@ -63,14 +78,16 @@ def test_simulated_noise_is_the_stated_share_of_each_axis_range():
 
 def test_the_percentile_statistic_is_uniform_on_truths_drawn_from_the_model_itself():
     """Simulation-based calibration of the statistic: a map drawn from the fit's own posterior is a truth the
-    model is calibrated for, so its 95 % coverage's percentile among the model's draws is uniform."""
+    model is calibrated for, so its 95 % coverage's percentile among the model's draws is uniform; the coverages of
+    those truths have the mean and spread the score reports from the model's own draws (``own95_*``, other draws of
+    another generator), and their mean falls in the harness' calibrated band."""
     c = cal.motion("short", 0)
     f = cal.simulate(cal.medium("presets", 2)[0], c, 0.05, 0)
     model = irft.InverseRFT(c, f, hyper_posterior="map")
     model.fit(n_iter=60, progress=False)
     B, G = cal.grid(15)
     truths = model.sample_maps(B, G, 60, generator=torch.Generator().manual_seed(123))
-    pct = []
+    pct, rows = [], []
     for k in range(60):
         table = truths[k]
 
@@ -78,10 +95,47 @@ def test_the_percentile_statistic_is_uniform_on_truths_drawn_from_the_model_itse
             assert beta.shape == table.shape[:-1]
             return table
 
-        pct.append(cal.score(model, truth, n_grid=15, draws=100, seed=k)["pct95_z"])
+        rows.append(cal.score(model, truth, n_grid=15, draws=100, seed=k))
+        pct.append(rows[-1]["pct95_z"])
     pct = torch.tensor(pct)
     assert 0.35 < float(pct.mean()) < 0.65  # uniform: mean 1/2, sd of the mean 0.037
     assert float((pct < 0.025).double().mean()) <= 0.1
+    for a in "xz":
+        observed = torch.tensor([r[f"cover95_{a}"] for r in rows])
+        own_mean = torch.tensor([r[f"own95_mean_{a}"] for r in rows])
+        own_sd = torch.tensor([r[f"own95_sd_{a}"] for r in rows])
+        se = float(own_sd.pow(2).mean().sqrt()) / math.sqrt(len(rows))
+        assert abs(float(observed.mean() - own_mean.mean())) < 4 * se + 1e-3
+        assert 0.5 < float(observed.std() / own_sd.pow(2).mean().sqrt()) < 2.0
+        lo, hi = harness().calibrated_band(rows, a)
+        assert lo <= float(observed.mean()) <= hi
+        half = 1.96 * float(own_sd.pow(2).sum().sqrt()) / len(rows)  # the normal approximation of a mean of 60 fits
+        centre = float(own_mean.mean())
+        assert (lo, hi) == pytest.approx((centre - half, min(1.0, centre + half)), abs=0.01)
+
+
+def test_the_calibrated_band_of_a_mean_coverage_against_hand_cases():
+    """The harness' band for the mean of n fits' coverages: fits whose own coverage is always 1 (a posterior that
+    covers all or nothing, here all) give [1, 1], which a mean of 1.000 is inside; own coverages uniform on [0, 1]
+    give the mean of n uniforms, 1/2 +- 1.96 sqrt(1 / (12 n)) (central limit theorem, n = 48: +-0.0817); rows
+    scored before the quantiles existed fall back to the normal approximation, and rows without either give None."""
+    band = harness().calibrated_band
+    ones = ";".join(["1.00000"] * 21)
+    assert band([{"own95_q_x": ones}] * 12, "x") == (1.0, 1.0)
+    uniform = ";".join(f"{k / 20:.5f}" for k in range(21))
+    lo, hi = band([{"own95_q_z": uniform}] * 48, "z")
+    half = 1.96 * math.sqrt(1 / (12 * 48))
+    assert lo == pytest.approx(0.5 - half, abs=0.004) and hi == pytest.approx(0.5 + half, abs=0.004)
+    lo, hi = band([{"own95_mean_x": "0.9", "own95_sd_x": "0.2", "own95_q_x": ""}] * 16, "x")
+    assert (lo, hi) == pytest.approx((0.9 - 1.96 * 0.2 / 4, 0.9 + 1.96 * 0.2 / 4), rel=1e-12)
+    assert band([{"cover95_x": "0.9"}] * 3, "x") is None
+
+
+def test_the_overconfident_limit_is_the_binomial_quantile():
+    """By hand: P(X <= 1) for X ~ Binomial(8, 0.025) is 0.9842 (>= 0.975), P(X <= 0) 0.8167; for 12 fits P(X <= 1) is
+    0.9651 and P(X <= 2) 0.9971; for 48, P(X <= 3) 0.9682 and P(X <= 4) 0.9932."""
+    limit = harness().overconfident_limit
+    assert limit(8) == 1 and limit(12) == 2 and limit(48) == 4 and limit(1) == 0
 
 
 def test_one_case_scores_the_plug_in_the_laplace_mixture_and_the_average_from_one_fit():
@@ -95,3 +149,15 @@ def test_one_case_scores_the_plug_in_the_laplace_mixture_and_the_average_from_on
             assert 0.0 <= r[k] <= 1.0
         assert r["cover50_x"] <= r["cover90_x"] <= r["cover95_x"]
     assert rows[1]["n_draws"] >= 2 and rows[1]["ess"] > 1
+
+
+def test_resumed_rows_with_more_columns_keep_their_headings(tmp_path):
+    """A CSV from before a column existed, resumed with rows that have it: every value stays under its own heading
+    (was: appended under the old header, each later column one place off) and the old rows read "nan" there."""
+    path = tmp_path / "rows.csv"
+    path.write_text("family,cover95_x,rmse_x\nscaled,0.9,0.01\n")
+    harness().append_rows(path, [{"family": "gp", "cover95_x": 0.8, "own95_mean_x": 0.95, "rmse_x": 0.02}])
+    rows = list(csv.DictReader(path.open()))
+    assert rows[0] == {"family": "scaled", "cover95_x": "0.9", "rmse_x": "0.01", "own95_mean_x": "nan"}
+    assert rows[1] == {"family": "gp", "cover95_x": "0.8", "rmse_x": "0.02", "own95_mean_x": "0.95"}
+    assert harness().calibrated_band(rows, "x") is None  # one row without the own coverages: no band

@@ -1,0 +1,195 @@
+"""Why the calibration harness' last rows fail (issue 30): two measurements, no tuning.
+
+1. **The outputscale prior's centre against the truth** (no fits). The prior on each map's variance is
+   centred on an estimate from the forces (``gp.priors.prior_centres``: the generic shape at the medium's
+   zeta, the data's own stress per depth, half the other axis'). Printed per family and motion over
+   ``--seeds`` seeds: log10(centre / the true map's mean square over the canonical square), median and range.
+   Where the forces see little of the map, the posterior there is this prior.
+2. **The residual terms' prior size against coverage** (``--scan``). The model with the generic shape as a
+   rank-one term (``InverseRFT(..., li_basis=True, generic_shape=True)``) is refitted with the centre of
+   its residual terms' priors (the RBF outputscale and Li et al.'s variance) scaled by each of
+   ``--factors`` (1 is the library's), every family x motion at the seeds ``--first-seed`` ..
+   ``--first-seed + --scan-seeds - 1``; the plug-in's 95 % coverage per family (``studies.calibration.score``)
+   and, per fit, how many nats the forces gain when those two variances shrink 1000x at the fitted
+   hyperparameters (the marginal likelihood alone, no hyperprior): does the generic-shaped families'
+   over-coverage follow the residual terms' prior size, and what would shrinking it cost the other families?
+3. ``--nuts``: one GP-drawn case (``gp/long/4``, a lengthscale 0.85 map) with the default model scored as the
+   plug-in, Laplace and NUTS (one chain of 256 after 256, about 4 minutes here): does the exact hyperparameter
+   posterior cover what the approximations miss?
+
+    python experiments/calibration_limits.py [--seeds 8] [--scan] [--factors 1,0.1,0.01] [--first-seed 4]
+        [--scan-seeds 2] [--nuts] [--out experiments/results]
+
+Writes ``calibration_limits.md`` (and ``calibration_limits_scan.csv`` with ``--scan``) under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import statistics
+import time
+import warnings
+from pathlib import Path
+from unittest import mock
+
+import torch
+
+import irft_torch.gp.model as front_door
+from irft_torch import InverseRFT
+from irft_torch.studies.calibration import MEDIA, MOTIONS, grid, medium, motion, score, simulate
+
+GENERIC_SHAPED = ("scaled", "presets")
+
+
+def _data(family: str, kind: str, seed: int):
+    truth, label = medium(family, seed)
+    c = motion(kind, seed)
+    return truth, label, c, simulate(truth, c, 0.01 if seed % 2 == 0 else 0.05, seed)
+
+
+def _os_centre(model: InverseRFT) -> torch.Tensor:
+    """The outputscale prior's centre (2,) (N/cm^3)^2 as registered on the model."""
+    closure = model.hypers.kernel._priors["outputscale_prior"][1]
+    return torch.as_tensor(closure.keywords["c"]).exp()
+
+
+def centre_table(seeds: int) -> list[str]:
+    """Claim 1: log10(outputscale prior centre / truth mean square) per family x motion, seeds 0 .. seeds - 1."""
+    B, G = grid(41)
+    lines = ["| family | motion | x: median (min .. max) | z: median (min .. max) |", "|---|---|---|---|"]
+    for family in MEDIA:
+        for kind in MOTIONS:
+            logs = []
+            for seed in range(seeds):
+                truth, _, c, f = _data(family, kind, seed)
+                truth_ms = truth(B, G).reshape(-1, 2).pow(2).mean(0)
+                logs.append((_os_centre(InverseRFT(c, f)) / truth_ms).log10())
+            v = torch.stack(logs)
+            cells = [f"{float(v[:, a].median()):+.2f} ({float(v[:, a].min()):+.2f} .. {float(v[:, a].max()):+.2f})"
+                     for a in range(2)]
+            lines.append(f"| {family} | {kind} | {cells[0]} | {cells[1]} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
+def _fit_scaled(c, f, factor: float) -> InverseRFT:
+    """The generic-shape model with its residual terms' prior centre (outputscale, Li et al.'s variance) x factor,
+    fitted (300 Adam steps, the library's default)."""
+    real = front_door.prior_centres
+
+    def scaled(*args, **kwargs):
+        out = dict(real(*args, **kwargs))
+        out["outputscale"] = out["outputscale"] * factor
+        return out
+
+    with mock.patch.object(front_door, "prior_centres", scaled):
+        model = InverseRFT(c, f, li_basis=True, generic_shape=True)
+    model.fit(300, progress=False)
+    return model
+
+
+def _gain_nats(model: InverseRFT, shrink: float = 1e-3) -> tuple[float, float]:
+    """Per axis, log p(F | residual variances x shrink) - log p(F | fitted), all else at the fit (nats)."""
+    m = copy.deepcopy(model)
+    with torch.no_grad():
+        before = m.backend.negative_log_likelihood().detach() * m.backend.n_samples
+        m.hypers.outputscale = m.hypers.outputscale * shrink
+        m.hypers.li.variance = m.hypers.li.variance * shrink
+        after = m.backend.negative_log_likelihood().detach() * m.backend.n_samples
+    d = before - after
+    return float(d[0]), float(d[1])
+
+
+def residual_scan(factors: list[float], first_seed: int, n_seeds: int, out: Path) -> list[str]:
+    """Claim 2: coverage per family at each prior-centre factor, and the forces' gain for shrinking the terms."""
+    rows = []
+    for seed in range(first_seed, first_seed + n_seeds):
+        for family in MEDIA:
+            for kind in MOTIONS:
+                truth, _, c, f = _data(family, kind, seed)
+                for factor in factors:
+                    t0 = time.perf_counter()
+                    model = _fit_scaled(c, f, factor)
+                    s = score(model, truth, 41, 200, seed)
+                    gx, gz = _gain_nats(model)
+                    rows.append({"family": family, "motion": kind, "seed": seed, "factor": factor,
+                                 "cover95_x": s["cover95_x"], "cover95_z": s["cover95_z"],
+                                 "pct95_x": s["pct95_x"], "pct95_z": s["pct95_z"], "gain_x": gx, "gain_z": gz,
+                                 "os_x": float(model.hypers.outputscale[0]), "os_z": float(model.hypers.outputscale[1]),
+                                 "seconds": time.perf_counter() - t0})
+                    print(f"{family}/{kind}/{seed} x{factor:g}: 95 % coverage {s['cover95_x']:.3f} / "
+                          f"{s['cover95_z']:.3f}, gain for shrinking {gx:.1f} / {gz:.1f} nats", flush=True)
+    with (out / "calibration_limits_scan.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    lines = ["| family | " + " | ".join(f"x {k:g}: 95 % x / z, overconfident" for k in factors) +
+             " | gain for shrinking (nats, median x / z at x 1) |",
+             "|---|" + "---|" * (len(factors) + 1)]
+    for family in MEDIA:
+        cells = []
+        for k in factors:
+            rs = [r for r in rows if r["family"] == family and r["factor"] == k]
+            cx, cz = (statistics.mean(r[f"cover95_{a}"] for r in rs) for a in "xz")
+            ox, oz = (100 * statistics.mean(r[f"pct95_{a}"] < 0.025 for r in rs) for a in "xz")
+            cells.append(f"{cx:.3f} / {cz:.3f}, {ox:.0f} % / {oz:.0f} %")
+        base = [r for r in rows if r["family"] == family and r["factor"] == factors[0]]
+        gx, gz = (statistics.median(r[f"gain_{a}"] for r in base) for a in "xz")
+        gains = f"{gx:.1f} / {gz:.1f}"
+        lines.append(f"| {family} | " + " | ".join(cells) + f" | {gains} |")
+    return lines
+
+
+def nuts_case() -> list[str]:
+    """Claim 3: gp/long/4 with the default model, plug-in, Laplace and NUTS from the same fit."""
+    truth, label, c, f = _data("gp", "long", 4)
+    fitted = InverseRFT(c, f)
+    fitted.fit(300, progress=False)
+    lines = [f"gp/long/4 ({label}), default model ({fitted.method}):", "",
+             "| posterior | 95 % coverage x / z | RMSE / mean std x / z | seconds |", "|---|---|---|---|"]
+    for name, opts in (("map", {}), ("laplace", {}),
+                       ("nuts", {"n_samples": 256, "warmup": 256, "num_chains": 1, "processes": 1})):
+        m = copy.deepcopy(fitted)
+        t0 = time.perf_counter()
+        m.fit_hyper_posterior(name, generator=torch.Generator().manual_seed(0), **opts)
+        s = score(m, truth, 41, 200, 4)
+        lines.append(f"| {name} | {s['cover95_x']:.3f} / {s['cover95_z']:.3f} | {s['rmse_x'] / s['std_x']:.2f} / "
+                     f"{s['rmse_z'] / s['std_z']:.2f} | {time.perf_counter() - t0:.0f} |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", type=int, default=8, help="seeds per family x motion for the centre table")
+    p.add_argument("--scan", action="store_true", help="refit with the residual terms' prior centre scaled")
+    p.add_argument("--factors", default="1,0.1,0.01", help="comma-separated factors for --scan (1 first)")
+    p.add_argument("--first-seed", type=int, default=4, help="--scan: the first seed")
+    p.add_argument("--scan-seeds", type=int, default=2, help="--scan: seeds per family x motion")
+    p.add_argument("--nuts", action="store_true", help="the gp/long/4 case with NUTS (slow)")
+    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    a = p.parse_args(argv)
+    torch.set_default_dtype(torch.float64)
+    a.out.mkdir(parents=True, exist_ok=True)
+    md = ["# Why the calibration harness' last rows fail (`python experiments/calibration_limits.py`)", "",
+          "## The outputscale prior's centre against the truth: log10(centre / truth mean square), seeds "
+          f"0-{a.seeds - 1}",
+          ""]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        md += centre_table(a.seeds)
+        if a.scan:
+            factors = [float(x) for x in a.factors.split(",")]
+            md += ["", f"## The residual terms' prior centre x factor: the generic-shape model refitted, seeds "
+                   f"{a.first_seed}-{a.first_seed + a.scan_seeds - 1}, every motion", ""]
+            md += residual_scan(factors, a.first_seed, a.scan_seeds, a.out)
+        if a.nuts:
+            md += ["", "## NUTS on a GP-drawn map", ""] + nuts_case()
+    (a.out / "calibration_limits.md").write_text("\n".join(md) + "\n")
+    print(f"wrote {a.out / 'calibration_limits.md'}")
+
+
+if __name__ == "__main__":
+    main()
