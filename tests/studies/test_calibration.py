@@ -161,3 +161,26 @@ def test_resumed_rows_with_more_columns_keep_their_headings(tmp_path):
     assert rows[0] == {"family": "scaled", "cover95_x": "0.9", "rmse_x": "0.01", "own95_mean_x": "nan"}
     assert rows[1] == {"family": "gp", "cover95_x": "0.8", "rmse_x": "0.02", "own95_mean_x": "0.95"}
     assert harness().calibrated_band(rows, "x") is None  # one row without the own coverages: no band
+
+
+def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
+    """experiments/calibration_limits.py's refit: the RBF outputscale's and Li et al.'s prior centres x factor against
+    the library's model on the same data, the generic shape's and the lengthscales' priors unchanged."""
+    path = ROOT / "experiments" / "calibration_limits.py"
+    spec = importlib.util.spec_from_file_location("calibration_limits", path)
+    limits = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(limits)
+    truth, _ = cal.medium("perturbed", 1)
+    c = cal.motion("short", 1)
+    f = cal.simulate(truth, c, 0.05, 1)
+    base = irft.InverseRFT(c, f, li_basis=True, generic_shape=True)
+    scaled = limits.build_scaled(c, f, 0.01)
+
+    def centre(module, name):
+        return torch.as_tensor(module._priors[name][1].keywords["c"])
+
+    for get, name, shift in ((lambda m: m.hypers.kernel, "outputscale_prior", math.log(0.01)),
+                             (lambda m: m.hypers.li, "variance_prior", math.log(0.01)),
+                             (lambda m: m.hypers.li, "generic_variance_prior", 0.0),
+                             (lambda m: m.hypers.kernel.base_kernel, "lengthscale_prior", 0.0)):
+        torch.testing.assert_close(centre(get(scaled), name), centre(get(base), name) + shift, rtol=0, atol=1e-12)
