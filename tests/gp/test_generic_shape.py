@@ -17,7 +17,7 @@ from irft_torch.gp.li_basis import generic_coefficients, li_features
 from irft_torch.rft import Contacts, forces
 from irft_torch.rft.stress_maps import FourierStressMap
 
-from .test_li_basis import LI, LS, OS, _data
+from .test_li_basis import LI, LS, OS, _data, check_learned_surface
 from .test_li_basis import _dense as _dense_li
 
 F64 = torch.float64
@@ -246,21 +246,9 @@ def test_options_around_the_generic_term():
 
 def test_the_learned_surface_carries_the_generic_term():
     """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
-    at the shifted contacts."""
-    from .test_surface import TRUTH, plates
-
-    c = plates()
-    f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
-    f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    m = InverseRFT(c, f, surface_offset=True, li_basis=True, generic_shape=True, priors=None)
-    _set(m, torch.tensor([3e-3, 5e-3], dtype=F64) * f.pow(2).mean(0))
-    for delta in (-0.6, 0.2):  # cm
-        with torch.no_grad():
-            m.surface.offset.fill_(delta)
-        loss = m._surface_loss()
-        cd = c.with_surface_offset(torch.tensor(delta / 100))
-        ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
-        assert abs(float(loss.detach()) - float(ref)) < 1e-9
+    at the shifted contacts; its offset gradient equals central differences (``test_li_basis``'s check with the
+    generic shape's term)."""
+    check_learned_surface({"generic_shape": True}, _set, _dense)
 
 
 @pytest.mark.parametrize("opts,factor,width", [({}, 1.0, math.log(2)), ({"prior_mean": "physics"}, 0.3, math.log(10)),

@@ -276,20 +276,28 @@ def test_fit_together_with_the_term_ends_where_each_fit_ends(tied, generic):
 def test_the_learned_surface_carries_the_term():
     """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
     at the shifted contacts, and its offset gradient equals central differences."""
+    check_learned_surface({}, _set, _dense)
+
+
+def check_learned_surface(options: dict, set_hypers, dense) -> None:
+    """A model with Li et al.'s term (and ``options``) learning the surface offset: its loss at two offsets against
+    ``dense`` (the model written densely) at the shifted contacts, its offset gradient against central differences,
+    and a fit whose rebuilt backend keeps the term. ``set_hypers(model, noise)`` sets the hyperparameters ``dense``
+    assumes (``test_generic_shape`` passes its own pair)."""
     from .test_surface import TRUTH, assert_offset_gradient_is_central_differences, plates
 
     c = plates()
     f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    m = InverseRFT(c, f, surface_offset=True, li_basis=True, priors=None)
+    m = InverseRFT(c, f, surface_offset=True, li_basis=True, priors=None, **options)
     noise = torch.tensor([3e-3, 5e-3], dtype=F64) * f.pow(2).mean(0)
-    _set(m, noise)
+    set_hypers(m, noise)
     for delta in (-0.6, 0.2):  # cm
         with torch.no_grad():
             m.surface.offset.fill_(delta)
         loss = m._surface_loss()
         cd = c.with_surface_offset(torch.tensor(delta / 100))
-        ref = sum(_dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
+        ref = sum(dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
         assert abs(float(loss.detach()) - float(ref)) < 1e-9
         assert_offset_gradient_is_central_differences(m, loss, delta)
     m.fit(n_iter=30, progress=False)  # the backend rebuilt at the fitted offset keeps the term
