@@ -79,11 +79,7 @@ def run_resumable(todo: list[Case], path: Path, run_one) -> list[dict]:
             warnings.simplefilter("ignore")
             new = run_one(case)
         rows += [{k: str(v) for k, v in r.items()} for r in new]
-        fields = list(dict.fromkeys(k for r in rows for k in r))
-        with path.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields, restval="nan")
-            w.writeheader()
-            w.writerows(rows)
+        write_rows(path, rows)
         cov = {r["posterior"]: f"{float(r['cover95_x']):.3f}/{float(r['cover95_z']):.3f}" for r in new}
         print(f"[{i + 1}/{len(todo)}] {case.family} {case.kind} seed {case.seed}: {cov}", flush=True)
     keys = {(c.family, c.kind, str(c.seed)) for c in todo}
@@ -95,7 +91,11 @@ def append_rows(path: Path, new: list[dict]) -> None:
     column existed gets "nan" there): a resumed run whose rows carry more columns than the file's header (the
     own-draw coverages since 2026-11-27) would otherwise be appended under the wrong headings."""
     rows = list(csv.DictReader(path.open())) if path.exists() and path.stat().st_size else []
-    rows += [{k: str(v) for k, v in r.items()} for r in new]
+    write_rows(path, rows + [{k: str(v) for k, v in r.items()} for r in new])
+
+
+def write_rows(path: Path, rows: list[dict]) -> None:
+    """The CSV at ``path`` rewritten with ``rows`` under the union of their columns ("nan" where a row lacks one)."""
     fields = list(dict.fromkeys(k for r in rows for k in r))
     with path.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, restval="nan")

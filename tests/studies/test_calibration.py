@@ -2,10 +2,7 @@
 its percentile statistic on truths the model is calibrated for by construction, and one fast case."""
 
 import csv
-import importlib.util
 import math
-import pathlib
-import sys
 
 import pytest
 import torch
@@ -13,18 +10,14 @@ import torch
 import irft_torch as irft
 from irft_torch.studies import calibration as cal
 
+from . import experiment
+
 F64 = torch.float64
-ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def harness():
     """experiments/calibration_harness.py as a module."""
-    path = ROOT / "experiments" / "calibration_harness.py"
-    spec = importlib.util.spec_from_file_location("calibration_harness", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["calibration_harness"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return experiment("calibration_harness")
 
 
 def test_fourier_medium_of_li_equals_the_published_generic_map_and_mirrors():
@@ -166,10 +159,7 @@ def test_resumed_rows_with_more_columns_keep_their_headings(tmp_path):
 def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
     """experiments/calibration_limits.py's refit: the RBF outputscale's and Li et al.'s prior centres x factor against
     the library's model on the same data, the generic shape's and the lengthscales' priors unchanged."""
-    path = ROOT / "experiments" / "calibration_limits.py"
-    spec = importlib.util.spec_from_file_location("calibration_limits", path)
-    limits = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(limits)
+    limits = experiment("calibration_limits")
     truth, _ = cal.medium("perturbed", 1)
     c = cal.motion("short", 1)
     f = cal.simulate(truth, c, 0.05, 1)

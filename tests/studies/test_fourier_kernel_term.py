@@ -1,10 +1,7 @@
 """experiments/fourier_kernel_term.py: its Li-basis kernel spans Li et al.'s fitting functions, and its dense
 zero-mean model is the library's (the same posterior at the same hyperparameters)."""
 
-import importlib.util
 import math
-import pathlib
-import sys
 
 import torch
 
@@ -14,17 +11,13 @@ from irft_torch.rft.paths import pose_path
 from irft_torch.rft.stress_maps import FourierStressMap
 from irft_torch.studies.calibration import medium
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
+from . import experiment
+
 F64 = torch.float64
 
 
 def _script():
-    path = ROOT / "experiments" / "fourier_kernel_term.py"
-    spec = importlib.util.spec_from_file_location("fourier_kernel_term", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["fourier_kernel_term"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return experiment("fourier_kernel_term")
 
 
 def _angles(n, seed):
