@@ -174,3 +174,38 @@ def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
                              (lambda m: m.hypers.li, "generic_variance_prior", 0.0),
                              (lambda m: m.hypers.kernel.base_kernel, "lengthscale_prior", 0.0)):
         torch.testing.assert_close(centre(get(scaled), name), centre(get(base), name) + shift, rtol=0, atol=1e-12)
+
+
+def test_the_limits_terms_drop_only_the_residual_and_leave_regression_on_the_generic_shape():
+    """experiments/calibration_limits.py --terms: ``shrunk`` scales the RBF's and Li et al.'s variances and nothing
+    else, and with them switched off the posterior is Bayesian linear regression of each force axis on the generic
+    shape's forces (by hand), so on a scaled generic truth z^2 = (w - s)^2 / var(w) on every cell of the square."""
+    limits = experiment("calibration_limits")
+    truth, _ = cal.medium("scaled", 2)
+    c = cal.motion("short", 2)
+    f = cal.simulate(truth, c, 0.05, 2)
+    model = irft.InverseRFT(c, f, li_basis=True, generic_shape=True)  # not fitted: any hyperparameters do
+    dropped = limits.shrunk(model, 1e-8)
+    h, d = model.hypers, dropped.hypers
+    torch.testing.assert_close(d.outputscale, h.outputscale * 1e-8, rtol=1e-12, atol=0)
+    torch.testing.assert_close(d.li.variance, h.li.variance * 1e-8, rtol=1e-12, atol=0)
+    for get in (lambda m: m.li.generic_variance, lambda m: m.noise, lambda m: m.lengthscale):
+        torch.testing.assert_close(get(d), get(h), rtol=0, atol=0)
+    # by hand: F_a = w_a g_a + noise, w_a ~ N(0, u_a), g_a the generic shape's forces per unit scale
+    g = irft.rft.forces(irft.rft.FourierStressMap.generic().double(), c)  # (T, 2) N
+    u, noise = h.li.generic_variance.detach(), h.noise.detach().reshape(-1)
+    precision = g.pow(2).sum(0) / noise + 1 / u
+    w = (g * f).sum(0) / noise / precision
+    B, G = cal.grid(41)
+    shape = irft.rft.FourierStressMap.generic().double()(B, G).reshape(-1, 2)
+    t = truth(B, G).reshape(-1, 2)
+    s = (t * shape).sum(0) / shape.pow(2).sum(0)  # the truth's scale per map
+    torch.testing.assert_close(t, s * shape, rtol=1e-12, atol=1e-12)  # the truth is the shape, scaled
+    z2_hand = (w - s).pow(2) * precision
+    cover, z2 = limits.z_statistics(limits.shrunk(model, 1e-14), truth)
+    for a in range(2):
+        assert z2[a] == pytest.approx(float(z2_hand[a]), rel=5e-3)  # cells where g ~ 0 keep a trace
+        assert cover[a] == (1.0 if float(z2_hand[a]) < 1.959964**2 else 0.0)
+    # with the residual terms the same truth sits at their prior's centre: errors well inside the intervals
+    _, z2_fitted = limits.z_statistics(model, truth)
+    assert max(z2_fitted) < 1.0
