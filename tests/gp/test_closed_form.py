@@ -263,3 +263,26 @@ def test_laplace_is_the_same_posterior_as_before():
     torch.testing.assert_close(a.theta, b.theta, rtol=1e-8, atol=1e-9)
     torch.testing.assert_close(a.weights, b.weights, rtol=1e-8, atol=1e-10)
     assert a.ess == pytest.approx(b.ess, rel=1e-8)
+
+
+@pytest.mark.parametrize("method, repeated", CASES)
+def test_the_one_vector_step_serves_the_default_model_and_follows_a_changed_bound(method, repeated):
+    """``loss_and_grad`` on the default model goes through the one-vector form (``_Flat``: values, priors and
+    the chain rule on all raw hyperparameters at once), equal to autograd; a noise floor changed in place
+    rebuilds it (a stale lower bound would give other values), and the gradients still equal autograd."""
+    from irft_torch.gp.backends.closed_form import _plan
+
+    c, f = data(T=30, M=4, seed=2, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method, li_basis=True)
+    set_hypers(model, seed=3)
+    names = [n for n, _ in model.hypers.named_parameters()]
+    flat = _plan(model.hypers).flat()
+    assert flat is not None and {n for n, _, _ in flat.entries} == set(names)
+    for _ in range(2):
+        want_loss, want = autograd_grads(model)
+        got_loss, got = closed_form_grads(model)
+        assert got_loss == pytest.approx(want_loss, rel=1e-12)
+        assert_grads_close(got, want, 1e-9, names)
+        bound = model.hypers.likelihood.noise_covar.raw_noise_constraint.lower_bound
+        bound.fill_(float(model.hypers.noise.min()) * 0.5)  # a floor near the noise: values move
+    assert _plan(model.hypers).flat() is not flat

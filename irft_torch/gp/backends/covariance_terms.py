@@ -41,8 +41,9 @@ class Adjoint:
     - ``trace_inverse()``: tr (sigma^2 I + A)^{-1}, from whichever inverse is at hand.
     """
 
-    def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int) -> None:
+    def __init__(self, L: Tensor, alpha: Tensor, R: Tensor | None, n: int, eye: Tensor | None = None) -> None:
         self.L, self.alpha, self.R, self.n = L, alpha, R, n  # alpha (*S, 2, r, 1)
+        self.eye = eye  # (r, r), or None: made when needed
         self._G: Tensor | None = None
         self._Minv: Tensor | None = None
         self._H: Tensor | None = None
@@ -95,7 +96,9 @@ class Adjoint:
         """tr (sigma^2 I + A)^{-1} (*S, 2)."""
         if self._Minv is not None:
             return torch.diagonal(self._Minv, dim1=-2, dim2=-1).sum(-1)
-        eye = torch.eye(self.L.shape[-1], dtype=self.L.dtype, device=self.L.device)
+        eye = self.eye
+        if eye is None:
+            eye = torch.eye(self.L.shape[-1], dtype=self.L.dtype, device=self.L.device)
         return torch.linalg.solve_triangular(self.L, eye, upper=False).pow(2).sum((-1, -2))
 
 
