@@ -40,6 +40,8 @@ from irft_torch.studies.calibration import (
     MEDIA,
     MOTIONS,
     Case,
+    generic_residual_share,
+    medium,
     run_case,
 )
 
@@ -134,7 +136,7 @@ def calibrated_band(rows: list[dict], axis: str, n_mc: int = 20_000) -> tuple[fl
 def summarise(rows: list[dict]) -> dict:
     """(group kind, group, posterior, axis) -> (n, mean cover50, cover90, cover95, share pct95 < 0.025,
     ``calibrated_band`` or None)."""
-    out = {}
+    out: dict[tuple, list] = {}
     for by in ("family", "motion"):
         for r in rows:
             for a in "xz":
@@ -157,6 +159,58 @@ def coverage_table(rows: list[dict], posteriors) -> list[str]:
             cells = [" / ".join(f"{table[(by, g, hp, a)][3]:.3f}{_band_mark(table[(by, g, hp, a)])}, "
                                 f"{100 * table[(by, g, hp, a)][4]:.0f} %" for a in "xz") for hp in posteriors]
             lines.append(f"| {g} ({table[(by, g, posteriors[0], 'x')][0]}) | " + " | ".join(cells) + " |")
+    return lines
+
+
+ONE_SIDED_SHARE = 0.25  # a family whose truths leave less than this share to the residual: judged one-sided
+
+
+def one_sided_families(families, seeds: int = 8) -> set[str]:
+    """The families whose truths are (nearly) the generic shape: median over seeds 0 .. ``seeds`` - 1 of the larger
+    map's ``generic_residual_share`` below ``ONE_SIDED_SHARE`` (scaled: 0, presets: 0-0.21; every other family's
+    median 0.33 or more). A model with the generic shape and residual terms covers these more than nominal by
+    construction (docs/calibration.md, "Why generic-shaped media over-cover"): only overconfidence counts there."""
+    out = set()
+    for family in families:
+        shares = [float(generic_residual_share(medium(family, seed)[0]).max()) for seed in range(seeds)]
+        if statistics.median(shares) < ONE_SIDED_SHARE:
+            out.add(family)
+    return out
+
+
+def restated_reading(rows: list[dict]) -> list[str]:
+    """The reading of issue 30's bar proposed on 2026-11-27 (docs/calibration.md): per family, mean 95 % coverage
+    inside its calibrated band and no more fits overconfident than ``overconfident_limit`` allows, except that a
+    nearly generic-shaped family (``one_sided_families``) is judged on the low side only; per motion, the same over
+    the other families' fits (a motion row that pooled generic-shaped truths would inherit their over-coverage).
+    Returns markdown lines: the cells beyond chance, low (overconfident) and high (wider than needed), per
+    posterior."""
+    posts = [hp for hp in POSTERIORS if any(r["posterior"] == hp for r in rows)]
+    one_sided = one_sided_families(sorted({r["family"] for r in rows}))
+    lines = [f"One-sided (nearly the generic shape): {', '.join(sorted(one_sided)) or 'none'}.", "",
+             "| posterior | cells | low: overconfident beyond chance | high: wider than needed beyond chance |",
+             "|---|---|---|---|"]
+    for hp in posts:
+        low, high, n_cells = [], [], 0
+        rs = [r for r in rows if r["posterior"] == hp]
+        groups = [(f, [r for r in rs if r["family"] == f], f in one_sided) for f in sorted({r["family"] for r in rs})]
+        groups += [(m, [r for r in rs if r["motion"] == m and r["family"] not in one_sided], False)
+                   for m in sorted({r["motion"] for r in rs})]
+        for name, g, one in groups:
+            if not g:
+                continue
+            for a in "xz":
+                n_cells += 1
+                mean = statistics.fmean(float(r[f"cover95_{a}"]) for r in g)
+                band = calibrated_band(g, a)
+                over = sum(float(r[f"pct95_{a}"]) < 0.025 for r in g)
+                label = f"{name} {a} {mean:.3f}" + ("" if band is None else f" ({band[0]:.2f}-{band[1]:.2f})")
+                if over > overconfident_limit(len(g)) or (band is not None and mean < band[0]):
+                    low.append(f"{label}, {over}/{len(g)}")
+                elif band is not None and mean > band[1] and not one:
+                    high.append(label)
+        cells = [f"{len(v)}: {'; '.join(v) or '-'}" for v in (low, high)]
+        lines.append(f"| {hp} | {n_cells} | {cells[0]} | {cells[1]} |")
     return lines
 
 
@@ -208,6 +262,7 @@ def write_report(rows: list[dict], out: Path, suffix: str) -> None:
                                  f"{_band_mark(table[(by, g, hp, a)])}")
             lines.append(f"| {g} | {table[(by, g, posts[0], 'x')][0]} | " + " | ".join(cells) + " |")
         lines.append("")
+    lines += ["## The restated reading (proposed for issue 30)", ""] + restated_reading(rows) + [""]
     fit = {(r["family"], r["motion"], r["noise"], r["seed"]): float(r["fit_s"]) for r in rows
            if r["posterior"] == "map"}
     lines += ["## Cost", "", f"Zero-mean MAP fit: median {statistics.median(fit.values()):.2f} s."]

@@ -55,7 +55,7 @@ from ..rft.paths import pose_path, rotating_leg_path
 from ..rft.stress_maps import GENERIC, POPPY_CLOSE, POPPY_LOOSE, FourierStressMap, mirror_to_canonical
 
 __all__ = ["MEDIA", "HELD_OUT_MEDIA", "HELD_OUT_MEDIA_2", "MOTIONS", "HELD_OUT_MOTIONS", "HELD_OUT_MOTIONS_2",
-           "LEVELS", "medium", "motion", "grid",
+           "LEVELS", "medium", "motion", "grid", "generic_residual_share",
            "simulate", "score", "run_case", "Case"]
 
 MEDIA = ("scaled", "perturbed", "gp", "presets")
@@ -312,6 +312,18 @@ def simulate(truth, c: Contacts, noise: float, seed: int) -> Tensor:
     rng = torch.maximum(rng, 0.1 * rng.flip(0))
     g = _rng("noise", seed)
     return f + noise * rng * torch.randn(f.shape, generator=g, dtype=f.dtype)
+
+
+def generic_residual_share(truth, n_grid: int = 41) -> Tensor:
+    """(2,) per map: the rms over the ``grid`` of ``truth`` less the generic shape at its least-squares scale
+    (clamped at 0), as a share of the truth's rms. 0 for the generic map at any scale, 1 for a map orthogonal to
+    the shape: how much of a medium a model with the generic shape (``generic_shape=True``) leaves to its residual
+    terms (docs/calibration.md, "Why generic-shaped media over-cover")."""
+    B, G = grid(n_grid)
+    t = truth(B, G).reshape(-1, 2)
+    g = FourierStressMap.generic().to(t.dtype)(B, G).reshape(-1, 2)
+    scale = ((t * g).sum(0) / g.pow(2).sum(0)).clamp_min(0)
+    return (t - scale * g).pow(2).mean(0).sqrt() / t.pow(2).mean(0).sqrt().clamp_min(1e-300)
 
 
 def grid(n: int = 41) -> tuple[Tensor, Tensor]:

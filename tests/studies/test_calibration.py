@@ -209,3 +209,49 @@ def test_the_limits_terms_drop_only_the_residual_and_leave_regression_on_the_gen
     # with the residual terms the same truth sits at their prior's centre: errors well inside the intervals
     _, z2_fitted = limits.z_statistics(model, truth)
     assert max(z2_fitted) < 1.0
+
+
+def test_generic_residual_share_by_hand():
+    """0 for the generic map at any positive scale; 1 where its least-squares scale is negative (clamped to 0: the
+    whole map is residual); for generic + h with h orthogonal to the shape over the grid, rms(h) / rms(generic + h)."""
+    shape = irft.rft.FourierStressMap.generic().double()
+    torch.testing.assert_close(cal.generic_residual_share(lambda b, g: 0.37 * shape(b, g)),
+                               torch.zeros(2, dtype=F64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(cal.generic_residual_share(lambda b, g: -shape(b, g)), torch.ones(2, dtype=F64))
+    B, G = cal.grid(41)
+    s = shape(B, G).reshape(-1, 2)
+    bump = torch.stack([torch.cos(B) * torch.sin(2 * G), torch.cos(3 * G) + 0.0 * B], -1).reshape(-1, 2)
+    k = (bump * s).sum(0) / s.pow(2).sum(0)  # h = bump - k shape: orthogonal to the shape on the grid
+
+    def truth(b, g):
+        h = torch.stack([torch.cos(b) * torch.sin(2 * g), torch.cos(3 * g) + 0.0 * b], -1) - k * shape(b, g)
+        return shape(b, g) + h
+
+    h = bump - k * s
+    want = h.pow(2).mean(0).sqrt() / (s + h).pow(2).mean(0).sqrt()
+    assert float(want.min()) > 0.2  # a case with a residual worth measuring
+    torch.testing.assert_close(cal.generic_residual_share(truth), want, rtol=1e-10, atol=0)
+
+
+def test_restated_reading_judges_nearly_generic_families_on_the_low_side_only():
+    """Hand-made rows (own coverages with mean 0.95, sd 0.03: the normal band): a one-sided family covering
+    everything is not flagged, the same coverage on a family with a residual is (high); a fit below its own 2.5th
+    percentile twice in 4 is flagged low anywhere; the motion row leaves the one-sided family's fits out."""
+    h = harness()
+    assert h.one_sided_families(cal.MEDIA) == {"scaled", "presets"}
+    assert h.one_sided_families(cal.HELD_OUT_MEDIA + cal.HELD_OUT_MEDIA_2) == set()
+
+    def row(family, cover, pct):
+        return {"family": family, "motion": "turning", "posterior": "map", "cover95_x": cover, "cover95_z": 0.95,
+                "pct95_x": pct, "pct95_z": 0.5, "own95_mean_x": 0.95, "own95_sd_x": 0.03, "own95_mean_z": 0.95,
+                "own95_sd_z": 0.03}
+
+    rows = [row("scaled", 1.0, 0.9) for _ in range(4)] + [row("gp", 1.0, 0.9) for _ in range(4)]
+    lines = h.restated_reading(rows)
+    assert lines[0] == "One-sided (nearly the generic shape): scaled."
+    verdict = lines[-1]  # | map | cells | low | high |
+    assert "| map | 6 | 0: - |" in verdict  # scaled x, z; gp x, z; turning (gp only) x, z
+    assert "gp x 1.000" in verdict and "turning x 1.000" in verdict and "scaled" not in verdict
+    rows = [row("scaled", 0.9, 0.01) if i < 2 else row("scaled", 0.95, 0.5) for i in range(4)]
+    verdict = h.restated_reading(rows)[-1]
+    assert "| 1: scaled x 0.925 (0.92-0.98), 2/4 |" in verdict  # the motion row has no fits left: not a cell
