@@ -286,3 +286,22 @@ def test_the_one_vector_step_serves_the_default_model_and_follows_a_changed_boun
         bound = model.hypers.likelihood.noise_covar.raw_noise_constraint.lower_bound
         bound.fill_(float(model.hypers.noise.min()) * 0.5)  # a floor near the noise: values move
     assert _plan(model.hypers).flat() is not flat
+
+
+def test_the_one_vector_step_follows_a_replaced_buffer():
+    """A constraint's scale replaced by a new tensor (as ``module.to`` / ``.double()`` replace buffers, keeping the
+    parameters) makes the one-vector form stale; the step rebuilds it and still equals autograd."""
+    from irft_torch.gp.backends.closed_form import _plan
+
+    c, f = data(T=30, M=4, seed=2, repeated=True)
+    model = irft.InverseRFT(c, f, method="pairs")
+    flat = _plan(model.hypers).flat()
+    constraint = model.hypers.kernel.raw_outputscale_constraint
+    constraint.scale = constraint.scale * 2  # replaced, not changed in place: the values double
+    assert not flat.valid()
+    names = [n for n, _ in model.hypers.named_parameters()]
+    want_loss, want = autograd_grads(model)
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(want_loss, rel=1e-12)
+    assert_grads_close(got, want, 1e-9, names)
+    assert _plan(model.hypers).flat() is not flat

@@ -210,10 +210,15 @@ class _Flat:
         self.entries, self.slices = entries, slices  # [(name, parameter, shape)], [slice into the vector]
         self.scale, self.lower = scale, lower  # (P,) value = softplus(raw) scale + lower
         self.centre, self.inv_var, self.const = centre, inv_var, const  # (P,) log-normal priors; 0 where none
-        self.buffers = buffers  # [(buffer, its version)]: a changed bound or scale rebuilds
+        self.buffers = buffers  # [(constraint, buffer name, buffer, its version)]: a changed bound or scale rebuilds
 
     def valid(self) -> bool:
-        return all(b._version == v for b, v in self.buffers)
+        """False once a bound or scale changed (in place, or replaced: ``model.double()`` makes new buffers and
+        keeps the parameters) or a parameter moved to another dtype or device."""
+        first = self.entries[0][1]
+        return (all(getattr(m, k) is b and b._version == v for m, k, b, v in self.buffers)
+                and all(p.dtype == first.dtype and p.device == first.device for _, p, _ in self.entries)
+                and self.scale.dtype == first.dtype and self.scale.device == first.device)
 
     @classmethod
     def build(cls, plan: _Plan) -> _Flat | None:
@@ -228,9 +233,14 @@ class _Flat:
                 return None
             n = p.numel()
             scale = getattr(c, "scale", None)
-            scales.append((scale if scale is not None else p.new_ones(())).detach().to(p).expand(p.shape).reshape(-1))
-            lowers.append(c.lower_bound.detach().to(p).expand(p.shape).reshape(-1))
-            buffers += [(b, b._version) for b in (scale, c.lower_bound) if b is not None]
+            try:  # a bound or scale that does not broadcast to its parameter: the per-parameter path decides
+                scales.append(torch.broadcast_to((scale if scale is not None else p.new_ones(())).detach().to(p),
+                                                 p.shape).reshape(-1))
+                lowers.append(torch.broadcast_to(c.lower_bound.detach().to(p), p.shape).reshape(-1))
+            except RuntimeError:
+                return None
+            buffers += [(c, k, getattr(c, k), getattr(c, k)._version) for k in ("scale", "lower_bound")
+                        if isinstance(getattr(c, k, None), Tensor)]
             entries.append((name, p, p.shape))
             slices.append(slice(at, at + n))
             at += n
