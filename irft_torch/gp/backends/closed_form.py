@@ -123,9 +123,9 @@ class ClosedForm:
         A = parts[0][0]
         for p in parts[1:]:
             A = A + p[0]
-        r = A.shape[-1]
         if self.symmetrize:
             A = 0.5 * (A + A.mT)
+        r = A.shape[-1]
         L, info = torch.linalg.cholesky_ex(A + noise[..., None, None] * self.eye)
         ok = (info == 0).all(-1)
         m = values.get(MEAN) if self.c_g is not None else None
@@ -201,8 +201,9 @@ class _Flat:
     """A step's bookkeeping on one vector: the raw hyperparameters concatenated (P,), their values
     softplus(raw) scale + lower in one call, the physical priors' log density and its gradient over the whole
     vector, and the chain rule to the raw parameters in one product. What ``loss_and_grad`` does per parameter
-    and per prior (``current_values``, ``prior_terms``, ``value_gradient_to_raw``), in some 15 tensor operations
-    instead of 60 (the fit loop's step, where they cost as much as the likelihood's algebra at the DEM's size).
+    and per prior (``current_values``, ``prior_terms``, ``value_gradient_to_raw``), in a few operations over the
+    whole vector instead of a dozen per parameter and per prior (the fit loop's step, where that bookkeeping cost
+    as much as the likelihood's algebra at the DEM's size).
     Built only where every parameter has a softplus ``GreaterThan`` constraint and every registered prior is a
     physical one with at most one per parameter; elsewhere the per-parameter path serves."""
 
