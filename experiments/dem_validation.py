@@ -235,7 +235,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
             continue
         with_shape = bool(getattr(a, "generic_shape", False))
         m = irft.InverseRFT(ctr, ftr, prior_mean=pm, li_basis=bool(getattr(a, "li_basis", False)) or with_shape,
-                            generic_shape=with_shape)
+                            generic_shape=with_shape, hyper_posterior=getattr(a, "hyper_posterior", "map"))
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
     # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
@@ -346,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--generic-shape", action="store_true",
                     help="the same rows with the generic shape's uncertain scale too (li_basis=True, "
                          "generic_shape=True)")
+    ap.add_argument("--hyper-posterior", default="map", choices=("map", "laplace"),
+                    help="the same rows' hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): the "
+                         "plug-in, or the Laplace mixture (the harness' candidate default with --generic-shape)")
     ap.add_argument("--cv-refit", action="store_true",
                     help="the grouped-CV row refits both candidates without each left-out value (nested "
                          "cross-validation; about 2x the time) instead of using the fitted hyperparameters")
@@ -456,7 +459,10 @@ def write_report(a, data, report, results, fold_info, tau, elapsed, too_shallow=
     names = IRFT + BASELINES
     lines = ["# I-RFT on independent DEM plate-intrusion data", "",
              f"`python experiments/dem_validation.py --data DIR{'' if a.stride == 'auto' else f' --stride {a.stride}'}"
-             f"{'' if a.offset == '0' else f' --offset {a.offset}'}{' --cv-refit' if a.cv_refit else ''}`: "
+             f"{'' if a.offset == '0' else f' --offset {a.offset}'}{' --cv-refit' if a.cv_refit else ''}"
+             f"{' --li-basis' if getattr(a, 'li_basis', False) else ''}"
+             f"{' --generic-shape' if getattr(a, 'generic_shape', False) else ''}"
+             f"{'' if getattr(a, 'hyper_posterior', 'map') == 'map' else ' --hyper-posterior ' + a.hyper_posterior}`: "
              f"{len(data)} runs (every run with at least 3 "
              f"samples deeper than {a.min_depth:g} cm"
              f"{'; left out: ' + ', '.join(too_shallow) if too_shallow else ''}), "

@@ -122,7 +122,8 @@ def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts
 def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args, priors: str | None = "physical"):
     generic = bool(getattr(args, "generic_shape", False))
     model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors,
-                            li_basis=bool(getattr(args, "li_basis", False)) or generic, generic_shape=generic)
+                            li_basis=bool(getattr(args, "li_basis", False)) or generic, generic_shape=generic,
+                            hyper_posterior=getattr(args, "hyper_posterior", "map"))
     model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
     return model
 
@@ -543,6 +544,9 @@ def main(argv=None) -> None:
     ap.add_argument("--generic-shape", action="store_true",
                     help="the planar study's I-RFT with the generic shape's uncertain scale too (li_basis=True, "
                          "generic_shape=True; the 3-D model has no such term)")
+    ap.add_argument("--hyper-posterior", default="map", choices=("map", "laplace"),
+                    help="the planar study's I-RFT hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): "
+                         "the plug-in, or the Laplace mixture")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
     ap.add_argument("--contact-surface", default="envelope", choices=["envelope", "rim"],
                     help="what meets the sand: the wheel's convex hull (sand in the grouser pockets turns with "

@@ -275,10 +275,16 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
     cand = x.detach()
     with torch.no_grad():
         lp_c = log_posterior(backend, spec, cand)
-    theta = cand if torch.isfinite(lp_c) and lp_c >= start else theta.detach()
+    start_theta = theta.detach()
+    theta = cand if torch.isfinite(lp_c) and lp_c >= start else start_theta
     lp, g, H = _hessian(backend, spec, theta)
+    if not _finite(g, H) and theta is not start_theta:
+        # L-BFGS ran along a direction the posterior is flat in (priors=None) until a value under- or overflowed
+        # (a variance of e^-745 is 0): no Gaussian there; the fit's own point has one
+        theta = start_theta
+        lp, g, H = _hessian(backend, spec, theta)
     for _ in range(3):  # Newton on the exact Hessian: quadratic convergence near the mode
-        if float(g.abs().max()) < 1e-6:
+        if not _finite(g, H) or float(g.abs().max()) < 1e-6:
             break
         step = torch.linalg.solve(guard.positive_definite(H), g)
         step = step / max(1.0, float(step.abs().max()))
@@ -286,9 +292,15 @@ def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Ten
             lp_c = log_posterior(backend, spec, theta + step)
         if not (torch.isfinite(lp_c) and lp_c > lp):
             break
-        theta = (theta + step).detach()
-        lp, g, H = _hessian(backend, spec, theta)
+        lp_n, g_n, H_n = _hessian(backend, spec, (theta + step).detach())
+        if not _finite(g_n, H_n):
+            break
+        theta, lp, g, H = (theta + step).detach(), lp_n, g_n, H_n
     return theta, H, lp
+
+
+def _finite(*tensors: Tensor) -> bool:
+    return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
 def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None, max_iter: int = 100,
@@ -326,6 +338,10 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
         sub_spec = _SubSpec(spec, theta0, idx)
         mode_sub, H, lp_mode = _polish(backend, sub_spec, theta0[idx], max_iter)
         theta0 = sub_spec.full(mode_sub)
+        if not _finite(H):
+            spec.load(backend.hypers, theta0)
+            return _kept_plug_in(spec, theta0, held, "the log posterior's Hessian is not finite at the fitted "
+                                                     "hyperparameters (a value under- or overflows there)")
         cov = guard.proposal_covariance(H)
 
         def log_p_many(x: Tensor, sub_spec=sub_spec) -> Tensor:  # -inf where impossible (overflow, below a bound)

@@ -3,6 +3,7 @@ wall by noise-free forces, a direction the plain likelihood leaves flat, proposa
 against a hand-derived case, the truth or the plug-in."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -186,3 +187,36 @@ def test_held_coordinates_are_exactly_those_the_draws_keep_fixed(monkeypatch):
     assert hp.extra["held"] == hp.labels[:2]
     spread = (hp.theta - hp.mode).abs().amax(0)
     assert (spread[:2] == 0).all() and (spread[2:] > 0).all()
+
+
+def test_a_polish_that_runs_into_an_underflow_falls_back_to_the_fitted_point(monkeypatch):
+    """With priors=None, L-BFGS can run along a flat direction until a variance underflows (e^-745 = 0) and the
+    Hessian there is NaN (the wheel study's plain likelihood with the generic shape raised LinAlgError from eigh).
+    The polish then keeps the fitted point, whose Hessian is finite; where even that one is not, the plug-in is
+    kept and a HyperPosteriorWarning says why. The NaN is injected: a Hessian of NaN wherever the polish moved."""
+    c, f = data(T=20)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map")
+    model.fit(n_iter=30, progress=False)
+    start = hyper_posterior.hyper_spec(model.hypers).theta(model.hypers).clone()
+    real = hyper_posterior._hessian
+
+    def nan_where_moved(backend, spec, theta):
+        lp, g, H = real(backend, spec, theta)
+        moved = not torch.allclose(spec.full(theta), start, rtol=0, atol=1e-9)
+        return (lp, g, torch.full_like(H, math.nan)) if moved else (lp, g, H)
+
+    monkeypatch.setattr(hyper_posterior, "_hessian", nan_where_moved)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", guard.HyperPosteriorWarning)
+        hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(hp.mode, start, rtol=0, atol=1e-9)  # the fitted point, not the polished one
+    assert hp.n_draws > 1 and torch.isfinite(hp.theta).all()
+
+    def nan_everywhere(backend, spec, theta):
+        lp, g, H = real(backend, spec, theta)
+        return lp, g, torch.full_like(H, math.nan)
+
+    monkeypatch.setattr(hyper_posterior, "_hessian", nan_everywhere)
+    with pytest.warns(guard.HyperPosteriorWarning, match="Hessian is not finite.*plug-in"):
+        hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
+    assert hp.n_draws == 1 and float(hp.weights[0]) == 1.0
