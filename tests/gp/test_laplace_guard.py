@@ -94,7 +94,8 @@ def test_a_direction_the_plain_likelihood_leaves_flat_gets_finite_draws():
     c, f = data(T=20)
     model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map")
     model.fit(n_iter=5, progress=False)
-    hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
+    with pytest.warns(guard.HyperPosteriorWarning, match="priors=None.*improper"):
+        hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
     assert torch.isfinite(hp.theta.exp()).all()
     assert float(hp.covariance.diagonal().max()) <= guard.MAX_LOG_SD**2 * (1 + 1e-9)
     B, G = torch.meshgrid(torch.linspace(-1.5, 1.5, 7, dtype=F64), torch.linspace(-1.5, 1.5, 7, dtype=F64),
