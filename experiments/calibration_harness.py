@@ -141,12 +141,24 @@ def summarise(rows: list[dict]) -> dict:
         for r in rows:
             for a in "xz":
                 out.setdefault((by, r[by], r["posterior"], a), []).append(r)
-    table = {}
-    for key, rs in out.items():
-        a = key[3]
-        table[key] = (len(rs), *(statistics.fmean(float(r[f"cover{lv}_{a}"]) for r in rs) for lv in (50, 90, 95)),
-                      sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs), calibrated_band(rs, a))
-    return table
+    return {key: group_entry(rs, key[3]) for key, rs in out.items()}
+
+
+def group_entry(rs: list[dict], a: str) -> tuple:
+    """One group's cell for axis ``a``: (n, mean cover50, cover90, cover95, share pct95 < 0.025, ``calibrated_band``
+    or None)."""
+    return (len(rs), *(statistics.fmean(float(r[f"cover{lv}_{a}"]) for r in rs) for lv in (50, 90, 95)),
+            sum(float(r[f"pct95_{a}"]) < 0.025 for r in rs) / len(rs), calibrated_band(rs, a))
+
+
+def beyond_chance(entry: tuple) -> str | None:
+    """A ``group_entry`` beyond chance: "low" (overconfident: mean 95 % coverage below the calibrated band, or more
+    fits below their own draws' 2.5th percentile than ``overconfident_limit`` allows), "high" (above the band:
+    wider than the truths need), or None."""
+    n, c95, over, band = entry[0], entry[3], entry[4], entry[5]
+    if round(over * n) > overconfident_limit(n) or (band is not None and c95 < band[0]):
+        return "low"
+    return "high" if band is not None and c95 > band[1] else None
 
 
 def coverage_table(rows: list[dict], posteriors) -> list[str]:
@@ -201,13 +213,12 @@ def restated_reading(rows: list[dict]) -> list[str]:
                 continue
             for a in "xz":
                 n_cells += 1
-                mean = statistics.fmean(float(r[f"cover95_{a}"]) for r in g)
-                band = calibrated_band(g, a)
-                over = sum(float(r[f"pct95_{a}"]) < 0.025 for r in g)
-                label = f"{name} {a} {mean:.3f}" + ("" if band is None else f" ({band[0]:.2f}-{band[1]:.2f})")
-                if over > overconfident_limit(len(g)) or (band is not None and mean < band[0]):
-                    low.append(f"{label}, {over}/{len(g)}")
-                elif band is not None and mean > band[1] and not one:
+                entry = group_entry(g, a)
+                band, verdict = entry[5], beyond_chance(entry)
+                label = f"{name} {a} {entry[3]:.3f}" + ("" if band is None else f" ({band[0]:.2f}-{band[1]:.2f})")
+                if verdict == "low":
+                    low.append(f"{label}, {round(entry[4] * len(g))}/{len(g)}")
+                elif verdict == "high" and not one:
                     high.append(label)
         cells = [f"{len(v)}: {'; '.join(v) or '-'}" for v in (low, high)]
         lines.append(f"| {hp} | {n_cells} | {cells[0]} | {cells[1]} |")
@@ -229,9 +240,7 @@ def overconfident_limit(n: int, level: float = 0.975) -> int:
 def _band_mark(entry) -> str:
     """" ‡" where the mean 95 % coverage is outside the calibrated band (``calibrated_band``) or more fits are
     overconfident beyond chance than a calibrated model leaves (``overconfident_limit``), else ""."""
-    n, over, band = entry[0], entry[4], entry[5]
-    inside = band is None or band[0] <= entry[3] <= band[1]
-    return "" if inside and round(over * n) <= overconfident_limit(n) else " ‡"
+    return "" if beyond_chance(entry) is None else " ‡"
 
 
 def write_report(rows: list[dict], out: Path, suffix: str) -> None:

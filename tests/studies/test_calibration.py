@@ -242,7 +242,8 @@ def test_restated_reading_judges_nearly_generic_families_on_the_low_side_only():
     assert h.one_sided_families(cal.HELD_OUT_MEDIA + cal.HELD_OUT_MEDIA_2) == set()
 
     def row(family, cover, pct):
-        return {"family": family, "motion": "turning", "posterior": "map", "cover95_x": cover, "cover95_z": 0.95,
+        return {"family": family, "motion": "turning", "posterior": "map", "cover50_x": 0.5, "cover50_z": 0.5,
+                "cover90_x": 0.9, "cover90_z": 0.9, "cover95_x": cover, "cover95_z": 0.95,
                 "pct95_x": pct, "pct95_z": 0.5, "own95_mean_x": 0.95, "own95_sd_x": 0.03, "own95_mean_z": 0.95,
                 "own95_sd_z": 0.03}
 
