@@ -447,6 +447,7 @@ def main(argv=None) -> dict:
     if fig_fold is not None or results:
         lines += figures(a, out, data, results, fig_fold)
     (out / "dem_validation.md").write_text("\n".join(lines) + "\n")
+    write_predictions(out / "dem_predictions.csv", data, results)
     print(f"wrote {out}/dem_validation.md ({time.perf_counter() - t0:.0f} s)")
     return {s: r for s, (_, r) in results.items()}
 
@@ -524,17 +525,36 @@ def cv_choices(split: str, info: list, refit: bool = False) -> str:
 
 
 def paired_bootstrap(runs_a, runs_b, n: int = 2000, seed: int = 0) -> np.ndarray:
-    """95 % interval (2, 2) of RMSE(a) - RMSE(b) per axis, the held-out runs resampled with replacement:
-    how much of a difference the choice of runs alone could make. ``runs_a[i]``, ``runs_b[i]``: the same
-    run's errors under each model, (2,) (one value per run: its stress) or (T_i, 2) (its force samples,
-    which move together: the RMSE pools the samples of the runs drawn)."""
-    ss = lambda runs: np.stack([(np.atleast_2d(e) ** 2).sum(0) for e in runs])  # noqa: E731 (R, 2)
+    """95 % interval (2, 2) of RMSE(a) - RMSE(b) per axis, the held-out runs resampled with replacement
+    (``metrics.rmse_difference``): how much of a difference the choice of runs alone could make. ``runs_a[i]``,
+    ``runs_b[i]``: the same run's errors under each model, (2,) (one value per run: its stress) or (T_i, 2) (its
+    force samples, which move together: the RMSE pools the samples of the runs drawn)."""
+    sse = lambda runs: np.stack([(np.atleast_2d(e) ** 2).sum(0) for e in runs])  # noqa: E731 (R, 2)
     count = np.array([len(np.atleast_2d(e)) for e in runs_a], dtype=float)
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(runs_a), (n, len(runs_a)))
-    tot = count[idx].sum(1)[:, None]
-    d = np.sqrt(ss(runs_a)[idx].sum(1) / tot) - np.sqrt(ss(runs_b)[idx].sum(1) / tot)  # (n, 2)
-    return np.quantile(d, [0.025, 0.975], axis=0)
+    d = metrics.rmse_difference(sse(runs_a), sse(runs_b), count=count, n_boot=n, seed=seed)
+    return np.stack([d.low.numpy(), d.high.numpy()])
+
+
+def write_predictions(path: Path, data: list, results: dict) -> None:
+    """Every held-out run's target, prediction, predictive variance and force errors, per split and row
+    (one CSV line per split x row x target x run): what ``compare_predictions.py`` pairs between two runs of
+    this script."""
+    import csv
+
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["split", "fold", "run", "model", "target", "truth_x", "truth_z", "pred_x", "pred_z", "var_x",
+                    "var_z", "force_sse_x", "force_sse_z", "force_n"])
+        for split, (folds, res) in results.items():
+            order = [(v, i) for v, idx in folds for i in idx]
+            for model, r in res.items():
+                for t in TARGETS:
+                    for k, (v, i) in enumerate(order):
+                        e = np.atleast_2d(r["force_runs"][k])
+                        var = r[f"var_{t}"]
+                        w.writerow([split, f"{v:g}", data[i].run.label, model, t, *data[i].target[t],
+                                    *r[f"pred_{t}"][k], *(var[k] if var is not None else ("", "")),
+                                    *(e**2).sum(0), len(e)])
 
 
 def bars(res: dict, target: np.ndarray, model: str = DEFAULT) -> list[str]:

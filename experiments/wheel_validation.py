@@ -253,7 +253,9 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         pred[names[k]] = torch.full_like(F, math.nan)
     if ablate:
         pred[RIM_ROW] = torch.full_like(F, math.nan)
-    pred[CV] = torch.full_like(F, math.nan)
+    nested = not getattr(args, "no_nested_cv", False)
+    if nested:
+        pred[CV] = torch.full_like(F, math.nan)
     cv_choice = []  # per fold: (choice (2,) 0 physical priors / 1 plain, RMSE (2, 2) N, choice without refit)
     nll = {}  # training folds' negative log marginal likelihood per observation (last Adam step)
     std = {k: torch.full_like(F, math.nan) for k in pred}
@@ -289,14 +291,16 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
         # hyperparameters, no refit) is reported beside it: cheaper, but optimistic, and more so for the plain
         # likelihood, whose hyperparameters follow the left-out runs. The two maps are independent GPs (noise
         # not tied), so each axis's prediction comes from the chosen fit.
-        rmse_fixed = np.stack([fitted[k].cross_validate(group[train]).rmse().numpy() for k in ("zero", "plain")])
-        rmse_cv = np.stack([fitted[k].cross_validate(group[train], refit=True, n_iter=args.n_iter, lr=args.lr)
-                            .rmse().numpy() for k in ("zero", "plain")])
-        choice = rmse_cv.argmin(0)
-        cv_choice.append((choice, rmse_cv, rmse_fixed.argmin(0)))
-        for a in range(2):
-            pred[CV][test, a] = pred[names[("zero", "plain")[choice[a]]]][test, a]
-            std[CV][test, a] = std[names[("zero", "plain")[choice[a]]]][test, a]
+        if nested:
+            rmse_fixed = np.stack([fitted[k].cross_validate(group[train]).rmse().numpy()
+                                   for k in ("zero", "plain")])
+            rmse_cv = np.stack([fitted[k].cross_validate(group[train], refit=True, n_iter=args.n_iter, lr=args.lr)
+                                .rmse().numpy() for k in ("zero", "plain")])
+            choice = rmse_cv.argmin(0)
+            cv_choice.append((choice, rmse_cv, rmse_fixed.argmin(0)))
+            for a in range(2):
+                pred[CV][test, a] = pred[names[("zero", "plain")[choice[a]]]][test, a]
+                std[CV][test, a] = std[names[("zero", "plain")[choice[a]]]][test, a]
         if ablate:
             model = fit_irft(Contacts.cat([c_rim[i] for i in train]), F[train], "zero", args)
             nll.setdefault(RIM_ROW, []).append(model.loss_history[-1])
@@ -353,9 +357,10 @@ def plot_forces(res: dict, wheel: str, out: Path) -> None:
             hi.append((m[k] + 2 * s[k]).mean())
         ax.fill_between(xs, lo, hi, color="tab:blue", alpha=0.25, label="I-RFT held out, +- 2 sd (incl. noise)")
         ax.plot(xs, mid, color="tab:blue", lw=2, label="I-RFT held out (mean)")
-        p = res["pred"][CV].numpy()[:, a]  # the training-only choice of priors per axis
-        ax.plot(xs, [p[lev == v].mean() for v in sorted(set(lev))], color="tab:cyan", lw=1.5, ls="--",
-                label="I-RFT held out, priors per axis by nested CV (mean)")
+        if CV in res["pred"]:  # the training-only choice of priors per axis (absent with --no-nested-cv)
+            p = res["pred"][CV].numpy()[:, a]
+            ax.plot(xs, [p[lev == v].mean() for v in sorted(set(lev))], color="tab:cyan", lw=1.5, ls="--",
+                    label="I-RFT held out, priors per axis by nested CV (mean)")
         if RIM_ROW in res["pred"]:  # the ablation: grouser faces as plates
             p = res["pred"][RIM_ROW].numpy()[:, a]
             ax.plot(slip[order], p[order], color="tab:purple", marker="d", ls="--", ms=4, lw=1,
@@ -408,8 +413,12 @@ def plot_sinkage(results: dict, out: Path) -> None:
 
 def report(results: dict, args, elapsed: float) -> str:
     lines = ["# Rover wheel in sand: leave-one-slip-out (slip angle 0)", "",
-             f"Command: `python experiments/wheel_validation.py --data DIR"
-             f"{' --physics-mean' if args.physics_mean else ''} --contact-surface {args.contact_surface} "
+             f"Command: `python experiments/wheel_validation.py --data DIR --study planar"
+             f"{' --physics-mean' if args.physics_mean else ''}{' --li-basis' if args.li_basis else ''}"
+             f"{' --generic-shape' if args.generic_shape else ''}"
+             f"{' --hyper-posterior laplace' if args.hyper_posterior == 'laplace' else ''}"
+             f"{' --no-nested-cv' if getattr(args, 'no_nested_cv', False) else ''} "
+             f"--contact-surface {args.contact_surface} "
              f"--n-iter {args.n_iter} --lr {args.lr:g} "
              f"--method {args.method} --tol {args.tol:g}` ({elapsed:.0f} s). Data by others "
              "(qishuny/3D-RFT-wheel), read from DIR, not copied.",
@@ -434,6 +443,8 @@ def report(results: dict, args, elapsed: float) -> str:
     for model in ("I-RFT", PLAIN, CV):
         for wheel, res in results.items():
             r = res["rmse"]
+            if model not in r:  # the nested-CV row, skipped with --no-nested-cv
+                continue
             cells = []
             for a, axis in enumerate(("F_x", "F_z")):
                 worst = min(BASELINES, key=lambda b: r[b][a])
@@ -444,14 +455,15 @@ def report(results: dict, args, elapsed: float) -> str:
     lines += ["", "Held-out runs inside the 95 % predictive interval (with the learned noise): "
               + "; ".join(f"{w} {k} {100 * c[0]:.0f} % (x) / {100 * c[1]:.0f} % (z)"
                           for w, r in results.items() for k, c in r["coverages"].items()) + ".",
-              f"{CV}: per held-out slip level, the choice per axis (x / z) by leaving each training slip level out "
+              (f"{CV}: skipped (--no-nested-cv)." if getattr(args, "no_nested_cv", False) else
+               f"{CV}: per held-out slip level, the choice per axis (x / z) by leaving each training slip level out "
               "in turn, both candidates refitted without it (training runs' RMSE [N], physical priors / plain; in "
               "brackets the choice at the fitted hyperparameters, no refit, where it differs): "
               + "; ".join(f"{w}: " + ", ".join(
                   f"{g + 1}: {'/'.join(('priors', 'plain')[c] for c in ch)}"
                   + ("" if (ch == ch0).all() else f" [{'/'.join(('priors', 'plain')[c] for c in ch0)}]")
                   + f" ({e[0, 0]:.2f}/{e[1, 0]:.2f}, {e[0, 1]:.2f}/{e[1, 1]:.2f})"
-                  for g, (ch, e, ch0) in enumerate(r["cv_choice"])) for w, r in results.items()) + ".",
+                  for g, (ch, e, ch0) in enumerate(r["cv_choice"])) for w, r in results.items()) + "."),
               "Training folds' negative log marginal likelihood per observation (mean over the 9 folds; lower: "
               "the training runs alone prefer that contact model): "
               + "; ".join(f"{w} {k} {v:.3f}" for w, r in results.items() for k, v in r["nll"].items()) + ".",
@@ -526,6 +538,24 @@ def report(results: dict, args, elapsed: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_predictions(path: Path, results: dict) -> None:
+    """Every held-out run's measured force, each row's prediction and predictive sd (one CSV line per wheel x
+    row x run; the fold is the held-out slip level): what ``compare_predictions.py`` pairs between two runs of
+    this script."""
+    import csv
+
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["wheel", "fold", "run", "model", "slip", "truth_x", "truth_z", "pred_x", "pred_z", "sd_x",
+                    "sd_z"])
+        for wheel, res in results.items():
+            for model, p in res["pred"].items():
+                sd = res["std"][model]
+                for i, run in enumerate(res["runs"]):
+                    w.writerow([wheel, int(res["group"][i]), i, model, f"{run.slip:.4f}", *res["F"][i].tolist(),
+                                *p[i].tolist(), *sd[i].tolist()])
+
+
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """--help prints the whole module docstring as written, and every option's default."""
 
@@ -548,6 +578,9 @@ def main(argv=None) -> None:
                     help="the planar study's I-RFT hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): "
                          "the plug-in, or the Laplace mixture")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
+    ap.add_argument("--no-nested-cv", action="store_true",
+                    help="the planar study without its nested-CV row (two refits per inner fold: most of the time, "
+                         "and with --hyper-posterior laplace some 40-60 minutes)")
     ap.add_argument("--contact-surface", default="envelope", choices=["envelope", "rim"],
                     help="what meets the sand: the wheel's convex hull (sand in the grouser pockets turns with "
                          "the wheel) or the rim as meshed (grouser faces as plates, 6 poses per pitch); with "
@@ -593,6 +626,7 @@ def main(argv=None) -> None:
     plot_sinkage(results, args.out)
     text = report(results, args, time.perf_counter() - t0)
     (args.out / "wheel_validation.md").write_text(text)
+    write_predictions(args.out / "wheel_predictions.csv", results)
     print(text)
 
 

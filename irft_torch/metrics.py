@@ -10,7 +10,9 @@ Percentages are in percent (0-100).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -19,6 +21,7 @@ from .rft.contacts import Contacts
 __all__ = [
     "rmse", "mae", "r2", "pearson", "acr_percent", "rmse_percent", "mae_percent", "calibration",
     "percentile_among", "coverage_area", "redundancy", "map_metrics", "integrated_autocorrelation_time",
+    "RMSEDifference", "rmse_difference",
 ]
 
 
@@ -138,6 +141,69 @@ def percentile_among(observed, samples) -> Tensor:
     if smp.ndim == 0 or smp.shape[-1] == 0:
         raise ValueError(f"samples must be (..., n) with n >= 1, got shape {tuple(smp.shape)}")
     return (smp < obs).double().mean(-1) + 0.5 * (smp == obs).double().mean(-1)
+
+
+class RMSEDifference(NamedTuple):
+    """RMSE(candidate) - RMSE(reference) per column (D,), in the errors' unit, and its bootstrap interval."""
+
+    difference: Tensor  # (D,) on every unit
+    low: Tensor  # (D,) the interval's lower end
+    high: Tensor  # (D,) its upper end
+
+    def beyond_spread(self) -> Tensor:
+        """(D,) bool: the candidate worse than the reference beyond the resampling spread (low > 0)."""
+        return self.low > 0
+
+
+def rmse_difference(candidate, reference, count=None, groups=None, level: float = 0.95, n_boot: int = 2000,
+                    seed: int = 0) -> RMSEDifference:
+    """How much worse (positive) or better (negative) a candidate's RMSE is than a reference's on the same
+    held-out units, and how much of that the choice of units alone could make: a paired percentile bootstrap.
+
+    Args:
+        candidate, reference: (R, D) sums of squared errors per unit (a held-out run: one squared error per
+            column, or the sum over its samples), the same units in the same order.
+        count: (R,) samples per unit (default 1 each). The RMSE pools samples: sqrt(sum SSE / sum count).
+        groups: (R,) integer labels: resample whole groups (e.g. the held-out fold each run belongs to, whose
+            errors share one fit and move together) instead of single units. Default: each unit its own.
+        level: the interval's central share in (0, 1).
+        n_boot: bootstrap resamples; ``seed`` their generator's seed (numpy ``default_rng``).
+
+    With few groups (fewer than about 10) a percentile bootstrap is narrower than the spread it estimates
+    (by about sqrt((G - 1) / G) and more in the tails): read an interval that barely excludes 0 as a hint.
+    """
+    c = np.asarray(torch.as_tensor(candidate, dtype=torch.float64).cpu(), dtype=float)
+    r = np.asarray(torch.as_tensor(reference, dtype=torch.float64).cpu(), dtype=float)
+    if c.ndim == 1:
+        c, r = c[:, None], (r[:, None] if r.ndim == 1 else r)
+    if c.ndim != 2 or c.shape != r.shape or c.shape[0] == 0:
+        raise ValueError(f"candidate and reference must be (R, D) with R >= 1 and one shape, got "
+                         f"{tuple(c.shape)} and {tuple(r.shape)}")
+    for name, v in (("candidate", c), ("reference", r)):
+        if not np.isfinite(v).all() or (v < 0).any():
+            raise ValueError(f"{name} must hold finite sums of squared errors (>= 0), not errors or NaN")
+    n = np.ones(len(c)) if count is None else np.asarray(count, dtype=float).reshape(-1)
+    if n.shape != (len(c),) or not np.isfinite(n).all() or (n <= 0).any():
+        raise ValueError(f"count must be (R,) = ({len(c)},) positive sample counts, got {np.shape(count)}")
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be a share in (0, 1), e.g. 0.95 (not a percent), got {level}")
+    if isinstance(n_boot, bool) or int(n_boot) != n_boot or n_boot < 1:
+        raise ValueError(f"n_boot must be a positive integer, got {n_boot}")
+    if groups is not None:  # one unit per group: its sums and counts (resampled together)
+        g = np.asarray(groups).reshape(-1)
+        if g.shape != (len(c),):
+            raise ValueError(f"groups must be (R,) = ({len(c)},) labels, got {np.shape(groups)}")
+        _, inv = np.unique(g, return_inverse=True)
+        G = int(inv.max()) + 1
+        c, r, n = (np.stack([v[inv == k].sum(0) for k in range(G)]) for v in (c, r, n))
+    rmse_of = lambda s, k: np.sqrt(s / k[..., None])  # noqa: E731
+    diff = rmse_of(c.sum(0), n.sum()) - rmse_of(r.sum(0), n.sum())
+    idx = np.random.default_rng(seed).integers(0, len(c), (int(n_boot), len(c)))
+    tot = n[idx].sum(1)
+    d = rmse_of(c[idx].sum(1), tot) - rmse_of(r[idx].sum(1), tot)  # (n_boot, D)
+    q = np.quantile(d, [(1 - level) / 2, (1 + level) / 2], axis=0)
+    t = lambda v: torch.as_tensor(np.asarray(v, dtype=float))  # noqa: E731
+    return RMSEDifference(t(diff), t(q[0]), t(q[1]))
 
 
 def _cells(contacts: Contacts, n_cells: int) -> Tensor:

@@ -162,3 +162,79 @@ def test_two_layouts_of_one_size_are_refused():
                                          r"truth.permute\(1, 2, 0\) has the estimate's"):
         M.rmse(est, truth.permute(2, 0, 1))
     assert M.mae(torch.ones(4, 1), torch.zeros(4)) == pytest.approx(1.0)
+
+
+def _exact_bootstrap(c, r, count):
+    """Every resample of R units with replacement (R^R, equally likely): the exact bootstrap distribution of
+    RMSE(c) - RMSE(r), one column, as its distinct values (sorted) and the CDF at each."""
+    import itertools
+
+    R = len(c)
+    vals = []
+    for idx in itertools.product(range(R), repeat=R):
+        n = sum(count[i] for i in idx)
+        vals.append(math.sqrt(sum(c[i] for i in idx) / n) - math.sqrt(sum(r[i] for i in idx) / n))
+    vals.sort()
+    support, cdf = [], []
+    for k, v in enumerate(vals):
+        if support and abs(v - support[-1]) < 1e-12:
+            cdf[-1] = (k + 1) / len(vals)
+        else:
+            support.append(v)
+            cdf.append((k + 1) / len(vals))
+    return support, cdf
+
+
+def test_rmse_difference_against_the_exact_bootstrap():
+    # four runs, one column: sums of squared errors and sample counts; 4^4 = 256 resamples enumerated
+    c, r, count = [4.0, 1.0, 9.0, 2.5], [1.0, 2.0, 4.0, 0.5], [2, 1, 3, 1]
+    one = lambda level: M.rmse_difference(torch.tensor(c)[:, None], torch.tensor(r)[:, None],  # noqa: E731
+                                          count=count, level=level, n_boot=200_000, seed=1)
+    d, e = one(0.57), one(0.6)
+    assert float(d.difference[0]) == pytest.approx(math.sqrt(sum(c) / 7) - math.sqrt(sum(r) / 7), abs=1e-15)
+    support, cdf = _exact_bootstrap(c, r, count)
+    for p, got in ((0.215, d.low), (0.8, e.high)):
+        k = next(i for i, q in enumerate(cdf) if q >= p)
+        # the CDF jumps more than 0.01 away from p on both sides of the exact quantile, so 200 000 resamples
+        # put the empirical quantile on that support point
+        assert cdf[k] - p > 0.01 and (k == 0 or p - cdf[k - 1] > 0.01)
+        assert float(got[0]) == pytest.approx(support[k], abs=1e-12)
+
+
+def test_rmse_difference_resamples_whole_groups():
+    # two groups of two runs: a resample holds group A twice, A and B, or B twice (1/4, 1/2, 1/4), so a 90 %
+    # interval runs from the smallest of the three differences to the largest (written out by hand)
+    c = torch.tensor([[1.0], [3.0], [8.0], [10.0]])
+    r = torch.tensor([[2.0], [2.0], [1.0], [1.0]])
+    aa = math.sqrt(4 / 2) - math.sqrt(4 / 2)  # group A: SSE 4 and 4 over 2 samples
+    bb = math.sqrt(18 / 2) - math.sqrt(2 / 2)
+    ab = math.sqrt(22 / 4) - math.sqrt(6 / 4)
+    d = M.rmse_difference(c, r, groups=["A", "A", "B", "B"], level=0.9, n_boot=20_000)
+    assert float(d.low[0]) == pytest.approx(min(aa, ab, bb), abs=1e-12)
+    assert float(d.high[0]) == pytest.approx(max(aa, ab, bb), abs=1e-12)
+    assert bool(d.beyond_spread()[0]) is (min(aa, ab, bb) > 0)
+    # each run its own unit: other resamples, another interval
+    e = M.rmse_difference(c, r, level=0.9, n_boot=20_000)
+    assert (float(e.low[0]), float(e.high[0])) != pytest.approx((min(aa, ab, bb), max(aa, ab, bb)), abs=1e-3)
+
+
+def test_rmse_difference_of_one_model_with_itself_is_zero():
+    sse = torch.rand(9, 2) + 0.1
+    d = M.rmse_difference(sse, sse.clone())
+    assert torch.equal(d.difference, torch.zeros(2)) and torch.equal(d.low, torch.zeros(2))
+    assert torch.equal(d.high, torch.zeros(2)) and not d.beyond_spread().any()
+
+
+def test_rmse_difference_bad_input_names_the_argument():
+    good = torch.ones(5, 2)
+    for kwargs, word in (
+        (dict(candidate=torch.ones(5, 3), reference=good), "one shape"),
+        (dict(candidate=good * float("nan"), reference=good), "candidate"),
+        (dict(candidate=good, reference=-good), "reference"),  # signed errors, not their squares
+        (dict(candidate=good, reference=good, count=[1, 1]), "count"),
+        (dict(candidate=good, reference=good, groups=[0, 1]), "groups"),
+        (dict(candidate=good, reference=good, level=95), "level"),
+        (dict(candidate=good, reference=good, n_boot=0), "n_boot"),
+    ):
+        with pytest.raises(ValueError, match=word):
+            M.rmse_difference(**kwargs)

@@ -113,3 +113,50 @@ def test_angle_gap_by_hand_wraps_and_weights():
     # beta has period pi (a segment turned by pi is the same segment): 89 and -89 deg are 2 deg apart
     got = gap([run([d(89.0)], [d(0.0)], [1.0]), run([d(-89.0)], [d(0.0)], [1.0])], np.array([0, 1]))
     assert got == pytest.approx([2.0, 2.0])
+
+
+def _write_wheel_csv(path, errors):
+    """A wheel_predictions.csv by hand: 3 slip levels (folds) x 2 runs, measured force 10 / 20 N, the
+    prediction off by errors[i] (x, z) on run i."""
+    import csv
+
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["wheel", "fold", "run", "model", "slip", "truth_x", "truth_z", "pred_x", "pred_z", "sd_x",
+                    "sd_z"])
+        for i, (ex, ez) in enumerate(errors):
+            w.writerow(["smooth", i // 2, i, "I-RFT", 0.1 * i, 10.0, 20.0, 10.0 + ex, 20.0 + ez, 1.0, 1.0])
+
+
+def test_compare_predictions_pairs_runs_and_marks_a_change_worse_beyond_the_spread(tmp_path, capsys):
+    cp = _script("compare_predictions")
+    ref = [(1.0, 1.0), (-1.0, 2.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 2.0), (-1.0, -1.0)]
+    # x: every run 2 N off instead of 1 N (worse in every resample); z: the same errors, reordered among the
+    # runs of a fold (the same RMSE in every resample of whole folds)
+    cand = [(2.0, 2.0), (-2.0, 1.0), (2.0, 1.0), (-2.0, -1.0), (2.0, -1.0), (-2.0, 2.0)]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    _write_wheel_csv(tmp_path / "a" / "wheel_predictions.csv", ref)
+    _write_wheel_csv(tmp_path / "b" / "wheel_predictions.csv", cand)
+    cp.main([str(tmp_path / "a"), str(tmp_path / "b")])
+    rows = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| smooth wheel")]
+    x = [c.strip() for c in rows[0].split("|")]
+    z = [c.strip() for c in rows[1].split("|")]
+    assert x[4:7] == ["x", "1", "2"] and x[7].startswith("+1 (+1 .. +1)") and x[8] == "worse"
+    rms_z = math.sqrt(12 / 6)  # sum of squared z errors 12 over 6 runs, either run
+    assert z[5:7] == [f"{rms_z:.4g}", f"{rms_z:.4g}"] and z[7].startswith("+0 (+0 .. +0)") and z[8] == ""
+    # single runs resampled: z's reordering now moves the RMSE both ways
+    cp.main([str(tmp_path / "a"), str(tmp_path / "b"), "--unit", "run"])
+    z = [c.strip() for c in capsys.readouterr().out.splitlines()[-1].split("|")]
+    lo, hi = (float(v) for v in z[7].split("(")[1].rstrip(")").split(".."))
+    assert lo < 0 < hi
+
+
+def test_compare_predictions_refuses_two_different_studies(tmp_path):
+    cp = _script("compare_predictions")
+    _write_wheel_csv(tmp_path / "wheel_predictions.csv", [(1.0, 1.0)] * 6)
+    (tmp_path / "dem_predictions.csv").write_text("split\n")
+    with pytest.raises(SystemExit, match="different studies"):
+        cp.main([str(tmp_path / "wheel_predictions.csv"), str(tmp_path / "dem_predictions.csv")])
+    with pytest.raises(SystemExit, match="expected one of"):
+        cp.main([str(tmp_path), str(tmp_path / "wheel_predictions.csv")])
