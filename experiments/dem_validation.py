@@ -229,7 +229,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
     ctr, ftr = Contacts.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     models, offs, off_std = {}, {n: off for n in IRFT}, {n: None for n in IRFT}
     for n, pm in zip(IRFT[:2], ("zero", "physics")):
-        torch.manual_seed(0)
+        torch.manual_seed(getattr(a, "seed", 0))  # each fit's own stream: the same numbers whichever worker runs it
         if a.run_effect:
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
             continue
@@ -349,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--hyper-posterior", default="map", choices=("map", "laplace"),
                     help="the same rows' hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): the "
                          "plug-in, or the Laplace mixture (the harness' candidate default with --generic-shape)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the seed set before each I-RFT fit (the Laplace rows' proposals; the plug-in rows do not "
+                         "depend on it): a rerun with another seed measures the run-to-run spread")
     ap.add_argument("--cv-refit", action="store_true",
                     help="the grouped-CV row refits both candidates without each left-out value (nested "
                          "cross-validation; about 2x the time) instead of using the fitted hyperparameters")

@@ -265,6 +265,7 @@ def evaluate_wheel(data: Path, wheel: str, args) -> dict:
     peak = {k: np.full((len(runs), 2), math.nan) for k in ("I-RFT", "generic x LS scale")}
     fit_time = []
     for g in range(len(levels)):
+        torch.manual_seed(getattr(args, "seed", 0) * 1000 + g)  # the Laplace rows' proposals, per held-out level
         test = np.nonzero(group == g)[0]
         train = np.nonzero(group != g)[0]
         c_train = Contacts.cat([c_all[i] for i in train])
@@ -417,7 +418,8 @@ def report(results: dict, args, elapsed: float) -> str:
              f"{' --physics-mean' if args.physics_mean else ''}{' --li-basis' if args.li_basis else ''}"
              f"{' --generic-shape' if args.generic_shape else ''}"
              f"{' --hyper-posterior laplace' if args.hyper_posterior == 'laplace' else ''}"
-             f"{' --no-nested-cv' if getattr(args, 'no_nested_cv', False) else ''} "
+             f"{' --no-nested-cv' if getattr(args, 'no_nested_cv', False) else ''}"
+             f"{f' --seed {args.seed}' if getattr(args, 'seed', 0) else ''} "
              f"--contact-surface {args.contact_surface} "
              f"--n-iter {args.n_iter} --lr {args.lr:g} "
              f"--method {args.method} --tol {args.tol:g}` ({elapsed:.0f} s). Data by others "
@@ -578,6 +580,9 @@ def main(argv=None) -> None:
                     help="the planar study's I-RFT hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): "
                          "the plug-in, or the Laplace mixture")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the planar study: seeds each held-out level's random stream (the Laplace rows' proposals; "
+                         "plug-in rows are deterministic): a rerun with another seed measures the run-to-run spread")
     ap.add_argument("--no-nested-cv", action="store_true",
                     help="the planar study without its nested-CV row (two refits per inner fold: most of the time, "
                          "and with --hyper-posterior laplace some 40-60 minutes)")
