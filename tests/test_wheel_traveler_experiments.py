@@ -126,6 +126,7 @@ def _write_wheel_csv(path, errors):
                     "sd_z"])
         for i, (ex, ez) in enumerate(errors):
             w.writerow(["smooth", i // 2, i, "I-RFT", 0.1 * i, 10.0, 20.0, 10.0 + ex, 20.0 + ez, 1.0, 1.0])
+            w.writerow(["smooth", i // 2, i, "trivial", 0.1 * i, 10.0, 20.0, 11.0, 18.0, "nan", "nan"])
 
 
 def test_compare_predictions_pairs_runs_and_marks_a_change_worse_beyond_the_spread(tmp_path, capsys):
@@ -139,7 +140,9 @@ def test_compare_predictions_pairs_runs_and_marks_a_change_worse_beyond_the_spre
     _write_wheel_csv(tmp_path / "a" / "wheel_predictions.csv", ref)
     _write_wheel_csv(tmp_path / "b" / "wheel_predictions.csv", cand)
     cp.main([str(tmp_path / "a"), str(tmp_path / "b")])
-    rows = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| smooth wheel")]
+    out = capsys.readouterr().out
+    rows = [r for r in out.splitlines() if r.startswith("| smooth wheel")]
+    assert len(rows) == 2 and "left out: smooth wheel trivial (force [N])" in out  # a row neither run changed
     x = [c.strip() for c in rows[0].split("|")]
     z = [c.strip() for c in rows[1].split("|")]
     assert x[4:7] == ["x", "1", "2"] and x[7].startswith("+1 (+1 .. +1)") and x[8] == "worse"
@@ -147,7 +150,8 @@ def test_compare_predictions_pairs_runs_and_marks_a_change_worse_beyond_the_spre
     assert z[5:7] == [f"{rms_z:.4g}", f"{rms_z:.4g}"] and z[7].startswith("+0 (+0 .. +0)") and z[8] == ""
     # single runs resampled: z's reordering now moves the RMSE both ways
     cp.main([str(tmp_path / "a"), str(tmp_path / "b"), "--unit", "run"])
-    z = [c.strip() for c in capsys.readouterr().out.splitlines()[-1].split("|")]
+    last = [r for r in capsys.readouterr().out.splitlines() if r.startswith("| smooth")][-1]
+    z = [c.strip() for c in last.split("|")]
     lo, hi = (float(v) for v in z[7].split("(")[1].rstrip(")").split(".."))
     assert lo < 0 < hi
 
