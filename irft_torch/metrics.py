@@ -161,8 +161,9 @@ def rmse_difference(candidate, reference, count=None, groups=None, level: float 
     held-out units, and how much of that the choice of units alone could make: a paired percentile bootstrap.
 
     Args:
-        candidate, reference: (R, D) sums of squared errors per unit (a held-out run: one squared error per
-            column, or the sum over its samples), the same units in the same order.
+        candidate: (R, D) sums of squared errors per unit under the candidate (a held-out run: one squared
+            error per column, or the sum over its samples).
+        reference: (R, D) the same under the reference, the same units in the same order.
         count: (R,) samples per unit (default 1 each). The RMSE pools samples: sqrt(sum SSE / sum count).
         groups: (R,) integer labels: resample whole groups (e.g. the held-out fold each run belongs to, whose
             errors share one fit and move together) instead of single units. Default: each unit its own.
