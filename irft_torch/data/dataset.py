@@ -9,6 +9,7 @@ names.
 
 from __future__ import annotations
 
+import threading
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,11 @@ import torch
 
 from .._files import atomic_write
 from ..rft.contacts import SURFACE_FIELDS, Contacts
+
+# numpy reads each array's header with ast.literal_eval, which CPython 3.11 can get wrong when two threads parse
+# at once ("SystemError: AST constructor recursion depth mismatch", python/cpython#106905): Dask's threaded
+# workers load several datasets at a time (studies.fleet). One file is read at a time in a process.
+_NPY_LOCK = threading.Lock()
 
 __all__ = ["Dataset", "dataset_summary", "save_dataset", "load_dataset", "STATISTICS_PREFIX"]
 
@@ -101,7 +107,7 @@ def load_dataset(path) -> Dataset:
         raise ValueError(f"{path} is damaged or not an irft dataset (.npz from irft ingest): not an .npz (zip) "
                          f"archive; it starts with {head.decode('latin-1')[:30]!r}")
     try:
-        with np.load(path, allow_pickle=False) as d:
+        with _NPY_LOCK, np.load(path, allow_pickle=False) as d:
             missing = set(need) - set(d.files)
             if missing:
                 raise ValueError(f"{path} is not an irft dataset: missing {sorted(missing)}")
