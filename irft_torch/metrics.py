@@ -165,8 +165,9 @@ def rmse_difference(candidate, reference, count=None, groups=None, level: float 
             error per column, or the sum over its samples).
         reference: (R, D) the same under the reference, the same units in the same order.
         count: (R,) samples per unit (default 1 each). The RMSE pools samples: sqrt(sum SSE / sum count).
-        groups: (R,) integer labels: resample whole groups (e.g. the held-out fold each run belongs to, whose
-            errors share one fit and move together) instead of single units. Default: each unit its own.
+        groups: (R,) labels (integers or strings): resample whole groups (e.g. the held-out fold each run
+            belongs to, whose errors share one fit and move together) instead of single units. Default: each unit
+            its own.
         level: the interval's central share in (0, 1).
         n_boot: bootstrap resamples; ``seed`` their generator's seed (numpy ``default_rng``).
 
@@ -175,8 +176,7 @@ def rmse_difference(candidate, reference, count=None, groups=None, level: float 
     """
     c = np.asarray(torch.as_tensor(candidate, dtype=torch.float64).cpu(), dtype=float)
     r = np.asarray(torch.as_tensor(reference, dtype=torch.float64).cpu(), dtype=float)
-    if c.ndim == 1:
-        c, r = c[:, None], (r[:, None] if r.ndim == 1 else r)
+    c, r = (v[:, None] if v.ndim == 1 else v for v in (c, r))  # one column: (R,) is (R, 1)
     if c.ndim != 2 or c.shape != r.shape or c.shape[0] == 0:
         raise ValueError(f"candidate and reference must be (R, D) with R >= 1 and one shape, got "
                          f"{tuple(c.shape)} and {tuple(r.shape)}")
