@@ -46,7 +46,7 @@ from irft_torch.studies.calibration import (
 )
 
 NOISES = (0.01, 0.05)
-POSTERIORS = ("map", "laplace", "average_map", "average")
+POSTERIORS = ("map", "laplace", "average_map", "average", "default")
 
 
 def cases(held_out: bool, seeds: int, quick: bool, held_out_2: bool = False, first_seed: int = 0) -> list[Case]:
@@ -311,7 +311,8 @@ def figure(rows: list[dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
     levels = (0.5, 0.9, 0.95)
-    colours = {"map": "tab:red", "laplace": "tab:blue", "average_map": "tab:orange", "average": "tab:green"}
+    colours = {"map": "tab:red", "laplace": "tab:blue", "average_map": "tab:orange", "average": "tab:green",
+               "default": "tab:purple"}
     for a, ax in zip("xz", axes[:2]):
         for hp in posts:
             rs = [r for r in rows if r["posterior"] == hp]
@@ -319,7 +320,7 @@ def figure(rows: list[dict], path: Path) -> None:
             ax.plot(levels, obs, "o-", color=colours[hp], label=f"{hp} (mean of {len(rs)} fits)")
             for lv in levels:
                 vals = [float(r[f"cover{round(lv * 100)}_{a}"]) for r in rs]
-                shift = {"map": -0.009, "laplace": -0.003, "average_map": 0.003, "average": 0.009}[hp]
+                shift = {"map": -0.009, "laplace": -0.003, "average_map": 0.003, "average": 0.009, "default": 0.0}[hp]
                 ax.scatter([lv + shift] * len(vals), vals, s=6, alpha=0.25, color=colours[hp])
         ax.plot([0.4, 1], [0.4, 1], "k--", lw=1, label="calibrated")
         ax.set(xlabel="nominal level", ylabel="share of the grid inside the interval",
@@ -349,12 +350,15 @@ def main(argv=None) -> None:
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     p.add_argument("--held-out-2", action="store_true", help="the second held-out set (tilted and blended media, "
                    "scoop and drag motions)")
-    p.add_argument("--li-basis", action="store_true", help="InverseRFT(..., li_basis=True): Li et al.'s basis as a "
-                   "kernel term (files get the suffix _li; scored as the plug-in and Laplace)")
+    p.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,
+                   help="InverseRFT(..., li_basis=True / False) (default: the constructor's, True): Li et al.'s basis "
+                   "as a kernel term (files get the suffix _li / _rbf)")
     p.add_argument("--generic-shape", action="store_true", help="with --li-basis: InverseRFT(..., generic_shape=True), "
                    "the generic shape with an uncertain scale as a rank-one term (files get the suffix _generic)")
     p.add_argument("--posteriors", default=None, help="comma-separated subset of " + ",".join(POSTERIORS) +
-                   " (default: all four for the zero mean, map,laplace otherwise)")
+                   " (default: all four but default for the plain RBF (--no-li-basis), map,laplace otherwise); "
+                   "default alone: InverseRFT(contacts, forces).fit() as a user calls it (files get the suffix "
+                   "_default)")
     p.add_argument("--motions", default=None, help="comma-separated motions: only these (files get the suffix "
                    "_<motions>)")
     p.add_argument("--first-seed", type=int, default=0, help="skip the seeds below this: fresh seeds for a setting "
@@ -363,11 +367,12 @@ def main(argv=None) -> None:
     p.add_argument("--case", type=int, default=None, help="run only case number N of the list (0-based; for "
                    "running the cases one per process), then write the report")
     args = p.parse_args(argv)
-    if args.generic_shape and not args.li_basis:
+    if args.generic_shape and args.li_basis is False:
         p.error("--generic-shape needs --li-basis (the generic shape is a rank-one update of Li et al.'s term)")
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = ("_held_out" if args.held_out else "") + ("_held_out_2" if args.held_out_2 else "") + \
-        ("_physics" if args.prior_mean == "physics" else "") + ("_li" if args.li_basis else "") + \
+        ("_physics" if args.prior_mean == "physics" else "") + {True: "_li", False: "_rbf", None: ""}[args.li_basis] + \
+        ("_default" if args.posteriors == "default" else "") + \
         ("_generic" if args.generic_shape else "") + \
         (f"_seeds{args.first_seed}-{args.seeds - 1}" if args.first_seed else "") + \
         ("_" + args.motions.replace(",", "_") if args.motions else "")
@@ -389,11 +394,11 @@ def main(argv=None) -> None:
         warnings.simplefilter("ignore")  # spectral truncation notes at extreme draws; diagnostics
         for case in tqdm(todo, desc="calibration cases"):
             opts: dict = {} if args.prior_mean == "zero" else {"prior_mean": args.prior_mean}
-            if args.li_basis:
-                opts["li_basis"] = True
+            if args.li_basis is not None:
+                opts["li_basis"] = args.li_basis
             if args.generic_shape:
                 opts["generic_shape"] = True
-            plain = args.prior_mean == "zero" and not args.li_basis
+            plain = args.prior_mean == "zero" and args.li_basis is False
             chosen = POSTERIORS if plain else ("map", "laplace")
             if args.posteriors:
                 chosen = tuple(args.posteriors.split(","))

@@ -118,6 +118,9 @@ class _RunEffectPairs(PairsBackend):
         return X @ self._K() + run_effect_variance(self.hypers)[:, None, None] * X
 
 
+LI_FLAG = {True: " --li-basis", False: " --no-li-basis", None: ""}  # how a run's li_basis choice is written
+
+
 def run_effect_variance(hypers) -> torch.Tensor:
     """tau^2 (2,) in (N/cm^3)^2: softplus of the raw parameter times the map's prior variance scale."""
     return torch.nn.functional.softplus(hypers.raw_run_effect) * hypers.run_effect_scale
@@ -125,7 +128,7 @@ def run_effect_variance(hypers) -> torch.Tensor:
 
 def fit_run_effect(c: Contacts, f: torch.Tensor, prior_mean: str, n_iter: int) -> irft.InverseRFT:
     """I-RFT in the pairs space with a per-run random stress (see ``_RunEffectPairs``)."""
-    m = irft.InverseRFT(c, f, prior_mean=prior_mean, method="pairs")
+    m = irft.InverseRFT(c, f, prior_mean=prior_mean, method="pairs", hyper_posterior="map", li_basis=False)
     h = m.hypers
     h.register_parameter("raw_run_effect", torch.nn.Parameter(torch.zeros(2, dtype=h.outputscale.dtype)))
     h.run_effect_scale = h.outputscale.detach().clone()
@@ -146,7 +149,7 @@ def plain_gp(train: list[RunData], target: str, n_iter: int) -> irft.InverseRFT:
     one = torch.ones(len(train), 1)
     y = torch.tensor(np.array([d.target[target] for d in train]))
     # the README's plain exact GP: ML-II on the plain marginal likelihood (no hyperparameter priors)
-    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y, priors=None)
+    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y, priors=None, hyper_posterior="map", li_basis=False)
     torch.manual_seed(0)
     m.fit(n_iter=n_iter, lr=0.05, progress=False)
     return m
@@ -234,8 +237,10 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
             continue
         with_shape = bool(getattr(a, "generic_shape", False))
-        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, li_basis=bool(getattr(a, "li_basis", False)) or with_shape,
-                            generic_shape=with_shape, hyper_posterior=getattr(a, "hyper_posterior", "map"))
+        li = getattr(a, "li_basis", None)
+        opts = {k: v for k, v in (("li_basis", True if with_shape else li),
+                                  ("hyper_posterior", getattr(a, "hyper_posterior", None))) if v is not None}
+        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, generic_shape=with_shape, **opts)  # the rest: the defaults
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
     # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
@@ -340,15 +345,15 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--n-iter", type=int, default=300, help="Adam steps per I-RFT fit")
     ap.add_argument("--run-effect", action="store_true",
                     help="I-RFT with a per-run random stress learned by the marginal likelihood (experimental)")
-    ap.add_argument("--li-basis", action="store_true",
-                    help="the I-RFT rows (zero and physics mean) with Li et al.'s basis as a kernel term "
-                         "(InverseRFT(..., li_basis=True)); the learned-surface row is left as it is")
+    ap.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,
+                    help="the I-RFT rows (zero and physics mean) with or without Li et al.'s basis as a kernel term "
+                         "(default: the constructor's, with); the learned-surface row is left as it is")
     ap.add_argument("--generic-shape", action="store_true",
                     help="the same rows with the generic shape's uncertain scale too (li_basis=True, "
                          "generic_shape=True)")
-    ap.add_argument("--hyper-posterior", default="map", choices=("map", "laplace"),
-                    help="the same rows' hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): the "
-                         "plug-in, or the Laplace mixture (the harness' candidate default with --generic-shape)")
+    ap.add_argument("--hyper-posterior", default=None, choices=("map", "laplace"),
+                    help="the same rows' hyperparameter posterior (InverseRFT(..., hyper_posterior=...); default: the "
+                         "constructor's, laplace): map, the plug-in (the earlier default, with --no-li-basis)")
     ap.add_argument("--seed", type=int, default=0,
                     help="the seed set before each I-RFT fit (the Laplace rows' proposals; the plug-in rows do not "
                          "depend on it): a rerun with another seed measures the run-to-run spread")
@@ -464,9 +469,9 @@ def write_report(a, data, report, results, fold_info, tau, elapsed, too_shallow=
     lines = ["# I-RFT on independent DEM plate-intrusion data", "",
              f"`python experiments/dem_validation.py --data DIR{'' if a.stride == 'auto' else f' --stride {a.stride}'}"
              f"{'' if a.offset == '0' else f' --offset {a.offset}'}{' --cv-refit' if a.cv_refit else ''}"
-             f"{' --li-basis' if getattr(a, 'li_basis', False) else ''}"
+             f"{LI_FLAG[getattr(a, 'li_basis', None)]}"
              f"{' --generic-shape' if getattr(a, 'generic_shape', False) else ''}"
-             f"{'' if getattr(a, 'hyper_posterior', 'map') == 'map' else ' --hyper-posterior ' + a.hyper_posterior}`: "
+             f"{'' if getattr(a, 'hyper_posterior', None) is None else ' --hyper-posterior ' + a.hyper_posterior}`: "
              f"{len(data)} runs (every run with at least 3 "
              f"samples deeper than {a.min_depth:g} cm"
              f"{'; left out: ' + ', '.join(too_shallow) if too_shallow else ''}), "

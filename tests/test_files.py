@@ -21,9 +21,10 @@ def models():
     torch.set_default_dtype(torch.float64)
     c = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=60))
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
-    small = irft.InverseRFT(c, f, method="observations")
+    small = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     c2 = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=400))
-    big = irft.InverseRFT(c2, irft.rft.forces(irft.rft.FourierStressMap.generic(), c2), method="observations")
+    big = irft.InverseRFT(c2, irft.rft.forces(irft.rft.FourierStressMap.generic(), c2), method="observations",
+                          hyper_posterior="map", li_basis=False)
     return small, big
 
 

@@ -56,7 +56,7 @@ def test_loss_gradients_and_posteriors_match_cpu(method, prior_mean):
     models = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean)
+        m = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, hyper_posterior="map", li_basis=False)
         with torch.no_grad():
             m.hypers.lengthscale = torch.tensor([[[0.8, 1.1, 0.9, 1.3]], [[1.2, 0.7, 1.0, 0.9]]])
         models.append(m)
@@ -87,7 +87,7 @@ def test_fit_on_cuda_follows_cpu_and_stays_on_device():
     runs = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f)
+        m = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
         runs.append((m, m.fit(n_iter=25, lr=0.1, progress=False)))
     (cpu, h_cpu), (gpu, h_gpu) = runs
     assert all(on_cuda(p) for p in gpu.parameters())
@@ -102,7 +102,7 @@ def test_learned_surface_on_cuda_matches_cpu():
     losses = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f, surface_offset=True)
+        m = irft.InverseRFT(c, f, surface_offset=True, hyper_posterior="map", li_basis=False)
         m.init_surface([0.003])
         loss = m.loss()
         (g,) = torch.autograd.grad(loss, [m.surface.offset])
@@ -114,7 +114,7 @@ def test_learned_surface_on_cuda_matches_cpu():
 def test_add_data_and_save_load_across_devices(tmp_path):
     c, f = recording(device=CUDA)
     c2, f2 = recording(device=CUDA, seed=5, toe=IToe(0.04, 0.02, tilt=0.3, n_segments=6))
-    m = irft.InverseRFT(c, f)
+    m = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     m.fit(n_iter=10, progress=False)
     m.add_data(c2, f2)
     b = torch.linspace(-1.0, 1.0, 5, device=CUDA)
@@ -131,7 +131,7 @@ def test_probe_scores_on_cuda_match_cpu():
     scores = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f)
+        m = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
         scorer = ProbeScorer.from_model(m)
         toes = [IToe(0.04, 0.02, tilt=t, n_segments=6) for t in (-0.5, 0.0, 0.7)]
         cands = [recording(toe=toe, n=40)[0].to(device=dev) for toe in toes]
@@ -146,7 +146,7 @@ def test_sufficient_statistics_on_cuda_match_cpu():
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
         s = recording_statistics(c, f.cpu().numpy())  # forces as a user may pass them: numpy, on the host
-        m = irft.InverseRFT(c, f, method="spectral", statistics=s)
+        m = irft.InverseRFT(c, f, method="spectral", statistics=s, hyper_posterior="map", li_basis=False)
         out.append(m.loss())
     close(out[1], out[0])
     assert math.isfinite(float(out[1].detach()))
@@ -164,7 +164,8 @@ def test_fit_together_with_the_default_priors_on_cuda_matches_cpu():
     sets = [f * (1 + 0.05 * (i + 1) * torch.randn(f.shape, generator=g, dtype=f.dtype)) for i in range(3)]
     out = []
     for dev in ("cpu", CUDA):
-        models = [irft.InverseRFT(c.to(device=dev), fs.to(dev), tied_noise=True) for fs in sets]
+        models = [irft.InverseRFT(c.to(device=dev), fs.to(dev), tied_noise=True, hyper_posterior="map",
+                                  li_basis=False) for fs in sets]
         assert irft.gp.shares_fit(models) is None
         irft.gp.fit_together(models, n_iter=20, lr=0.1)
         out.append(torch.stack([m.hypers.outputscale.detach() for m in models]))
@@ -178,7 +179,7 @@ def test_terrain_filter_on_cuda_matches_cpu(li_basis):
     res = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        model = irft.InverseRFT(c, f, prior_mean="physics", li_basis=li_basis)
+        model = irft.InverseRFT(c, f, prior_mean="physics", li_basis=li_basis, hyper_posterior="map")
         filt = irft.TerrainFilter(model, B, window=5)
         idx = torch.arange(B * 8).reshape(8, B) % len(c)
         for t in range(8):
@@ -202,7 +203,7 @@ def test_terrain_filter_mixture_on_cuda_matches_cpu():
     res = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        model = irft.InverseRFT(c, f, hyper_posterior="laplace")
+        model = irft.InverseRFT(c, f, hyper_posterior="laplace", li_basis=False)
         torch.manual_seed(0)
         model.fit(n_iter=20, progress=False)
         filt = irft.gp.TerrainFilterMixture(model, B, window=4)
@@ -220,7 +221,7 @@ def test_terrain_filter_mixture_on_cuda_matches_cpu():
 
 def test_learned_surface_estimate_on_cuda():
     c, f = recording(device=CUDA)
-    m = irft.InverseRFT(c, f, surface_offset=True)
+    m = irft.InverseRFT(c, f, surface_offset=True, hyper_posterior="map", li_basis=False)
     m.fit(n_iter=5, progress=False)
     est = m.surface_offset
     assert est.mean.device == est.std.device
@@ -238,7 +239,7 @@ def test_probe_design_by_gradient_on_cuda():
     out = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        scorer = ProbeScorer.from_model(irft.InverseRFT(c, f))
+        scorer = ProbeScorer.from_model(irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False))
         spec = default_spec(0.2, ProbeBounds())
         course = spec.pop("course").clone().requires_grad_(True)
         value = scorer.integrated_variance(irft.rft.contacts(toe, course_path(course, **spec)))
@@ -259,7 +260,7 @@ def test_hyper_posterior_laplace_on_cuda_matches_cpu():
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
         torch.manual_seed(0)  # the proposals are drawn from the CPU's default generator on either device
-        m = irft.InverseRFT(c, f, hyper_posterior="laplace")
+        m = irft.InverseRFT(c, f, hyper_posterior="laplace", li_basis=False)
         m.fit(n_iter=20, lr=0.1, progress=False)
         b = torch.linspace(-1.2, 1.2, 5, device=dev)
         out.append((m, m.stress_map(b, b.flip(0))))
@@ -279,7 +280,7 @@ def test_average_prior_mean_on_cuda_matches_cpu():
     out = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f, prior_mean="average")
+        m = irft.InverseRFT(c, f, prior_mean="average", hyper_posterior="map", li_basis=False)
         m.fit(n_iter=15, lr=0.1, progress=False)
         b = torch.linspace(-1.0, 1.0, 4, device=dev)
         out.append(m.stress_map(b, b))
@@ -312,7 +313,7 @@ def test_inverse_3d_on_cuda_matches_cpu(method, li_basis):
                          rotation=R.to(dev))
         f = forces_3d(FourierStressMap.generic(0.5, 0.6).to(dev), cc, alpha_y=0.1)
         f = f + 0.02 * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype).to(dev)
-        m = irft.InverseRFT(cc, f, method=method, li_basis=li_basis)
+        m = irft.InverseRFT(cc, f, method=method, li_basis=li_basis, hyper_posterior="map")
         loss = m.loss()
         params = [p for p in m.hypers.parameters() if p.requires_grad]
         grads = torch.autograd.grad(loss, params)
@@ -353,7 +354,7 @@ def test_nuts_hyper_posterior_runs_on_cuda():
     """NUTS (pyro) on the GPU model's potential: draws and weights on the GPU, predictions a mixture there."""
     pytest.importorskip("pyro")
     c, f = recording(device=CUDA)
-    m = irft.InverseRFT(c, f, method="pairs")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=15, lr=0.1, progress=False)
     hp = m.fit_hyper_posterior("nuts", n_draws=8, free=["outputscale_z", "noise_z"], n_samples=40, warmup=40)
     assert on_cuda(hp.theta) and on_cuda(hp.weights)
@@ -378,7 +379,8 @@ def test_probe_scores_of_a_3d_model_on_cuda_match_cpu():
     for dev in ("cpu", CUDA):
         cc = contacts_3d(mesh.to(device=dev), v.to(dev), w.to(dev), surface=0.0, position=x0.to(dev))
         f = forces_3d(FourierStressMap.generic(0.5, 0.6).to(dev), cc, alpha_y=0.1)
-        scorer = ProbeScorer.from_model(irft.InverseRFT(cc[:8], f[:8], method="pairs"))
+        scorer = ProbeScorer.from_model(irft.InverseRFT(cc[:8], f[:8], method="pairs", hyper_posterior="map",
+                                                        li_basis=False))
         assert isinstance(scorer, ProbeScorer3D)
         out.append((scorer.score([cc[8:], cc[6:]], "eig"), scorer.score([cc[8:], cc[6:]], "variance")))
     assert on_cuda(out[1][0])
@@ -393,7 +395,7 @@ def test_li_basis_on_cuda_matches_cpu(method):
     models = []
     for dev in ("cpu", CUDA):
         c, f = recording(device=dev)
-        m = irft.InverseRFT(c, f, method=method, li_basis=True)
+        m = irft.InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
         with torch.no_grad():
             m.hypers.lengthscale = torch.tensor([[[0.8, 1.1, 0.9, 1.3]], [[1.2, 0.7, 1.0, 0.9]]])
             m.hypers.li.variance = torch.tensor([0.05, 0.3])

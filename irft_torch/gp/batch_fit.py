@@ -26,12 +26,11 @@ from gpytorch.likelihoods import GaussianLikelihood
 from gpytorch.module import Module
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
-from tqdm.auto import tqdm
 
 from .backends.pairs import PairsBackend
 from .backends.weight_space import WeightSpaceBackend, _DataFactor
 from .constraints import ScaledGreaterThan
-from .fit_control import adam
+from .fit_control import adam, progress_bar
 from .hyperparameters import RFTHyperparameters
 from .kernels import AngleKernel
 from .li_basis import LiBasisVariance
@@ -251,7 +250,7 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
     # each model's best iterate (loss, its raw hyperparameters, step), kept as its own fit keeps it (fit_control)
     best: list[tuple[float, dict | None, int]] = [(math.inf, None, -1)] * B
     failed = False
-    bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit x {B} (pairs)", disable=not progress, leave=False)
+    bar = progress_bar(int(n_iter), f"I-RFT fit x {B} (pairs)", progress)
     try:
         for step in bar:
             opt.zero_grad(set_to_none=True)

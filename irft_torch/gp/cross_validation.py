@@ -69,6 +69,17 @@ class GroupPredictions:
         """(2,) root mean square of the held-out residuals over all samples, N, per axis."""
         return self.residual.pow(2).mean(0).sqrt()
 
+    def coverage(self, level: float = 0.95) -> Tensor:
+        """(2,) share of the measured held-out forces inside the central ``level`` interval of their prediction,
+        per axis: mean +- z sqrt(variance + noise) (a measurement is checked, so its noise counts whether or not
+        ``variance`` holds it; a mixture's prediction by its first two moments). Calibrated intervals give about
+        ``level``; well below it, the intervals are too narrow for these data (docs/calibration.md)."""
+        if not 0 < level < 1:
+            raise ValueError(f"level must be in (0, 1), got {level}")
+        v = self.variance if self.include_noise else self.variance + self.noise
+        z = math.sqrt(2) * torch.special.erfinv(torch.tensor(level, dtype=torch.float64)).item()
+        return (self.residual.abs() <= z * v.clamp_min(0).sqrt()).to(self.mean.dtype).mean(0)
+
     def log_predictive_density(self) -> Tensor:
         """(2,) mean over samples of the log density of each measured force under its held-out
         prediction, per axis: log N(F | mean, variance + noise), noise included whether or not

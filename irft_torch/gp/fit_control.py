@@ -6,11 +6,13 @@ diverges. A mixin of ``InverseRFT``; ``fit`` itself is in ``gp.model``."""
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from .backends import RFTBackend, make_backend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs, pairs_may_move, spectral_step_cost
@@ -24,10 +26,35 @@ if TYPE_CHECKING:
     from .surface import SurfaceOffset
 
 __all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
-           "copy_into", "divergence"]
+           "converged", "copy_into", "divergence", "progress_bar", "CONVERGED_NATS"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
+
+
+CONVERGED_NATS = 2.0  # a fit followed by the Laplace polish stops when 25 Adam steps gain less log posterior than this
+PIPED_INTERVAL = 15.0  # s between progress lines where stderr is a pipe or a file (a live bar on a terminal)
+
+
+def progress_bar(total: int, desc: str, enabled: bool = True) -> tqdm:
+    """tqdm's bar over ``range(total)`` for a fit: the live bar in a terminal or notebook (``tqdm.auto``); where
+    stderr is a pipe or a log file, a line at the start, every ``PIPED_INTERVAL`` seconds and at the end instead
+    of one per refresh."""
+    from tqdm.notebook import tqdm as notebook_bar
+
+    piped = not issubclass(tqdm, notebook_bar) and not (hasattr(sys.stderr, "isatty") and sys.stderr.isatty())
+    return tqdm(range(total), desc=desc, disable=not enabled, leave=False,
+                **({"mininterval": PIPED_INTERVAL, "maxinterval": PIPED_INTERVAL} if piped else {}))
+
+
+def converged(history: list[float], n_samples: int, window: int = 25) -> bool:
+    """Whether the last ``window`` steps of a fit (losses per sample) raised the log posterior by less than
+    ``CONVERGED_NATS`` over the best of the ``window`` before them: Adam is then near the mode, and L-BFGS
+    (``gp.hyper_posterior._polish``) gets there in a few iterations where Adam would take hundreds."""
+    if len(history) < 2 * window or len(history) % window:
+        return False
+    before, last = min(history[-2 * window:-window]), min(history[-window:])
+    return n_samples * (before - last) < CONVERGED_NATS
 
 
 def adam(params: list[Tensor], lr: float) -> torch.optim.Adam:

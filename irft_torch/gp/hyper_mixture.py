@@ -17,7 +17,7 @@ from .backends import RFTBackend, make_backend
 from .hyper_nuts import nuts
 from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace
 from .hyperparameters import RFTHyperparameters
-from .laplace_guard import HyperPosteriorWarning
+from .laplace_guard import HyperPosteriorWarning, said_once
 
 if TYPE_CHECKING:
     from ..rft.contacts import Contacts
@@ -84,7 +84,7 @@ class HyperMixtureMixin(nn.Module):
                 where their weights are unreliable (``gp.importance.importance_sample``).
             n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
                 plug-in's); None keeps every weighted proposal.
-            generator: a ``torch.Generator`` for reproducible draws.
+            generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
             options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
                 ``qmc``, ``adapt``) or ``gp.hyper_nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
                 ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
@@ -103,15 +103,16 @@ class HyperMixtureMixin(nn.Module):
             if getattr(self, "priors", "physical") is None:
                 warnings.warn(IMPROPER, HyperPosteriorWarning, stacklevel=2)
             self.train()
-            try:
-                if method == "laplace":
-                    hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
-                                 **options)
-                else:
-                    hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
-            finally:
-                self.eval()
-            self._set_hyper_posterior(hp)
+            with said_once():
+                try:
+                    if method == "laplace":
+                        hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
+                                     **options)
+                    else:
+                        hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+                finally:
+                    self.eval()
+                self._set_hyper_posterior(hp)
         companion = getattr(self, "companion", None)
         if companion is not None and getattr(self, "mean_average", None) is not None:  # both means, weighed again
             companion.fit_hyper_posterior(method, n_proposals, n_draws, generator, **options)

@@ -24,7 +24,9 @@ silently wrong mixture:
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import warnings
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor
@@ -32,7 +34,7 @@ from torch import Tensor
 from .pareto import pareto_khat
 
 __all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "positive_definite",
-           "proposal_covariance", "possible", "lower_bounds", "unreliable", "reliability_message"]
+           "proposal_covariance", "possible", "lower_bounds", "unreliable", "reliability_message", "said_once"]
 
 MAX_LOG_SD = 5.0  # the Laplace Gaussian's widest standard deviation in theta = log(value)
 KHAT_RELIABLE = 0.7  # PSIS (Vehtari et al.): above it the importance weights' estimates are unreliable
@@ -42,6 +44,27 @@ MIN_ESS = 2.0  # below it the mixture is one proposal: not a posterior
 class HyperPosteriorWarning(UserWarning):
     """The hyperparameter posterior is a poor approximation here (``gp.laplace_guard``): unreliable importance
     weights, coordinates held at a wall, or the plug-in kept where every proposal was impossible."""
+
+
+@contextlib.contextmanager
+def said_once() -> Iterator[None]:
+    """What a hyperparameter posterior's many draws warn, said once: each distinct warning once, and the Fourier
+    basis' "need more than ... harmonics" (one per short-lengthscale draw, each with its own numbers) as one
+    warning that counts them. The fit's own warnings (``FitDivergedWarning``, the plug-in's basis) are not here."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    seen: set[tuple[type, str]] = set()
+    truncated = [w for w in caught if "harmonics" in str(w.message)]
+    for w in caught:
+        if w in truncated or (w.category, str(w.message)) in seen:
+            continue
+        seen.add((w.category, str(w.message)))
+        warnings.warn(w.message, w.category, stacklevel=3)
+    if truncated:
+        first = truncated[0]
+        warnings.warn(f"{len(truncated)} hyperparameter draw(s) with short lengthscales need a Fourier basis beyond "
+                      f"its cap: their kernel is truncated, e.g. {first.message}", first.category, stacklevel=3)
 
 
 def positive_definite(H: Tensor, floor: float = 1e-6, min_eigenvalue: float = 0.0) -> Tensor:

@@ -13,12 +13,19 @@ import warnings
 import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
 from ..rft.contacts import Contacts
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
-from .fit_control import FitControlMixin, FitDivergedWarning, FitInterruptedWarning, adam, copy_into
+from .fit_control import (
+    FitControlMixin,
+    FitDivergedWarning,
+    FitInterruptedWarning,
+    adam,
+    converged,
+    copy_into,
+    progress_bar,
+)
 from .hyper_mixture import HyperMixtureMixin
 from .hyper_posterior import HyperPosterior, add_data_to_draws
 from .hyperparameters import RFTHyperparameters
@@ -52,8 +59,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
-    Every computation goes to one backend (``.backend``), each exact for the same covariance
-    W K W^T + noise, computed in the smallest space:
+    Every computation goes to one backend (``.backend``), each exact for W K W^T + noise in its space:
 
     - ``"observations"`` (alias ``"exact"``): a gpytorch ExactGP whose kernel returns the lazy
       W K W^T (T x T); the reference, for few samples with many distinct angle pairs;
@@ -62,8 +68,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     - ``"spectral"``: a Fourier basis on the angle torus sized so that the kernel's truncation error
       is below ``tol``: one pass over the data, then O(F^3) per step whatever T; streaming.
 
-    ``"auto"`` (default) estimates each one's cost (``gp.backends.estimated_costs``) and takes the
-    cheapest, preferring the arithmetic-exact ones when close.
+    ``"auto"`` (default) takes the cheapest (``gp.backends.estimated_costs``), exact ones when close.
 
     Args:
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
@@ -73,53 +78,41 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             both, weighed per map by their evidence (``gp.mean_average``: the zero-mean model is this one,
             the physics-mean model ``model.companion`` is fitted after it; ``model.mean_average`` holds
             the weights).
-        tied_noise: one noise variance for both axes (the paper) instead of one per axis.
-        dtype: inference dtype (float64 by default; float32 works).
-        solver: observations backend only: "cholesky" (exact, the default) or "gpytorch"
-            (gpytorch's own settings, e.g. CG/Lanczos above ``gpytorch.settings.max_cholesky_size``).
+        tied_noise: one noise variance for both axes (the paper) instead of one per axis. dtype: float64 or float32.
+        solver: observations backend: "cholesky" (default) or "gpytorch" (CG/Lanczos above its max_cholesky_size).
         lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an
             angle (an I-toe samples beta = 0 only) the likelihood cannot move it, so it sets how far
             the map extrapolates.
         method: "auto", "observations" (or "exact"), "pairs" or "spectral" (see above).
         tol: spectral backend: bound on the kernel's relative truncation error (default 1e-7).
-        noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and
-            axis): the noise of sample t has variance ``noise * noise_scale[t]**2``. Applied exactly
-            by whitening each observation (its force and weights divided by its scale), in every
+        noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and axis): sample t's
+            noise variance is ``noise * noise_scale[t]**2``, applied exactly by whitening each observation in every
             backend; ``train_contacts`` and ``train_forces`` hold the whitened data.
         statistics: spectral sufficient statistics of exactly these contacts and forces
-            (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over
-            several): the spectral backend then skips its pass over the data. Checked against the
-            data's sample count and force power (ValueError if they differ); ignored by the other
-            backends; not allowed with a ``noise_scale``.
+            (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over several): the
+            spectral backend skips its pass over the data. Checked against the data's sample count and force power
+            (ValueError if they differ); ignored by the other backends; not allowed with a ``noise_scale``.
         surface_offset: learn the free surface's height with the maps (``gp.surface``, docs/surface.md):
             one offset in m (positive: the surface is higher than stated), fitted by the marginal
             likelihood through the segment depths; ``model.surface_offset`` gives it with its
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
-        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) instead of
-            one for all (implies ``surface_offset``).
-        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``:
-            the map's variance from the medium's scale, lengthscales that keep what the data cannot
-            see at a documented extrapolation, noise from the force spread), fitted by MAP; None: the
-            paper's plain marginal likelihood (``irft reproduce`` reports both).
-        hyper_posterior: "map" (the default: predict at the fitted hyperparameters, a plug-in, the
-            paper's way), "laplace" or "nuts". After ``fit``, "laplace" and "nuts" fit a posterior over
-            the hyperparameters (``gp.hyper_posterior``: Laplace at the mode with importance
-            reweighting, or pyro's NUTS) and every prediction (``stress_map``, ``predict_forces``,
-            ``sample_maps``, the mean map, ``cross_validate``) is the mixture over its draws;
-            ``model.hyper_posterior`` holds the draws, weights, ESS and Pareto k-hat. The calibration
-            harness (``experiments/calibration_harness.py``) favours "laplace": on media and motions the
-            priors were not tuned for, the plug-in's intervals are overconfident far more often. It is
-            not yet the default: it doubled the test suite's time and would move every reported number
-            (README, docs/calibration.md say what is measured and what is left).
-        li_basis: add Li et al.'s own basis, {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma}, to the
-            kernel as a rank-9 term with its own variance per map (``gp.li_basis``; ``model.hypers.li_variance``,
-            (N/cm^3)^2), fitted with the rest. On media and motions nobody tuned for it raises the intervals'
-            coverage where the plain RBF is overconfident (docs/calibration.md); media outside Li et al.'s span
-            can lose a little.
-        generic_shape: with ``li_basis``, also give Li et al.'s generic map g_a a scale of its own, m_a ~ N(0, u_a),
-            integrated out: the kernel term u_a g_a(theta) g_a(theta') (``gp.li_basis``; ``model.hypers.
-            generic_variance``, (N/cm^3)^2, prior at the medium's zeta^2). Media share that shape (Li et al.), so
-            what the forces leave unseen follows it rather than any of the 9 functions (docs/calibration.md).
+        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) (implies ``surface_offset``).
+        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``: the map's variance
+            from the medium's scale, lengthscales that keep what the data cannot see at a documented extrapolation,
+            noise from the force spread), fitted by MAP; None: the paper's plain marginal likelihood.
+        hyper_posterior: "laplace" (default): after the fit, a posterior over the hyperparameters
+            (``gp.hyper_posterior``, Laplace at the mode, importance-reweighted from a fixed point set: a refit
+            predicts the same); predictions are mixtures over its draws (``model.hyper_posterior``). "map": the
+            plug-in at the fitted hyperparameters (the paper's; ``TerrainFilter`` and streaming use it), about
+            1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts": pyro's
+            NUTS, the reference. With ``surface_offset`` the default is "map" (the offset has its own Laplace std).
+        li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
+            term with its own variance per map (default True; ``gp.li_basis``): what the forces leave unseen follows
+            shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
+        generic_shape: with ``li_basis``, also Li et al.'s generic map with a scale of its own, integrated out
+            (``gp.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
+            angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
+            vertical force beyond the spread (docs/calibration.md).
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)
@@ -152,7 +145,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
                  surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None,
-                 li_basis: bool = False, generic_shape: bool = False) -> None:
+                 li_basis: bool = True, generic_shape: bool = False) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -351,7 +344,12 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         The model ends at the best iterate the loss saw: where the loss rose above its best (an lr
         too large makes Adam diverge: ``fit(40, lr=5)`` climbs from -0.41 to +7.4), or turned NaN or
         inf (the fit stops there), the hyperparameters of the best step are restored, and a rise of
-        more than 0.1 (or 10 %) of the loss is a ``FitDivergedWarning`` suggesting an lr 10x smaller."""
+        more than 0.1 (or 10 %) of the loss is a ``FitDivergedWarning`` suggesting an lr 10x smaller.
+
+        With ``hyper_posterior="laplace"`` Adam stops early once 25 steps gain less than
+        ``gp.fit_control.CONVERGED_NATS`` of log posterior: the Laplace step then polishes to the mode (L-BFGS
+        and Newton), which Adam only approaches, and predictions are the same as after all ``n_iter`` steps (to
+        ~1e-6 of the predictive sd, measured)."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         self.train()
@@ -360,7 +358,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         params = [p for _, p in named]
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
         best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
-        bar = tqdm(range(int(n_iter)), desc=f"I-RFT fit ({self.method})", disable=not progress, leave=False)
+        bar = progress_bar(int(n_iter), f"I-RFT fit ({self.method})", progress)
+        polish_follows = self.hyper_method == "laplace" and self.surface is None
         step = 0
         self.backend.in_fit = True
         try:
@@ -386,7 +385,9 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                                                                  (self.auto and step % 30 == 29)):
                     self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
                 if progress:
-                    bar.set_postfix(loss=f"{history[-1]:.4g}")
+                    bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
+                if polish_follows and converged(history, self.backend.n_samples):
+                    break  # the Laplace step polishes to the mode (L-BFGS, Newton) from here
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
                           FitInterruptedWarning, stacklevel=2)

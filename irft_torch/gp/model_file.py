@@ -118,6 +118,8 @@ def load_model(cls, path, map_location=None, others: dict | None = None):
     opts = dict(payload["options"])
     opts["dtype"] = getattr(torch, opts["dtype"])
     opts.setdefault("priors", None)  # files written before the priors were fitted without them
+    opts.setdefault("hyper_posterior", "map")  # files written before these options: the plug-in RBF of then
+    opts.setdefault("li_basis", False)
     auto = bool(opts.pop("auto", False))  # method="auto": the backend it was on, and free to move again in fit
     model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
     model.auto = auto
@@ -159,6 +161,7 @@ def _load_v1(cls, d: dict, path):
             opts["method"] = "spectral"
         opts["dtype"] = getattr(torch, opts["dtype"])
         opts.setdefault("priors", None)  # 0.1 fitted without hyperparameter priors
+        opts.update(hyper_posterior="map", li_basis=False)  # nor a hyperparameter posterior or Li et al.'s term
         model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
         sd = d["state_dict"]
         sp = torch.nn.functional.softplus

@@ -387,11 +387,28 @@ def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_gri
     (that hyperparameter posterior of the zero-mean model, started from the same fit), "average_map" (the
     zero and physics prior means averaged per map by their evidence, each its plug-in) and "average" (the
     same, each with its Laplace posterior: ``InverseRFT(..., prior_mean="average",
-    hyper_posterior="laplace")``; the zero-mean model is the same fit). One row per posterior."""
+    hyper_posterior="laplace")``; the zero-mean model is the same fit). One row per posterior. "default" alone:
+    ``InverseRFT(contacts, forces, **model_options).fit(n_iter)`` as a user calls it, scored as it predicts."""
     truth, label = medium(case.family, case.seed)
     c = motion(case.kind, case.seed)
     f = simulate(truth, c, case.noise, case.seed)
     opts = dict(model_options or {})
+    if "default" in posteriors:
+        if tuple(posteriors) != ("default",):
+            raise ValueError(f"posteriors: 'default' is a fit of its own, not scored beside others, got {posteriors}")
+        model = InverseRFT(c, f, **opts)
+        t0 = time.perf_counter()
+        model.fit(n_iter=n_iter, progress=False)
+        info = model.hyper_posterior
+        row = {"family": case.family, "motion": case.kind, "noise": case.noise, "seed": case.seed, "medium": label,
+               "posterior": "default", "method": model.method, "T": len(c),
+               "fit_s": round(time.perf_counter() - t0, 3), "posterior_s": 0.0,
+               "ess": float("nan") if info is None else round(info.ess, 2),
+               "khat": float("nan") if info is None else round(info.khat, 3),
+               "n_draws": 1 if info is None else info.n_draws, "w_physics_x": float("nan"),
+               "w_physics_z": float("nan")}
+        row.update(score(model, truth, n_grid, draws, case.seed))
+        return [row]
     average = "average" in posteriors or "average_map" in posteriors
     if average:
         opts["prior_mean"] = "average"

@@ -50,19 +50,21 @@ def test_simulate_output_is_a_dataset_fit_reads(tmp_path):
     shear = (d["position"][:, 1] < -0.0499) & (np.abs(d["position"][:, 0]) < 0.15)
     np.testing.assert_allclose(ds.contacts.weight_z.numpy()[shear].sum(-1), 8.0, rtol=1e-9)
     assert main(["fit", str(out), "--out", str(tmp_path / "fit"), "--n-iter", "5", "--no-progress"]) == 0
-    assert (tmp_path / "fit" / "model.pt").exists()
-    # the intervals' options (docs/calibration.md): Li et al.'s term and a Laplace hyperparameter posterior, kept
-    assert main(["fit", str(out), "--out", str(tmp_path / "fit2"), "--n-iter", "5", "--no-progress", "--li-basis",
-                 "--hyper-posterior", "laplace"]) == 0
     from irft_torch import InverseRFT
 
-    m = InverseRFT.load(tmp_path / "fit2" / "model.pt")
+    # the default, as the library's: Li et al.'s term and a Laplace hyperparameter posterior, kept in the file
+    m = InverseRFT.load(tmp_path / "fit" / "model.pt")
     assert m.hypers.li is not None and m.hyper_posterior is not None and m.hyper_posterior.method == "laplace"
     assert m.hyper_posterior.n_draws > 1 and "li_variance_x" in m.hyper_posterior.labels
     assert not m.hypers.li.generic
+    # the plug-in RBF by name
+    assert main(["fit", str(out), "--out", str(tmp_path / "fit2"), "--n-iter", "5", "--no-progress", "--no-li-basis",
+                 "--hyper-posterior", "map"]) == 0
+    m = InverseRFT.load(tmp_path / "fit2" / "model.pt")
+    assert m.hypers.li is None and m.hyper_posterior is None and m.hyper_method == "map"
     # ... and the generic shape's uncertain scale (--generic-shape implies --li-basis)
     assert main(["fit", str(out), "--out", str(tmp_path / "fit3"), "--n-iter", "5", "--no-progress",
-                 "--generic-shape"]) == 0
+                 "--generic-shape", "--hyper-posterior", "map"]) == 0
     m = InverseRFT.load(tmp_path / "fit3" / "model.pt")
     assert m.hypers.li is not None and m.hypers.li.generic and "generic_variance" in m.hypers.as_dict()
 

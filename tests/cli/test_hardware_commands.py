@@ -15,6 +15,8 @@ import irft_torch as irft
 from irft_torch.cli import main
 from irft_torch.hardware import FakeODrive, SimulatedLeg, load_dataset, read_log
 
+PLUG_IN = ["--hyper-posterior", "map", "--no-li-basis"]  # the pipeline, not the posterior (tests/gp test that)
+
 
 def test_record_simulate_ingest_fit(tmp_path, capsys):
     """record --simulate -> ingest -> fit with no hardware. The logged currents are checked against
@@ -58,7 +60,7 @@ def test_record_simulate_ingest_fit(tmp_path, capsys):
     np.testing.assert_allclose(ds.forces[deep].numpy(), np.tile(F, (int(deep.sum()), 1)), atol=2e-3)
 
     rc = main(["fit", str(tmp_path / "ds.npz"), "--out", str(tmp_path / "fit"), "--n-iter", "5",
-               "--max-samples", "60", "--no-progress"])
+               "--max-samples", "60", "--no-progress", *PLUG_IN])
     assert rc == 0
     for f in ("stress_map.png", "forces.png"):
         img = matplotlib.image.imread(tmp_path / "fit" / f)
@@ -71,14 +73,14 @@ def test_record_simulate_ingest_fit(tmp_path, capsys):
 
     # two datasets fit together: the model holds both recordings' samples, on the backend asked for
     rc = main(["fit", str(tmp_path / "ds.npz"), str(tmp_path / "ds.npz"), "--out", str(tmp_path / "fit2"),
-               "--n-iter", "3", "--method", "pairs", "--no-progress"])
+               "--n-iter", "3", "--method", "pairs", "--no-progress", *PLUG_IN])
     assert rc == 0 and "2 datasets, " in capsys.readouterr().out
     both = irft.InverseRFT.load(tmp_path / "fit2" / "model.pt")
     assert len(both.train_contacts) == 2 * len(ds) and both.method == "pairs"
     # MAP by default; --priors none is the paper's plain likelihood (no prior term in the loss)
     assert model.priors == "physical" and both.priors == "physical"
     rc = main(["fit", str(tmp_path / "ds.npz"), "--out", str(tmp_path / "fit3"), "--n-iter", "2",
-               "--max-samples", "60", "--priors", "none", "--no-progress"])
+               "--max-samples", "60", "--priors", "none", "--no-progress", *PLUG_IN])
     plain = irft.InverseRFT.load(tmp_path / "fit3" / "model.pt")
     assert rc == 0 and plain.priors is None and float(plain.backend.log_prior()) == 0.0
 

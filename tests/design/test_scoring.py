@@ -68,7 +68,8 @@ def hypers(model):
 
 def fitted(method="observations"):
     c = random_contacts(T=20, M=3, seed=21, repeated=(method == "pairs"))
-    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method=method)
+    m = irft.InverseRFT(c, irft.rft.forces(FourierStressMap.generic(), c), method=method, hyper_posterior="map",
+                        li_basis=False)
     set_hypers(m, seed=3)
     return m
 
@@ -220,7 +221,7 @@ def test_a_scorer_forgets_its_region_values_when_the_model_rebuilds_at_a_moved_s
     probes = irft.rft.random_probes(toes, 2, 0.2, n_steps=15, seed=3)
     train = Contacts.cat([p.contacts() for p in probes[:2]])
     m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(), train), method="observations",
-                        surface_offset=True)
+                        surface_offset=True, hyper_posterior="map", li_basis=False)
     scorer, region, cand = ProbeScorer.from_model(m), Region.sign_change(6), probes[2].contacts()
     scorer.score([cand], "variance", region)  # fills the region cache at the stated surface
     m.init_surface([0.01])
@@ -256,7 +257,7 @@ def test_candidates_noise_scale_is_heteroscedastic_noise_exactly():
     assert abs(plain - eig.item()) > 1e-3  # the scale matters
     with pytest.warns(UserWarning, match="noise_scale"):
         heavy = irft.InverseRFT(model.train_contacts, irft.rft.forces(FourierStressMap.generic(), model.train_contacts),
-                                noise_scale=torch.full((20,), 2.0))
+                                noise_scale=torch.full((20,), 2.0), hyper_posterior="map", li_basis=False)
         ProbeScorer.from_model(heavy)
 
 
@@ -307,7 +308,8 @@ def test_spectral_and_exact_scores_agree_on_probes():
     toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
     probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=60, seed=3)
     train = Contacts.cat([p.contacts() for p in probes[:2]])
-    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="observations")
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(0.45, 0.42), train), method="observations",
+                        hyper_posterior="map", li_basis=False)
     ex = ProbeScorer.from_model(m, method="observations").score(probes[2:])
     sp = ProbeScorer.from_model(m, method="spectral", tol=None).score(probes[2:])  # the model's 1e-7
     # IV is a difference (prior minus what the data explain): 1e-6 of its scale, 2 (the prior's IV)
@@ -376,7 +378,7 @@ def test_a_spectral_model_is_scored_in_a_coarser_basis_by_default_and_ranked_the
     probes = irft.rft.random_probes(toes, 8, 0.3, n_steps=60, seed=5)
     train = Contacts.cat([p.contacts() for p in probes[:3]])
     smap = FourierStressMap.generic(0.45, 0.42)
-    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral")
+    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral", hyper_posterior="map", li_basis=False)
     coarse, fine = ProbeScorer.from_model(m), ProbeScorer.from_model(m, tol=None)
     assert fine.backend is m.backend
     assert coarse.backend.basis.size < m.backend.basis.size
@@ -412,7 +414,7 @@ def test_a_scorer_follows_its_model_across_backend_switches_whatever_its_recipe(
     probes = irft.rft.random_probes(toes, 6, 0.3, n_steps=40, seed=7)
     train = Contacts.cat([p.contacts() for p in probes[:3]])
     smap = FourierStressMap.generic(0.45, 0.42)
-    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral")
+    m = irft.InverseRFT(train, irft.rft.forces(smap, train), method="spectral", hyper_posterior="map", li_basis=False)
     m.auto = True  # let the fit move between backends, with costs we choose
     recipes = [{}, {"tol": None}, {"tol": 1e-3}, {"tol": 1e-9}, {"method": "pairs"}, {"method": "observations"}]
     scorers = [ProbeScorer.from_model(m, **r) for r in recipes]
@@ -482,7 +484,8 @@ def test_a_derived_scorer_tells_a_new_backend_from_a_freed_one():
     toes = {"I": irft.rft.IToe(0.02, 0.008), "C": irft.rft.CToe(0.02, 0.008, opening="left")}
     probes = irft.rft.random_probes(toes, 3, 0.2, n_steps=15, seed=3)
     train, cand = Contacts.cat([p.contacts() for p in probes[:2]]), probes[2].contacts()
-    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(), train), method="observations")
+    m = irft.InverseRFT(train, irft.rft.forces(FourierStressMap.generic(), train), method="observations",
+                        hyper_posterior="map", li_basis=False)
     s = ProbeScorer.from_model(m, method="pairs")
     first = s.backend
     assert s.backend is first  # unchanged model: the same derived belief

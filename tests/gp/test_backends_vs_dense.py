@@ -73,7 +73,7 @@ def references(model, c, f):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_likelihood_and_every_gradient_match_dense(method, prior, repeated):
     c, f = data(repeated=repeated)
-    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None)
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None, hyper_posterior="map", li_basis=False)
     assert model.method == method
     set_hypers(model)
     params = dict(model.hypers.named_parameters())
@@ -103,7 +103,7 @@ def test_likelihood_and_every_gradient_match_dense(method, prior, repeated):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_map_and_force_posteriors_match_dense(method, prior):
     c, f = data(T=30, M=5, seed=4, repeated=(method == "pairs"))
-    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None)
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=2)
     refs = references(model, c, f)
     tol = TOL[method]
@@ -131,7 +131,8 @@ def test_translating_toe_posteriors_match_dense(method):
     from irft_torch.gp import RowSeparableRFTOperator
 
     c, f = data(T=30, M=4, seed=5, repeated="translating")
-    model = irft.InverseRFT(c, f, prior_mean="physics", method=method, priors=None)
+    model = irft.InverseRFT(c, f, prior_mean="physics", method=method, priors=None, hyper_posterior="map",
+                            li_basis=False)
     set_hypers(model, seed=4)
     if method == "observations":
         gp = model.backend.gp
@@ -149,7 +150,7 @@ def test_translating_toe_posteriors_match_dense(method):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_joint_covariance_and_cross_covariance_match_dense(method):
     c, f = data(T=20, M=3, seed=21)
-    model = irft.InverseRFT(c, f, method=method, priors=None)
+    model = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=3)
     ls, os, noise = model.hypers.lengthscale.detach(), model.hypers.outputscale.detach(), model.hypers.noise.detach()
     q1, q2 = random_contacts(T=6, M=2, seed=22), random_contacts(T=4, M=4, seed=23)
@@ -184,8 +185,8 @@ def test_conditioning_equals_a_batch_posterior(method, with_forces):
     hyperparameters; without forces the covariance is the same and the mean does not move."""
     c, f = data(T=30, M=4, seed=31, repeated=(method == "pairs"))
     c1, f1, c2, f2 = c[:18], f[:18], c[18:], f[18:]
-    base = irft.InverseRFT(c1, f1, method=method, priors=None)
-    full = irft.InverseRFT(c, f, method=method, priors=None)
+    base = irft.InverseRFT(c1, f1, method=method, priors=None, hyper_posterior="map", li_basis=False)
+    full = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     for m in (base, full):
         set_hypers(m, seed=5)
     q = random_contacts(T=8, M=3, seed=33)
@@ -204,8 +205,8 @@ def test_conditioning_equals_a_batch_posterior(method, with_forces):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_streaming_equals_batch(method):
     c, f = data(T=40, M=3, seed=41, repeated=(method == "pairs"))
-    batch = irft.InverseRFT(c, f, method=method, priors=None)
-    stream = irft.InverseRFT(c[:15], f[:15], method=method, priors=None)
+    batch = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
+    stream = irft.InverseRFT(c[:15], f[:15], method=method, priors=None, hyper_posterior="map", li_basis=False)
     for m in (batch, stream):
         set_hypers(m, seed=7)
     stream.add_data(c[15:30], f[15:30])
@@ -224,7 +225,7 @@ def test_relative_noise_scale_is_heteroscedastic_noise_exactly(method, tmp_path)
     S = W K W^T + sigma^2 diag(s^2) (no whitening in the reference), and through save/load."""
     c, f = data(T=24, M=3, seed=13, repeated=(method == "pairs"))
     s = 0.5 + torch.rand(24, 2, generator=torch.Generator().manual_seed(2))
-    model = irft.InverseRFT(c, f, noise_scale=s, method=method, priors=None)
+    model = irft.InverseRFT(c, f, noise_scale=s, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=6)
     th = torch.stack([c.beta.reshape(-1), c.gamma.reshape(-1)], -1)
     A = [W_dense(c.weight_x), W_dense(c.weight_z)]
@@ -259,8 +260,10 @@ def test_relative_noise_scale_is_heteroscedastic_noise_exactly(method, tmp_path)
 @pytest.mark.parametrize("length", [0.2, 0.5, 1.0, 2.0, 4.0])
 def test_spectral_within_its_truncation_bound_for_lengthscales_02_to_4(length):
     c, f = data(T=20, M=3, seed=51)
-    model = irft.InverseRFT(c, f, method="spectral", lengthscale=length, priors=None)
-    ref = irft.InverseRFT(c, f, method="observations", lengthscale=length, priors=None)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=length, priors=None, hyper_posterior="map",
+                            li_basis=False)
+    ref = irft.InverseRFT(c, f, method="observations", lengthscale=length, priors=None, hyper_posterior="map",
+                          li_basis=False)
     bound = model.truncation_error()
     assert (bound <= 1e-7).all() and (bound >= 0).all()
     assert ref.truncation_error().abs().max() == 0
@@ -276,8 +279,9 @@ def test_float32_spectral_basis_is_sized_by_the_kernel_not_by_float32_round_off(
     a float32 model gets the basis a float64 one gets, reports a truncation error within tol, and its
     likelihood and map match the dense float64 reference to float32 precision."""
     c, f = data(T=20, M=3, seed=51)
-    m32 = irft.InverseRFT(c, f, method="spectral", dtype=torch.float32, priors=None)
-    m64 = irft.InverseRFT(c, f, method="spectral", priors=None)
+    m32 = irft.InverseRFT(c, f, method="spectral", dtype=torch.float32, priors=None, hyper_posterior="map",
+                          li_basis=False)
+    m64 = irft.InverseRFT(c, f, method="spectral", priors=None, hyper_posterior="map", li_basis=False)
     for m in (m32, m64):
         set_hypers(m)
         m.loss()  # the basis follows the new lengthscales
@@ -296,20 +300,21 @@ def test_float32_spectral_basis_is_sized_by_the_kernel_not_by_float32_round_off(
 
 def test_spectral_basis_grows_when_a_lengthscale_shrinks():
     c, f = data(T=20, M=3, seed=52)
-    model = irft.InverseRFT(c, f, method="spectral", lengthscale=2.0, priors=None)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=2.0, priors=None, hyper_posterior="map",
+                            li_basis=False)
     small = model.backend.basis.size
     model.hypers.lengthscale = torch.full((2, 1, 4), 0.3)
     assert model.truncation_error().max() > 1e-5  # the old basis cannot represent it
     model.loss()  # outside a fit loop every evaluation checks the basis
     assert model.backend.basis.size > small and model.truncation_error().max() <= 1e-7
-    ref = irft.InverseRFT(c, f, method="observations", priors=None)
+    ref = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)
     ref.hypers.load_state_dict(model.hypers.state_dict())
     assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
 
 
 def test_independent_segment_variance_is_the_papers_formula():
     c, f = data(T=20, M=4, seed=5)
-    model = irft.InverseRFT(c, f, method="observations", priors=None)
+    model = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model)
     refs = references(model, c, f)
     cs = random_contacts(T=6, M=3, seed=8)
@@ -326,8 +331,8 @@ def test_independent_segment_variance_is_the_papers_formula():
 @pytest.mark.parametrize("method", BACKENDS)
 def test_zero_weight_padding_changes_nothing(method):
     c, f = data(T=15, M=3, seed=11, repeated=(method == "pairs"))
-    m1 = irft.InverseRFT(c, f, method=method, priors=None)
-    m2 = irft.InverseRFT(c.pad_segments(7), f, method=method, priors=None)
+    m1 = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
+    m2 = irft.InverseRFT(c.pad_segments(7), f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     for m in (m1, m2):
         set_hypers(m)
     assert m1.loss().item() == pytest.approx(m2.loss().item(), rel=1e-10)
@@ -337,7 +342,7 @@ def test_zero_weight_padding_changes_nothing(method):
 
 def test_mirror_outside_canonical_square():
     c, f = data(T=15, M=3, seed=12)
-    m = irft.InverseRFT(c, f, priors=None)
+    m = irft.InverseRFT(c, f, priors=None, hyper_posterior="map", li_basis=False)
     b, g = torch.tensor([0.3]), torch.tensor([2.5])  # motion with a -x component
     inside = m.stress_map(-b, P - g)
     outside = m.stress_map(b, g)
@@ -372,8 +377,8 @@ def test_statistics_of_two_recordings_add_up_to_one_pass_over_both():
     with pytest.raises(ValueError, match="different feature spaces"):
         a + spectral_statistics(c[:5], f[:5], FourierBasis(8, 8))
     # a backend that merges statistics computed elsewhere has the posterior of one fit on everything
-    full = irft.InverseRFT(c, f, method="spectral", priors=None)
-    part = irft.InverseRFT(c[:20], f[:20], method="spectral", priors=None)
+    full = irft.InverseRFT(c, f, method="spectral", priors=None, hyper_posterior="map", li_basis=False)
+    part = irft.InverseRFT(c[:20], f[:20], method="spectral", priors=None, hyper_posterior="map", li_basis=False)
     for m in (full, part):
         set_hypers(m, seed=9, low=1.5)
     part.backend.basis = full.backend.basis = basis
@@ -394,7 +399,7 @@ def test_segments_moving_both_ways_in_one_sample_match_dense(method):
     sign = torch.where(torch.rand(25, 4, generator=torch.Generator().manual_seed(72)) < 0.5, -1.0, 1.0)
     c = Contacts(c.beta, c.gamma, sign * c.weight_z, c.weight_z)
     f = irft.rft.forces(FourierStressMap.generic(0.5, 0.4), c) + 0.05 * torch.randn(25, 2)
-    model = irft.InverseRFT(c, f, method=method, priors=None)
+    model = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=4)
     ref = sum(-r[0] for r in references(model, c, f))
     assert model.loss().item() == pytest.approx(ref.item(), rel=TOL[method])
@@ -405,8 +410,8 @@ def test_many_queries_in_a_row_never_reuse_another_querys_structure():
     query's id reused by the next one gave that one the old structure (a wrong, non-PSD covariance).
     Twenty fresh queries under no_grad, each against the pairs backend (exact, no such cache)."""
     c, f = data(T=20, M=3, seed=81, repeated=True)
-    obs = irft.InverseRFT(c, f, method="observations", priors=None)
-    pairs = irft.InverseRFT(c, f, method="pairs", priors=None)
+    obs = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)
+    pairs = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     for m in (obs, pairs):
         set_hypers(m, seed=8)
     with torch.no_grad():
@@ -457,7 +462,8 @@ def test_observations_posterior_is_gpytorchs_own_prediction():
     from irft_torch.gp.encoding import encode_contacts
 
     c, f = data(T=20, M=3, seed=91)
-    model = irft.InverseRFT(c, f, method="observations", prior_mean="physics", priors=None)
+    model = irft.InverseRFT(c, f, method="observations", prior_mean="physics", priors=None, hyper_posterior="map",
+                            li_basis=False)
     set_hypers(model, seed=10)
     q = random_contacts(T=6, M=3, seed=92)
     ours = model.backend.posterior(q, covariance=True)
@@ -477,7 +483,8 @@ def test_observations_likelihood_is_gpytorchs_exact_marginal_likelihood(prior):
 
     c, f = data(T=20, M=3, seed=93, repeated=True)
     for tied in (False, True):
-        model = irft.InverseRFT(c, f, method="observations", prior_mean=prior, priors=None, tied_noise=tied)
+        model = irft.InverseRFT(c, f, method="observations", prior_mean=prior, priors=None, tied_noise=tied,
+                                hyper_posterior="map", li_basis=False)
         set_hypers(model, seed=11)
         params = [p for p in model.hypers.parameters() if p.requires_grad]
         ours = model.backend.negative_log_likelihood()
@@ -497,7 +504,7 @@ def test_sampled_maps_have_the_dense_posterior_mean_and_covariance(method):
     # 20000 maps drawn at 5 angle pairs (one outside the canonical square: alpha_x's mirror sign) against
     # the dense posterior written out here: mean and joint covariance within Monte-Carlo error
     c, f = data(T=20, M=3, seed=31)
-    model = irft.InverseRFT(c, f, method=method, priors=None)
+    model = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=5)
     beta = torch.tensor([[0.0, 0.3, -1.2], [0.9, 1.2, 2.0]])  # (2, 3): 6 points, beta = 2.0 mirrored in
     gamma = torch.tensor([[0.1, -0.8, 0.5], [1.3, -0.2, 0.4]])

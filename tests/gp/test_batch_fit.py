@@ -12,6 +12,8 @@ from irft_torch.rft import FourierStressMap
 
 from .test_backends_vs_dense import random_contacts
 
+PLUG_IN = dict(hyper_posterior="map", li_basis=False)  # what these tests test: the batched MAP fit
+
 
 def noisy_forces(c, n, seed=0):
     """n force sets on the same contacts: the generic map at other scales, with 0-30 % multiplicative noise."""
@@ -24,7 +26,7 @@ def noisy_forces(c, n, seed=0):
 
 
 def build(c, forces, **kw):
-    return [irft.InverseRFT(c, f, **kw) for f in forces]
+    return [irft.InverseRFT(c, f, **kw, **PLUG_IN) for f in forces]
 
 
 def hyper_vector(model):
@@ -71,27 +73,29 @@ def test_models_that_cannot_share_a_batch_are_fitted_one_by_one():
     other = random_contacts(T=30, M=4, seed=7, repeated=True)
     f1, f2 = noisy_forces(c, 2)
     cases = {
-        "different contacts": [irft.InverseRFT(c, f1, method="pairs"),
-                               irft.InverseRFT(other, noisy_forces(other, 1)[0], method="pairs")],
-        "backend": [irft.InverseRFT(c, f1, method="observations"), irft.InverseRFT(c, f2, method="observations")],
-        "physics mean": [irft.InverseRFT(c, f1, method="pairs", prior_mean="physics"),
-                         irft.InverseRFT(c, f2, method="pairs", prior_mean="physics")],
-        "priors": [irft.InverseRFT(c, f1, method="pairs"), irft.InverseRFT(c, f2, method="pairs", priors=None)],
+        "different contacts": [irft.InverseRFT(c, f1, method="pairs", **PLUG_IN),
+                               irft.InverseRFT(other, noisy_forces(other, 1)[0], method="pairs", **PLUG_IN)],
+        "backend": [irft.InverseRFT(c, f1, method="observations", **PLUG_IN),
+                    irft.InverseRFT(c, f2, method="observations", **PLUG_IN)],
+        "physics mean": [irft.InverseRFT(c, f1, method="pairs", prior_mean="physics", **PLUG_IN),
+                         irft.InverseRFT(c, f2, method="pairs", prior_mean="physics", **PLUG_IN)],
+        "priors": [irft.InverseRFT(c, f1, method="pairs", **PLUG_IN),
+                   irft.InverseRFT(c, f2, method="pairs", priors=None, **PLUG_IN)],
     }
     from gpytorch.priors import NormalPrior
 
-    extra = [irft.InverseRFT(c, f, method="pairs") for f in (f1, f2)]
+    extra = [irft.InverseRFT(c, f, method="pairs", **PLUG_IN) for f in (f1, f2)]
     for m in extra:  # a user's own prior: not one this batching stacks
         m.hypers.kernel.register_prior("my_prior", NormalPrior(0.0, 1.0), lambda k: k.outputscale)
     cases["prior this batching does not know"] = extra
-    frozen = [irft.InverseRFT(c, f, method="pairs") for f in (f1, f2)]
+    frozen = [irft.InverseRFT(c, f, method="pairs", **PLUG_IN) for f in (f1, f2)]
     frozen[1].hypers.kernel.raw_outputscale.requires_grad_(False)
     cases["held fixed"] = frozen
     for why, models in cases.items():
         reason = shares_fit(models)
         assert reason is not None and why.split()[-1] in reason, (why, reason)
         twins = [irft.InverseRFT(m.train_contacts, m.train_forces, method=m.method, priors=m.priors,
-                                 prior_mean=m.prior_mean_kind) for m in models]
+                                 prior_mean=m.prior_mean_kind, **PLUG_IN) for m in models]
         for m, t in zip(models, twins):
             for name, module, prior, closure, _ in m.hypers.named_priors():
                 if "my_prior" in name:
@@ -161,7 +165,8 @@ def test_rows_out_of_contact_count_so_a_longer_recording_is_not_batched():
     f1, f2 = noisy_forces(c, 2)
     idle = irft.rft.Contacts(torch.zeros(5, 4), torch.zeros(5, 4), torch.zeros(5, 4), torch.zeros(5, 4))
     c_long, f2_long = irft.rft.Contacts.cat([c, idle]), torch.cat([f2, torch.zeros(5, 2)])
-    make = lambda: [irft.InverseRFT(c, f1, method="pairs"), irft.InverseRFT(c_long, f2_long, method="pairs")]  # noqa: E731
+    make = lambda: [irft.InverseRFT(c, f1, method="pairs", **PLUG_IN),  # noqa: E731
+                    irft.InverseRFT(c_long, f2_long, method="pairs", **PLUG_IN)]
     together, alone = make(), make()
     assert "samples" in shares_fit(together)
     fit_together(together, n_iter=20, lr=0.1)
@@ -171,7 +176,7 @@ def test_rows_out_of_contact_count_so_a_longer_recording_is_not_batched():
 def test_the_same_model_twice_is_fitted_twice_in_a_row():
     c = random_contacts(T=20, M=3, seed=10, repeated=True)
     f = noisy_forces(c, 1)[0]
-    m, ref = irft.InverseRFT(c, f, method="pairs"), irft.InverseRFT(c, f, method="pairs")
+    m, ref = irft.InverseRFT(c, f, method="pairs", **PLUG_IN), irft.InverseRFT(c, f, method="pairs", **PLUG_IN)
     assert "twice" in shares_fit([m, m])
     fit_together([m, m], n_iter=10, lr=0.1)
     ref.fit(n_iter=10, lr=0.1, progress=False)
@@ -240,9 +245,12 @@ def test_a_mixed_list_is_batched_in_the_groups_that_can_share_and_each_ends_as_i
     fc, fo = noisy_forces(c, 3), noisy_forces(other, 2, seed=1)
 
     def make():
-        return [irft.InverseRFT(c, fc[0], method="pairs"), irft.InverseRFT(other, fo[0], method="pairs"),
-                irft.InverseRFT(c, fc[1], method="observations"), irft.InverseRFT(c, fc[2], method="pairs"),
-                irft.InverseRFT(other, fo[1], method="pairs"), irft.InverseRFT(c, fc[1], method="pairs")]
+        return [irft.InverseRFT(c, fc[0], method="pairs", **PLUG_IN),
+                irft.InverseRFT(other, fo[0], method="pairs", **PLUG_IN),
+                irft.InverseRFT(c, fc[1], method="observations", **PLUG_IN),
+                irft.InverseRFT(c, fc[2], method="pairs", **PLUG_IN),
+                irft.InverseRFT(other, fo[1], method="pairs", **PLUG_IN),
+                irft.InverseRFT(c, fc[1], method="pairs", **PLUG_IN)]
 
     together, alone = make(), make()
     sizes = []

@@ -57,7 +57,8 @@ def assert_grads_close(got, want, tol, names):
 def test_loss_and_every_gradient_equal_autograd_of_the_backends_loss(method, repeated, prior_mean, tied):
     """With the physical priors (their closed form too), at hyperparameters away from the initial ones."""
     c, f = data(T=30, M=4, seed=2, repeated=repeated)
-    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, tied_noise=tied)
+    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, tied_noise=tied, hyper_posterior="map",
+                            li_basis=False)
     set_hypers(model, seed=3)
     names = [n for n, _ in model.hypers.named_parameters()]
     want_loss, want = autograd_grads(model)
@@ -72,7 +73,8 @@ def test_loss_and_every_gradient_equal_the_dense_reference(method, repeated, pri
     """The paper's plain likelihood (no priors), differentiated by autograd through the explicit dense
     formula; the closed form's raw-parameter gradients against it."""
     c, f = data(T=25, M=4, seed=0, repeated=repeated)
-    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, priors=None)
+    model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, priors=None, hyper_posterior="map",
+                            li_basis=False)
     set_hypers(model, seed=1)
     params = dict(model.hypers.named_parameters())
     ls, os, noise = model.hypers.lengthscale, model.hypers.outputscale, model.hypers.noise
@@ -94,7 +96,8 @@ def test_a_batch_of_draws_equals_each_draw_alone_and_the_dense_reference(method,
     """ClosedForm.evaluate over S draws in one call: each draw's nll and gradients equal a call with that
     draw alone and the dense reference's at that draw (physics mean, tied noise)."""
     c, f = data(T=25, M=4, seed=4, repeated=repeated)
-    model = irft.InverseRFT(c, f, method=method, prior_mean="physics", tied_noise=True, priors=None)
+    model = irft.InverseRFT(c, f, method=method, prior_mean="physics", tied_noise=True, priors=None,
+                            hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=5)
     base = current_values(model.hypers)
     g = torch.Generator().manual_seed(6)
@@ -124,7 +127,7 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
     """What Laplace and NUTS use: the batched log posterior (128 proposals: one call) and the single one
     with its gradient, against the autograd path (``exact_graph``), over all and over some coordinates."""
     c, f = data(T=30, M=4, seed=7, repeated=repeated)
-    model = irft.InverseRFT(c, f, method=method)
+    model = irft.InverseRFT(c, f, method=method, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=8)
     spec = hyper_spec(model.hypers)
     theta = spec.theta(model.hypers)
@@ -144,7 +147,7 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
 
 def test_impossible_draws_get_minus_infinity_and_no_gradient():
     c, f = data(T=20, M=3, seed=10, repeated=True)
-    model = irft.InverseRFT(c, f, method="pairs")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     spec = hyper_spec(model.hypers)
     theta = spec.theta(model.hypers)
     bad = theta.clone()
@@ -158,7 +161,7 @@ def test_float32_agrees_with_float64():
     c, f = data(T=30, M=4, seed=11, repeated=True)
     grads = {}
     for dtype in (torch.float32, torch.float64):
-        model = irft.InverseRFT(c, f, method="pairs", dtype=dtype)
+        model = irft.InverseRFT(c, f, method="pairs", dtype=dtype, hyper_posterior="map", li_basis=False)
         set_hypers(model, seed=12)
         loss, g = closed_form_grads(model)
         grads[dtype] = (loss, g)
@@ -172,7 +175,8 @@ def test_float32_agrees_with_float64():
 def test_a_fit_follows_the_autograd_fit(method, repeated):
     """The same Adam steps give the same hyperparameters (and losses) as before, to round-off."""
     c, f = data(T=40, M=4, seed=13, repeated=repeated)
-    fast, slow = (irft.InverseRFT(c, f, method=method, prior_mean="physics") for _ in range(2))
+    fast, slow = (irft.InverseRFT(c, f, method=method, prior_mean="physics", hyper_posterior="map",
+                                  li_basis=False) for _ in range(2))
     h_fast = fast.fit(40, lr=0.05, progress=False)
     with autograd_only():
         h_slow = slow.fit(40, lr=0.05, progress=False)
@@ -183,7 +187,7 @@ def test_a_fit_follows_the_autograd_fit(method, repeated):
 
 def test_a_prior_registered_by_hand_takes_autograd_and_an_uncovered_parameter_falls_back():
     c, f = data(T=25, M=3, seed=14, repeated=True)
-    model = irft.InverseRFT(c, f, method="pairs")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     model.hypers.kernel.register_prior("extra_prior", GammaPrior(2.0, 3.0), lambda m: m.outputscale)
     names = [n for n, _ in model.hypers.named_parameters()]
     want_loss, want = autograd_grads(model)
@@ -218,7 +222,7 @@ def test_an_additive_term_plugs_in():
     """Sigma = K_UU + H^T diag(v) H: the closed form with the toy term against autograd through a direct
     evaluation of the same likelihood (the weight-space formula written with torch.logdet and solve)."""
     c, f = data(T=30, M=4, seed=15, repeated=True)
-    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=16)
     model.hypers.register_parameter("raw_dev", torch.nn.Parameter(torch.tensor([0.1, -0.4])))
     model.hypers.register_constraint("raw_dev", GreaterThan(0.0))
@@ -246,11 +250,12 @@ def test_an_additive_term_plugs_in():
 
 def test_laplace_is_the_same_posterior_as_before():
     """The Laplace posterior (polish, Hessian, 128 weighted proposals in one call) with the same generator
-    equals the one computed through autograd, proposal by proposal."""
+    equals the one computed through autograd, proposal by proposal (to the Hessian's accuracy: here central
+    differences of the closed-form gradient, 2e-8 relative, against autograd's second derivatives)."""
     c, f = data(T=40, M=4, seed=17, repeated=True)
     posts = []
     for ctx in (autograd_only, None):
-        model = irft.InverseRFT(c, f, method="pairs")
+        model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
         model.fit(30, progress=False)
         g = torch.Generator().manual_seed(18)
         if ctx is None:
@@ -260,9 +265,9 @@ def test_laplace_is_the_same_posterior_as_before():
                 posts.append(model.fit_hyper_posterior("laplace", generator=g))
     a, b = posts
     torch.testing.assert_close(a.mode, b.mode, rtol=1e-9, atol=1e-10)
-    torch.testing.assert_close(a.theta, b.theta, rtol=1e-8, atol=1e-9)
-    torch.testing.assert_close(a.weights, b.weights, rtol=1e-8, atol=1e-10)
-    assert a.ess == pytest.approx(b.ess, rel=1e-8)
+    torch.testing.assert_close(a.theta, b.theta, rtol=1e-7, atol=1e-8)
+    torch.testing.assert_close(a.weights, b.weights, rtol=1e-7, atol=1e-9)
+    assert a.ess == pytest.approx(b.ess, rel=1e-7)
 
 
 @pytest.mark.parametrize("method, repeated", CASES)
@@ -273,7 +278,7 @@ def test_the_one_vector_step_serves_the_default_model_and_follows_a_changed_boun
     from irft_torch.gp.backends.closed_form import _plan
 
     c, f = data(T=30, M=4, seed=2, repeated=repeated)
-    model = irft.InverseRFT(c, f, method=method, li_basis=True)
+    model = irft.InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
     set_hypers(model, seed=3)
     names = [n for n, _ in model.hypers.named_parameters()]
     flat = _plan(model.hypers).flat()
@@ -294,7 +299,7 @@ def test_the_one_vector_step_follows_a_replaced_buffer():
     from irft_torch.gp.backends.closed_form import _plan
 
     c, f = data(T=30, M=4, seed=2, repeated=True)
-    model = irft.InverseRFT(c, f, method="pairs")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     flat = _plan(model.hypers).flat()
     constraint = model.hypers.kernel.raw_outputscale_constraint
     constraint.scale = constraint.scale * 2  # replaced, not changed in place: the values double

@@ -39,7 +39,7 @@ def dense_loo(model, c, f, groups, noise_scale=None):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_leave_one_out_matches_the_closed_form(method, prior):
     c, f = data(T=20, repeated=True)
-    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None)
+    model = irft.InverseRFT(c, f, prior_mean=prior, method=method, priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(model)
     groups = torch.arange(len(f))
     ours = model.cross_validate(groups, include_noise=True)
@@ -54,7 +54,7 @@ def test_leave_one_out_matches_the_closed_form(method, prior):
 def test_leave_one_group_out_matches_the_closed_form_with_noise_scales(method):
     c, f = data(T=24, repeated=True)
     scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(4))
-    model = irft.InverseRFT(c, f, method=method, priors=None, noise_scale=scale)
+    model = irft.InverseRFT(c, f, method=method, priors=None, noise_scale=scale, hyper_posterior="map", li_basis=False)
     set_hypers(model)
     groups = torch.arange(len(f)) % 5  # interleaved groups of 4-5 samples
     ours = model.cross_validate(groups.numpy() * 0.5, include_noise=True)  # any labels: floats here
@@ -81,7 +81,7 @@ def test_tied_noise_float32_and_data_added_in_parts(method):
     c, f = data(T=24, repeated=True)
     scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(5))
     model = irft.InverseRFT(c[:10], f[:10], method=method, priors=None, tied_noise=True, prior_mean="physics",
-                            noise_scale=scale[:10])
+                            noise_scale=scale[:10], hyper_posterior="map", li_basis=False)
     model.add_data(c[10:17], f[10:17], noise_scale=scale[10:17])
     model.add_data(c[17:], f[17:], noise_scale=scale[17:])
     set_hypers(model)
@@ -92,7 +92,8 @@ def test_tied_noise_float32_and_data_added_in_parts(method):
     tol = TOL[method] * 10
     torch.testing.assert_close(ours.mean, mean, rtol=tol, atol=tol)
     torch.testing.assert_close(ours.variance, var, rtol=tol, atol=tol)
-    single = irft.InverseRFT(c.to(dtype=torch.float32), f.float(), method=method, priors=None, dtype=torch.float32)
+    single = irft.InverseRFT(c.to(dtype=torch.float32), f.float(), method=method, priors=None, dtype=torch.float32,
+                             hyper_posterior="map", li_basis=False)
     set_hypers(single)
     mean, var = dense_loo(single, c, f, groups)
     ours = single.cross_validate(groups, include_noise=True)
@@ -105,7 +106,7 @@ def test_tied_noise_float32_and_data_added_in_parts(method):
 @pytest.mark.parametrize("method", BACKENDS)
 def test_the_model_is_unchanged(method):
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method=method, priors=None)
+    model = irft.InverseRFT(c, f, method=method, priors=None, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=5, progress=False)
     backend = model.backend
     before = model.predict_forces(c)
@@ -123,7 +124,7 @@ def test_the_model_is_unchanged(method):
 
 def test_bad_groups_are_refused():
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="groups must have one label per training sample"):
         model.cross_validate(torch.arange(19))
     with pytest.raises(ValueError, match="at least 2 distinct labels"):
@@ -137,7 +138,8 @@ def test_a_learned_surface_is_cross_validated_at_its_offset():
 
     c = plates()
     f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
-    model = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None)
+    model = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None, hyper_posterior="map",
+                            li_basis=False)
     set_hypers(model)
     with torch.no_grad():
         model.surface.offset.fill_(-0.4)  # cm
@@ -150,7 +152,7 @@ def test_a_learned_surface_is_cross_validated_at_its_offset():
 
 def test_a_custom_backend_class_is_not_silently_replaced():
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", priors=None)
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
 
     class Mine(type(model.backend)):
         pass
@@ -165,13 +167,14 @@ def test_refit_is_a_model_fitted_without_each_group(method):
     c, f = data(T=24, repeated=True)
     scale = 0.5 + torch.rand(len(f), 2, generator=torch.Generator().manual_seed(6))
     kw = dict(prior_mean="physics", method=method, noise_scale=scale, lengthscale=0.8)
-    model = irft.InverseRFT(c, f, **kw)
+    model = irft.InverseRFT(c, f, **kw, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=20, lr=0.1, progress=False)
     groups = torch.arange(len(f)) // 8
     ours = model.cross_validate(groups, refit=True, n_iter=20, lr=0.1)
     for g in range(3):
         held = groups == g
-        alone = irft.InverseRFT(c[~held], f[~held], **{**kw, "noise_scale": scale[~held]})
+        alone = irft.InverseRFT(c[~held], f[~held], **{**kw, "noise_scale": scale[~held]}, hyper_posterior="map",
+                                li_basis=False)
         alone.fit(n_iter=20, lr=0.1, progress=False)
         post = alone.predict_forces(c[held])
         torch.testing.assert_close(ours.mean[held], post.mean, rtol=1e-9, atol=1e-9)
@@ -186,6 +189,22 @@ def test_refit_with_a_learned_surface_is_refused():
     from .test_surface import TRUTH, plates
 
     c = plates()
-    model = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs")
+    model = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs", hyper_posterior="map",
+                            li_basis=False)
     with pytest.raises(NotImplementedError, match="learned surface"):
         model.cross_validate(torch.arange(len(c)) // 60, refit=True)
+
+
+def test_coverage_counts_measurements_inside_the_interval_by_hand():
+    """Four samples, variance 1 and noise 3 (sd 2): residuals 0, 3.9, 4.0 and -4.1 against 1.96 x 2 = 3.92."""
+    from irft_torch.gp.cross_validation import GroupPredictions
+
+    F64 = torch.float64
+    res = torch.tensor([[0.0, 0.0], [3.9, 0.0], [4.0, 0.0], [-4.1, 10.0]], dtype=F64)
+    pred = GroupPredictions(mean=res, variance=torch.ones(4, 2, dtype=F64), forces=torch.zeros(4, 2, dtype=F64),
+                            groups=torch.arange(4), labels=[0, 1, 2, 3], noise=torch.full((4, 2), 3.0, dtype=F64),
+                            include_noise=False)
+    torch.testing.assert_close(pred.coverage(0.95), torch.tensor([0.5, 0.75], dtype=F64))
+    torch.testing.assert_close(pred.coverage(0.5), torch.tensor([0.25, 0.75], dtype=F64))  # 0.674 x 2 = 1.35
+    with pytest.raises(ValueError, match="level"):
+        pred.coverage(95)

@@ -24,7 +24,8 @@ def vertical_intrusion():
 def test_vertical_intrusion_reports_alpha_x_unidentified():
     c, f = vertical_intrusion()
     assert float(TRUTH(torch.tensor(0.0), torch.tensor(math.pi / 2))[0]).__abs__() < 1e-12
-    model = irft.InverseRFT(c, f, priors=None)  # the plain likelihood: alpha_x's variance collapses
+    model = irft.InverseRFT(c, f, priors=None, hyper_posterior="map",
+                            li_basis=False)  # the plain likelihood: alpha_x's variance collapses
     model.fit(n_iter=150, progress=False)
     with pytest.warns(UserWarning, match="alpha_x is not constrained by these forces"):
         report = model.diagnostics()
@@ -42,7 +43,7 @@ def test_a_rotating_c_toe_informs_every_lengthscale_and_both_maps():
     c = irft.rft.contacts(toe, path)
     f = irft.rft.forces(TRUTH, c)
     f = f * (1 + 0.02 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1), dtype=f.dtype))
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=100, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)

@@ -28,13 +28,13 @@ def test_a_diverging_fit_keeps_its_best_iterate(gait2):
     names the rise and a smaller lr. A fit at the default lr has nothing to say."""
     c, f = gait2
     c, f = c[::2], f[::2]
-    m = irft.InverseRFT(c, f, method="observations")
+    m = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     with pytest.warns(FitDivergedWarning, match=r"the loss rose from .* lr = 5 is too large .* try lr = 0.5"):
         h = m.fit(40, lr=5, progress=False)
     assert max(h) - min(h) > 1.0 and h[-1] > min(h) + 1.0
     with torch.no_grad():
         assert float(m.loss().detach()) == pytest.approx(min(h), abs=1e-9)
-    ok = irft.InverseRFT(c, f, method="observations")
+    ok = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error", FitDivergedWarning)
         ok.fit(20, progress=False)
@@ -42,7 +42,7 @@ def test_a_diverging_fit_keeps_its_best_iterate(gait2):
 
 def test_a_nan_loss_stops_the_fit_at_its_best_iterate(gait2, monkeypatch):
     c, f = gait2
-    m = irft.InverseRFT(c, f, method="observations")
+    m = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     real, real_lg, calls = type(m.backend).loss, type(m.backend).loss_and_grad, {"n": 0}
 
     def loss(self):  # the autograd step's loss
@@ -72,7 +72,7 @@ def test_auto_holds_its_step_cost_when_the_noise_collapses(gait2):
     c = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.spline_path(
         [(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=1000))
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
-    m = irft.InverseRFT(c, f)
+    m = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     assert m.method == "spectral"
     basis = m.backend.basis
     with torch.no_grad():
@@ -122,12 +122,12 @@ def test_auto_asks_for_a_cheaper_space_only_where_one_could_exist(monkeypatch):
     real = select.estimated_costs
     monkeypatch.setattr("irft_torch.gp.fit_control.estimated_costs", lambda *a, **k: calls.append(1) or real(*a, **k))
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(), plate)
-    m = irft.InverseRFT(plate, f)
+    m = irft.InverseRFT(plate, f, hyper_posterior="map", li_basis=False)
     assert m.method == "pairs"
     m.fit(60, progress=False)
     assert calls == [] and m.method == "pairs"
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(), scattered)
-    m = irft.InverseRFT(scattered, f)
+    m = irft.InverseRFT(scattered, f, hyper_posterior="map", li_basis=False)
     assert m.method == "pairs"
     with torch.no_grad():
         m.hypers.lengthscale = 10.0
@@ -144,15 +144,15 @@ def test_forces_in_a_slipped_unit_or_sign_are_named(gait2):
              (c, f.flip(-1), "columns look swapped"), (c, -f, "both axes have the wrong sign")]
     for contacts, forces, pattern in cases:
         with pytest.warns(UserWarning, match=pattern):
-            irft.InverseRFT(contacts, forces)
+            irft.InverseRFT(contacts, forces, hyper_posterior="map", li_basis=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        irft.InverseRFT(c, f)
+        irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
 
 
 def test_map_queries_and_predictions_check_their_units_and_shapes(gait2):
     c, f = gait2
-    m = irft.InverseRFT(c, f, method="observations")
+    m = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     with pytest.warns(UserWarning, match=r"stress_map: angles reach 45, more than a turn: are they in degrees\?"):
         m.stress_map(torch.tensor(30.0), torch.tensor(45.0))
     with pytest.raises(ValueError, match=r"beta of shape \(3,\) and gamma of shape \(4,\) do not broadcast"):
@@ -167,7 +167,7 @@ def test_predictions_in_pieces_are_the_same_numbers(gait2, monkeypatch):
     from irft_torch.gp import posterior
 
     c, f = gait2
-    m = irft.InverseRFT(c, f, method="observations")
+    m = irft.InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     whole = m.predict_forces(c)
     monkeypatch.setattr(posterior, "_predict_chunk", lambda backend: 7)
     import irft_torch.gp.model as model_module

@@ -63,7 +63,7 @@ def test_the_coefficients_give_the_published_generic_map():
     ("rotating", "spectral", ["KroneckerFourier", "LiBasisTerm", "LiBasisTerm"])])
 def test_each_backend_is_the_dense_model_with_the_generic_term(kind, method, terms):
     c, f = _data(kind)
-    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=True)
+    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=True, hyper_posterior="map")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
     _set(model, noise)
     cf = model.backend.closed_form()
@@ -85,7 +85,7 @@ def test_each_backend_is_the_dense_model_with_the_generic_term(kind, method, ter
         torch.testing.assert_close(fpost.variance[:, a], fv, rtol=100 * tol, atol=tol * float(fv.max()))
         assert abs(float(nll[a]) - float(ref_nll)) < (1e-6 if method == "spectral" else 1e-9)
     # the term matters: the Li term alone at the same hyperparameters gives another posterior
-    li = InverseRFT(c, f, method=method, li_basis=True)
+    li = InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
     li.hypers.lengthscale, li.hypers.outputscale, li.hypers.noise = LS[:, None, :], OS, noise
     li.hypers.li.variance = LI
     assert float((li.stress_map(th_s[:, 0], th_s[:, 1]).variance - post.variance).abs().max()) > 1e-3
@@ -95,7 +95,7 @@ def test_each_backend_is_the_dense_model_with_the_generic_term(kind, method, ter
                                          ("rotating", "spectral")])
 def test_closed_form_gradient_of_the_generic_term_is_autograd_s_and_finite_differences(kind, method):
     c, f = _data(kind)
-    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=True)
+    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=True, hyper_posterior="map")
     _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0))
     model.hypers.zero_grad()
     loss = model.backend.loss_and_grad()
@@ -125,7 +125,7 @@ def test_the_term_is_the_generic_shape_with_its_scale_integrated_out():
     generic shape's forces, m ~ N(0, u): Bayesian linear regression in one coefficient, by hand. Its posterior of
     the map at theta is g(theta) times m's posterior, N(u G.y / (sigma^2 + u G.G), u sigma^2 / (sigma^2 + u G.G))."""
     c, f = _data("rotating")
-    model = InverseRFT(c, f, method="observations", li_basis=True, generic_shape=True)
+    model = InverseRFT(c, f, method="observations", li_basis=True, generic_shape=True, hyper_posterior="map")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
     _set(model, noise)
     model.hypers.outputscale = torch.full((2,), 1e-14, dtype=F64)
@@ -146,7 +146,7 @@ def test_the_prior_variance_averages_the_generic_shape_over_the_square():
     """k(theta, theta) = s + v + u g(theta)^2; the scores' and diagnostics' prior variance is its mean over the
     canonical square, s + v + u mean(g^2) (the mean by a dense midpoint grid of the published map)."""
     c, f = _data("rotating")
-    model = InverseRFT(c, f, li_basis=True, generic_shape=True)
+    model = InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
     _set(model, noise)
     e = torch.linspace(-math.pi / 2, math.pi / 2, 201, dtype=F64)
@@ -215,7 +215,7 @@ def test_the_filter_carries_the_generic_term():
     """``TerrainFilter`` of a model with the term: each environment's posterior is its own InverseRFT's (which the
     dense test above checks), maps and forces."""
     c0, f0 = _data("rotating")
-    model = InverseRFT(c0, f0, li_basis=True, generic_shape=True)
+    model = InverseRFT(c0, f0, li_basis=True, generic_shape=True, hyper_posterior="map")
     _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f0.pow(2).mean(0))
     envs = [_data(k, T=6) for k in ("rotating", "translating")]
     filt = irft.gp.TerrainFilter(model, 2, capacity=2)
@@ -226,7 +226,8 @@ def test_the_filter_carries_the_generic_term():
         filt.update(cs, torch.stack([e[1][t] for e in envs]))
     maps = filt.stress_map(th[:, 0], th[:, 1])
     for b, (c, f) in enumerate(envs):
-        own = InverseRFT(c, f, li_basis=True, generic_shape=True, priors=None, method="observations")
+        own = InverseRFT(c, f, li_basis=True, generic_shape=True, priors=None, method="observations",
+                         hyper_posterior="map")
         _set(own, model.hypers.noise.detach())
         ref = own.stress_map(th[:, 0], th[:, 1])
         torch.testing.assert_close(maps.mean[b], ref.mean, rtol=1e-7, atol=1e-10)
@@ -236,11 +237,12 @@ def test_the_filter_carries_the_generic_term():
 def test_options_around_the_generic_term():
     c, f = _data("itoe")
     with pytest.raises(ValueError, match="li_basis"):
-        InverseRFT(c, f, generic_shape=True)  # a rank-one update of Li et al.'s term: needs it
+        InverseRFT(c, f, generic_shape=True, hyper_posterior="map",
+                   li_basis=False)  # a rank-one update of Li et al.'s term: needs it
     with pytest.raises(TypeError, match="generic_shape"):
-        InverseRFT(c, f, li_basis=True, generic_shape=1)
-    a = InverseRFT(c, f, method="pairs", li_basis=True, generic_shape=True)
-    b = InverseRFT(c, 1.1 * f, method="pairs", li_basis=True)
+        InverseRFT(c, f, li_basis=True, generic_shape=1, hyper_posterior="map")
+    a = InverseRFT(c, f, method="pairs", li_basis=True, generic_shape=True, hyper_posterior="map")
+    b = InverseRFT(c, 1.1 * f, method="pairs", li_basis=True, hyper_posterior="map")
     assert "generic_shape" in shares_fit([a, b])  # the term in one model and not the other: not one batch
 
 
@@ -261,7 +263,7 @@ def test_the_prior_follows_the_outputscale_s_logic(opts, factor, width):
     c = plates()
     f = forces(TRUTH, c)
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    model = InverseRFT(c, f, li_basis=True, generic_shape=True, **opts)
+    model = InverseRFT(c, f, li_basis=True, generic_shape=True, **opts, hyper_posterior="map")
     G = forces(GENERIC, c)
     zeta = float((f * G).sum() / G.pow(2).sum())
     prior, closure = model.hypers.li._priors["generic_variance_prior"][:2]
@@ -275,7 +277,7 @@ def test_add_data_and_cross_validation_carry_the_term():
     the dense model on the other groups (the same hyperparameters, the term included)."""
     c, f = _data("rotating")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
-    model = InverseRFT(c[:12], f[:12], method="observations", li_basis=True, generic_shape=True)
+    model = InverseRFT(c[:12], f[:12], method="observations", li_basis=True, generic_shape=True, hyper_posterior="map")
     _set(model, noise)
     model.add_data(c[12:], f[12:])
     th = (torch.rand(9, 2, generator=torch.Generator().manual_seed(6), dtype=F64) - 0.5) * math.pi
@@ -300,7 +302,7 @@ def test_the_3d_model_says_it_has_no_generic_term():
 
     c, f = turning_toe()
     with pytest.raises(TypeError, match="generic_shape"):
-        InverseRFT(c, f, li_basis=True, generic_shape=True)
+        InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
 
 
 @pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
@@ -309,7 +311,7 @@ def test_predictions_stay_differentiable_in_the_contacts_through_the_term(method
     """The force posterior's mean and variance are differentiable in the query's weights (the hyperparameters
     held): their gradient through Li et al.'s term (and the generic shape's) equals central differences."""
     c, f = _data("rotating")
-    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=generic)
+    model = InverseRFT(c, f, method=method, li_basis=True, generic_shape=generic, hyper_posterior="map")
     _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0), U if generic else None)
     q = c[::7]
 

@@ -34,7 +34,7 @@ def small_problem(T=40, seed=0):
 @pytest.fixture(scope="module")
 def fitted():
     c, f = small_problem()
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=150, progress=False)
     return c, f, m
 
@@ -156,7 +156,7 @@ def _brute_force(m, c, f, free_axes_values, grid_1d, query_pts):
 
 def test_laplace_mixture_matches_brute_force_integration_over_one_hyperparameter(fitted):
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     hp = m.fit_hyper_posterior("laplace", n_proposals=1024, n_draws=None, free=["outputscale_z"],
                                generator=torch.Generator().manual_seed(0))
@@ -171,14 +171,14 @@ def test_laplace_mixture_matches_brute_force_integration_over_one_hyperparameter
     torch.testing.assert_close(post.mean[:, 1], mean_ref, atol=1e-3 * scale, rtol=0)
     torch.testing.assert_close(post.variance[:, 1], var_ref, rtol=1e-3, atol=0)
     # the integration mattered: the plug-in variance differs from the mixture's by more than the tolerance
-    plug = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    plug = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     plug.load_state_dict(m.state_dict())
     assert (plug.stress_map(*query()).variance[:, 1] / var_ref - 1).abs().max() > 3e-3
 
 
 def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameters(fitted):
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     hp = m.fit_hyper_posterior("laplace", n_proposals=1024, n_draws=None, free=["outputscale_z", "noise_z"],
                                generator=torch.Generator().manual_seed(1))
@@ -198,7 +198,7 @@ def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameter
 def test_a_point_mass_gives_the_plug_in_predictions(fitted):
     """Exactly up to the round trip value -> log -> exp -> raw of the hyperparameters (a few ulps)."""
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     ref_map = m.stress_map(*query())
     ref_f = m.predict_forces(c[:7], include_noise=True)
@@ -218,7 +218,7 @@ def test_a_point_mass_gives_the_plug_in_predictions(fitted):
 
 def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_path):
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="laplace")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="laplace", li_basis=False)
     m.load_state_dict(m0.state_dict())
     m.fit(n_iter=0, progress=False)  # the posterior over hyperparameters at the loaded fit
     hp = m.hyper_posterior
@@ -227,7 +227,7 @@ def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_pa
     # each prediction is the weighted mixture of the draws' own plug-in predictions
     per = []
     for th in hp.theta:
-        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
         d.load_state_dict(m0.state_dict())
         hyper_spec(d.hypers).load(d.hypers, th)
         per.append(d.predict_forces(c[5:12]))
@@ -242,7 +242,8 @@ def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_pa
     draws = m.sample_maps(b, g, 20_000, generator=torch.Generator().manual_seed(2))
     post = m.stress_map(b, g)
     torch.testing.assert_close(draws.mean(0), post.mean, atol=4 * float(post.stddev.max()) / 141, rtol=0)
-    torch.testing.assert_close(draws.var(0), post.variance, rtol=0.05, atol=0)
+    se = (draws - post.mean).pow(2).std(0) / math.sqrt(len(draws))  # the Monte Carlo error of a variance estimate
+    assert bool(((draws.var(0) - post.variance).abs() <= 5 * se).all())
     # save and load keep the draws and the predictions
     m.save(tmp_path / "m.pt")
     back = irft.InverseRFT.load(tmp_path / "m.pt")
@@ -252,7 +253,7 @@ def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_pa
 
 def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(fitted):
     c, f, m0 = fitted
-    m = irft.InverseRFT(c[:30], f[:30], method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c[:30], f[:30], method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict(), strict=False)
     hp = m.fit_hyper_posterior("laplace", n_proposals=64, n_draws=8, generator=torch.Generator().manual_seed(4))
     w0, thetas = hp.weights.clone(), hp.theta.clone()
@@ -260,7 +261,7 @@ def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(fitted):
     # by hand: p(F_new | F_old, theta_s) from the dense reference on all and on the old samples
     logr = []
     for th in thetas:
-        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+        d = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
         hyper_spec(d.hypers).load(d.hypers, th)
         h = d.hypers
         tot = 0.0
@@ -328,18 +329,18 @@ def test_student_t_proposals_have_the_chi_square_quantiles_they_are_built_from()
 def test_bad_hyper_posterior_arguments_are_refused():
     c, f = small_problem(T=20)
     with pytest.raises(ValueError, match="hyper_posterior must be one of"):
-        irft.InverseRFT(c, f, hyper_posterior="mcmc")
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+        irft.InverseRFT(c, f, hyper_posterior="mcmc", li_basis=False)
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="free: unknown"):
         m.fit_hyper_posterior("laplace", free=["lengthscale"])
     with pytest.raises(NotImplementedError, match="surface"):
-        irft.InverseRFT(c, f, hyper_posterior="laplace", surface_offset=True)
+        irft.InverseRFT(c, f, hyper_posterior="laplace", surface_offset=True, li_basis=False)
 
 
 def test_nuts_agrees_with_brute_force_on_one_hyperparameter(fitted):
     pytest.importorskip("pyro")
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     hp = m.fit_hyper_posterior("nuts", n_draws=400, free=["outputscale_z"], n_samples=400, warmup=200)
     spec = hyper_spec(m.hypers)
@@ -388,7 +389,7 @@ def test_nuts_with_the_laplace_metric_in_worker_processes_agrees_with_brute_forc
     dense metric: the draws' moments against summation over a 61 x 61 grid."""
     pytest.importorskip("pyro")
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     free = ["outputscale_z", "noise_z"]
     hp = m.fit_hyper_posterior("nuts", n_draws=16, free=free, n_samples=300, warmup=150, num_chains=2, processes=2)
@@ -416,7 +417,7 @@ def test_nuts_metric_and_processes_arguments_and_the_in_process_fallback(fitted,
     from irft_torch.gp import hyper_nuts
 
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     with pytest.raises(ValueError, match="metric must be one of"):
         hyper_nuts.nuts(m.backend, metric="dense")
@@ -453,7 +454,7 @@ def test_nuts_says_when_pyro_does_not_take_the_laplace_metric(fitted, monkeypatc
     from irft_torch.gp import hyper_nuts
 
     c, f, m0 = fitted
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.load_state_dict(m0.state_dict())
     calls = []
     reset = WarmupAdapter.reset_step_size_adaptation

@@ -181,8 +181,9 @@ def test_planar_motion_is_the_planar_model():
     fy = 0.01 * torch.randn(len(c2), generator=torch.Generator().manual_seed(0))
     f3 = torch.stack([f2[:, 0], fy, f2[:, 1]], -1)
     for method in ("observations", "pairs"):
-        m2 = irft.InverseRFT(c2, f2, method=method, priors=None)
-        m3 = irft.InverseRFT(c3, f3, method=method, priors=None, prior_mean="zero")  # the planar default
+        m2 = irft.InverseRFT(c2, f2, method=method, priors=None, hyper_posterior="map", li_basis=False)
+        m3 = irft.InverseRFT(c3, f3, method=method, priors=None, prior_mean="zero", hyper_posterior="map",
+                             li_basis=False)  # the planar default
         assert isinstance(m3, InverseRFT3D)
         ls, os, nz = m2.hypers.lengthscale, m2.hypers.outputscale, m2.hypers.noise
         _set(m3, torch.stack([ls[0], ls[0] * 1.3, ls[1]]), torch.stack([os[0], os[0], os[1]]),
@@ -202,7 +203,7 @@ def test_planar_motion_is_the_planar_model():
 
 def test_fit_recovers_the_medium_and_round_trips(tmp_path):
     c, f = turning_toe(T=24)
-    model = irft.InverseRFT(c, f, alpha_y="constant")
+    model = irft.InverseRFT(c, f, alpha_y="constant", hyper_posterior="map", li_basis=False)
     model.fit(n_iter=60, lr=0.05, progress=False)
     pred = model.predict_forces(c)
     assert ((pred.mean - f).pow(2).mean(0).sqrt() < 0.15 * f.pow(2).mean(0).sqrt() + 0.05).all()
@@ -231,7 +232,7 @@ def test_fit_recovers_the_medium_and_round_trips(tmp_path):
 def test_bad_input():
     c, f = turning_toe(T=4)
     with pytest.raises(ValueError, match=r"\(T, 3\)"):
-        irft.InverseRFT(c, f[:, :2])
+        irft.InverseRFT(c, f[:, :2], hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="alpha_y"):
         InverseRFT3D(c, f, alpha_y="field")
     with pytest.raises(ValueError, match="NaN"):

@@ -115,4 +115,4 @@ def test_files_keep_the_scales_and_add_data_keeps_them_fixed(tmp_path):
     q = turning_toe(T=5, seed=7)[0]
     torch.testing.assert_close(back.predict_forces(q).mean, m.predict_forces(q).mean, rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="prior_mean"):
-        irft.InverseRFT(c, f, prior_mean="average")
+        irft.InverseRFT(c, f, prior_mean="average", hyper_posterior="map", li_basis=False)

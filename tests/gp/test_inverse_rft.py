@@ -31,7 +31,7 @@ def grid(n=40, dtype=torch.float64):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_gait1_ctoe_recovers_map_where_data_determine_it(gait1, dtype):
     c, f = gait1
-    model = irft.InverseRFT(c, f, dtype=dtype)
+    model = irft.InverseRFT(c, f, dtype=dtype, hyper_posterior="map", li_basis=False)
     hist = model.fit(n_iter=150, lr=0.05, progress=False)
     assert len(hist) == 150 and hist[-1] < hist[0]
     # forces are reproduced (noise-free data): within 1 % of their range
@@ -65,19 +65,19 @@ def test_bad_input_is_a_clear_error(gait1):
     bad = f.clone()
     bad[7, 1] = float("nan")
     with pytest.raises(ValueError, match="NaN or inf .*sample 7"):
-        irft.InverseRFT(c, bad)
+        irft.InverseRFT(c, bad, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="forces has 99 samples but contacts has 100"):
-        irft.InverseRFT(c, f[:-1])
+        irft.InverseRFT(c, f[:-1], hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match=r"\(T, 2\)"):
-        irft.InverseRFT(c, f[:, :1])
+        irft.InverseRFT(c, f[:, :1], hyper_posterior="map", li_basis=False)
     zero = Contacts(c.beta, c.gamma, torch.zeros_like(c.weight_x), torch.zeros_like(c.weight_z))
     with pytest.raises(ValueError, match="zero everywhere"):
-        irft.InverseRFT(zero, f)
+        irft.InverseRFT(zero, f, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="at least 2"):
-        irft.InverseRFT(c[:1], f[:1])
+        irft.InverseRFT(c[:1], f[:1], hyper_posterior="map", li_basis=False)
     with pytest.raises(TypeError, match="Contacts"):
-        irft.InverseRFT({"beta": 1}, f)
-    model = irft.InverseRFT(c, f)
+        irft.InverseRFT({"beta": 1}, f, hyper_posterior="map", li_basis=False)
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="variance"):
         model.predict_forces(c, variance="diagonal")
     with pytest.raises(ValueError, match="beta contains NaN"):
@@ -95,15 +95,15 @@ def test_a_force_axis_that_is_zero_in_every_sample_is_a_clear_error(gait1, axis,
     zero[:, axis] = 0.0
     name = ("F_x", "F_z")[axis]
     with pytest.raises(ValueError, match=rf"forces\[:, {axis}\] \({name}\) is zero in every sample"):
-        irft.InverseRFT(c, zero, priors=priors)
+        irft.InverseRFT(c, zero, priors=priors, hyper_posterior="map", li_basis=False)
     zero[0, axis] = 1e-12
-    irft.InverseRFT(c, zero, priors=priors)
+    irft.InverseRFT(c, zero, priors=priors, hyper_posterior="map", li_basis=False)
 
 
 @pytest.mark.parametrize("method", ["observations", "spectral"])
 def test_not_positive_definite_names_the_hyperparameters(gait1, monkeypatch, method):
     c, f = gait1
-    model = irft.InverseRFT(c, f, method=method)
+    model = irft.InverseRFT(c, f, method=method, hyper_posterior="map", li_basis=False)
 
     def broken(*a, **k):
         raise NotPSDError("matrix not positive definite after jitter")
@@ -127,7 +127,7 @@ def test_predict_forces_gradients_match_finite_differences(gait1, prior_mean):
     # differentiable in the contacts (the physics mean's shape forces too), never in the fitted hyperparameters:
     # with the physics mean the maps came back requiring grad (post.mean.numpy() refused)
     c, f = gait1
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean)
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=30, progress=False)
     b0 = torch.linspace(-1, 1, 5)
     assert not model.stress_map(b0, b0).mean.requires_grad and not model(b0, b0).requires_grad
@@ -157,7 +157,7 @@ def test_predict_forces_gradients_match_finite_differences(gait1, prior_mean):
 
 def test_batched_predict_and_model_as_stress_map(gait1):
     c, f = gait1
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=20, progress=False)
     batched = Contacts(*(torch.stack([v[:10], v[20:30]]) for v in c.as_dict().values()))
     p = model.predict_forces(batched)
@@ -174,7 +174,7 @@ def test_batched_prediction_noise_scale_lines_up_with_the_samples(gait1):
     # contacts (B=3, T=2): a (T,) noise_scale is per sample, never per axis (with T = 2 it broadcast onto
     # the axes); (T, 2) is per sample and axis; anything else, or a scale without include_noise, is refused
     c, f = gait1
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=5, progress=False)
     batched = Contacts(*(torch.stack([v[10:12], v[30:32], v[50:52]]) for v in c.as_dict().values()))
     plain = model.predict_forces(batched).variance  # (3, 2, 2)
@@ -196,7 +196,7 @@ def test_batched_prediction_noise_scale_lines_up_with_the_samples(gait1):
 
 def test_save_load_and_state_dict_roundtrip(gait1, tmp_path):
     c, f = gait1
-    model = irft.InverseRFT(c, f, tied_noise=True)
+    model = irft.InverseRFT(c, f, tied_noise=True, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=10, progress=False)
     assert model.likelihood.noise.numel() == 1 and model.hypers.noise[0] == model.hypers.noise[1]
     path = tmp_path / "model.pt"
@@ -204,7 +204,7 @@ def test_save_load_and_state_dict_roundtrip(gait1, tmp_path):
     again = irft.InverseRFT.load(path)
     b = torch.linspace(-1, 1, 7)
     torch.testing.assert_close(again.stress_map(b, b).mean, model.stress_map(b, b).mean)
-    other = irft.InverseRFT(c, f, tied_noise=True)
+    other = irft.InverseRFT(c, f, tied_noise=True, hyper_posterior="map", li_basis=False)
     other.load_state_dict(model.state_dict())
     torch.testing.assert_close(other.stress_map(b, b).variance, model.stress_map(b, b).variance)
 
@@ -216,13 +216,14 @@ def test_a_loaded_copy_of_a_model_with_noise_scale_takes_the_originals_state(gai
 
     c, f = gait1
     s = 0.3 + torch.rand(len(c), generator=torch.Generator().manual_seed(0))
-    model = irft.InverseRFT(c, f, noise_scale=s)
+    model = irft.InverseRFT(c, f, noise_scale=s, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=3, progress=False)
     model.save(tmp_path / "m.pt")
     back = irft.InverseRFT.load(tmp_path / "m.pt")
     back.load_state_dict(model.state_dict())
     model.load_state_dict(back.state_dict())
-    other = irft.InverseRFT(c, 1.01 * f, noise_scale=s)  # other forces: still refused
+    other = irft.InverseRFT(c, 1.01 * f, noise_scale=s, hyper_posterior="map",
+                            li_basis=False)  # other forces: still refused
     with pytest.raises(ModelFileError, match="other training data"):
         back.load_state_dict(other.state_dict())
 
@@ -231,7 +232,7 @@ def test_a_loaded_model_keeps_method_auto_or_its_fixed_backend(gait1, tmp_path):
     # method="auto" may move to a cheaper backend during fit; a loaded copy was pinned to the one it was on
     c, f = gait1
     for method, auto in (("auto", True), ("pairs", False)):
-        model = irft.InverseRFT(c[:40], f[:40], method=method)
+        model = irft.InverseRFT(c[:40], f[:40], method=method, hyper_posterior="map", li_basis=False)
         model.save(tmp_path / "m.pt")
         back = irft.InverseRFT.load(tmp_path / "m.pt")
         assert back.auto is auto and back.method == model.method
@@ -239,7 +240,7 @@ def test_a_loaded_model_keeps_method_auto_or_its_fixed_backend(gait1, tmp_path):
 
 def test_gpytorch_mll_and_paper_tied_noise(gait1):
     c, f = gait1
-    model = irft.InverseRFT(c, f, tied_noise=True, method="observations")
+    model = irft.InverseRFT(c, f, tied_noise=True, method="observations", hyper_posterior="map", li_basis=False)
     assert isinstance(model.gp, gpytorch.models.ExactGP)
     model.train()
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model.gp)
@@ -253,7 +254,7 @@ def test_progress_bar_off_prints_nothing(gait1, capsys):
     c, f = gait1
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        irft.InverseRFT(c, f).fit(n_iter=3, progress=False)
+        irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False).fit(n_iter=3, progress=False)
     assert capsys.readouterr().err == ""
 
 
@@ -261,7 +262,7 @@ def test_model_files_refuse_damage_other_versions_and_other_data(gait1, tmp_path
     from irft_torch.gp import ModelFileError
 
     c, f = gait1
-    model = irft.InverseRFT(c, f)
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=3, progress=False)
     path = tmp_path / "m.pt"
     model.save(path)
@@ -289,7 +290,7 @@ def test_model_files_refuse_damage_other_versions_and_other_data(gait1, tmp_path
     with pytest.raises(ModelFileError, match="version 99"):
         irft.InverseRFT.load(tmp_path / "future.pt")
     # a state fitted on other data is refused (strict), or loads its hyperparameters only
-    other = irft.InverseRFT(c[:60], f[:60])
+    other = irft.InverseRFT(c[:60], f[:60], hyper_posterior="map", li_basis=False)
     with pytest.raises(ModelFileError, match="other training data"):
         other.load_state_dict(model.state_dict())
     other.load_state_dict(model.state_dict(), strict=False)
@@ -324,7 +325,7 @@ def test_a_thousand_damaged_model_files_never_load_silently(gait1, tmp_path):
     from irft_torch.gp import ModelFileError
 
     c, f = gait1
-    model = irft.InverseRFT(c[:30], f[:30], method="pairs")
+    model = irft.InverseRFT(c[:30], f[:30], method="pairs", hyper_posterior="map", li_basis=False)
     path = tmp_path / "m.pt"
     model.save(path)
     raw = path.read_bytes()
@@ -358,7 +359,7 @@ def test_a_thousand_damaged_model_files_never_load_silently(gait1, tmp_path):
 def test_half_precision_is_refused_with_a_clear_error(gait1):
     c, f = gait1
     with pytest.raises(ValueError, match="dtype must be torch.float64"):
-        irft.InverseRFT(c, f, dtype=torch.float16)
+        irft.InverseRFT(c, f, dtype=torch.float16, hyper_posterior="map", li_basis=False)
 
 
 @pytest.mark.parametrize("priors", ["physical", None])
@@ -371,7 +372,8 @@ def test_a_fit_does_not_depend_on_the_units(gait1, method, priors):
     b, g = torch.linspace(-1.2, 1.2, 7), torch.linspace(-1.4, 1.4, 7)
 
     def fitted(contacts, forces):
-        m = irft.InverseRFT(contacts, forces, method=method, prior_mean="physics", priors=priors)
+        m = irft.InverseRFT(contacts, forces, method=method, prior_mean="physics", priors=priors, hyper_posterior="map",
+                            li_basis=False)
         m.fit(n_iter=40, progress=False)
         return m.stress_map(b, g), m.predict_forces(c[10:20]).mean
 
@@ -394,21 +396,23 @@ def test_units_off_by_1000_or_degrees_are_named(gait1):
     # the checks read the data as measured: a small relative noise scale (whitening divides by it) is no unit error
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message=".*are the forces in")
-        irft.InverseRFT(c, f, noise_scale=torch.full((len(c),), 1e-4))
+        irft.InverseRFT(c, f, noise_scale=torch.full((len(c),), 1e-4), hyper_posterior="map", li_basis=False)
     deg = Contacts(c.beta * 180 / P, c.gamma * 180 / P, c.weight_x, c.weight_z)
     with pytest.warns(UserWarning, match="degrees"):
-        irft.InverseRFT(deg, f)
+        irft.InverseRFT(deg, f, hyper_posterior="map", li_basis=False)
     with pytest.warns(UserWarning, match="forces in mN"):
-        irft.InverseRFT(c, f * 1e4)
+        irft.InverseRFT(c, f * 1e4, hyper_posterior="map", li_basis=False)
     with pytest.warns(UserWarning, match=r"weights in mm\^3"):
-        irft.InverseRFT(Contacts(c.beta, c.gamma, c.weight_x * 1e6, c.weight_z * 1e6), f)
+        irft.InverseRFT(Contacts(c.beta, c.gamma, c.weight_x * 1e6, c.weight_z * 1e6), f, hyper_posterior="map",
+                        li_basis=False)
 
 
 def test_state_dict_holds_the_hyperparameters_whatever_the_backend(gait1):
     c, f = gait1
-    a = irft.InverseRFT(c, f, method="spectral")
+    a = irft.InverseRFT(c, f, method="spectral", hyper_posterior="map", li_basis=False)
     a.hypers.lengthscale = torch.full((2, 1, 4), 0.8)
-    b = irft.InverseRFT(c, f, method="observations")  # same data, another backend
+    b = irft.InverseRFT(c, f, method="observations", hyper_posterior="map",
+                        li_basis=False)  # same data, another backend
     state = a.state_dict()
     assert not any(k.startswith("backend.") for k in state)
     b.load_state_dict(state)
@@ -426,7 +430,7 @@ def test_a_model_pickles_and_deep_copies(surface):
     toe = irft.rft.CToe(0.02, 0.008)
     c = irft.rft.contacts(toe, irft.rft.rectangle_path(n_steps=60))
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
-    m = irft.InverseRFT(c, f, surface_offset=surface)
+    m = irft.InverseRFT(c, f, surface_offset=surface, hyper_posterior="map", li_basis=False)
     m.fit(n_iter=5, progress=False)
     b = torch.linspace(-1, 1, 4)
     for other in (pickle.loads(pickle.dumps(m)), copy.deepcopy(m)):

@@ -74,7 +74,7 @@ def test_noise_free_forces_hold_the_noise_at_its_wall_and_the_weights_stay_healt
     mode, and a Gaussian in log-noise that is mostly impossible. Before the guard, the importance weights
     collapsed onto one proposal far from the fit (ESS 1.00, k-hat 9.3): the "posterior" was one random setting."""
     c, f = gait1_noise_free()
-    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     model.fit(n_iter=150, lr=0.05, progress=False)
     plug_in = coverage95(model)  # measured 0.614 (x) and 1.0 (z)
     with pytest.warns(guard.HyperPosteriorWarning, match="held at their fitted values.*noise_x"):
@@ -92,7 +92,7 @@ def test_a_direction_the_plain_likelihood_leaves_flat_gets_finite_draws():
     """priors=None after 5 steps: a lengthscale the likelihood hardly constrains. Before, its Gaussian was 1000
     wide in log(lengthscale); a draw at theta = 906 (a lengthscale of e^906) was kept and loading it raised."""
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map")
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=5, progress=False)
     with pytest.warns(guard.HyperPosteriorWarning, match="priors=None.*improper"):
         hp = model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(0))
@@ -106,7 +106,7 @@ def test_a_direction_the_plain_likelihood_leaves_flat_gets_finite_draws():
 
 def test_every_proposal_impossible_keeps_the_plug_in_and_says_so(monkeypatch):
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     model.fit(n_iter=30, progress=False)
     B, G = torch.meshgrid(torch.linspace(-1.5, 1.5, 5, dtype=F64), torch.linspace(-1.5, 1.5, 5, dtype=F64),
                           indexing="ij")
@@ -168,7 +168,7 @@ def test_held_coordinates_are_exactly_those_the_draws_keep_fixed(monkeypatch):
     """Some proposal always impossible and a new wall at every check: two rounds of holding, then the third round's
     proposals stand. Every coordinate reported held is constant across the draws, and the others are not."""
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     model.fit(n_iter=30, progress=False)
     real = hyper_posterior._log_posterior_many
 
@@ -196,7 +196,7 @@ def test_a_polish_that_runs_into_an_underflow_falls_back_to_the_fitted_point(mon
     The polish then keeps the fitted point, whose Hessian is finite; where even that one is not, the plug-in is
     kept and a HyperPosteriorWarning says why. The NaN is injected: a Hessian of NaN wherever the polish moved."""
     c, f = data(T=20)
-    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map")
+    model = irft.InverseRFT(c, f, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=30, progress=False)
     start = hyper_posterior.hyper_spec(model.hypers).theta(model.hypers).clone()
     real = hyper_posterior._hessian

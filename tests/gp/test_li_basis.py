@@ -106,7 +106,7 @@ def test_li_features_are_the_first_harmonics_products():
     ("translating", "spectral", ["KroneckerFourier", "LiBasisTerm"])])
 def test_each_backend_is_the_dense_model_with_the_term(kind, method, terms):
     c, f = _data(kind)
-    model = InverseRFT(c, f, method=method, li_basis=True)
+    model = InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
     _set(model, noise)
     cf = model.backend.closed_form()
@@ -133,7 +133,7 @@ def test_each_backend_is_the_dense_model_with_the_term(kind, method, terms):
         assert torch.allclose(fpost.variance[:, a], fv, rtol=100 * tol, atol=tol * float(fv.max()))
         assert abs(float(nll[a]) - float(ref_nll)) < (1e-6 if method == "spectral" else 1e-9)
     # the term matters here: without it the same hyperparameters give another posterior
-    plain = InverseRFT(c, f, method=method)
+    plain = InverseRFT(c, f, method=method, hyper_posterior="map", li_basis=False)
     plain.hypers.lengthscale, plain.hypers.outputscale, plain.hypers.noise = LS[:, None, :], OS, noise
     assert float((plain.stress_map(th_s[:, 0], th_s[:, 1]).variance - post.variance).abs().max()) > 1e-3
 
@@ -142,7 +142,7 @@ def test_each_backend_is_the_dense_model_with_the_term(kind, method, terms):
                                          ("itoe", "observations"), ("rotating", "spectral")])
 def test_closed_form_gradient_of_the_term_is_autograd_s_and_finite_differences(kind, method):
     c, f = _data(kind)
-    model = InverseRFT(c, f, method=method, li_basis=True)
+    model = InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
     _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0))
     model.hypers.zero_grad()
     loss = model.backend.loss_and_grad()
@@ -170,9 +170,9 @@ def test_closed_form_gradient_of_the_term_is_autograd_s_and_finite_differences(k
 def test_a_vanishing_term_gives_the_rbf_model():
     c, f = _data("rotating")
     noise = torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0)
-    plain = InverseRFT(c, f, method="observations")
+    plain = InverseRFT(c, f, method="observations", hyper_posterior="map", li_basis=False)
     plain.hypers.lengthscale, plain.hypers.outputscale, plain.hypers.noise = LS[:, None, :], OS, noise
-    li = InverseRFT(c, f, method="observations", li_basis=True)
+    li = InverseRFT(c, f, method="observations", li_basis=True, hyper_posterior="map")
     _set(li, noise)
     li.hypers.li.variance = torch.tensor([1e-14, 1e-14], dtype=F64)
     b = torch.linspace(-1.5, 1.5, 9, dtype=F64)
@@ -210,7 +210,7 @@ def test_the_prior_variance_is_s_plus_v_in_scores_and_diagnostics(method):
     from irft_torch.design import ProbeScorer
 
     c, f = _data("rotating")
-    model = InverseRFT(c, f, method=method, li_basis=True)
+    model = InverseRFT(c, f, method=method, li_basis=True, hyper_posterior="map")
     _set(model, torch.tensor([2e-4, 5e-4], dtype=F64) * f.pow(2).mean(0))
     prior = OS + LI
     torch.testing.assert_close(model.hypers.prior_variance.detach(), prior, rtol=1e-12, atol=0)
@@ -238,14 +238,14 @@ def test_options_that_do_not_carry_the_term_say_so():
     from irft_torch.gp.backends.spectral import SpectralBackend
     from irft_torch.gp.fourier import FourierBasis
 
-    model = InverseRFT(c, f, li_basis=True)
+    model = InverseRFT(c, f, li_basis=True, hyper_posterior="map")
     with pytest.raises(ValueError, match="li_basis"):  # a basis without the first harmonics cannot hold the term
         SpectralBackend(model.hypers, c, f, basis=FourierBasis(0, 3))
     with pytest.raises(TypeError, match="li_basis"):
-        InverseRFT(c, f, li_basis="yes")
+        InverseRFT(c, f, li_basis="yes", hyper_posterior="map")
     c2, f2 = _data("itoe")
-    a = InverseRFT(c2, f2, method="pairs", li_basis=True)
-    b = InverseRFT(c2, 1.1 * f2, method="pairs")
+    a = InverseRFT(c2, f2, method="pairs", li_basis=True, hyper_posterior="map")
+    b = InverseRFT(c2, 1.1 * f2, method="pairs", hyper_posterior="map", li_basis=False)
     assert "li_basis" in shares_fit([a, b])  # the term in one model and not the other: not one batch
 
 
@@ -258,8 +258,8 @@ def test_fit_together_with_the_term_ends_where_each_fit_ends(tied, generic):
     c, f = _data("itoe")
     fs = [f, 1.3 * f * (1 + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1), dtype=F64))]
     opts = {"method": "pairs", "li_basis": True, "generic_shape": generic, "tied_noise": tied}
-    alone = [InverseRFT(c, x, **opts) for x in fs]
-    together = [InverseRFT(c, x, **opts) for x in fs]
+    alone = [InverseRFT(c, x, **opts, hyper_posterior="map") for x in fs]
+    together = [InverseRFT(c, x, **opts, hyper_posterior="map") for x in fs]
     assert shares_fit(together) is None
     raw = ["raw_variance"] + (["raw_generic_variance"] if generic else [])
     start = [[getattr(m.hypers.li, n).detach().clone() for n in raw] for m in together]
@@ -289,7 +289,7 @@ def check_learned_surface(options: dict, set_hypers, dense) -> None:
     c = plates()
     f = forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    m = InverseRFT(c, f, surface_offset=True, li_basis=True, priors=None, **options)
+    m = InverseRFT(c, f, surface_offset=True, li_basis=True, priors=None, **options, hyper_posterior="map")
     noise = torch.tensor([3e-3, 5e-3], dtype=F64) * f.pow(2).mean(0)
     set_hypers(m, noise)
     for delta in (-0.6, 0.2):  # cm

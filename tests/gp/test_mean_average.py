@@ -23,7 +23,7 @@ F64 = torch.float64
 @pytest.fixture(scope="module")
 def averaged():
     c, f = small_problem(T=36, seed=4)
-    m = irft.InverseRFT(c, f, method="pairs", prior_mean="average", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", prior_mean="average", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=120, progress=False)
     return c, f, m
 
@@ -38,7 +38,7 @@ def test_log_evidence_is_the_laplace_formula_on_the_dense_reference():
     dense reference, the normal priors of log(value / centre) written by hand, and H_c by autograd through that
     dense reference (central differences of it, the first version, agree to their own error of a few 1e-4)."""
     c, f = small_problem(T=30, seed=2)
-    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=100, progress=False)
     _polish_to_mode(m.backend)
     m.train()
@@ -67,10 +67,10 @@ def test_log_evidence_is_the_laplace_formula_on_the_dense_reference():
 def test_evidence_needs_proper_priors():
     c, f = small_problem(T=20)
     with pytest.raises(ValueError, match="priors='physical'"):
-        irft.InverseRFT(c, f, prior_mean="average", priors=None)
+        irft.InverseRFT(c, f, prior_mean="average", priors=None, hyper_posterior="map", li_basis=False)
     with pytest.raises(NotImplementedError, match="surface"):
-        irft.InverseRFT(c, f, prior_mean="average", surface_offset=True)
-    m = irft.InverseRFT(c, f, priors=None, hyper_posterior="map")
+        irft.InverseRFT(c, f, prior_mean="average", surface_offset=True, hyper_posterior="map", li_basis=False)
+    m = irft.InverseRFT(c, f, priors=None, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="proper hyperparameter priors"):
         log_evidence(m.backend)
 
@@ -108,7 +108,7 @@ def _plug_in(model):
     """A plain plug-in model with ``model``'s fitted hyperparameters (no draws, no average)."""
     c, f = model._measured()
     p = irft.InverseRFT(c, f, method=model.method, prior_mean=model.prior_mean_kind
-                        if model.prior_mean_kind != "average" else "zero", hyper_posterior="map")
+                        if model.prior_mean_kind != "average" else "zero", hyper_posterior="map", li_basis=False)
     p.hypers.load_state_dict(model.hypers.state_dict())
     return p
 
@@ -141,7 +141,7 @@ def test_add_data_moves_the_weights_by_the_new_samples_likelihood():
     """log pi_mc += log p(F_new,c | F_old,c, M_m) at each model's hyperparameters: the dense likelihood of all the
     samples minus that of the old ones, per map."""
     c, f = small_problem(T=40, seed=6)
-    m = irft.InverseRFT(c[:30], f[:30], method="pairs", prior_mean="average", hyper_posterior="map")
+    m = irft.InverseRFT(c[:30], f[:30], method="pairs", prior_mean="average", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=80, progress=False)
     le0 = m.mean_average.log_evidence.clone()
     gains = []
@@ -189,7 +189,7 @@ def test_a_medium_of_the_generic_shape_seen_through_a_slice_takes_the_physics_me
     truth, _ = medium("scaled", 0)
     c = motion("rotating", 0)[::3]  # every third sample: the same slice of the square, a third of the cost
     f = simulate(truth, c, 0.01, 0)
-    m = irft.InverseRFT(c, f, prior_mean="average", hyper_posterior="map")
+    m = irft.InverseRFT(c, f, prior_mean="average", hyper_posterior="map", li_basis=False)
     m.fit(n_iter=100, progress=False)
     assert (m.mean_average.weights[1] > 0.9).all()
     assert hyper_spec(m.companion.hypers).labels[-2:] == ["mean_scale_x", "mean_scale_z"]

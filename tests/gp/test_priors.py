@@ -41,7 +41,7 @@ def test_vertical_intrusion_alpha_x_interval_covers_the_generic_map():
     95 % interval covers the generic map over >= 90 % of the square (it collapsed to 0 +- 1e-4
     with the plain marginal likelihood, covering only where alpha_x happens to be 0)."""
     c, f = vertical_intrusion()
-    model = irft.InverseRFT(c, f, priors="physical")
+    model = irft.InverseRFT(c, f, priors="physical", hyper_posterior="map", li_basis=False)
     model.fit(n_iter=150, progress=False)
     B, G = grid()
     post = model.stress_map(B, G)
@@ -52,7 +52,7 @@ def test_vertical_intrusion_alpha_x_interval_covers_the_generic_map():
     assert float(inside[1]) >= 0.90
     # the x prior is the size of the generic map's (zeta = 1 here: alpha_z(0, pi/2) = 1)
     assert float(model.hypers.outputscale[0].sqrt()) == pytest.approx(GENERIC_RMS[0], rel=0.5)
-    plain = irft.InverseRFT(c, f, priors=None)
+    plain = irft.InverseRFT(c, f, priors=None, hyper_posterior="map", li_basis=False)
     plain.fit(n_iter=150, progress=False)
     lo, hi = plain.stress_map(B, G).interval(0.95)
     assert float(((truth[..., 0] >= lo[..., 0]) & (truth[..., 0] <= hi[..., 0])).double().mean()) < 0.5
@@ -62,8 +62,8 @@ def test_loss_subtracts_the_log_prior_over_T():
     """loss(priors) - loss(None) at equal hyperparameters = -(sum of normal log densities of
     log(value / centre)) / T, computed by hand."""
     c, f = vertical_intrusion()
-    a = irft.InverseRFT(c, f, method="observations", priors="physical")
-    b = irft.InverseRFT(c, f, method="observations", priors=None)
+    a = irft.InverseRFT(c, f, method="observations", priors="physical", hyper_posterior="map", li_basis=False)
+    b = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)
     b.hypers.load_state_dict(a.hypers.state_dict())
     from irft_torch.gp.inputs import _data_scales
 
@@ -84,9 +84,9 @@ def test_loss_subtracts_the_log_prior_over_T():
 
 def test_priors_carry_no_state_and_files_keep_them(tmp_path):
     c, f = vertical_intrusion()
-    a = irft.InverseRFT(c, f, priors="physical")
+    a = irft.InverseRFT(c, f, priors="physical", hyper_posterior="map", li_basis=False)
     a.fit(n_iter=5, progress=False)
-    plain = irft.InverseRFT(c, f, priors=None)
+    plain = irft.InverseRFT(c, f, priors=None, hyper_posterior="map", li_basis=False)
     assert set(a.state_dict()) == set(plain.state_dict())  # no prior buffers in the state
     plain.load_state_dict(a.state_dict())
     a.save(tmp_path / "m.pt")
@@ -94,7 +94,7 @@ def test_priors_carry_no_state_and_files_keep_them(tmp_path):
     assert back.priors == "physical"
     torch.testing.assert_close(back.loss(), a.loss())
     with pytest.raises(ValueError, match="priors must be"):
-        irft.InverseRFT(c, f, priors="flat")
+        irft.InverseRFT(c, f, priors="flat", hyper_posterior="map", li_basis=False)
 
 
 @pytest.mark.parametrize("prior_mean", ["zero", "physics"])
@@ -105,8 +105,9 @@ def test_a_model_grown_by_add_data_has_the_objective_of_one_built_on_all_its_dat
     c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=70))
     f = irft.rft.forces(irft.rft.FourierStressMap.generic(0.45, 0.42), c)
     scale = 1.0 + 0.5 * torch.rand(70, generator=torch.Generator().manual_seed(0))
-    batch = irft.InverseRFT(c, f, prior_mean=prior_mean, noise_scale=scale)
-    grown = irft.InverseRFT(c[:40], f[:40], prior_mean=prior_mean, noise_scale=scale[:40])
+    batch = irft.InverseRFT(c, f, prior_mean=prior_mean, noise_scale=scale, hyper_posterior="map", li_basis=False)
+    grown = irft.InverseRFT(c[:40], f[:40], prior_mean=prior_mean, noise_scale=scale[:40], hyper_posterior="map",
+                            li_basis=False)
     grown.add_data(c[40:], f[40:], noise_scale=scale[40:])
     grown.load_state_dict(batch.state_dict())  # the same hyperparameters
     with torch.no_grad():

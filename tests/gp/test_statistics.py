@@ -39,7 +39,8 @@ def test_restrict_equals_a_pass_in_the_smaller_basis():
 def test_model_from_statistics_equals_its_own_pass_and_the_dense_reference(prior_mean):
     c, f = data(T=60, M=3, seed=2)
     stats = recording_statistics(c, f, FourierBasis(12, 12))  # larger than needed: cut to size
-    models = [irft.InverseRFT(c, f, method="spectral", prior_mean=prior_mean, statistics=s) for s in (None, stats)]
+    models = [irft.InverseRFT(c, f, method="spectral", prior_mean=prior_mean, statistics=s, hyper_posterior="map",
+                              li_basis=False) for s in (None, stats)]
     for m in models:
         set_hypers(m, low=0.6)
     losses = [m.loss() for m in models]
@@ -74,7 +75,8 @@ def test_a_float32_model_takes_the_float64_statistics_of_its_data():
     c, f = data(T=40, M=3, seed=2)
     assert c.beta.dtype == f.dtype == torch.float64
     stats = recording_statistics(c, f, FourierBasis(12, 12))
-    m = irft.InverseRFT(c, f, method="spectral", dtype=torch.float32, statistics=stats, priors=None)
+    m = irft.InverseRFT(c, f, method="spectral", dtype=torch.float32, statistics=stats, priors=None,
+                        hyper_posterior="map", li_basis=False)
     set_hypers(m, low=0.6)
     m.loss()
     assert m.backend._stored is stats  # used, not recomputed
@@ -83,13 +85,14 @@ def test_a_float32_model_takes_the_float64_statistics_of_its_data():
     ref = sum(axis_reference(c, f[:, a], w, ls[a, 0], os[a], nz[a])[0] for a, w in enumerate((c.weight_x, c.weight_z)))
     assert m.loss().item() == pytest.approx(-ref.item(), rel=1e-4)
     with pytest.raises(ValueError, match="statistics are not of these forces"):
-        irft.InverseRFT(c, f * 1.001, method="spectral", dtype=torch.float32, statistics=stats)
+        irft.InverseRFT(c, f * 1.001, method="spectral", dtype=torch.float32, statistics=stats, hyper_posterior="map",
+                        li_basis=False)
 
 
 def test_basis_growth_is_cut_from_the_stored_statistics():
     c, f = data(T=80, M=3, seed=5)
     stats = recording_statistics(c, f, FourierBasis(20, 20))
-    m = irft.InverseRFT(c, f, method="spectral", statistics=stats)
+    m = irft.InverseRFT(c, f, method="spectral", statistics=stats, hyper_posterior="map", li_basis=False)
     m.backend._data = None  # the raw data gone: the basis can only grow within the stored statistics
     start = m.backend.basis
     with torch.no_grad():
@@ -108,8 +111,8 @@ def test_merged_statistics_of_two_recordings_serve_their_union():
     total = recording_statistics(c1, f1, basis) + recording_statistics(c2, f2, basis)
     c = irft.rft.Contacts.cat([c1, c2])
     f = torch.cat([f1, f2])
-    a = irft.InverseRFT(c, f, method="spectral")
-    b = irft.InverseRFT(c, f, method="spectral", statistics=total)
+    a = irft.InverseRFT(c, f, method="spectral", hyper_posterior="map", li_basis=False)
+    b = irft.InverseRFT(c, f, method="spectral", statistics=total, hyper_posterior="map", li_basis=False)
     torch.testing.assert_close(b.loss(), a.loss(), rtol=1e-10, atol=0)
 
 
@@ -117,12 +120,14 @@ def test_statistics_of_other_data_are_refused():
     c, f = data(T=30, seed=9)
     stats = recording_statistics(c, f)
     with pytest.raises(ValueError, match="statistics are not of these forces"):
-        irft.InverseRFT(c, f * 1.01, method="spectral", statistics=stats)
+        irft.InverseRFT(c, f * 1.01, method="spectral", statistics=stats, hyper_posterior="map", li_basis=False)
     with pytest.raises(ValueError, match="noise_scale"):
-        irft.InverseRFT(c, f, method="spectral", statistics=stats, noise_scale=torch.ones(30))
+        irft.InverseRFT(c, f, method="spectral", statistics=stats, noise_scale=torch.ones(30), hyper_posterior="map",
+                        li_basis=False)
     no_shape = spectral_statistics(c, f, initial_basis(), None)
     with pytest.raises(ValueError, match="generic shape"):
-        irft.InverseRFT(c, f, method="spectral", prior_mean="physics", statistics=no_shape)
+        irft.InverseRFT(c, f, method="spectral", prior_mean="physics", statistics=no_shape, hyper_posterior="map",
+                        li_basis=False)
     arrays = statistics_arrays(stats, c, f)
     back = statistics_from_arrays(arrays, c, f)
     torch.testing.assert_close(back.P, stats.P)

@@ -35,14 +35,16 @@ def test_offset_equals_the_shifted_path():
         torch.testing.assert_close(getattr(moved, k), getattr(direct, k), rtol=1e-9, atol=1e-9)
     weights_only = irft.rft.Contacts(c.beta, c.gamma, c.weight_x, c.weight_z)
     with pytest.raises(ValueError, match="depth"):
-        irft.InverseRFT(weights_only, irft.rft.forces(TRUTH, c), surface_offset=True)
+        irft.InverseRFT(weights_only, irft.rft.forces(TRUTH, c), surface_offset=True, hyper_posterior="map",
+                        li_basis=False)
 
 
 def test_surface_likelihood_matches_dense_reference_and_its_gradient():
     c = plates()
     f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
-    m = irft.InverseRFT(c, f, surface_offset=True, method="observations", priors=None)
+    m = irft.InverseRFT(c, f, surface_offset=True, method="observations", priors=None, hyper_posterior="map",
+                        li_basis=False)
     for delta in (-0.7, -0.2, 0.3):  # cm, the unit the offset is learned in
         with torch.no_grad():
             m.surface.offset.fill_(delta)
@@ -72,7 +74,7 @@ def test_one_centimetre_error_is_recovered_to_a_millimetre():
     f = irft.rft.forces(TRUTH, true_c)
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
     stated = plates(shift_m=-0.01)  # the surface stated 1 cm too high: every depth 1 cm too large
-    learned = irft.InverseRFT(stated, f, surface_offset=True)
+    learned = irft.InverseRFT(stated, f, surface_offset=True, hyper_posterior="map", li_basis=False)
     learned.fit(300, progress=False)
     est = learned.surface_offset
     assert abs(float(est.mean[0]) + 0.01) < 0.001, est.mean  # m: within 1 mm of the truth, -1 cm
@@ -80,9 +82,9 @@ def test_one_centimetre_error_is_recovered_to_a_millimetre():
     lo, hi = est.interval(0.95)
     assert lo[0] < -0.01 < hi[0]
     torch.testing.assert_close(est.in_cm().mean, 100 * est.mean)
-    ref = irft.InverseRFT(true_c, f)
+    ref = irft.InverseRFT(true_c, f, hyper_posterior="map", li_basis=False)
     ref.fit(300, progress=False)
-    ignored = irft.InverseRFT(stated, f)
+    ignored = irft.InverseRFT(stated, f, hyper_posterior="map", li_basis=False)
     ignored.fit(300, progress=False)
     b, g = true_c.beta[true_c.weight_z > 0], true_c.gamma[true_c.weight_z > 0]  # the visited pairs
     truth = TRUTH(b, g)
@@ -102,7 +104,7 @@ def test_predictions_after_init_surface_are_at_the_chosen_offset(tmp_path):
     c = plates()
     f = irft.rft.forces(TRUTH, c.with_surface_offset(torch.tensor(-0.004)))
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(2))
-    m = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None)
+    m = irft.InverseRFT(c, f, surface_offset=True, method="pairs", priors=None, hyper_posterior="map", li_basis=False)
     start = m.init_surface(torch.linspace(-0.01, 0.01, 5))
     assert float(start[0]) != 0.0
     cd = c.with_surface_offset(start)
@@ -127,7 +129,8 @@ def test_module_apply_reaches_the_surface_offset():
     """``model.apply(fn)`` (torch's recursive visit) reaches the ``SurfaceOffset`` like any submodule;
     its own method was named ``apply`` and shadowed torch's, so the visit called it with ``fn``."""
     c = plates()
-    m = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs", priors=None)
+    m = irft.InverseRFT(c, irft.rft.forces(TRUTH, c), surface_offset=True, method="pairs", priors=None,
+                        hyper_posterior="map", li_basis=False)
     seen = []
     m.apply(lambda module: seen.append(type(module).__name__))
     assert "SurfaceOffset" in seen and seen[-1] == "InverseRFT"

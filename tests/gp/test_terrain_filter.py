@@ -22,7 +22,7 @@ B, M = 3, 4
 def fitted(prior_mean="zero", dtype=torch.float64):
     """A model whose hyperparameters are set by hand (its own data are not part of any filter)."""
     c, f = env_data(0, T=20)
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean, dtype=dtype)
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, dtype=dtype, hyper_posterior="map", li_basis=False)
     set_hypers(model, seed=1)
     if prior_mean == "physics":
         model.hypers.mean.scales = torch.tensor([0.6, 0.3])
@@ -42,7 +42,8 @@ def stack(cs, t):
 
 def own_model(model, c, f, method):
     """An environment's own InverseRFT at the shared hyperparameters, its samples given by add_data."""
-    m = irft.InverseRFT(c[:2], f[:2], method=method, prior_mean=model.prior_mean_kind, priors=None)
+    m = irft.InverseRFT(c[:2], f[:2], method=method, prior_mean=model.prior_mean_kind, priors=None,
+                        hyper_posterior="map", li_basis=False)
     m.hypers.lengthscale = model.hypers.lengthscale.detach()
     m.hypers.outputscale = model.hypers.outputscale.detach()
     m.hypers.noise = model.hypers.noise.detach()
@@ -148,7 +149,7 @@ def test_li_basis_term_each_environment_is_its_own_inverse_rft_and_the_dense_for
     window's forgetting, tracked and fresh map points, forces), checked against each environment's own
     InverseRFT with the term and the dense formula written from angle differences."""
     c0, f0 = env_data(0, T=20)
-    model = irft.InverseRFT(c0, f0, li_basis=True)
+    model = irft.InverseRFT(c0, f0, li_basis=True, hyper_posterior="map")
     set_hypers(model, seed=1)
     model.hypers.li.variance = torch.tensor([0.04, 0.3])
     data = [env_data(b) for b in range(B)]
@@ -169,7 +170,7 @@ def test_li_basis_term_each_environment_is_its_own_inverse_rft_and_the_dense_for
     for b in range(B):
         idx = torch.tensor(kept[b][-window:] if window else kept[b])
         c, f = data[b][0][idx], data[b][1][idx]
-        own = irft.InverseRFT(c[:2], f[:2], li_basis=True, priors=None)
+        own = irft.InverseRFT(c[:2], f[:2], li_basis=True, priors=None, hyper_posterior="map")
         for name in ("lengthscale", "outputscale", "noise"):
             setattr(own.hypers, name, getattr(model.hypers, name).detach())
         own.hypers.li.variance = model.hypers.li_variance.detach()
@@ -187,7 +188,7 @@ def test_li_basis_term_each_environment_is_its_own_inverse_rft_and_the_dense_for
             close(pred.mean[b, :, a], fmu)
             close(pred.variance[b, :, a], fvar)
     # the term matters here: the same samples without it give another posterior
-    plain = irft.InverseRFT(c0, f0)
+    plain = irft.InverseRFT(c0, f0, hyper_posterior="map", li_basis=False)
     set_hypers(plain, seed=1)
     other = TerrainFilter(plain, B, window=window, capacity=2)
     for t in range(7):
@@ -205,7 +206,7 @@ def test_spectral_model_within_its_truncation():
     c, f = env_data(0)
     filt = TerrainFilter(model, 1)
     filt.update(Contacts(c.beta[None], c.gamma[None], c.weight_x[None], c.weight_z[None]), f[None])
-    own = irft.InverseRFT(c, f, method="spectral", priors=None)
+    own = irft.InverseRFT(c, f, method="spectral", priors=None, hyper_posterior="map", li_basis=False)
     set_hypers(own, seed=1)
     th = torch.linspace(-1.4, 1.4, 9)
     ours, theirs = filt.stress_map(th, th.flip(0)), own.stress_map(th, th.flip(0))  # (its basis grows first)

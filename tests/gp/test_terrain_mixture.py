@@ -18,7 +18,7 @@ from .test_terrain_filter import B, env_data, stack
 
 def _model(prior_mean="zero"):
     c, f = env_data(0, T=20)
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean, hyper_posterior="laplace")
+    model = irft.InverseRFT(c, f, prior_mean=prior_mean, hyper_posterior="laplace", li_basis=False)
     torch.manual_seed(0)
     model.fit(n_iter=30, progress=False)
     return model
@@ -86,7 +86,7 @@ def test_each_environment_is_the_draws_mixture_weighed_by_its_own_evidence(windo
 
 def test_a_plug_in_model_is_the_terrain_filter_and_forces_are_mixtures_too():
     c, f = env_data(0, T=20)
-    plug = irft.InverseRFT(c, f)
+    plug = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     plug.fit(n_iter=20, progress=False)
     data = [env_data(b) for b in range(B)]
     one, mix = TerrainFilter(plug, B, window=4), TerrainFilterMixture(plug, B, window=4)

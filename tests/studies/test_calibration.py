@@ -76,7 +76,7 @@ def test_the_percentile_statistic_is_uniform_on_truths_drawn_from_the_model_itse
     another generator), and their mean falls in the harness' calibrated band."""
     c = cal.motion("short", 0)
     f = cal.simulate(cal.medium("presets", 2)[0], c, 0.05, 0)
-    model = irft.InverseRFT(c, f, hyper_posterior="map")
+    model = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
     model.fit(n_iter=60, progress=False)
     B, G = cal.grid(15)
     truths = model.sample_maps(B, G, 60, generator=torch.Generator().manual_seed(123))
@@ -163,7 +163,7 @@ def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
     truth, _ = cal.medium("perturbed", 1)
     c = cal.motion("short", 1)
     f = cal.simulate(truth, c, 0.05, 1)
-    base = irft.InverseRFT(c, f, li_basis=True, generic_shape=True)
+    base = irft.InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
     scaled = limits.build_scaled(c, f, 0.01)
 
     def centre(module, name):
@@ -184,7 +184,8 @@ def test_the_limits_terms_drop_only_the_residual_and_leave_regression_on_the_gen
     truth, _ = cal.medium("scaled", 2)
     c = cal.motion("short", 2)
     f = cal.simulate(truth, c, 0.05, 2)
-    model = irft.InverseRFT(c, f, li_basis=True, generic_shape=True)  # not fitted: any hyperparameters do
+    model = irft.InverseRFT(c, f, li_basis=True, generic_shape=True,
+                            hyper_posterior="map")  # not fitted: any hyperparameters do
     dropped = limits.shrunk(model, 1e-8)
     h, d = model.hypers, dropped.hypers
     torch.testing.assert_close(d.outputscale, h.outputscale * 1e-8, rtol=1e-12, atol=0)

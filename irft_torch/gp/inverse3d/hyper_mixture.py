@@ -20,6 +20,7 @@ from torch import Tensor
 from ..hyper_mixture import backends_at_draws
 from ..hyper_nuts import nuts
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec, laplace
+from ..laplace_guard import said_once
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
 
@@ -57,7 +58,7 @@ class HyperMixture3DMixin:
             method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
             n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
             n_draws: draws kept for prediction (each one backend); None keeps every weighted proposal.
-            generator: a ``torch.Generator`` for reproducible draws.
+            generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
             options: for ``gp.hyper_posterior.laplace`` or ``nuts`` (``free``: the labels to marginalise, default
                 all but what no likelihood sees: alpha_y's lengthscales when alpha_y is a constant).
         Returns:
@@ -73,16 +74,18 @@ class HyperMixture3DMixin:
         if options.get("free") is None:
             fixed = set(self.hypers.fixed_labels())
             options["free"] = [lab for lab in hyper_spec(self.hypers).labels if lab not in fixed]
-        try:
-            if method == "laplace":
-                hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
-            else:
-                hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
-        finally:
-            self.backend.eval()
-        self.backend.refresh()  # at the mode (where the posterior leaves the hyperparameters): the draws' backends
-        # start from its basis, as a loaded model's do (save/load then gives the same mixture)
-        self._set_hyper_posterior(hp)
+        with said_once():
+            try:
+                if method == "laplace":
+                    hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
+                                 **options)
+                else:
+                    hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+            finally:
+                self.backend.eval()
+            self.backend.refresh()  # at the mode (where the posterior leaves the hyperparameters): the draws'
+            # backends start from its basis, as a loaded model's do (save/load then gives the same mixture)
+            self._set_hyper_posterior(hp)
         return hp
 
     def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:

@@ -13,11 +13,10 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
-from ..fit_control import FitDivergedWarning, adam, copy_into, divergence
+from ..fit_control import FitDivergedWarning, adam, copy_into, divergence, progress_bar
 from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..posterior import marginal_interval
@@ -241,7 +240,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         params = [p for p in self.hypers.parameters() if p.requires_grad]
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]
         best = (math.inf, -1)  # loss, step of the values in ``kept``
-        bar = tqdm(range(int(n_iter)), desc=f"I-RFT 3-D fit ({self.method})", disable=not progress, leave=False)
+        bar = progress_bar(int(n_iter), f"I-RFT 3-D fit ({self.method})", progress)
         try:
             for step in bar:
                 opt.zero_grad(set_to_none=True)
