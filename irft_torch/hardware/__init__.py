@@ -1,9 +1,13 @@
 """Sensing only: motor model, five-bar leg statics, ODrive CANSimple and CubeMars/T-Motor AK
 MIT-mode CAN frames, logs, the paper's signal
-pipeline and a simulated leg on a virtual bus. Imports neither ``gp`` nor plotting."""
+pipeline, a simulated leg on a virtual bus, and the live path (``live``: frames in, an updated terrain
+estimate out after every stance). Imports neither ``gp`` nor plotting."""
 
 from .can_log import SUPPORTED_SUFFIXES, read_log, record
+from .causal_filter import CausalMovingAverage
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .live import LiveEstimate, LiveEstimator
+from .live_resample import LiveResampler
 from .log_data import LogData, LogReadError, MotorSeries, ResampledLog
 from .mit_can import MIT_ERRORS, MIT_MODELS, MitModel, decode_mit, encode_mit_reply, mit_model
 from .motor import MotorModel, kt_from_kv
@@ -21,6 +25,8 @@ from .pipeline import (
                        zero_phase_filter,
 )
 from .simulated_leg import FakeODrive, SimulatedLeg, SimulationTruth
+from .stance import Stance, StanceDetector
+from .walking_leg import WalkingLeg, stride_path
 
 __all__ = [
     "MotorModel", "kt_from_kv", "FiveBarLeg", "SingularConfigurationWarning",
@@ -30,4 +36,6 @@ __all__ = [
     "ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
     "Dataset", "build_dataset", "dataset_summary", "save_dataset", "load_dataset",
     "FakeODrive", "SimulatedLeg", "SimulationTruth",
+    "LiveEstimator", "LiveEstimate", "LiveResampler", "CausalMovingAverage", "Stance", "StanceDetector",
+    "WalkingLeg", "stride_path",
 ]
