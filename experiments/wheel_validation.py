@@ -113,6 +113,9 @@ def _phases(K: int):
     return None if K == 1 else (torch.arange(K, dtype=torch.float64) + 0.5) / K * wd.GROUSER_PITCH
 
 
+LI_FLAG = {True: " --li-basis", False: " --no-li-basis", None: ""}  # how a run's li_basis choice is written
+
+
 def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts:
     """One observation (1, M): the mean over the K poses of the run's wheel at a sinkage."""
     s = run.sinkage if sinkage is None else sinkage
@@ -121,9 +124,11 @@ def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts
 
 def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args, priors: str | None = "physical"):
     generic = bool(getattr(args, "generic_shape", False))
+    li = True if generic else getattr(args, "li_basis", None)
+    opts = {k: v for k, v in (("li_basis", li), ("hyper_posterior", getattr(args, "hyper_posterior", None)))
+            if v is not None}  # the rest: the constructor's defaults
     model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors,
-                            li_basis=bool(getattr(args, "li_basis", False)) or generic, generic_shape=generic,
-                            hyper_posterior=getattr(args, "hyper_posterior", "map"))
+                            generic_shape=generic, **opts)
     model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
     return model
 
@@ -415,9 +420,9 @@ def plot_sinkage(results: dict, out: Path) -> None:
 def report(results: dict, args, elapsed: float) -> str:
     lines = ["# Rover wheel in sand: leave-one-slip-out (slip angle 0)", "",
              f"Command: `python experiments/wheel_validation.py --data DIR --study planar"
-             f"{' --physics-mean' if args.physics_mean else ''}{' --li-basis' if args.li_basis else ''}"
+             f"{' --physics-mean' if args.physics_mean else ''}{LI_FLAG[args.li_basis]}"
              f"{' --generic-shape' if args.generic_shape else ''}"
-             f"{' --hyper-posterior laplace' if args.hyper_posterior == 'laplace' else ''}"
+             f"{'' if args.hyper_posterior is None else ' --hyper-posterior ' + args.hyper_posterior}"
              f"{' --no-nested-cv' if getattr(args, 'no_nested_cv', False) else ''}"
              f"{f' --seed {args.seed}' if getattr(args, 'seed', 0) else ''} "
              f"--contact-surface {args.contact_surface} "
@@ -571,14 +576,15 @@ def main(argv=None) -> None:
     ap.add_argument("--lr", type=float, default=0.08)
     ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
     ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
-    ap.add_argument("--li-basis", action="store_true",
-                    help="I-RFT with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True)), both studies")
+    ap.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,
+                    help="I-RFT with or without Li et al.'s basis as a kernel term, both studies (default: each "
+                         "constructor's: with in the plane, without in 3-D)")
     ap.add_argument("--generic-shape", action="store_true",
                     help="the planar study's I-RFT with the generic shape's uncertain scale too (li_basis=True, "
                          "generic_shape=True; the 3-D model has no such term)")
-    ap.add_argument("--hyper-posterior", default="map", choices=("map", "laplace"),
-                    help="the planar study's I-RFT hyperparameter posterior (InverseRFT(..., hyper_posterior=...)): "
-                         "the plug-in, or the Laplace mixture")
+    ap.add_argument("--hyper-posterior", default=None, choices=("map", "laplace"),
+                    help="the planar study's I-RFT hyperparameter posterior (default: the constructor's, laplace; "
+                         "map: the plug-in)")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
     ap.add_argument("--seed", type=int, default=0,
                     help="the planar study: seeds each held-out level's random stream (the Laplace rows' proposals; "

@@ -96,7 +96,7 @@ def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "physics
     i = torch.as_tensor(idx)
     model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, method="spectral", tol=args.tol,
                          features=d["bank"].rows(i), max_harmonics=args.harmonics, prior_mean=prior_mean,
-                         li_basis=bool(getattr(args, "li_basis", False)))
+                         li_basis=bool(getattr(args, "li_basis", None)))
     with warnings.catch_warnings():  # the truncation is reported in the table instead
         warnings.filterwarnings("ignore", message="the lengthscales need more")
         model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)

@@ -67,9 +67,10 @@ class MapDiagnostics:
 @dataclass
 class Diagnostics:
     maps: list[MapDiagnostics]
+    notes: list[str] = field(default_factory=list)  # about the fit as a whole (the hyperparameter draws)
 
     def __str__(self) -> str:
-        return "\n".join(str(m) for m in self.maps)
+        return "\n".join([*(str(m) for m in self.maps), *self.notes])
 
     @property
     def unidentified(self) -> list[str]:
@@ -101,4 +102,6 @@ def diagnose(model, n: int = 24) -> Diagnostics:
         flat = [EMBEDDING[d] for d in range(4) if float(spread[d]) < 1e-3]
         s = float(snr[a])
         out.append(MapDiagnostics(AXES[a], frac, float(ratio.mean()), flat, s, frac == 0.0 or s < 1.0))
-    return Diagnostics(out)
+    hp = getattr(model, "hyper_posterior", None)
+    notes = [f"Hyperparameter draws: {hp.extra['truncated']}."] if hp is not None and "truncated" in hp.extra else []
+    return Diagnostics(out, notes)

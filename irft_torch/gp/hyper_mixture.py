@@ -103,7 +103,8 @@ class HyperMixtureMixin(nn.Module):
             if getattr(self, "priors", "physical") is None:
                 warnings.warn(IMPROPER, HyperPosteriorWarning, stacklevel=2)
             self.train()
-            with said_once():
+            truncated: list[str] = []
+            with said_once(truncated):
                 try:
                     if method == "laplace":
                         hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
@@ -113,6 +114,8 @@ class HyperMixtureMixin(nn.Module):
                 finally:
                     self.eval()
                 self._set_hyper_posterior(hp)
+            if truncated and hp is not None:  # reported by diagnostics(): the draws' share is small, nothing to do
+                hp.extra["truncated"] = f"{len(truncated)} of the draws' kernels are truncated ({truncated[0]})"
         companion = getattr(self, "companion", None)
         if companion is not None and getattr(self, "mean_average", None) is not None:  # both means, weighed again
             companion.fit_hyper_posterior(method, n_proposals, n_draws, generator, **options)

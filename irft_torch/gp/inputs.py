@@ -171,8 +171,9 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
         raise ValueError(f"method must be 'auto', 'observations' (or 'exact'), 'pairs' or 'spectral', got {method!r}")
     if priors not in PRIORS:
         raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
-    if hyper_posterior is None:  # the default: the honest one (InverseRFT's docstring, docs/calibration.md); a learned
-        hyper_posterior = "map" if surface else "laplace"  # surface has its own Laplace std (gp.surface)
+    if hyper_posterior is None:  # the default: the honest one (InverseRFT's docstring, docs/calibration.md); but a
+        # learned surface has its own Laplace std (gp.surface), and without priors the posterior is improper
+        hyper_posterior = "map" if surface or priors is None else "laplace"
     if hyper_posterior not in HYPER_POSTERIORS:
         raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
     if hyper_posterior != "map" and surface:

@@ -47,24 +47,26 @@ class HyperPosteriorWarning(UserWarning):
 
 
 @contextlib.contextmanager
-def said_once() -> Iterator[None]:
+def said_once(truncated: list[str] | None = None) -> Iterator[None]:
     """What a hyperparameter posterior's many draws warn, said once: each distinct warning once, and the Fourier
-    basis' "need more than ... harmonics" (one per short-lengthscale draw, each with its own numbers) as one
-    warning that counts them. The fit's own warnings (``FitDivergedWarning``, the plug-in's basis) are not here."""
+    basis' "need more than ... harmonics" (one per short-lengthscale draw, each with its own numbers) either
+    appended to ``truncated`` (the caller reports them: ``model.diagnostics()``) or, without a list, one warning
+    that counts them. The fit's own warnings (``FitDivergedWarning``, the plug-in's basis) are not here."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
     seen: set[tuple[type, str]] = set()
-    truncated = [w for w in caught if "harmonics" in str(w.message)]
+    cut = [w for w in caught if "harmonics" in str(w.message)]
     for w in caught:
-        if w in truncated or (w.category, str(w.message)) in seen:
+        if w in cut or (w.category, str(w.message)) in seen:
             continue
         seen.add((w.category, str(w.message)))
         warnings.warn(w.message, w.category, stacklevel=3)
-    if truncated:
-        first = truncated[0]
-        warnings.warn(f"{len(truncated)} hyperparameter draw(s) with short lengthscales need a Fourier basis beyond "
-                      f"its cap: their kernel is truncated, e.g. {first.message}", first.category, stacklevel=3)
+    if cut and truncated is not None:
+        truncated += [str(w.message) for w in cut]
+    elif cut:
+        warnings.warn(f"{len(cut)} hyperparameter draw(s) with short lengthscales need a Fourier basis beyond its cap: "
+                      f"their kernel is truncated, e.g. {cut[0].message}", cut[0].category, stacklevel=3)
 
 
 def positive_definite(H: Tensor, floor: float = 1e-6, min_eigenvalue: float = 0.0) -> Tensor:

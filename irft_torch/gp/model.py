@@ -80,9 +80,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             the weights).
         tied_noise: one noise variance for both axes (the paper) instead of one per axis. dtype: float64 or float32.
         solver: observations backend: "cholesky" (default) or "gpytorch" (CG/Lanczos above its max_cholesky_size).
-        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an
-            angle (an I-toe samples beta = 0 only) the likelihood cannot move it, so it sets how far
-            the map extrapolates.
+        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an angle (an
+            I-toe samples beta = 0 only) the likelihood cannot move it: it sets how far the map extrapolates.
         method: "auto", "observations" (or "exact"), "pairs" or "spectral" (see above).
         tol: spectral backend: bound on the kernel's relative truncation error (default 1e-7).
         noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and axis): sample t's
@@ -105,7 +104,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             predicts the same); predictions are mixtures over its draws (``model.hyper_posterior``). "map": the
             plug-in at the fitted hyperparameters (the paper's; ``TerrainFilter`` and streaming use it), about
             1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts": pyro's
-            NUTS, the reference. With ``surface_offset`` the default is "map" (the offset has its own Laplace std).
+            NUTS, the reference. With ``surface_offset`` or ``priors=None`` the default is "map" (the offset has
+            its own Laplace std; without priors the posterior is improper).
         li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
             term with its own variance per map (default True; ``gp.li_basis``): what the forces leave unseen follows
             shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).

@@ -231,7 +231,8 @@ def test_dem_validation_experiment_runs_small(tmp_path, monkeypatch):
     # importable by name, as when run as a script: the fold workers (spawned processes) import it
     monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[2] / "experiments"))
     mod = importlib.import_module("dem_validation")
-    small = ["--data", str(DATA), "--stride", "1000", "--eval-stride", "200", "--n-iter", "3", "--plain-iter", "3"]
+    small = ["--data", str(DATA), "--stride", "1000", "--eval-stride", "200", "--n-iter", "3", "--plain-iter", "3",
+             "--no-li-basis", "--hyper-posterior", "map"]  # the script's machinery; the default's fit is tests/gp's
     res = mod.main([*small, "--out", str(tmp_path), "--jobs", "2"])
     text = (tmp_path / "dem_validation.md").read_text()
     serial = mod.main([*small, "--out", str(tmp_path / "serial"), "--jobs", "1"])  # the folds in this process

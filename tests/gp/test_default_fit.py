@@ -49,6 +49,7 @@ def test_the_defaults_are_li_basis_and_laplace():
     m = irft.InverseRFT(c, f)
     assert m.hyper_method == "laplace" and m.hypers.li is not None
     assert irft.InverseRFT(c, f, surface_offset=True).hyper_method == "map"  # the offset has its own Laplace std
+    assert irft.InverseRFT(c, f, priors=None).hyper_method == "map"  # a flat prior: an improper posterior
 
 
 def test_two_fresh_processes_predict_exactly_the_same(tmp_path):
@@ -120,3 +121,18 @@ def test_progress_to_a_pipe_is_a_few_lines_not_one_per_step(capsys):
     irft.InverseRFT(c, f, hyper_posterior="map").fit(n_iter=300, progress=True)  # capsys: stderr is not a terminal
     err = capsys.readouterr().err
     assert 0 < err.count("\r") <= 4, err.count("\r")
+
+
+def test_truncated_draws_go_to_the_diagnostics_not_to_a_warning():
+    kept: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with said_once(kept):
+            for ls in (0.11, 0.12):
+                warnings.warn(f"lengthscales [{ls}] need more than 30 harmonics per angle", UserWarning, stacklevel=2)
+    assert not caught and len(kept) == 2 and "[0.11]" in kept[0]
+    c, f = _data(30)
+    m = irft.InverseRFT(c, f)
+    m.fit(n_iter=60, progress=False)
+    m.hyper_posterior.extra["truncated"] = "2 of the draws' kernels are truncated (...)"  # as fit_hyper_posterior sets
+    assert "Hyperparameter draws: 2 of the draws' kernels are truncated" in str(m.diagnostics(warn=False))
