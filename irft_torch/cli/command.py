@@ -11,12 +11,12 @@ import os
 import sys
 import warnings
 
-from . import fit, ingest, record, reproduce, simulate
+from . import fit, ingest, live, record, reproduce, simulate
 from .arguments import _validate, warn
 
 __all__ = ["build_parser", "main"]
 
-COMMANDS = (simulate, reproduce, record, ingest, fit)  # in the order ``irft --help`` lists them
+COMMANDS = (simulate, reproduce, record, ingest, fit, live)  # in the order ``irft --help`` lists them
 
 
 class _Parser(argparse.ArgumentParser):

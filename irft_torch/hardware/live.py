@@ -277,11 +277,14 @@ class LiveEstimator:
         self.error: BaseException | None = None
         self._warm: list[tuple[Contacts, torch.Tensor]] = []
         self._stale = False
+        self._heard: dict[int, float] = {}  # arrival of each node's last frame the worker has processed
+        self._heard_t: dict[int, float] = {}  # and its time on the frames' clock, s
         self._dropped_seen = 0
         self._errors_seen = 0
         self._notes_seen = 0
         self._last_snapshot = time.monotonic()
         self._status_at = 0.0
+        self._drop_said = -math.inf
         self._bar = None
         if progress:
             from tqdm.auto import tqdm
@@ -389,6 +392,8 @@ class LiveEstimator:
                 continue
             if frame.node not in self.nodes:
                 continue
+            t = rs.retime(msg.timestamp, arrival)
+            self._heard_from(frame.node, t, arrival)
             group = {"get_encoder_estimates": "encoder", "get_iq": "iq", "heartbeat": "heartbeat"}.get(frame.command)
             if group is None:
                 continue
@@ -398,7 +403,7 @@ class LiveEstimator:
                       (float(v["axis_error"] != 0 or any(v.get(k, 0) & 1 for k in
                                                          ("motor_error_flag", "encoder_error_flag",
                                                           "controller_error_flag"))), v["axis_state"]))
-            rs.add(frame.node, group, rs.retime(msg.timestamp, arrival), values, arrival)
+            rs.add(frame.node, group, t, values, arrival)
         grid = rs.ready()
         while self._notes_seen < len(rs.notes):
             self._status(rs.notes[self._notes_seen])
@@ -445,8 +450,6 @@ class LiveEstimator:
         self.compute_times.append(time.monotonic() - t0)
 
     def _stance_update(self, st: Stance) -> None:
-        if self._stale:
-            return self._unused(st, "a motor was silent during it (stale)")
         if self.intake.dropped > self._dropped_seen:
             self._dropped_seen = self.intake.dropped
             return self._unused(st, "frames were dropped while it was recorded (the queue fell behind)")
@@ -468,7 +471,8 @@ class LiveEstimator:
             self._warm.append((c, f))
             if len(self._warm) < self.warmup:
                 est.message = f"kept for the start model ({len(self._warm)} of {self.warmup} stances)"
-                return self._publish_stance(est, st)
+                est.used = True  # its forces go into the start model
+                return self._publish_stance(est, st, update=False)
             cs, fs = zip(*self._warm)
             joined = Contacts(*(torch.cat(v) for v in zip(*(x.as_dict().values() for x in cs))))
             self.model = self.start_model(joined, torch.cat(fs))
@@ -505,47 +509,62 @@ class LiveEstimator:
                            t_end=st.end, samples=st.n_samples)
         self._publish_stance(est, st)
 
-    def _publish_stance(self, est: LiveEstimate, st: Stance) -> None:
+    def _publish_stance(self, est: LiveEstimate, st: Stance, update: bool = True) -> None:
         est.latency = time.monotonic() - float(st.arrival[-1])
-        if est.used:
+        if est.used and update:
             self.latencies.append(est.latency)
         self._publish(est)
 
     # ---- health --------------------------------------------------------------------------------
     def _check_health(self) -> None:
         now = time.monotonic()
-        seen = dict(self.intake.last_seen)
-        silent = {n: now - seen[n] for n in self.nodes if n in seen}
-        heard_all = len(silent) == len(self.nodes)
-        worst = max(silent.values()) if silent else 0.0
-        if heard_all and worst > self.stale_after and not self._stale:
-            node = max(silent, key=lambda n: silent[n])
-            self._stale = True
-            dropped = self.detector.reset()
-            if dropped is not None:
-                self.n_stances += 1
-                self._unused(dropped, f"node {node} fell silent during it")
-            self.resampler.restart()
-            self.filter = CausalMovingAverage(self.filter.window, 2)
-            self._status(f"node {node} has sent nothing for {silent[node]:.2f} s: the estimate is stale (not "
-                         "updated) until it sends again")
-        elif self._stale and heard_all and worst <= self.stale_after:
-            self._stale = False
-            self._status("both motors are sending again: the estimate is live")
-        if self.intake.dropped > self._dropped_seen and now - self._status_at > 1.0:
-            self._status(f"the queue fell behind: {self.intake.dropped} frame(s) not processed so far (all logged); "
-                         f"queue bound {self.intake.queue.maxsize} frames")
+        if self.intake.queue.empty():  # caught up: a silence now is the motors', not the worker's backlog
+            silent = {n: now - t for n, t in self._heard.items()}
+            if len(silent) == len(self.nodes) and not self._stale:
+                node = max(silent, key=lambda n: silent[n])
+                if silent[node] > self.stale_after:
+                    self._go_stale(node, f"node {node} has sent nothing for {silent[node]:.2f} s")
+        if self.intake.dropped > self._dropped_seen:
+            if now - self._drop_said > 1.0:  # said at most once a second
+                self._drop_said = now
+                self._status(f"the queue fell behind: {self.intake.dropped} frame(s) not processed so far (all "
+                             f"logged); queue bound {self.intake.queue.maxsize} frames")
             detector_stance = self.detector.reset()
             if detector_stance is not None:
                 self.n_stances += 1
                 self._unused(detector_stance, "frames were dropped while it was recorded (the queue fell behind)")
             self._dropped_seen = self.intake.dropped
+            self.resampler.restart()  # the dropped stretch is not bridged: a new time base from the next frames
+            self.filter = CausalMovingAverage(self.filter.window, 2)
         if self.intake.error_frames > self._errors_seen and now - self._status_at > 1.0:
             self._status(f"{self.intake.error_frames - self._errors_seen} CAN error frame(s) (bus errors: wiring, "
                          "termination, bit rate)")
             self._errors_seen = self.intake.error_frames
         if self.intake.error is not None:
             self._reconnect()
+
+    def _go_stale(self, node: int, what: str) -> None:
+        """A motor fell silent: the stance in progress is dropped, the time base restarts when both speak."""
+        self._stale = True
+        dropped = self.detector.reset()
+        if dropped is not None:
+            self.n_stances += 1
+            self._unused(dropped, f"node {node} fell silent during it")
+        self.resampler.restart()
+        self.filter = CausalMovingAverage(self.filter.window, 2)
+        self._status(f"{what}: the estimate is stale (not updated) until it sends again")
+
+    def _heard_from(self, node: int, t: float, arrival: float) -> None:
+        """Staleness in the frames' order and on their clock (t, s): a backlog the worker catches up on, or a
+        host too busy to take frames for a moment while the bus buffers them, is not a motor's silence."""
+        prev = self._heard_t.get(node)
+        self._heard[node], self._heard_t[node] = arrival, t
+        if prev is not None and t - prev > self.stale_after and not self._stale:
+            self._go_stale(node, f"node {node} sent nothing for {t - prev:.2f} s")
+        if self._stale and len(self._heard_t) == len(self.nodes) and \
+                max(t - u for u in self._heard_t.values()) <= self.stale_after:
+            self._stale = False
+            self._status("both motors are sending again: the estimate is live")
 
     def _reconnect(self) -> None:
         exc = self.intake.error
@@ -613,7 +632,7 @@ class LiveEstimator:
 
     @staticmethod
     def _headline(est: LiveEstimate) -> str:
-        if est.message and not est.used:
+        if est.used and math.isnan(est.scale[0]):
             return f"stance {est.stance}: {est.message}"
         if not est.used:
             return f"stance {est.stance} not used: {est.why_unused}"

@@ -5,7 +5,9 @@ A stance is a maximal run of valid samples in contact. The detector keeps one va
 onset and waits for one after the end (``margin``), so that the toe's velocity at every stance sample
 is the same central difference the offline pipeline takes over the whole run (``rft.pose_path``):
 the contacts of a stance computed alone equal those of the whole recording at its samples. Masked
-samples are not part of any stance (the offline dataset drops them too); they are counted.
+samples are not part of any stance (the offline dataset drops them too); they are counted. A stance
+is counted only from an onset seen: one in progress when the stream starts (or after ``reset``) is
+skipped (``n_skipped``), never used cut.
 """
 
 from __future__ import annotations
@@ -96,6 +98,8 @@ class StanceDetector:
         self._in = False
         self._masked = 0
         self.n_masked_outside = 0
+        self._armed = False  # a stance counts only once the toe was seen out of contact (not one joined midway)
+        self.n_skipped = 0  # samples of a stance joined midway (the stream's start, after a reset)
 
     def in_contact(self, toe, force) -> bool:
         if self.mode == "surface":
@@ -126,6 +130,11 @@ class StanceDetector:
             self._before.append(row)
             return out  # a new onset within the margin starts with the next sample
         contact = self.in_contact(row[1:3], row[3:5])
+        if not self._armed:
+            if contact:
+                self.n_skipped += 1
+                return out
+            self._armed = True
         if contact and not self._in:
             self._in = True
             self._rows = list(self._before)
@@ -159,11 +168,14 @@ class StanceDetector:
     def reset(self) -> Stance | None:
         """Drop the stance in progress (a fault: frames lost, a motor silent) and return it (its
         margin after may be short), or None."""
+        self._armed = False
         if not self._rows:
+            self._before.clear()
             return None
         if self._in:
             self._last = len(self._rows)
             self._in = False
         s = self._close()
         self._before.clear()
+        self._armed = False
         return s

@@ -41,8 +41,8 @@ def stride_path(toe: Toe, depth: float, stride: float = 0.10, clearance: float =
                 swing_time: float = 0.1, rate: float = 1000.0):
     """One stride's toe path (``rft.Path``, world frame, z = 0 the surface): a stance in which the toe's
     lowest segment centre goes ``depth`` m deep (a half sine) while the toe sweeps from +stride/2 to
-    -stride/2 (m), then a swing back ``clearance`` m above the surface. Starts and ends with the lowest
-    segment exactly at the surface (out of contact). Times s, ``rate`` samples per second."""
+    -stride/2 (m), and a swing back ``clearance`` m above the surface; it starts and ends at the swing's
+    top (the stance begins after ``swing_time / 2``). Times s, ``rate`` samples per second."""
     for name, v in (("depth", depth), ("stride", stride), ("clearance", clearance), ("stance_time", stance_time),
                     ("swing_time", swing_time), ("rate", rate)):
         if not (math.isfinite(v) and v > 0):
@@ -53,6 +53,8 @@ def stride_path(toe: Toe, depth: float, stride: float = 0.10, clearance: float =
     w = np.arange(n_sw) / n_sw
     x = np.concatenate([stride / 2 - stride * u, -stride / 2 + stride * w])
     z_low = np.concatenate([-depth * np.sin(np.pi * u), clearance * np.sin(np.pi * w)])
+    # start and end at the top of the swing, clearly out of contact (the stance's first sample is at the surface)
+    x, z_low = np.roll(x, n_sw // 2), np.roll(z_low, n_sw // 2)
     t = np.arange(n_st + n_sw) / rate
     return pose_path(torch.as_tensor(t), torch.as_tensor(x), torch.as_tensor(z_low - lowest))
 
@@ -172,6 +174,11 @@ class WalkingLeg:
         self._stop.clear()
         self._thread = threading.Thread(target=run, name="walking-leg", daemon=True)
         self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        """Whether ``start``'s thread is still walking."""
+        return self._thread is not None and self._thread.is_alive()
 
     def join(self, timeout: float | None = None) -> None:
         if self._thread is not None:

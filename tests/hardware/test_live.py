@@ -90,6 +90,6 @@ def test_json_lines_and_snapshot(walked):
     assert abs(last["scale"][1] - 1.5) < 3 * last["scale_std"][1] + 0.05  # the simulated sand: generic x 1.5 in z
     snap = InverseRFT.load(d / "out" / "model.pt")
     b, g = torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])
-    with torch.no_grad():
-        np.testing.assert_allclose(snap.stress_map(b, g).mean.numpy(), est.model.stress_map(b, g).mean.numpy(),
-                                   atol=1e-9)
+    with torch.no_grad():  # the loaded model sums its statistics in one pass, the live one stance by stance
+        live = est.model.stress_map(b, g).mean.numpy()
+        np.testing.assert_allclose(snap.stress_map(b, g).mean.numpy(), live, rtol=0, atol=1e-7 * np.abs(live).max())
