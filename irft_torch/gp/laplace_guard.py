@@ -52,21 +52,31 @@ def said_once(truncated: list[str] | None = None) -> Iterator[None]:
     basis' "need more than ... harmonics" (one per short-lengthscale draw, each with its own numbers) either
     appended to ``truncated`` (the caller reports them: ``model.diagnostics()``) or, without a list, one warning
     that counts them. The fit's own warnings (``FitDivergedWarning``, the plug-in's basis) are not here."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        yield
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as recorded:
+            warnings.simplefilter("always")
+            try:
+                yield
+            finally:
+                caught = list(recorded or [])
+    finally:  # said even where the body raised
+        _say_once(caught, truncated)
+
+
+def _say_once(caught: list, truncated: list[str] | None) -> None:
     seen: set[tuple[type, str]] = set()
     cut = [w for w in caught if "harmonics" in str(w.message)]
     for w in caught:
         if w in cut or (w.category, str(w.message)) in seen:
             continue
         seen.add((w.category, str(w.message)))
-        warnings.warn(w.message, w.category, stacklevel=3)
+        warnings.warn(w.message, w.category, stacklevel=4)
     if cut and truncated is not None:
         truncated += [str(w.message) for w in cut]
     elif cut:
         warnings.warn(f"{len(cut)} hyperparameter draw(s) with short lengthscales need a Fourier basis beyond its cap: "
-                      f"their kernel is truncated, e.g. {cut[0].message}", cut[0].category, stacklevel=3)
+                      f"their kernel is truncated, e.g. {cut[0].message}", cut[0].category, stacklevel=4)
 
 
 def positive_definite(H: Tensor, floor: float = 1e-6, min_eigenvalue: float = 0.0) -> Tensor:
