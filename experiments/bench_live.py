@@ -11,7 +11,12 @@
 The walking leg runs in the same process (the virtual bus is in-process): it takes a share of the GIL a
 robot's controllers would not. A benchmark, not a test (timings depend on the machine and its load).
 
-    python experiments/bench_live.py [--history 1000] [--strides 40] [--out experiments/results/bench_live.json]
+3. Against the offline path: ``--offline-strides`` (200) strides from a start model in real time, then the log
+   it wrote through ``read_log`` -> ``resample`` -> ``forces_from_log`` -> ``zero_phase_filter`` ->
+   ``build_dataset`` and ``add_data`` into the same start model: the largest difference of the maps.
+
+    python experiments/bench_live.py [--history 1000] [--strides 40] [--priors physical|none]
+                                     [--out experiments/results/bench_live.json]
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ TOE = irft.rft.CToe(0.02, 0.008, n_segments=10)
 SAND = irft.rft.FourierStressMap.generic(1.0, 1.5)
 
 
-def history_model(leg: WalkingLeg, n_stances: int, seed: int = 0) -> InverseRFT:
+def history_model(leg: WalkingLeg, n_stances: int, seed: int = 0, priors: str | None = "physical") -> InverseRFT:
     """A model fitted on 3 stances, then given ``n_stances`` more by add_data (the live path's history)."""
     rng = torch.Generator().manual_seed(seed)
     parts = []
@@ -52,7 +57,7 @@ def history_model(leg: WalkingLeg, n_stances: int, seed: int = 0) -> InverseRFT:
 
     first = [noisy(k) for k in range(3)]
     c0 = irft.rft.Contacts(*(torch.cat(v) for v in zip(*(c.as_dict().values() for c, _ in first))))
-    model = InverseRFT(c0, torch.cat([f for _, f in first]), hyper_posterior="map", method="spectral")
+    model = InverseRFT(c0, torch.cat([f for _, f in first]), hyper_posterior="map", method="spectral", priors=priors)
     model.fit(100, progress=False)
     if n_stances:
         more = [noisy(k) for k in range(n_stances)]
@@ -61,7 +66,7 @@ def history_model(leg: WalkingLeg, n_stances: int, seed: int = 0) -> InverseRFT:
     return model
 
 
-def walk(model, strides: int, realtime: bool, out_dir: Path | None) -> dict:
+def walk(model, strides: int, realtime: bool, out_dir: Path | None, keep: bool = False) -> dict:
     leg = WalkingLeg(TOE, SAND, current_noise=0.05)
     channel = f"bench-live-{uuid.uuid4().hex}-bus"
     bus = can.Bus(channel=channel, interface="virtual")
@@ -83,7 +88,34 @@ def walk(model, strides: int, realtime: bool, out_dir: Path | None) -> dict:
             "latency_ms": {"p50": 1e3 * float(np.percentile(lat, 50)), "p99": 1e3 * float(np.percentile(lat, 99)),
                            "max": 1e3 * float(lat.max())} if len(lat) else None,
             "stance_compute_ms": {"p50": 1e3 * float(np.percentile(comp, 50)),
-                                  "p99": 1e3 * float(np.percentile(comp, 99))} if len(comp) else None}
+                                  "p99": 1e3 * float(np.percentile(comp, 99))} if len(comp) else None,
+            **({"estimator": est} if keep else {})}
+
+
+def against_offline(strides: int, out_dir: Path) -> dict:
+    """``strides`` strides in real time from a start model; then the log it wrote through the offline path
+    (read_log -> resample at the live rate -> forces_from_log -> zero_phase_filter -> build_dataset) and
+    add_data into the same start model: the largest difference of the two maps' means and stds."""
+    from irft_torch.hardware import build_dataset, forces_from_log, read_log, zero_phase_filter
+    from irft_torch.hardware.live import MAP_POINTS
+
+    leg = WalkingLeg(TOE, SAND, current_noise=0.05)
+    start = history_model(leg, 0)
+    start.save(out_dir / "start.pt")
+    live = walk(InverseRFT.load(out_dir / "start.pt"), strides, True, out_dir, keep=True)
+    est = live.pop("estimator")
+    log = read_log(out_dir / "frames.blf", firmware=leg.firmware)
+    trace = zero_phase_filter(forces_from_log(log.resample((0, 1), rate=leg.rate), leg.leg, leg.motors), 5)
+    ds = build_dataset(trace, leg.leg, TOE, leg.hip_height)
+    offline = InverseRFT.load(out_dir / "start.pt").add_data(ds.contacts, ds.forces)
+    b, g = torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])
+    with torch.no_grad():
+        a, o = est.model.stress_map(b, g), offline.stress_map(b, g)
+    return {**live, "frames_in_log": log.n_frames,
+            "map_mean_max_abs_diff": float((a.mean - o.mean).abs().max()),
+            "map_mean_max_abs": float(o.mean.abs().max()),
+            "map_std_max_rel_diff": float(((a.variance.sqrt() - o.variance.sqrt()) / o.variance.sqrt()).abs().max()),
+            "scale": est.last.scale, "scale_std": est.last.scale_std}
 
 
 def main() -> None:
@@ -91,6 +123,11 @@ def main() -> None:
     ap.add_argument("--history", type=int, default=1000, help="stances the model holds before the walk")
     ap.add_argument("--strides", type=int, default=40, help="strides walked in real time (0.3 s each)")
     ap.add_argument("--flood-strides", type=int, default=40, help="strides sent as fast as the bus takes them")
+    ap.add_argument("--priors", choices=["physical", "none"], default="physical",
+                    help="the model's hyperparameter priors (physical: add_data recomputes their centres from all "
+                         "the data, O(history) per stance)")
+    ap.add_argument("--offline-strides", type=int, default=200,
+                    help="strides walked in real time and compared with the offline path of their log (0: skip)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1: the other core for the bus)")
     ap.add_argument("--out", default="experiments/results/bench_live.json")
     a = ap.parse_args()
@@ -98,16 +135,23 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     leg = WalkingLeg(TOE, SAND)
     t = time.monotonic()
-    model = history_model(leg, a.history)
+    priors = None if a.priors == "none" else "physical"
+    model = history_model(leg, a.history, priors=priors)
     built = time.monotonic() - t
     n = len(model.train_forces)
     print(f"model: {a.history} stances of history + 3, {n} samples, {model.backend.describe()} ({built:.1f} s)")
-    results = {"history_stances": a.history, "history_samples": n, "torch_threads": a.threads}
+    results = {"history_stances": a.history, "history_samples": n, "torch_threads": a.threads, "priors": a.priors}
     results["realtime"] = walk(model, a.strides, True, None)
     print("real time:", json.dumps(results["realtime"]))
-    flood = history_model(leg, a.history)
+    flood = history_model(leg, a.history, priors=priors)
     results["flood"] = walk(flood, a.flood_strides, False, None)
     print("flood:", json.dumps(results["flood"]))
+    if a.offline_strides:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            results["against_offline"] = against_offline(a.offline_strides, Path(tmp))
+        print("against offline:", json.dumps(results["against_offline"]))
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {a.out}")

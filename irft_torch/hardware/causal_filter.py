@@ -48,7 +48,7 @@ class CausalMovingAverage:
     Example:
         >>> f = CausalMovingAverage(window=5)
         >>> out = [s for k in range(10) for s in f.push(k * 1e-3, np.array([k, 0.0]))] + f.flush()
-        >>> [round(float(s.value[0]), 3) for s in out][:4]   # nearest padding at the start
+        >>> [round(float(s.value[0]), 3) for s in out[:4]]   # nearest padding at the start
         [0.6, 1.2, 2.0, 3.0]
     """
 

@@ -178,19 +178,25 @@ class LiveEstimator:
 
     Args:
         bus: a python-can bus (any interface), or None with ``bus_factory``.
-        leg, motors: the leg's kinematics and its two motors (k_t, directions, offsets), as for ingest.
-        toe: the toe (rft), at a fixed ``heading`` (rad).
+        leg: the leg's kinematics (as for ingest).
+        motors: its two motors (k_t, directions, zero offsets, gear ratios).
+        toe: the toe (rft), at a fixed ``heading``.
         hip_height: the motor axes' height above the sand's surface, m.
         model: a fitted model to update (``gp.InverseRFT``; pass ``hyper_posterior="map"`` there: each
             update then costs one rank-T update), or None with ``start_model``.
         start_model: ``start_model(contacts, forces) -> model`` on the first ``warmup`` stances.
+        warmup: stances ``start_model`` is given.
         callback: ``callback(LiveEstimate)`` after each stance and status change (in the worker thread:
             a slow callback delays the next update, the queue absorbs it).
-        nodes: the controllers' node ids (motor 1, motor 2). firmware: ODrive CANSimple "0.5" / "0.6".
-        rate: the controllers' message rate, Hz (the time base). filter_window: odd, samples (as ingest).
-        stance: "surface" or "force" (``StanceDetector``); force_threshold: N.
-        air: an air run's force along the stride (``AirBaseline``-like: ``air(toe) -> (n, 2)`` N from the
-            leg-frame toe positions (n, 2) m), subtracted before the filter; None: nothing subtracted.
+        nodes: the controllers' node ids (motor 1, motor 2).
+        firmware: ODrive CANSimple layout, "0.5" or "0.6".
+        rate: the controllers' message rate, Hz (the time base).
+        filter_window: the moving average's window, odd, samples (as ingest's).
+        stance: "surface" or "force" (``StanceDetector``).
+        force_threshold: N, for ``stance="force"``.
+        heading: the toe's fixed heading, rad.
+        air: the force measured in air along the stride, ``air(toe) -> (n, 2)`` N from leg-frame toe
+            positions (n, 2) m, subtracted before the filter; None: nothing subtracted.
         out_dir: where the log, ``live.jsonl`` and ``model.pt`` go (None: nothing written).
         log_name: the log's file name; its suffix picks the format (.blf, .asc, .log, .csv).
         max_log_bytes: rotate the log at this size (python-can's ``SizedRotatingLogger``; 0: one file).
@@ -201,6 +207,7 @@ class LiveEstimator:
         check_medium: refuse stances whose forces no granular medium gives (the ingest check).
         bus_factory: ``bus_factory() -> bus`` to reconnect after a bus error (and to open the first bus
             when ``bus`` is None).
+        max_current: |current| above this, A, is an outlier (dropped, counted).
         progress: a terminal progress line (tqdm) on stderr.
 
     Example:
@@ -653,3 +660,7 @@ class LiveEstimator:
         return (f"{self.n_stances} stance(s), {self.n_updates} update(s), {self.intake.received} frame(s) received, "
                 f"{self.intake.logged} logged, {self.intake.dropped} not processed" + p
                 + (f"; unused: {unused}" if unused else ""))
+
+
+# Its pieces are modules of their own (causal_filter, stance, live_resample, walking_leg).
+# One concept: the live loop (frames in, each stance out, the estimate published, every frame recorded).

@@ -67,11 +67,18 @@ class WalkingLeg:
         toe: the toe (rft), fixed heading 0.
         medium: the sand's stress map (e.g. ``rft.FourierStressMap.generic(1.0, 1.5)``).
         depths: the strides' depths, m, used in turn (several: the map is seen at more angles).
-        stride, clearance, stance_time, swing_time: see ``stride_path`` (m, s).
-        leg, motors, hip_height: as ``SimulatedLeg`` (m; k_t N m/A).
+        stride: the toe's sweep per stance, m (``stride_path``).
+        clearance: the swing's height above the surface, m.
+        stance_time: s.
+        swing_time: s.
+        leg: kinematics, as ``SimulatedLeg``.
+        motors: the two motors (k_t N m/A, directions, offsets).
+        hip_height: the motor axes' height above the surface, m.
         rate: frames per motor and message per second (Hz): 1000 sends 4000 frames/s.
         current_noise: std of the measured current, A.
         nodes: the controllers' node ids (motor 1, motor 2).
+        firmware: ODrive CANSimple layout, "0.5" or "0.6".
+        seed: of the current noise.
         hook: ``hook(tick, frames) -> frames`` for each tick's frames (fault injection).
     """
 
