@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from .backends.weight_space import FeatureStatistics
     from .surface import SurfaceOffset
 
-__all__ = ["HyperMixtureMixin", "backends_at_draws"]
+__all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
 # what a hyperparameter posterior without priors warns (measured: experiments/wheel_validation.py --study planar
 # --hyper-posterior laplace, the plain-likelihood row, 2026-11-27)
@@ -44,6 +44,15 @@ def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, dev
     for b in out:
         b.eval()
     return out
+
+
+def posterior_over_hypers(backend, method: str, n_proposals: int, n_draws: int | None, generator,
+                          **options) -> HyperPosterior:
+    """The hyperparameter posterior of ``backend`` by ``method``: "laplace" (``gp.hyper_posterior.laplace``) or
+    "nuts" (``gp.hyper_nuts.nuts``, ``n_draws`` None: 16); planar or 3-D."""
+    if method == "laplace":
+        return laplace(backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
+    return nuts(backend, n_draws=16 if n_draws is None else n_draws, **options)
 
 
 class HyperMixtureMixin(nn.Module):
@@ -106,11 +115,7 @@ class HyperMixtureMixin(nn.Module):
             truncated: list[str] = []
             with said_once(truncated):
                 try:
-                    if method == "laplace":
-                        hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
-                                     **options)
-                    else:
-                        hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+                    hp = posterior_over_hypers(self.backend, method, n_proposals, n_draws, generator, **options)
                 finally:
                     self.eval()
                 self._set_hyper_posterior(hp)

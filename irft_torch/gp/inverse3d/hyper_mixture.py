@@ -17,9 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..hyper_mixture import backends_at_draws
-from ..hyper_nuts import nuts
-from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec, laplace
+from ..hyper_mixture import backends_at_draws, posterior_over_hypers
+from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec
 from ..laplace_guard import said_once
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
@@ -76,11 +75,7 @@ class HyperMixture3DMixin:
             options["free"] = [lab for lab in hyper_spec(self.hypers).labels if lab not in fixed]
         with said_once():
             try:
-                if method == "laplace":
-                    hp = laplace(self.backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator,
-                                 **options)
-                else:
-                    hp = nuts(self.backend, n_draws=16 if n_draws is None else n_draws, **options)
+                hp = posterior_over_hypers(self.backend, method, n_proposals, n_draws, generator, **options)
             finally:
                 self.backend.eval()
             self.backend.refresh()  # at the mode (where the posterior leaves the hyperparameters): the draws'
