@@ -109,7 +109,7 @@ def cmd_live(a) -> int:
             if est.error is not None:
                 raise est.error
             if walker is not None and not walker.running:
-                est.drain()
+                est.drain(ended=True)
                 break
     finally:  # Ctrl-C included: the log closed, the last snapshot written, then the interrupt goes on (exit 130)
         if walker is not None:

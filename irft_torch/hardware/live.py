@@ -284,6 +284,7 @@ class LiveEstimator:
         self.error: BaseException | None = None
         self._warm: list[tuple[Contacts, torch.Tensor]] = []
         self._stale = False
+        self._source_ended = False  # drain(ended=True): the source stopped on purpose, its silence is no fault
         self._heard: dict[int, float] = {}  # arrival of each node's last frame the worker has processed
         self._heard_t: dict[int, float] = {}  # and its time on the frames' clock, s
         self._dropped_seen = 0
@@ -344,8 +345,12 @@ class LiveEstimator:
         if self.error is not None:
             raise self.error
 
-    def drain(self, timeout: float = 10.0) -> None:
-        """Wait until the queue is empty and the worker idle (tests, benchmarks)."""
+    def drain(self, timeout: float = 10.0, ended: bool = False) -> None:
+        """Wait until the queue is empty and the worker idle (tests, benchmarks).
+
+        ended: the source has stopped sending on purpose (a simulated walk or a replay at its end): the silence
+        that follows is not a fault and does not mark the estimate stale."""
+        self._source_ended = self._source_ended or ended
         end = time.monotonic() + timeout
         while time.monotonic() < end and (self.intake.queue.unfinished_tasks or not self.intake.queue.empty()):
             time.sleep(0.01)
@@ -527,7 +532,7 @@ class LiveEstimator:
         now = time.monotonic()
         if self.intake.queue.empty():  # caught up: a silence now is the motors', not the worker's backlog
             silent = {n: now - t for n, t in self._heard.items()}
-            if len(silent) == len(self.nodes) and not self._stale:
+            if len(silent) == len(self.nodes) and not self._stale and not self._source_ended:
                 node = max(silent, key=lambda n: silent[n])
                 if silent[node] > self.stale_after:
                     self._go_stale(node, f"node {node} has sent nothing for {silent[node]:.2f} s")
@@ -649,6 +654,8 @@ class LiveEstimator:
                 + (" | STALE" if est.stale else ""))
 
     def _snapshot(self) -> None:
+        if self.snapshot_path is None:  # no out_dir: nothing is written
+            return
         self.model.save(self.snapshot_path)
         self._last_snapshot = time.monotonic()
 
