@@ -45,7 +45,7 @@ from .inputs import (
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
-from .priors import prior_centres, register_physical_priors
+from .priors import CentreSums, centres_of_sums, prior_centres, register_physical_priors
 from .surface import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
@@ -264,12 +264,13 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def n_segments(self) -> int:
         return self.train_contacts.n_segments
 
-    def _register_priors(self, c: Contacts, f: Tensor) -> dict:
-        """Register the physical hyperparameter priors centred on the data (c, f) (whitened): at
-        construction, and again whenever ``add_data`` changes the data, so that a model grown by
-        streaming has the objective of a model built on all its data (and of the one ``load`` builds)."""
+    def _register_priors(self, c: Contacts, f: Tensor, more: bool = False) -> dict:
+        """Register the physical priors centred on the data (c, f) (whitened), or on all the data with ``more``
+        from ``add_data`` (sums added: O(new samples)): a grown model has a batch model's objective."""
         physics = self.prior_mean_kind == "physics"
-        centres = prior_centres(c, f, _data_scales(c, f)[1], physics)
+        sums = CentreSums.of(c, f)
+        self._centre_sums = self._centre_sums + sums if more else sums
+        centres = centres_of_sums(self._centre_sums, None, physics)
         register_physical_priors(self.hypers, centres, physics, self.surface is not None)
         return centres
 
@@ -431,9 +432,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
         exactly that of a batch fit on all the data at these hyperparameters. ``noise_scale``: as in
-        the constructor, for the new samples. The physical priors' centres are recomputed from all the
-        data, so a later ``fit`` (and a saved and loaded model) has the objective of a model built on
-        all of it."""
+        the constructor, for the new samples. The physical priors' centres follow all the data (their sums
+        updated), so a later ``fit`` (and a saved and loaded model) has a batch model's objective."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
         if self.surface is not None:
@@ -462,8 +462,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self._parts.append((c, f, scale))
         self._joined = None
         self._digest_stale = True
-        if self.priors == "physical":  # the priors' centres follow the data (the posterior does not use them)
-            self._register_priors(*self._join()[:2])
+        if self.priors == "physical":  # the centres follow the data (the posterior does not use them)
+            self._register_priors(c, f, more=True)
         return self
 
     # ---- prediction ----------------------------------------------------------------------------

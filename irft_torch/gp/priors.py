@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
 import torch
 from gpytorch.priors import NormalPrior
@@ -74,7 +75,8 @@ from ..rft.contacts import Contacts
 from ..rft.forces import forces as rft_forces
 from ..rft.stress_maps import FourierStressMap
 
-__all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "medium_scale", "prior_centres",
+__all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale", "prior_centres",
+           "centres_of_sums",
            "register_physical_priors"]
 
 PRIORS = ("physical", None)
@@ -95,37 +97,76 @@ def _generic_forces(contacts: Contacts) -> Tensor:
     return rft_forces(FourierStressMap.generic().to(contacts.beta.dtype), contacts)
 
 
+@dataclass(frozen=True)
+class CentreSums:
+    """The sums over samples that fix the priors' centres, each (2,) per axis: F.g, g.g, F.F, the squared
+    summed weight (|weight| summed over segments) and the count n, g the generic shape's forces per unit zeta.
+    Streamed data add theirs (``InverseRFT.add_data``): the centres of all the data in O(new samples)."""
+
+    fg: Tensor
+    gg: Tensor
+    ff: Tensor
+    ww: Tensor
+    n: int
+
+    @classmethod
+    def of(cls, contacts: Contacts, forces: Tensor) -> CentreSums:
+        g = _generic_forces(contacts)
+        w = torch.stack([contacts.weight_x.abs().sum(-1), contacts.weight_z.abs().sum(-1)], -1)
+        return cls((forces * g).sum(0), g.pow(2).sum(0), forces.pow(2).sum(0), w.pow(2).sum(0), len(forces))
+
+    def __add__(self, other: CentreSums) -> CentreSums:
+        return CentreSums(self.fg + other.fg, self.gg + other.gg, self.ff + other.ff, self.ww + other.ww,
+                          self.n + other.n)
+
+    def map_scale(self) -> Tensor:
+        """(2,) N/cm^3: rms force over rms summed weight, per axis (``gp.inputs._data_scales``)."""
+        n = max(self.n, 1)
+        return (self.ff / n).sqrt().clamp_min(1e-300) / (self.ww / n).sqrt().clamp_min(1e-300)
+
+    def medium_scale(self) -> float:
+        """``medium_scale`` of the summed data."""
+        den = float(self.gg.sum())
+        return max(float(self.fg.sum()) / den, 0.0) if den > 0 else 0.0
+
+    def residual_scale(self) -> Tensor:
+        """``residual_scale`` of the summed data: sum (F - s g)^2 = F.F - 2 s F.g + s^2 g.g."""
+        n = max(self.n, 1)
+        s = (self.fg / self.gg.clamp_min(1e-300)).clamp_min(0)
+        r2 = (self.ff - 2 * s * self.fg + s * s * self.gg).clamp_min(0)
+        return (r2 / n).sqrt() / (self.ww / n).sqrt().clamp_min(1e-300)
+
+
 def medium_scale(contacts: Contacts, forces: Tensor) -> float:
     """Least-squares zeta of the generic map on these forces, both axes together:
     zeta = sum_c F_c . g_c / sum_c g_c . g_c, g_c the generic shape's forces (N per unit zeta).
     Returns 0 where the forces do not project positively on the shape."""
-    g = _generic_forces(contacts)
-    den = float(g.pow(2).sum())
-    return max(float((forces * g).sum()) / den, 0.0) if den > 0 else 0.0
+    return CentreSums.of(contacts, forces).medium_scale()
 
 
 def residual_scale(contacts: Contacts, forces: Tensor) -> Tensor:
     """(2,) N/cm^3: per axis, the rms of the forces less the generic shape's at its least-squares scale
     (>= 0), over the rms summed weight: the size of what a physics mean leaves to the GP."""
-    g = _generic_forces(contacts)
-    s = ((forces * g).sum(0) / g.pow(2).sum(0).clamp_min(1e-300)).clamp_min(0)
-    r = forces - s * g
-    w = torch.stack([contacts.weight_x.abs().sum(-1), contacts.weight_z.abs().sum(-1)], -1)
-    return r.pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt().clamp_min(1e-300)
+    return CentreSums.of(contacts, forces).residual_scale()
 
 
 def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics_mean: bool = False) -> dict:
     """The centres (physical units) of the three priors for these (whitened) data: outputscale (2,)
     in (N/cm^3)^2, lengthscale (dimensionless), noise (2,) in N^2."""
-    rms = torch.tensor(GENERIC_RMS, dtype=forces.dtype, device=forces.device)
-    ms = map_scale.to(rms)
+    return centres_of_sums(CentreSums.of(contacts, forces), map_scale, physics_mean)
+
+
+def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_mean: bool = False) -> dict:
+    """``prior_centres`` from the data's ``CentreSums`` (``map_scale`` None: the sums' own)."""
+    rms = torch.tensor(GENERIC_RMS, dtype=sums.ff.dtype, device=sums.ff.device)
+    ms = (sums.map_scale() if map_scale is None else map_scale).to(rms)
     # a fallback where the forces do not project on the generic shape: the data's own map scale
     fallback = float((ms / rms).max())
-    zeta = max(medium_scale(contacts, forces), 0.1 * fallback)
+    zeta = max(sums.medium_scale(), 0.1 * fallback)
     if physics_mean:
         # the residual's size: a fraction of the medium's map (generic-like media), or what the forces
         # leave after the generic shape at its least-squares scale per axis (media of other shapes)
-        resid = residual_scale(contacts, forces)
+        resid = sums.residual_scale()
         sigma = torch.maximum(torch.maximum(zeta * rms * PHYSICS_MEAN_RESIDUAL, resid),
                               JOINT_FRACTION * float((resid / rms).max()) * rms)
     else:
@@ -136,7 +177,7 @@ def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics
         # this motion, in a medium that does not project on the generic shape)
         sigma = torch.maximum(torch.maximum(zeta * rms, ms), JOINT_FRACTION * fallback * rms)
     return {"zeta": zeta, "outputscale": sigma.pow(2), "lengthscale": LENGTHSCALE_CENTRE,
-            "noise": NOISE_RELATIVE * forces.pow(2).mean(0)}
+            "noise": NOISE_RELATIVE * sums.ff / max(sums.n, 1)}
 
 
 def _stateless(prior):

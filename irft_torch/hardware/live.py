@@ -314,6 +314,7 @@ class LiveEstimator:
         """Stop listening, process what is queued, close the log, write the last snapshot."""
         if self._notifier is not None:
             self._notifier.stop()
+            self._notifier_exception = self._notifier.exception  # the last error its thread saw, if any
             self._notifier = None
         self._stop.set()
         if self._worker is not None:

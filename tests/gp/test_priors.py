@@ -116,3 +116,25 @@ def test_a_model_grown_by_add_data_has_the_objective_of_one_built_on_all_its_dat
         grown.save(tmp_path / "g.pt")
         back = irft.InverseRFT.load(tmp_path / "g.pt")
         assert back.loss().item() == pytest.approx(grown.loss().item(), rel=1e-10)
+
+
+def test_centre_sums_of_two_parts_give_the_direct_formulas_on_all_the_data():
+    """Streaming adds the parts' sums (O(new samples)); the centres equal the direct formulas on the joined data:
+    zeta = sum F.g / sum g.g, residual rms(F - s g) / rms(sum |w|) per axis (hand-written here)."""
+    from irft_torch.gp.priors import CentreSums, _generic_forces, centres_of_sums
+
+    toe = irft.rft.CToe(0.02, 0.008, opening="left")
+    c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=70))
+    f = irft.rft.forces(irft.rft.FourierStressMap.generic(0.45, 0.42), c)
+    f = f + 0.05 * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
+    sums = CentreSums.of(c[:25], f[:25]) + CentreSums.of(c[25:], f[25:])
+    g = _generic_forces(c)
+    w = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)], -1)
+    zeta = float((f * g).sum() / g.pow(2).sum())
+    s = (f * g).sum(0) / g.pow(2).sum(0)
+    resid = (f - s * g).pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt()
+    assert sums.n == 70 and sums.medium_scale() == pytest.approx(zeta, rel=1e-12)
+    torch.testing.assert_close(sums.residual_scale(), resid, rtol=1e-9, atol=0)
+    torch.testing.assert_close(sums.map_scale(), f.pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt(), rtol=1e-12, atol=0)
+    cen = centres_of_sums(sums)
+    torch.testing.assert_close(cen["noise"], 1e-2 * f.pow(2).mean(0), rtol=1e-12, atol=0)
