@@ -269,7 +269,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         from ``add_data`` (sums added: O(new samples)): a grown model has a batch model's objective."""
         physics = self.prior_mean_kind == "physics"
         sums = CentreSums.of(c, f)
-        self._centre_sums = self._centre_sums + sums if more else sums
+        self._centre_sums: CentreSums = self._centre_sums + sums if more else sums
         centres = centres_of_sums(self._centre_sums, None, physics)
         register_physical_priors(self.hypers, centres, physics, self.surface is not None)
         return centres
