@@ -124,8 +124,8 @@ def main() -> None:
     ap.add_argument("--strides", type=int, default=40, help="strides walked in real time (0.3 s each)")
     ap.add_argument("--flood-strides", type=int, default=40, help="strides sent as fast as the bus takes them")
     ap.add_argument("--priors", choices=["physical", "none"], default="physical",
-                    help="the model's hyperparameter priors (physical: add_data recomputes their centres from all "
-                         "the data, O(history) per stance)")
+                    help="the model's hyperparameter priors (physical: add_data updates their centres from running "
+                         "sums, O(new samples) per stance)")
     ap.add_argument("--offline-strides", type=int, default=200,
                     help="strides walked in real time and compared with the offline path of their log (0: skip)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1: the other core for the bus)")
