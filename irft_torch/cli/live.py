@@ -60,6 +60,17 @@ def cmd_live(a) -> int:
         if not Path(a.model).is_file():
             raise UsageError("--model", f"no model file at {a.model}")
         model = InverseRFT.load(a.model)
+    air = None
+    if a.air:
+        from ..hardware import AirBaseline
+
+        if not Path(a.air).is_file():
+            raise UsageError("--air", f"no air-run log at {a.air}")
+        if not (math.isfinite(a.air_distance) and 0 < a.air_distance < 100):
+            raise UsageError("--air-distance", f"must be in (0, 100) mm, got {a.air_distance:g}")
+
+        air = AirBaseline.from_log(a.air, leg, motors, firmware=a.firmware, nodes=tuple(a.nodes), rate=a.rate,
+                                   filter_window=a.filter_window, max_distance=a.air_distance / 1000)
     walker = None
     if a.simulate:
         from ..hardware import WalkingLeg
@@ -93,7 +104,7 @@ def cmd_live(a) -> int:
         elif not est.used:
             print(f"stance {est.stance}: not used: {est.why_unused}", flush=True)
 
-    est = LiveEstimator(bus, leg, motors, toe, a.hip_height, model=model, start_model=_start_model(a.n_iter),
+    est = LiveEstimator(bus, leg, motors, toe, a.hip_height, model=model, start_model=_start_model(a.n_iter), air=air,
                         warmup=a.warmup, callback=show, nodes=tuple(a.nodes), firmware=a.firmware, rate=a.rate,
                         filter_window=a.filter_window, stance=a.stance, force_threshold=a.force_threshold,
                         out_dir=out, log_name=a.log_name, max_log_bytes=int(a.max_log_mb * 1e6), json_stream=json_out,
@@ -153,6 +164,10 @@ def register(sub) -> None:
     p.add_argument("--force-threshold", type=float, default=1.0, help="N (--stance force; default 1)")
     p.add_argument("--snapshot-period", type=float, default=10.0, help="s between model snapshots (default 10)")
     p.add_argument("--stale-after", type=float, default=0.1, help="s of silence before the estimate is stale")
+    p.add_argument("--air", metavar="LOG", help="a log of the same strides in air (irft record's air run): its force "
+                   "at the toe's position is subtracted from every sample (the links' weight, friction)")
+    p.add_argument("--air-distance", type=float, default=5.0,
+                   help="mm: a toe farther than this from every air-run sample is masked and counted (default 5)")
     p.add_argument("--max-current", type=float, default=80.0, help="|current| above this, A, is an outlier")
     p.add_argument("--print-every", type=int, default=10, help="print every Nth stance's estimate (default 10)")
     p.add_argument("--quiet", action="store_true", help="no progress line")

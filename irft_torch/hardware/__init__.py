@@ -3,6 +3,7 @@ MIT-mode CAN frames, logs, the paper's signal
 pipeline, a simulated leg on a virtual bus, and the live path (``live``: frames in, an updated terrain
 estimate out after every stance). Imports neither ``gp`` nor plotting."""
 
+from .air_baseline import AirBaseline
 from .can_log import SUPPORTED_SUFFIXES, read_log, record
 from .causal_filter import CausalMovingAverage
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
@@ -36,6 +37,6 @@ __all__ = [
     "ForceTrace", "forces_from_log", "subtract_air", "zero_phase_filter", "average_trials",
     "Dataset", "build_dataset", "dataset_summary", "save_dataset", "load_dataset",
     "FakeODrive", "SimulatedLeg", "SimulationTruth",
-    "LiveEstimator", "LiveEstimate", "LiveResampler", "CausalMovingAverage", "Stance", "StanceDetector",
+    "LiveEstimator", "LiveEstimate", "LiveResampler", "AirBaseline", "CausalMovingAverage", "Stance", "StanceDetector",
     "WalkingLeg", "stride_path",
 ]

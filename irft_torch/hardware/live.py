@@ -132,6 +132,9 @@ def _finite(x):
     return x
 
 
+NO_AIR = "samples with no air-run force near the toe"  # the count's name in ``LiveEstimate.counts``
+
+
 class _Intake(can.Listener):
     """The Notifier's one listener: every frame to the log first (nothing the bus delivered is lost
     from it), then into the bounded queue for the worker; bus errors flagged for the worker."""
@@ -196,7 +199,8 @@ class LiveEstimator:
         force_threshold: N, for ``stance="force"``.
         heading: the toe's fixed heading, rad.
         air: the force measured in air along the stride, ``air(toe) -> (n, 2)`` N from leg-frame toe
-            positions (n, 2) m, subtracted before the filter; None: nothing subtracted.
+            positions (n, 2) m, subtracted before the filter (``hardware.AirBaseline.from_log``: a stored air
+            run); NaN rows are masked and counted; None: nothing subtracted.
         out_dir: where the log, ``live.jsonl`` and ``model.pt`` go (None: nothing written).
         log_name: the log's file name; its suffix picks the format (.blf, .asc, .log, .csv).
         max_log_bytes: rotate the log at this size (python-can's ``SizedRotatingLogger``; 0: one file).
@@ -281,6 +285,7 @@ class LiveEstimator:
         self.compute_times: list[float] = []  # s, of the stance's processing alone
         self.unused: dict[str, int] = {}
         self.reconnections = 0
+        self.no_air_force = 0  # samples masked: no air-run sample within the baseline's max_distance
         self.error: BaseException | None = None
         self._warm: list[tuple[Contacts, torch.Tensor]] = []
         self._stale = False
@@ -433,7 +438,10 @@ class LiveEstimator:
         valid = grid.valid & ok.numpy() & np.isfinite(toe_np).all(1)
         if self.air is not None:
             force_np = force_np - np.asarray(self.air(toe_np), dtype=float)
-            valid &= np.isfinite(force_np).all(1)
+            no_air = valid & ~np.isfinite(force_np).all(1)
+            if no_air.any():  # the toe is where the air run never was: masked, counted
+                self.no_air_force += int(no_air.sum())
+            valid &= ~no_air
         for k in range(len(grid)):
             payload = (toe_np[k, 0], toe_np[k, 1] + self.hip_height, grid.arrival[k])
             for s in self.filter.push(grid.time[k], force_np[k], bool(valid[k]), payload):
@@ -626,6 +634,7 @@ class LiveEstimator:
         est.frames, est.dropped, est.updates = self.intake.received, self.intake.dropped, self.n_updates
         est.counts = {**{k: v for k, v in self.resampler.counts.items() if v},
                       **({"error frames": self.intake.error_frames} if self.intake.error_frames else {}),
+                      **({NO_AIR: self.no_air_force} if self.no_air_force else {}),
                       **({"unused stances: " + k: v for k, v in self.unused.items()})}
         if est.event == "stance":
             self.last = est

@@ -80,6 +80,8 @@ class WalkingLeg:
         firmware: ODrive CANSimple layout, "0.5" or "0.6".
         seed: of the current noise.
         hook: ``hook(tick, frames) -> frames`` for each tick's frames (fault injection).
+        air_current: ``air_current(q) -> (n, 2)`` A from joint angles (n, 2) rad: what the leg draws in air (the
+            links' weight, friction), added to the currents (an air baseline's test); None: nothing.
     """
 
     toe: Toe
@@ -98,6 +100,7 @@ class WalkingLeg:
     firmware: str = "0.6"
     seed: int = 0
     hook: Callable | None = None
+    air_current: Callable | None = None
 
     def __post_init__(self) -> None:
         self.frames_sent = 0
@@ -107,6 +110,8 @@ class WalkingLeg:
         for d in self.depths:
             self._strides.append(sim.truth(stride_path(self.toe, d, self.stride, self.clearance, self.stance_time,
                                                        self.swing_time, self.rate)))
+        self._air = [np.zeros((len(s.time), 2)) if self.air_current is None else
+                     np.asarray(self.air_current(np.asarray(s.q)), dtype=float) for s in self._strides]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
@@ -132,14 +137,14 @@ class WalkingLeg:
               if self.firmware == "0.6" else
               {"axis_error": 0, "axis_state": 8, "motor_error_flag": 0, "encoder_error_flag": 0, "controller_flags": 0})
         for s in range(int(n_strides)):
-            truth, pos = self.stride_truth(s), turns[s % len(turns)]
+            truth, pos, air = self.stride_truth(s), turns[s % len(turns)], self._air[s % len(self._air)]
             for k in range(n_per):
                 tick = s * n_per + k
                 now = t0 + tick / self.rate
                 out = []
                 for i, node in enumerate(self.nodes):
-                    iq = float(truth.current[k, i]) + (self.current_noise * float(rng.standard_normal())
-                                                       if self.current_noise else 0.0)
+                    noise = self.current_noise * float(rng.standard_normal()) if self.current_noise else 0.0
+                    iq = float(truth.current[k, i]) + float(air[k, i]) + noise
                     out.append(encode("get_encoder_estimates", node, self.firmware, now, pos_estimate=float(pos[k, i]),
                                       vel_estimate=0.0))
                     out.append(encode("get_iq", node, self.firmware, now, iq_setpoint=iq, iq_measured=iq))

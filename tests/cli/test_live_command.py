@@ -66,3 +66,35 @@ def test_sigint_ends_it_cleanly_with_a_readable_log_and_snapshot(tmp_path):
     assert json.loads(rest.splitlines()[-1])["event"] == "end"
     assert frames_in(out / "frames.blf") > 4 * 300 * 4
     InverseRFT.load(out / "model.pt")
+
+
+def test_live_with_a_stored_air_run(tmp_path, capsys):
+    """--air LOG: a log of the same strides in air (made here by the simulated leg in no medium, with the
+    command's own toe and leg) is read and subtracted; a missing one is an error naming --air."""
+    import uuid
+
+    from irft_torch.cli import build_parser
+    from irft_torch.cli.arguments import make_toe
+    from irft_torch.cli.ingest import _leg_and_motors
+    from irft_torch.hardware import WalkingLeg
+    from irft_torch.rft import FourierStressMap
+
+    a = build_parser().parse_args(["live", "--simulate"])
+    leg, motors = _leg_and_motors(a)
+    walker = WalkingLeg(make_toe(a), FourierStressMap.generic(0.0, 0.0), leg=leg, motors=motors,
+                        hip_height=a.hip_height, rate=a.rate, firmware=a.firmware)
+    channel = f"irft-air-cli-{uuid.uuid4().hex}"
+    bus = can.Bus(channel=channel, interface="virtual")
+    writer = can.Logger(str(tmp_path / "air.blf"))
+    walker.walk(channel, 3, realtime=False)
+    while (msg := bus.recv(0.0)) is not None:
+        writer.on_message_received(msg)
+    writer.stop()
+    bus.shutdown()
+    assert main(["live", "--simulate", "--strides", "4", "--json", "--air", str(tmp_path / "air.blf"), *FAST]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    stances = [x for x in lines if x["event"] == "stance"]
+    assert len(stances) == 4 and all(x["used"] for x in stances)
+    assert "samples with no air-run force near the toe" not in lines[-1]["counts"]  # the air run covers the walk
+    assert main(["live", "--simulate", "--air", str(tmp_path / "missing.blf")]) != 0
+    assert "--air" in capsys.readouterr().err
