@@ -83,9 +83,10 @@ class LiveEstimate:
         residual_rms: (2,) RMS of the stance's forces minus the model's prediction before the update, N.
         residual_z: RMS of those residuals over the predicted std (measurement noise included): ~1 when
             the model's intervals are right.
-        scale, scale_std: (2,) the map as a multiple of Li et al.'s generic map (alpha_x, alpha_z),
-            each grid point of ``MAP_POINTS`` weighted by its posterior precision; std treats the points
-            as independent (a summary, not the posterior of a scale).
+        scale, scale_std: (2,) the map as a multiple of Li et al.'s generic map (alpha_x, alpha_z): the
+            average of map / generic map over ``MAP_POINTS``, each point weighted by its posterior precision,
+            and that average's posterior std (exact for a plug-in model; a model averaging over hyperparameters:
+            from ``SCALE_DRAWS`` maps drawn jointly, a fixed stream).
         map_mean, map_std: (81, 2) posterior mean and std at ``MAP_POINTS``, N/cm^3 (in the callback;
             the JSON line carries the summary).
         stale: True while a motor has sent nothing for ``stale_after`` s; staleness: the longest silence
@@ -132,6 +133,7 @@ def _finite(x):
     return x
 
 
+SCALE_DRAWS = 200  # joint map draws behind a mixture model's ``LiveEstimate.scale_std`` (Monte Carlo error ~5 %)
 NO_AIR = "samples with no air-run force near the toe"  # the count's name in ``LiveEstimate.counts``
 
 
@@ -515,12 +517,23 @@ class LiveEstimator:
             self._snapshot()
 
     def _summarise(self, est: LiveEstimate) -> None:
-        post = self.model.stress_map(torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1]))
-        mean, std = post.mean.detach().numpy(), post.variance.detach().clamp_min(0).sqrt().numpy()
-        g = FourierStressMap.generic()(torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])).numpy()
+        b, gam = torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])
+        post = self.model.stress_map(b, gam)
+        mean, std = post.mean.detach().cpu().numpy(), post.variance.detach().clamp_min(0).sqrt().cpu().numpy()
+        g = FourierStressMap.generic()(b, gam).numpy()
         w = g**2 / np.maximum(std, 1e-300) ** 2
-        est.scale = ((w * mean / g).sum(0) / w.sum(0)).tolist()
-        est.scale_std = (1 / np.sqrt(w.sum(0))).tolist()
+        a = w / w.sum(0) / g  # (81, 2): the scale is sum_i a_i alpha(point i), per axis
+        est.scale = (a * mean).sum(0).tolist()
+        # its std from the joint posterior (neighbouring points are correlated: taken as independent, the std was
+        # half of this on the simulated walk, and the truth 4 of those stds away)
+        if getattr(self.model, "hyper_posterior", None) is None and getattr(self.model, "mean_average", None) is None:
+            with torch.no_grad():  # one backend (the plug-in): a^T Sigma a exactly, Sigma (2, 81, 81)
+                cov = self.model.backend.posterior(Contacts.points(b, gam), covariance=True).covariance.cpu().numpy()
+            est.scale_std = np.sqrt(np.maximum(np.einsum("na,anm,ma->a", a, cov, a), 0)).tolist()
+        else:  # a mixture over hyperparameters or means: from maps drawn jointly
+            gen = torch.Generator(device=post.mean.device).manual_seed(0)
+            draws = self.model.sample_maps(b, gam, n=SCALE_DRAWS, generator=gen).detach().cpu().numpy()
+            est.scale_std = (draws * a).sum(1).std(0, ddof=1).tolist()
         est.map_mean, est.map_std = mean, std
 
     def _unused(self, st: Stance, why: str) -> None:
