@@ -21,6 +21,8 @@ def cmd_reproduce(a) -> int:
         settings = replace(settings, priors=None)
     if a.li_basis or a.generic_shape:
         settings = replace(settings, li_basis=True, generic_shape=a.generic_shape)
+    if a.hyper_posterior != "map":
+        settings = replace(settings, hyper_posterior=a.hyper_posterior)
     if a.jobs < 0:
         raise UsageError("--jobs", f"must be 0 (one per CPU) or a positive number of processes, got {a.jobs}")
     workers = default_workers() if a.jobs == 0 else a.jobs
@@ -59,6 +61,9 @@ def register(sub) -> None:
     p.add_argument("--generic-shape", action="store_true",
                    help="also give Li et al.'s generic map an uncertain scale of its own (InverseRFT(..., "
                         "li_basis=True, generic_shape=True); implies --li-basis)")
+    p.add_argument("--hyper-posterior", choices=["map", "laplace"], default="map",
+                   help="map (the paper's plug-in, default) or laplace (predict with the hyperparameter posterior); "
+                        "with --li-basis: the library's default fit, InverseRFT(contacts, forces)")
     p.add_argument("--device", default="cpu",
                    help="where the models are fitted: cpu (default) or cuda[:N] (one process; needs a CUDA build "
                         "of torch); the data, metrics and figures stay on the CPU")

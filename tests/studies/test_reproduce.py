@@ -408,6 +408,11 @@ def test_reproduce_priors_none_runs_every_fit_on_the_plain_likelihood(tmp_path, 
     assert main(["reproduce", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
     assert seen[0].priors is None and seen[0].n_iter == R.StudySettings().n_iter
     assert seen[1].priors == "physical" and seen[1].quick
+    # the library's default fit instead of the paper's model; the paper's stays the study's default
+    argv = ["reproduce", "--li-basis", "--hyper-posterior", "laplace", "--out", str(tmp_path), "--no-progress"]
+    assert main(argv) == 0
+    assert (seen[2].li_basis, seen[2].hyper_posterior) == (True, "laplace")
+    assert (seen[0].li_basis, seen[0].hyper_posterior) == (False, "map")
 
 
 def test_the_study_groups_only_fits_that_batch_and_batches_every_noise_study():
