@@ -43,7 +43,7 @@ def walk(args) -> tuple[list, np.ndarray]:
     sand = irft.rft.FourierStressMap.generic(args.scale_x, args.scale_z)
     leg = WalkingLeg(toe, sand, current_noise=args.current_noise, seed=args.seed)
     truth = sand(torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])).numpy()  # (81, 2)
-    channel = f"irft-live-convergence-{uuid.uuid4().hex}"
+    channel = f"irft-live-convergence-{uuid.uuid4().hex}-bus"
     bus = can.Bus(channel=channel, interface="virtual")
     seen: list = []
     est = LiveEstimator(bus, leg.leg, leg.motors, toe, leg.hip_height, start_model=start_model, warmup=args.warmup,

@@ -34,9 +34,11 @@ mid-line is read up to there by ``read_log``) and the last complete snapshot (wr
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import queue
+import struct
 import threading
 import time
 import warnings
@@ -134,6 +136,7 @@ def _finite(x):
 
 
 SCALE_DRAWS = 200  # joint map draws behind a mixture model's ``LiveEstimate.scale_std`` (Monte Carlo error ~5 %)
+UNNAMED = "frames logged without their channel (the log format cannot hold it)"  # ``LiveEstimate.counts``
 NO_AIR = "samples with no air-run force near the toe"  # the count's name in ``LiveEstimate.counts``
 
 
@@ -145,6 +148,7 @@ class _Intake(can.Listener):
         self.logger = logger
         self.queue: queue.Queue = queue.Queue(maxsize=max_queue)
         self.received = self.logged = self.dropped = self.error_frames = 0
+        self.unnamed_channel = 0  # frames logged without their channel (the log's format cannot hold it)
         self.high_water = 0
         self.error: BaseException | None = None
         self.lock = threading.Lock()
@@ -155,7 +159,14 @@ class _Intake(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         now = time.monotonic()
         if self.logger is not None:
-            self.logger.on_message_received(msg)
+            try:
+                self.logger.on_message_received(msg)
+            except (struct.error, OverflowError):  # a channel the format cannot hold (BLF: a number below 2^16;
+                # python-can reads one from a name's trailing digits, "vcan-123456"): logged without it
+                unnamed = copy.copy(msg)
+                unnamed.channel = None
+                self.logger.on_message_received(unnamed)
+                self.unnamed_channel += 1
             self.logged += 1
         self.received += 1
         if msg.is_error_frame:
@@ -321,7 +332,6 @@ class LiveEstimator:
         """Stop listening, process what is queued, close the log, write the last snapshot."""
         if self._notifier is not None:
             self._notifier.stop()
-            self._notifier_exception = self._notifier.exception  # the last error its thread saw, if any
             self._notifier = None
         self._stop.set()
         if self._worker is not None:
@@ -354,14 +364,22 @@ class LiveEstimator:
             raise self.error
 
     def drain(self, timeout: float = 10.0, ended: bool = False) -> None:
-        """Wait until the queue is empty and the worker idle (tests, benchmarks).
+        """Wait until the queue is empty, the worker idle and nothing has come from the bus for 0.2 s (tests,
+        benchmarks, the end of a simulated walk: the Notifier's thread may lag the sender on a loaded host).
 
         ended: the source has stopped sending on purpose (a simulated walk or a replay at its end): the silence
         that follows is not a fault and does not mark the estimate stale."""
         self._source_ended = self._source_ended or ended
         end = time.monotonic() + timeout
-        while time.monotonic() < end and (self.intake.queue.unfinished_tasks or not self.intake.queue.empty()):
-            time.sleep(0.01)
+        heard = -1  # frames received at the last idle look: the Notifier may still be reading the bus behind
+        while time.monotonic() < end:
+            if self.intake.queue.unfinished_tasks or not self.intake.queue.empty():
+                time.sleep(0.01)
+            elif self.intake.received != heard:  # idle, but was anything read since the last look?
+                heard = self.intake.received
+                time.sleep(0.2)
+            else:  # idle, and nothing came from the bus for 0.2 s
+                break
 
     @property
     def stale(self) -> bool:
@@ -648,6 +666,7 @@ class LiveEstimator:
         est.counts = {**{k: v for k, v in self.resampler.counts.items() if v},
                       **({"error frames": self.intake.error_frames} if self.intake.error_frames else {}),
                       **({NO_AIR: self.no_air_force} if self.no_air_force else {}),
+                      **({UNNAMED: self.intake.unnamed_channel} if self.intake.unnamed_channel else {}),
                       **({"unused stances: " + k: v for k, v in self.unused.items()})}
         if est.event == "stance":
             self.last = est

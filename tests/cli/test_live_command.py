@@ -83,7 +83,7 @@ def test_live_with_a_stored_air_run(tmp_path, capsys):
     leg, motors = _leg_and_motors(a)
     walker = WalkingLeg(make_toe(a), FourierStressMap.generic(0.0, 0.0), leg=leg, motors=motors,
                         hip_height=a.hip_height, rate=a.rate, firmware=a.firmware)
-    channel = f"irft-air-cli-{uuid.uuid4().hex}"
+    channel = f"irft-air-cli-{uuid.uuid4().hex}-bus"  # no trailing digits: BLF holds a channel number < 2^16
     bus = can.Bus(channel=channel, interface="virtual")
     writer = can.Logger(str(tmp_path / "air.blf"))
     walker.walk(channel, 3, realtime=False)

@@ -5,7 +5,6 @@ wrote, within the rounding of the log's timestamps."""
 
 import json
 import uuid
-import warnings
 
 import can
 import numpy as np
@@ -15,7 +14,7 @@ import torch
 import irft_torch as irft
 from irft_torch.gp import InverseRFT
 from irft_torch.hardware import build_dataset, forces_from_log, read_log, zero_phase_filter
-from irft_torch.hardware.live import MAP_POINTS, LiveEstimator
+from irft_torch.hardware.live import MAP_POINTS, UNNAMED, LiveEstimator
 from irft_torch.hardware.walking_leg import WalkingLeg, stride_path
 
 pytestmark = pytest.mark.flaky(reruns=2)  # a simulated leg against the wall clock: a busy host may pause it
@@ -39,7 +38,9 @@ def start_model(path):
 
 def walk_once(d, prior):
     leg = WalkingLeg(TOE, SAND, current_noise=0.05, stance_time=0.15, swing_time=0.1)
-    channel = f"irft-live-test-{uuid.uuid4().hex}"
+    # a name ending in digits python-can reads as channel 123456, more than BLF holds (once a random uuid's tail
+    # in CI: every frame's logging failed, none was received): the frames are logged without it, and counted
+    channel = f"irft-live-test-{uuid.uuid4().hex}-123456"
     bus = can.Bus(channel=channel, interface="virtual")
     seen = []
     est = LiveEstimator(bus, leg.leg, leg.motors, TOE, leg.hip_height, model=InverseRFT.load(prior), firmware="0.6",
@@ -47,30 +48,20 @@ def walk_once(d, prior):
     with est:
         leg.walk(channel, N_STRIDES)
         est.drain(ended=True)
-    notifier_exc = getattr(est, "_notifier_exception", None)
     bus.shutdown()
-    return d, prior, leg, est, seen, notifier_exc
+    return d, prior, leg, est, seen
 
 
 @pytest.fixture(scope="module")
 def walked(tmp_path_factory):
-    """One walk, shared by the tests below (a module fixture: pytest's reruns do not renew it). A walk that
-    received no frame at all (seen once in CI on a loaded host, not reproduced since) is said with what the
-    estimator knew, and walked once more in a fresh folder; the tests judge the second walk."""
     d = tmp_path_factory.mktemp("live")
     prior = start_model(d / "prior.pt")
-    *run, notifier_exc = walk_once(d, prior)
-    est, leg = run[3], run[2]
-    if est.intake.received == 0 and leg.frames_sent > 0:
-        warnings.warn(f"live walk received none of {leg.frames_sent} frames (estimator error {est.error!r}, "
-                      f"bus error {est.intake.error!r}, notifier {notifier_exc!r}): walked again", stacklevel=2)
-        d2 = tmp_path_factory.mktemp("live_again")
-        *run, _ = walk_once(d2, prior)
-    return tuple(run)
+    return walk_once(d, prior)
 
 
 def test_nothing_is_lost(walked):
-    d, _, leg, est, _ = walked
+    d, _, leg, est, seen = walked
+    assert seen[-1].counts[UNNAMED] == leg.frames_sent  # the channel 123456 BLF cannot hold: logged without it
     ticks = N_STRIDES * 250  # 1 ms each
     assert leg.frames_sent == 4 * ticks + 2 * -(-ticks // 100)  # encoder + current per motor, heartbeats / 100 ms
     assert est.intake.received == est.intake.logged == leg.frames_sent

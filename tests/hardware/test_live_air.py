@@ -33,7 +33,7 @@ def leg(medium, air_current=None):
 def record(walker, path, n_strides=3):
     """Every frame of ``n_strides`` strides (each of the walk's depths once) into a log at ``path``, as fast as the
     bus takes them."""
-    channel = f"irft-air-{uuid.uuid4().hex}"
+    channel = f"irft-air-{uuid.uuid4().hex}-bus"  # no trailing digits: BLF holds a channel number < 2^16
     bus = can.Bus(channel=channel, interface="virtual")
     writer = can.Logger(str(path))
     walker.walk(channel, n_strides, realtime=False)
@@ -56,7 +56,7 @@ def start(tmp_path_factory):
 
 
 def live_map(walker, prior, air=None):
-    channel = f"irft-air-live-{uuid.uuid4().hex}"
+    channel = f"irft-air-live-{uuid.uuid4().hex}-bus"
     bus = can.Bus(channel=channel, interface="virtual")
     est = LiveEstimator(bus, walker.leg, walker.motors, TOE, walker.hip_height, model=InverseRFT.load(prior),
                         firmware="0.6", air=air, stale_after=30.0)
@@ -64,7 +64,8 @@ def live_map(walker, prior, air=None):
         walker.walk(channel, N_STRIDES, realtime=False)
         est.drain(60.0, ended=True)
     bus.shutdown()
-    assert est.error is None and est.n_updates == N_STRIDES
+    assert est.error is None and est.n_updates == N_STRIDES, (est.error, est.n_updates, est.unused,
+                                                              est.resampler.counts)
     b, g = torch.as_tensor(MAP_POINTS[:, 0]), torch.as_tensor(MAP_POINTS[:, 1])
     with torch.no_grad():
         return est.model.stress_map(b, g).mean.numpy(), est
