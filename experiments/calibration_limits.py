@@ -91,14 +91,14 @@ def _fit_scaled(c, f, factor: float) -> InverseRFT:
 def build_scaled(c, f, factor: float) -> InverseRFT:
     """The generic-shape model with its residual terms' prior centre (outputscale, Li et al.'s variance) x factor;
     the generic shape's own prior (at zeta^2) as the library has it."""
-    real = front_door.prior_centres
+    real = front_door.centres_of_sums  # what the model registers its priors from (gp.priors.CentreSums)
 
     def scaled(*args, **kwargs):
         out = dict(real(*args, **kwargs))
         out["outputscale"] = out["outputscale"] * factor
         return out
 
-    with mock.patch.object(front_door, "prior_centres", scaled):
+    with mock.patch.object(front_door, "centres_of_sums", scaled):
         return InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
 
 
