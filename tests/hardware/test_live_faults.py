@@ -2,6 +2,7 @@
 does (its message, what it counts) and that nothing is lost (every frame the bus delivered is in the log,
 the log and the last snapshot are readable)."""
 
+import re
 import threading
 import uuid
 
@@ -144,7 +145,10 @@ def test_timestamp_jump_is_undone(tmp_path, prior):
 
     leg, est, events = walk(tmp_path, prior, strides=3, hook=hook)
     said = messages(events)
-    assert any("clock jumped by +3600.00" in m for m in said), said  # the jump, within a 1 ms frame period
+    # the step is the frames' clock less the wall clock between two arrivals: a loaded host's pause (CI: 15 ms)
+    # is in the wall clock's part, so the step is known to the host's jitter, not to the frame period
+    steps = [float(re.search(r"clock jumped by ([+-][0-9.]+) s", m)[1]) for m in said if "clock jumped by" in m]
+    assert len(steps) == 1 and abs(steps[0] - 3600.0) < 0.25, said
     assert est.n_updates == 3 and not est.unused
     assert_nothing_lost(tmp_path, est, leg.frames_sent)
 
