@@ -26,16 +26,9 @@ import numpy as np
 import torch
 
 import irft_torch as irft
+from irft_torch.cli.live import _start_model  # irft live's own start model (plug-in, spectral, 100 steps)
 from irft_torch.hardware import LiveEstimator, WalkingLeg
 from irft_torch.hardware.live import MAP_POINTS
-
-
-def start_model(contacts, forces):
-    from irft_torch.gp import InverseRFT
-
-    model = InverseRFT(contacts, forces, hyper_posterior="map", method="spectral")
-    model.fit(n_iter=100, progress=False)
-    return model
 
 
 def walk(args) -> tuple[list, np.ndarray]:
@@ -46,8 +39,9 @@ def walk(args) -> tuple[list, np.ndarray]:
     channel = f"irft-live-convergence-{uuid.uuid4().hex}-bus"
     bus = can.Bus(channel=channel, interface="virtual")
     seen: list = []
-    est = LiveEstimator(bus, leg.leg, leg.motors, toe, leg.hip_height, start_model=start_model, warmup=args.warmup,
-                        firmware=leg.firmware, callback=lambda e: seen.append(e) if e.event == "stance" else None)
+    est = LiveEstimator(bus, leg.leg, leg.motors, toe, leg.hip_height, start_model=_start_model(100),
+                        warmup=args.warmup, firmware=leg.firmware,
+                        callback=lambda e: seen.append(e) if e.event == "stance" else None)
     with est:
         leg.walk(channel, args.strides)
         est.drain(60.0, ended=True)

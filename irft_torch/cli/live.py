@@ -11,7 +11,7 @@ from pathlib import Path
 
 from .arguments import MAPS, UsageError, _out_dir, add_protocol_args, add_toe_args, make_toe
 from .ingest import _leg_and_motors, add_leg_args
-from .record import _open_bus
+from .record import _open_bus, add_bus_args
 
 
 def _start_model(n_iter: int):
@@ -143,9 +143,7 @@ def register(sub) -> None:
                                    "model snapshots and the frame log in --out. --simulate: a simulated leg walks "
                                    "on a virtual bus in real time. Ctrl-C ends it cleanly (the log closed, the last "
                                    "snapshot written). docs/real_leg.md, 'Live'.")
-    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan, pcan, virtual, ...)")
-    p.add_argument("--channel", default="can0")
-    p.add_argument("--bitrate", type=int, help="bit rate, if the interface needs it")
+    add_bus_args(p)
     p.add_argument("--nodes", type=int, nargs=2, default=[0, 1], help="node ids of motor 1 and motor 2")
     p.add_argument("--out", metavar="DIR", help="folder for the frame log, live.jsonl and model.pt snapshots")
     p.add_argument("--log-name", default="frames.blf", help="the log's file name in DIR; .blf, .asc, .log, .csv")

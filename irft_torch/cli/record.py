@@ -131,15 +131,20 @@ def add_sim_args(p) -> None:
     g.add_argument("--seed", type=int, default=0)
 
 
+def add_bus_args(p) -> None:
+    """The bus ``_open_bus`` opens: python-can interface, channel, bit rate (irft record, irft live)."""
+    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan, pcan, virtual, ...)")
+    p.add_argument("--channel", default="can0")
+    p.add_argument("--bitrate", type=int, help="bit rate, if the interface needs it")
+
+
 def register(sub) -> None:
     p = sub.add_parser("record", help="log a live CAN bus (ODrive CANSimple or AK MIT mode) to a log file",
                        description="Poll the motor controllers by RTR (ODrive) or listen (MIT mode) and write every "
                                    "frame to a log (.log, .asc, .blf, .csv by suffix). --simulate: no hardware: a "
                                    "simulated leg runs the toe along the path (its length and --speed set the "
                                    "duration; --interface, --channel, --bitrate, --duration and --poll do not apply).")
-    p.add_argument("--interface", default="socketcan", help="python-can interface (socketcan, pcan, virtual, ...)")
-    p.add_argument("--channel", default="can0")
-    p.add_argument("--bitrate", type=int, help="bit rate, if the interface needs it")
+    add_bus_args(p)
     p.add_argument("--out", required=True, help="log file; the suffix picks the format (.log .asc .blf .csv)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds (default 20; not with --simulate)")
     p.add_argument("--rate", type=float, default=200.0, help="polling rate, Hz (default 200)")
