@@ -569,15 +569,21 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefa
     """--help prints the whole module docstring as written, and every option's default."""
 
 
+PLANAR_DEFAULTS = {"n_iter": 60, "lr": 0.08, "method": "spectral", "tol": 1e-5}  # the planar study's fit settings
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="wheel_validation.py", description=__doc__, formatter_class=_HelpFormatter)
     ap.add_argument("--data", type=Path, required=True, default=argparse.SUPPRESS,
                     help="directory with the rover-wheel .mat files (read, never copied)")
     ap.add_argument("--out", type=Path, default="experiments/results", help="where the report and figures go")
-    ap.add_argument("--n-iter", type=int, default=60, help="Adam steps per I-RFT fit")
-    ap.add_argument("--lr", type=float, default=0.08)
-    ap.add_argument("--method", default="spectral", help="InverseRFT backend (all exact; spectral is the fastest here)")
-    ap.add_argument("--tol", type=float, default=1e-5, help="spectral backend's kernel truncation tolerance")
+    ap.add_argument("--n-iter", type=int, default=None,
+                    help="Adam steps per I-RFT fit (default: 3-D the fit's own; planar 60)")
+    ap.add_argument("--lr", type=float, default=None, help="Adam's step (default: 3-D the fit's own; planar 0.08)")
+    ap.add_argument("--method", default=None,
+                    help="InverseRFT backend, all exact (default: 3-D the constructor's; planar spectral)")
+    ap.add_argument("--tol", type=float, default=None,
+                    help="the spectral kernel's truncation tolerance (default: 3-D the constructor's; planar 1e-5)")
     ap.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,
                     help="I-RFT with or without Li et al.'s basis as a kernel term, both studies (default: each "
                          "constructor's: with in the plane, without in 3-D)")
@@ -585,8 +591,8 @@ def main(argv=None) -> None:
                     help="the planar study's I-RFT with the generic shape's uncertain scale too (li_basis=True, "
                          "generic_shape=True; the 3-D model has no such term)")
     ap.add_argument("--hyper-posterior", default=None, choices=("map", "laplace"),
-                    help="the planar study's I-RFT hyperparameter posterior (default: the constructor's, laplace; "
-                         "map: the plug-in)")
+                    help="I-RFT's hyperparameter posterior, both studies (default: each constructor's; map: the "
+                         "plug-in)")
     ap.add_argument("--physics-mean", action="store_true", help="also fit I-RFT with the generic-shape prior mean")
     ap.add_argument("--seed", type=int, default=0,
                     help="the planar study: seeds each held-out level's random stream (the Laplace rows' proposals; "
@@ -607,9 +613,9 @@ def main(argv=None) -> None:
                          "zero (every map zero-mean), constant (alpha_y one constant), physics_alpha_y (alpha_y's "
                          "mean the scaled generic alpha_x(0, 0) too); each adds its folds' fits (about 3 minutes "
                          "here)")
-    ap.add_argument("--harmonics", type=int, default=8,
-                    help="3-D: at most this many Fourier harmonics per angle (the spectral kernel is truncated there "
-                         "when the lengthscales need more; the report gives the truncation)")
+    ap.add_argument("--harmonics", type=int, default=None,
+                    help="3-D: at most this many Fourier harmonics per angle (default: the constructor's; the "
+                         "spectral kernel is truncated there when the lengthscales need more; the report gives it)")
     args = ap.parse_args(argv)
     if args.generic_shape and args.study != "planar":
         ap.error("--generic-shape is for --study planar (the 3-D model has no generic-shape term)")
@@ -631,6 +637,9 @@ def main(argv=None) -> None:
         print(text)
         if args.study == "3d":
             return
+    for name, value in PLANAR_DEFAULTS.items():  # the planar study's own settings where none was given
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     t0 = time.perf_counter()
     results = {}
     for wheel in args.wheels:

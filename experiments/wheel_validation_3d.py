@@ -34,15 +34,15 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from irft_torch.data import wheel as wd
+from irft_torch.gp.fourier import MAX_HARMONICS
 from irft_torch.gp.inverse3d import InverseRFT3D
-from irft_torch.gp.inverse3d.backends import SpectralFeatureBank
+from irft_torch.gp.inverse3d.features import SpectralFeatureBank
 from irft_torch.rft import FourierStressMap, contacts_3d, forces_3d
 
 AXES = ("longitudinal", "lateral", "vertical")
@@ -80,26 +80,26 @@ def wheel_data_3d(data: Path, wheel: str) -> dict:
     groups = {"slip angle": np.searchsorted(np.unique(psi), psi),
               "slip": np.array([levels.index(r.commanded_rim_speed) for r in runs])}
     return dict(runs=runs, c=c, F=F, authors=A, G=G, psi=psi, slip=np.array([r.slip for r in runs]), groups=groups,
-                bank=SpectralFeatureBank(c))
+                bank=SpectralFeatureBank(c, ahead=MAX_HARMONICS))
 
 
-def warm_bank(d: dict, n: int) -> None:
-    """The features of every run in the largest basis the fits may use, once (each fold cuts its own)."""
-    from irft_torch.gp.fourier import FourierBasis
-
-    for b in range(2):
-        for constant in (False, True):
-            d["bank"]._full(FourierBasis(n, n), b, constant)
+def model_options(args) -> tuple[dict, dict]:
+    """The constructor's and fit's options this run passes: none but those given on the command line (the study
+    runs with the library's defaults; ``--method``, ``--tol``, ``--harmonics``, ``--n-iter``, ``--lr``,
+    ``--li-basis``, ``--hyper-posterior`` to ask for others)."""
+    names = (("method", "method"), ("tol", "tol"), ("max_harmonics", "harmonics"), ("li_basis", "li_basis"),
+             ("hyper_posterior", "hyper_posterior"))
+    given = {k: getattr(args, a, None) for k, a in names}
+    fit_given = {k: getattr(args, k, None) for k in ("n_iter", "lr")}
+    return ({k: v for k, v in given.items() if v is not None}, {k: v for k, v in fit_given.items() if v is not None})
 
 
 def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "physics") -> InverseRFT3D:
     i = torch.as_tensor(idx)
-    model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, method="spectral", tol=args.tol,
-                         features=d["bank"].rows(i), max_harmonics=args.harmonics, prior_mean=prior_mean,
-                         li_basis=bool(getattr(args, "li_basis", None)))
-    with warnings.catch_warnings():  # the truncation is reported in the table instead
-        warnings.filterwarnings("ignore", message="the lengthscales need more")
-        model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
+    options, fit_options = model_options(args)
+    model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, features=d["bank"].rows(i), prior_mean=prior_mean,
+                         **options)  # features: the folds' spectral features cut from one pass (the same numbers)
+    model.fit(progress=False, **fit_options)
     return model
 
 
@@ -208,13 +208,14 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
     _choose_variants(getattr(args, "variants", ""))
     t0 = time.perf_counter()
     lines = ["## 3-D: every run, every slip angle (issue 31)", ""]
-    if getattr(args, "li_basis", False):
-        lines += ["I-RFT with Li et al.'s basis as a kernel term (`--li-basis`: InverseRFT(..., li_basis=True)).", ""]
+    options, fit_options = model_options(args)
+    lines += [f"I-RFT: `InverseRFT(contacts_3d, forces{''.join(f', {k}={v!r}' for k, v in options.items())})"
+              f".fit({', '.join(f'{k}={v!r}' for k, v in fit_options.items())})`"
+              + (" (the constructor's defaults)" if not options and not fit_options else ""), ""]
     models, summary = {}, {}
     for wheel in wheels:
         print(f"3-D {wheel} wheel ...", flush=True)
         d = wheel_data_3d(data, wheel)
-        warm_bank(d, args.harmonics)
         results = {s: evaluate(d, s, args) for s in SCHEMES}
         plot_forces(d, results, wheel, out)
         default = InverseRFT3D.__init__.__kwdefaults__["alpha_y"], InverseRFT3D.__init__.__kwdefaults__["prior_mean"]
@@ -236,8 +237,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
                 f"{k} {100 * cov[k][0]:.0f} / {100 * cov[k][1]:.0f} / {100 * cov[k][2]:.0f} %" for k in VARIANTS), ""]
     plot_maps(models, out)
     lines += _bars(summary, IRFT), ""
-    lines += ["Spectral kernel truncation of the all-runs fits (relative, per map; at most "
-              f"{args.harmonics} harmonics per angle): " + "; ".join(
+    lines += ["Kernel truncation of the all-runs fits (relative, per map; tolerance "
+              f"{next(iter(models.values())).tol:.0e}): " + "; ".join(
                   f"{w}: {', '.join(f'{v:.1e}' for v in m.truncation_error().tolist())}"
                   for w, m in models.items()), ""]
     lines += [f"Fitted hyperparameters (all runs, alpha_y={default[0]!r}, prior_mean={default[1]!r}): " + "; ".join(

@@ -379,13 +379,21 @@ class Spectral3D(WeightSpace3D):
         if features is not None and not isinstance(features, BankRows):
             raise TypeError(f"features must be SpectralFeatureBank(...).rows(index), got {type(features).__name__}")
         self.tol = float(tol)
-        self._bank = features
+        # none passed: a bank of its own, so that a growing basis (and a hyperparameter draw's) is cut from one
+        # larger pass over the data instead of a pass per size
+        self._bank = features if features is not None else self._own_bank()
+        self._queried: list[SpectralFeatureBank | None] = [None]  # the last contacts predicted at, their features
         self.basis = self._basis_for(hypers.lengthscale)
         self._set_features()
 
     def _data_changed(self, contacts, forces) -> None:
-        self._bank = None  # it does not hold the new samples: a grown basis recomputes from train_contacts
         self._merge_rows(contacts, forces)
+        self._bank = self._own_bank()  # the old bank does not hold the new samples
+
+    def _own_bank(self) -> BankRows:
+        """A bank over all the training samples (lazy: nothing is computed until a basis is asked for)."""
+        cap = getattr(self, "max_harmonics", MAX_HARMONICS)  # _data_changed runs before __init__ sets it
+        return SpectralFeatureBank(self.train_contacts, ahead=cap).rows(None)
 
     def _maps_rbf(self) -> list[int]:
         return [c for c in range(3) if not self.hypers.constant_map(c)]
@@ -423,7 +431,10 @@ class Spectral3D(WeightSpace3D):
     def _features(self, c: Contacts3D, b: int) -> Tensor:
         if self._bank is not None and c is self.train_contacts:
             return self._bank.features(self.basis, b, self.hypers.constant_map(1))
-        return spectral_features(c, b, self.basis, self.hypers.constant_map(1))
+        held = self._queried[0]  # shared with this backend's draws (``with_hypers``): asked of each in turn
+        if held is None or held.contacts is not c:
+            held = self._queried[0] = SpectralFeatureBank(c, ahead=self.max_harmonics)
+        return held._full(self.basis, b, self.hypers.constant_map(1))
 
     def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
         block = BLOCKS[b]
