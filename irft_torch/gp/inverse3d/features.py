@@ -8,6 +8,7 @@ from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
 from ..fourier import FourierBasis
+from ..operators import unique_pairs
 from .hyperparameters import BLOCKS
 from .rows import block_rows
 
@@ -39,14 +40,11 @@ def _distinct_pairs(beta: Tensor, gamma: Tensor, ws: list[Tensor]) -> tuple[Tens
     T = beta.shape[0]
     active = torch.stack([(w != 0).any(0) for w in ws]).any(0)  # (T, K)
     t_of, k_of = active.nonzero(as_tuple=True)
-    _, ib = torch.unique(beta[t_of, k_of], return_inverse=True)
-    ug, ig = torch.unique(gamma[t_of, k_of], return_inverse=True)
-    key = (t_of * (int(ib.max()) + 1 if len(ib) else 1) + ib) * len(ug) + ig  # a sample's pair, one integer
-    keys, inv = torch.unique(key, return_inverse=True)  # sorted: each sample's distinct pairs in one run
-    first = torch.searchsorted(keys, torch.arange(T, device=keys.device) * ((int(ib.max()) + 1 if len(ib) else 1)
-                                                                            * len(ug)))
-    row = torch.bucketize(torch.arange(len(keys), device=keys.device), first, right=True) - 1
-    slot = torch.arange(len(keys), device=keys.device) - first[row]
+    pair = unique_pairs(torch.stack([beta[t_of, k_of], gamma[t_of, k_of]], -1))[1]  # (n,) id of each angle pair
+    n_pairs = int(pair.max()) + 1 if len(pair) else 1
+    keys, inv = torch.unique(t_of * n_pairs + pair, return_inverse=True)  # sorted: a sample's pairs side by side
+    row = keys // n_pairs
+    slot = torch.arange(len(keys), device=keys.device) - torch.searchsorted(keys, row * n_pairs)
     k = max(1, int(slot.max()) + 1 if len(slot) else 1)
     if k >= beta.shape[1]:
         return beta, gamma, ws
