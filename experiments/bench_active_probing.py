@@ -26,7 +26,7 @@ import torch
 
 import irft_torch as irft
 from irft_torch.design import ProbeScorer
-from irft_torch.gp.encoding import encode_contacts
+from irft_torch.gp.kernels.encoding import encode_contacts
 from irft_torch.rft import CToe, IToe, random_probes
 
 

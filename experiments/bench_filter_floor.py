@@ -26,8 +26,8 @@ import time
 
 import torch
 
-from irft_torch.gp.embedding import embed_angles
-from irft_torch.gp.terrain_filter import TerrainFilter
+from irft_torch.gp.kernels.embedding import embed_angles
+from irft_torch.gp.streaming.filter import TerrainFilter
 
 BUDGET_MS = 4096 / 1e5 * 1e3  # 1e5 env-steps/s at B = 4096
 

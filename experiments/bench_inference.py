@@ -28,6 +28,9 @@ forces, hyper_posterior="map", li_basis=False)``, the former default; case 8 the
  11. NUTS (pyro) on C-toe gait 2 (the paper study's configuration, tied noise): 4 chains x 500 draws after
      500 warm-up (Laplace metric, chains in worker processes), and a short chain in both engines for the
      ratio (issue 30: < 60 s).
+ 12. varied recordings (issue 52): default fits of 1,000 and 10,000 samples of short plate strokes, each its own
+     tilt sweep (nearly every angle pair distinct; the harness' held-out "sharp" medium): first and last Adam
+     step, whole fit, the basis it ended in and its kernel error.
 "Today's engine" (the reference in cases 2, 8, 10, 11) is the autograd path, run in the same process
 (``gp.backends.closed_form.autograd_only``).
 Case 6 also reduces the 4 datasets on a local Dask cluster (2 worker processes, start-up included), beside
@@ -100,6 +103,82 @@ def dem_like(T: int = 810, M: int = 5, seed: int = 0):
     c = irft.rft.Contacts(b, gm, -w, w)
     f = irft.rft.forces(TRUTH, c)
     return c, f + 0.02 * f.abs().amax(0) * torch.randn(f.shape, generator=g)
+
+
+def varied_recording(T: int, seed: int = 0, M: int = 6):
+    """T samples of short plate strokes (about 31 samples each), every stroke its own course and tilt sweep (the
+    plate turns as it moves): a recording whose angle pairs are nearly all distinct. Forces from the calibration
+    harness' held-out "sharp" medium (a stress map with short-lengthscale features) with 2 % noise."""
+    from irft_torch.studies.calibration import medium
+
+    g = torch.Generator().manual_seed(seed)
+    n_strokes = max(1, round(T / 31))
+    parts = []
+    for i in range(n_strokes):
+        n = T // n_strokes + (1 if i < T % n_strokes else 0)
+        u = torch.rand(5, generator=g, dtype=torch.float64)
+        course = [-math.pi / 2 + 0.3 + float(v) * (math.pi - 0.6) for v in u[:2]]
+        path = irft.rft.course_path(course, 0.04, start=(0.0, -0.02 - 0.03 * float(u[4])),
+                                    heading=[(float(u[2]) - 0.5) * 2.4, (float(u[3]) - 0.5) * 2.4], n_steps=n)
+        parts.append(irft.rft.contacts(irft.rft.IToe(0.03, 0.02, n_segments=M), path))
+    c = irft.rft.Contacts(*(torch.cat([getattr(p, k) for p in parts])
+                            for k in ("beta", "gamma", "weight_x", "weight_z")))
+    f = irft.rft.forces(medium("sharp", 0)[0], c)
+    return c, f + 0.02 * f.abs().amax(0) * torch.randn(f.shape, generator=g, dtype=f.dtype)
+
+
+def timed_fit(c, f, **options):
+    """A default fit (``InverseRFT(c, f, **options).fit()``) with each Adam step timed: (steps (s,), whole fit in s
+    (construction, Adam, the hyperparameter posterior), the model, warnings raised)."""
+    import warnings
+    from unittest import mock
+
+    import irft_torch.gp.model as front_door
+
+    marks: list[float] = []
+    make_bar = front_door.progress_bar
+
+    class TimedBar:  # the fit's own bar (silent), each step's start and the end marked
+        def __init__(self, total, desc, enabled=True):
+            self.bar = make_bar(total, desc, False)
+
+        def __iter__(self):
+            for i in self.bar:
+                marks.append(time.perf_counter())
+                yield i
+            marks.append(time.perf_counter())
+
+        def __getattr__(self, name):
+            return getattr(self.bar, name)
+
+    sync()
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught, mock.patch.object(front_door, "progress_bar", TimedBar):
+        warnings.simplefilter("always")
+        model = irft.InverseRFT(c, f, **options)
+        model.fit()
+    sync()
+    whole = time.perf_counter() - t0
+    steps = torch.tensor(marks).diff()
+    return steps, whole, model, [str(w.message) for w in caught]
+
+
+def varied_case(q: bool, row) -> None:
+    """12. Varied recordings (issue 52): default fits of 1,000 and 10,000 samples of short plate strokes, each with
+    its own tilt sweep; time of the first and last Adam steps (median of 5), the whole fit, the basis it ended in and
+    the kernel's truncation error there."""
+    sizes = (150, 300) if q else (1000, 10_000)
+    whole = {}
+    for T in sizes:
+        c, f = on_device(*varied_recording(T))
+        steps, whole[T], model, said = timed_fit(c, f)
+        first, last = steps[:5].median().item(), steps[-5:].median().item()
+        row(f"12. varied recording, T = {T:,} samples of plate strokes x M = 6, default fit ({len(steps)} Adam steps; "
+            f"ended in {model.backend.describe()})",
+            f"{whole[T]:.1f} s; first steps {first * 1e3:.0f} ms, last {last * 1e3:.0f} ms (x{last / first:.1f}); "
+            f"{len(said)} warnings", "no second engine yet" if T == sizes[0] else
+            f"{sizes[0]:,} samples: {whole[sizes[0]]:.1f} s", "-" if T == sizes[0] else
+            f"{whole[T] / whole[sizes[0]]:.1f}x", "< 60 s, last <= 3x first" if T == sizes[0] else "<= 10x")
 
 
 def step(model) -> float:
@@ -289,7 +368,7 @@ def nuts_case(q: bool, row) -> None:
     except ImportError:
         row("11. NUTS", "skipped: pyro not installed", "-", "-", "< 60 s")
         return
-    from irft_torch.gp.hyper_nuts import nuts
+    from irft_torch.gp.hyper.nuts import nuts
     from irft_torch.studies.reproduce import configuration
 
     toe, path = configuration("C-toe gait 2")
@@ -600,7 +679,7 @@ def main(argv=None) -> None:
             + ("" if times["dask"] is None else f"Dask / pool {times['dask'] / times['2 workers']:.2f}; ")
             + f"{times['one process'] / times['saved']:.1f}x", "Dask not slower than the pool")
     for k, case in ((7, fit_together_case), (8, hyper_posterior_case), (9, terrain_filter_case), (10, turning_case),
-                    (11, nuts_case)):
+                    (11, nuts_case), (12, varied_case)):
         if want(k):
             case(q, row)
     report.write_text("\n".join(lines) + "\n")

@@ -10,7 +10,7 @@ most 10 % overconfident fits, for every family, motion and map.
 
     python experiments/calibration_harness.py [--quick] [--held-out] [--seeds 2] [--out DIR]
 
-``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.li_basis``), scored as the
+``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.kernels.li_basis``), scored as the
 plug-in and the Laplace mixture; ``--generic-shape`` adds the generic shape with an uncertain scale to that
 term (``generic_shape=True``, files get the suffix _generic). ``--prior-mean physics`` fits with the generic
 shape times learned scales as the prior mean (the scales are hyperparameters: Laplace integrates over

@@ -1,7 +1,7 @@
 """Why the calibration harness' last rows fail (issue 30): four measurements, no tuning.
 
 1. **The outputscale prior's centre against the truth** (no fits). The prior on each map's variance is
-   centred on an estimate from the forces (``gp.priors.prior_centres``: the generic shape at the medium's
+   centred on an estimate from the forces (``gp.kernels.priors.prior_centres``: the generic shape at the medium's
    zeta, the data's own stress per depth, half the other axis'). Printed per family and motion over
    ``--seeds`` seeds: log10(centre / the true map's mean square over the canonical square), median and range.
    Where the forces see little of the map, the posterior there is this prior.
@@ -91,7 +91,7 @@ def _fit_scaled(c, f, factor: float) -> InverseRFT:
 def build_scaled(c, f, factor: float) -> InverseRFT:
     """The generic-shape model with its residual terms' prior centre (outputscale, Li et al.'s variance) x factor;
     the generic shape's own prior (at zeta^2) as the library has it."""
-    real = front_door.centres_of_sums  # what the model registers its priors from (gp.priors.CentreSums)
+    real = front_door.centres_of_sums  # what the model registers its priors from (gp.kernels.priors.CentreSums)
 
     def scaled(*args, **kwargs):
         out = dict(real(*args, **kwargs))

@@ -42,7 +42,7 @@ from pathlib import Path
 import torch
 
 from irft_torch import metrics
-from irft_torch.gp.priors import GENERIC_RMS, LENGTHSCALE_CENTRE
+from irft_torch.gp.kernels.priors import GENERIC_RMS, LENGTHSCALE_CENTRE
 from irft_torch.rft import FourierStressMap
 from irft_torch.studies.calibration import GPMedium
 from irft_torch.studies.reproduce import CONFIGS, LEVELS, StudySettings, _fit_group

@@ -22,7 +22,7 @@ direction (LOGO, 9 folds), everything is fitted on the other runs only:
     physical hyperparameter priors). Their prediction of a held-out run's target is the README's
     recipe applied to the forces they predict for that run (``data.dem.recipe_functional``: one
     linear functional, so its posterior mean and variance are exact);
-  * I-RFT, learned surface: zero mean, the free surface learned with the maps (``gp.surface``: one
+  * I-RFT, learned surface: zero mean, the free surface learned with the maps (``gp.surface.offset``: one
     offset for the bed per fold, started at the best of a grid), on every tau-th sample, tau the
     training runs' median force-residual autocorrelation time; its prediction of a held-out run
     uses the recipe on the forces it predicts at its learned surface;
@@ -243,7 +243,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
         m = irft.InverseRFT(ctr, ftr, prior_mean=pm, generic_shape=with_shape, **opts)  # the rest: the defaults
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
-    # The learned surface (gp.surface): one offset for the bed, fitted with the maps. Its force residuals are
+    # The learned surface (gp.surface.offset): one offset for the bed, fitted with the maps. Its force residuals are
     # smaller than at z_top, so the stride matched at z_top does not apply; it takes every tau-th sample, tau the
     # training runs' median integrated autocorrelation time of the force residuals (nearly independent samples
     # for the white-noise model), and starts the offset at the best of a grid (the likelihood has shoulders).

@@ -24,7 +24,7 @@ This script fits, per axis and per harness case, two zero-mean GPs on the same f
 - ``rbf+li+generic`` (``--generic``): the same plus Li et al.'s generic map g_a of each axis as a rank-one term,
   u_a g_a(theta) g_a(theta'): the generic shape with a scale of prior N(0, u_a), integrated out exactly (Rasmussen
   & Williams 2006, section 2.7: a mean with a Gaussian prior on its coefficient is a kernel term), u_a under a
-  log-normal prior at the medium's zeta squared (``gp.priors.medium_scale``), log-sd log 2. Unlike the physics
+  log-normal prior at the medium's zeta squared (``gp.kernels.priors.medium_scale``), log-sd log 2. Unlike the physics
   mean (``prior_mean="physics"``), whose scale is a fitted point, the scale's uncertainty is in every interval,
   and a medium of another shape keeps the zero mean.
 
@@ -32,7 +32,7 @@ Each is scored as the harness scores (``studies.calibration``): 95 % coverage of
 grid, and the percentile among 200 maps drawn from the fit's own posterior (overconfident beyond chance
 below 0.025). By default the plug-in predictions; ``--laplace N`` adds each model's Laplace mixture (N
 proposals from N(mode, 1.5 H^-1) in log-hyperparameters, H the autograd Hessian, self-normalised importance
-weights; intervals from the mixture CDF, ``gp.mixture``) and the library's own Laplace posterior.
+weights; intervals from the mixture CDF, ``gp.hyper.mixture``) and the library's own Laplace posterior.
 
     python experiments/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2] [--first-seed 0]
         [--held-out | --held-out-1] [--laplace N] [--generic] [--only-models rbf+li,...] [--no-library] [--out DIR]
@@ -54,9 +54,9 @@ from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
 from irft_torch import InverseRFT, metrics
-from irft_torch.gp.laplace_guard import proposal_covariance
-from irft_torch.gp.mixture import mixture_moments, mixture_quantile
-from irft_torch.gp.priors import medium_scale
+from irft_torch.gp.hyper.guard import proposal_covariance
+from irft_torch.gp.hyper.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.kernels.priors import medium_scale
 from irft_torch.rft.stress_maps import FourierStressMap
 from irft_torch.studies.calibration import grid, medium, motion, score, simulate
 
@@ -96,7 +96,7 @@ class DenseAxis:
                  generic: int | None = None, zeta: float = 1.0) -> None:
         """``li_prior``: the k_Li variance's log-normal prior, (its centre over the outputscale's, log-sd);
         ``generic``: add the generic-shape term of this axis (0: x, 1: z), its variance u under a log-normal
-        prior at ``zeta`` squared (the medium's scale, ``gp.priors.medium_scale``), log-sd log 2."""
+        prior at ``zeta`` squared (the medium's scale, ``gp.kernels.priors.medium_scale``), log-sd log 2."""
         T, M = weight.shape
         keep = weight.reshape(-1) != 0
         self.b, self.g = beta.reshape(-1)[keep], gamma.reshape(-1)[keep]

@@ -4,7 +4,7 @@ The harness (``docs/calibration.md``) finds the Laplace mixture of the zero-mean
 generic-shaped media seen through a narrow slice of the square (the rotating leg, 40-sample strokes). Either
 the Gaussian-in-log approximation of the hyperparameter posterior is what misses (a heavy tail toward short
 lengthscales that Laplace + importance sampling does not reach), or the model itself (prior and kernel) is.
-NUTS samples the same posterior without the approximation (``gp.hyper_nuts``), so each case is fitted once
+NUTS samples the same posterior without the approximation (``gp.hyper.nuts``), so each case is fitted once
 and scored three ways from that fit (``studies.calibration.score``: 95 % coverage of the truth over the
 canonical square, the percentile among the fit's own posterior draws): the plug-in, Laplace (default
 settings), NUTS (``--chains`` chains of ``--samples`` draws after as many warm-up, in worker processes).

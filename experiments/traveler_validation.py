@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 import irft_torch as irft
-from irft_torch.gp.surface_profile import profile_surface
+from irft_torch.gp.surface.profile import profile_surface
 from irft_torch.hardware.traveler import TRAVELER_LEG, read_traveler_log
 from irft_torch.metrics import integrated_autocorrelation_time
 from irft_torch.rft import IToe, Path, contacts

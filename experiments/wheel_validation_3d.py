@@ -40,9 +40,9 @@ import numpy as np
 import torch
 
 from irft_torch.data import wheel as wd
-from irft_torch.gp.fourier import MAX_HARMONICS
 from irft_torch.gp.inverse3d import InverseRFT3D
 from irft_torch.gp.inverse3d.features import SpectralFeatureBank
+from irft_torch.gp.kernels.fourier import MAX_HARMONICS
 from irft_torch.rft import FourierStressMap, contacts_3d, forces_3d
 
 AXES = ("longitudinal", "lateral", "vertical")

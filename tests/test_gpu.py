@@ -154,7 +154,7 @@ def test_sufficient_statistics_on_cuda_match_cpu():
 
 def test_fit_together_with_the_default_priors_on_cuda_matches_cpu():
     """The crash issue 33 reported: gp.fit_together with the physical priors compared a CPU lengthscale
-    centre with CUDA lengthscales (gp.priors._log_lengthscale_ratio)."""
+    centre with CUDA lengthscales (gp.kernels.priors._log_lengthscale_ratio)."""
     from irft_torch.studies.reproduce import configuration
 
     toe, path = configuration("C-toe gait 1")

@@ -16,7 +16,7 @@ def _statistics_of(path: str, n_beta: int, n_gamma: int, threads: int = 0) -> di
     """One dataset's spectral statistics in FourierBasis(n_beta, n_gamma) (``studies.fleet.dataset_statistics``:
     cut from those saved in the file when they are its own and cover the basis, else one pass), as a worker
     of ``irft fit`` returns them: the statistics' state and whether they came from the file."""
-    from ..gp.fourier import FourierBasis
+    from ..gp.kernels.fourier import FourierBasis
     from ..studies.fleet import dataset_statistics
 
     stats, from_file = dataset_statistics(path, FourierBasis(n_beta, n_gamma), threads)
@@ -204,8 +204,8 @@ def register(sub) -> None:
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--prior-mean", choices=["zero", "physics"], default="zero")
     p.add_argument("--priors", choices=["physical", "none"], default="physical",
-                   help="hyperparameter priors (default physical: MAP, gp.priors; none: the paper's plain marginal "
-                        "likelihood)")
+                   help="hyperparameter priors (default physical: MAP, gp.kernels.priors; none: the paper's plain "
+                        "marginal likelihood)")
     p.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=True,
                    help="Li et al.'s 9 fitting functions in the kernel as a term with its own variance (default; "
                         "--no-li-basis: the paper's RBF alone; docs/calibration.md)")

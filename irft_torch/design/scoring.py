@@ -45,7 +45,7 @@ from ..gp.backends import RFTBackend, make_backend
 from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
-from ..gp.hyperparameters import RFTHyperparameters
+from ..gp.kernels.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from .force_noise import force_relative
 from .region import Region, _as_contacts

@@ -12,20 +12,20 @@ from .backends import (
 )
 from .batch_fit import fit_together, shares_fit
 from .cross_validation import GroupPredictions, cross_validate
-from .embedding import embed_angles, rbf
-from .encoding import decode_rows, encode_contacts, encode_points, encode_rows
-from .fourier import FourierBasis
-from .hyperparameters import RFTHyperparameters
-from .kernels import AngleKernel, RFTCompositeKernel, angle_covariance
-from .means import GenericShapeMean
+from .kernels.angle import AngleKernel, RFTCompositeKernel, angle_covariance
+from .kernels.embedding import embed_angles, rbf
+from .kernels.encoding import decode_rows, encode_contacts, encode_points, encode_rows
+from .kernels.fourier import FourierBasis
+from .kernels.hyperparameters import RFTHyperparameters
+from .kernels.means import GenericShapeMean
+from .kernels.operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
 from .model import InverseRFT
 from .model_file import ModelFileError
-from .operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
 from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
-from .surface_profile import profile_surface
-from .terrain_filter import TerrainFilter
-from .terrain_mixture import TerrainFilterMixture
+from .streaming.filter import TerrainFilter
+from .streaming.filter_mixture import TerrainFilterMixture
+from .surface.profile import profile_surface
 
 __all__ = [
     "embed_angles", "rbf", "AngleKernel", "angle_covariance", "RFTCompositeKernel", "RFTKernelLinearOperator",

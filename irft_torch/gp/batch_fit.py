@@ -29,11 +29,11 @@ from torch import Tensor
 
 from .backends.pairs import PairsBackend
 from .backends.weight_space import WeightSpaceBackend, _DataFactor
-from .constraints import ScaledGreaterThan
 from .fit_control import adam, progress_bar
-from .hyperparameters import RFTHyperparameters
-from .kernels import AngleKernel
-from .li_basis import LiBasisVariance
+from .kernels.angle import AngleKernel
+from .kernels.constraints import ScaledGreaterThan
+from .kernels.hyperparameters import RFTHyperparameters
+from .kernels.li_basis import LiBasisVariance
 
 __all__ = ["fit_together", "shares_fit"]
 
@@ -58,14 +58,14 @@ class _StackedHyperparameters(RFTHyperparameters):
         self.likelihood = GaussianLikelihood(batch_shape=torch.Size([per * B]),
                                              noise_constraint=ScaledGreaterThan(floor, scale))
         self.mean = None
-        self.li = None  # Li et al.'s term (gp.li_basis): one variance per map axis, as the outputscale
+        self.li = None  # Li et al.'s term (gp.kernels.li_basis): one variance per map axis, as the outputscale
         if hs[0].li is not None:
             li_scale = torch.cat([h.li.raw_variance_constraint.scale.expand(2) for h in hs])
             self.li = LiBasisVariance(li_scale, n_maps=2 * B, generic=hs[0].li.generic)
         with torch.no_grad():
             if self.li is not None:
                 self.li.raw_variance.copy_(torch.cat([h.li.raw_variance for h in hs]))
-                if self.li.generic:  # the generic shape's variance (gp.li_basis), stacked the same way
+                if self.li.generic:  # the generic shape's variance (gp.kernels.li_basis), stacked the same way
                     self.li.raw_generic_variance.copy_(torch.cat([h.li.raw_generic_variance for h in hs]))
             self.kernel.raw_outputscale.copy_(torch.cat([h.kernel.raw_outputscale for h in hs]))
             self.kernel.base_kernel.raw_lengthscale.copy_(torch.cat([h.kernel.base_kernel.raw_lengthscale for h in hs]))
@@ -86,7 +86,7 @@ class _StackedHyperparameters(RFTHyperparameters):
 
     def _stack_priors(self, hs) -> None:
         """Register each prior of the models once, with their centres side by side (the priors of
-        ``gp.priors``: the same density on log(value) minus a per-model centre)."""
+        ``gp.kernels.priors``: the same density on log(value) minus a per-model centre)."""
         places = {"outputscale_prior": (lambda h: h.kernel, self.kernel),
                   "lengthscale_prior": (lambda h: h.kernel.base_kernel, self.kernel.base_kernel),
                   "noise_prior": (lambda h: h.likelihood.noise_covar, self.likelihood.noise_covar)}
@@ -112,7 +112,7 @@ def shares_fit(models: Sequence) -> str | None:
     """Why these models cannot be fitted as one batch (None when they can): the same contacts in
     the "pairs" space (and, with ``method="auto"``, no other space that could become 2x cheaper as the
     lengthscales move, so that each model's own fit would stay there too), no physics mean, no learned
-    surface, the same priors (``gp.priors``' own, or none) and noise tying, one dtype and device."""
+    surface, the same priors (``gp.kernels.priors``' own, or none) and noise tying, one dtype and device."""
     if len(models) < 2:
         return "fewer than two models"
     if len({id(m) for m in models}) < len(models):
@@ -136,7 +136,7 @@ def shares_fit(models: Sequence) -> str | None:
             return "a hyperparameter held fixed (requires_grad=False)"
         known = {"kernel.outputscale_prior", "kernel.base_kernel.lengthscale_prior",
                  "likelihood.noise_covar.noise_prior", "li.variance_prior", "li.generic_variance_prior"}
-        for name, _, _, closure, _ in m.hypers.named_priors():  # only gp.priors' own (a user's is not stacked)
+        for name, _, _, closure, _ in m.hypers.named_priors():  # only gp.kernels.priors' own (a user's is not stacked)
             if name not in known or not (isinstance(closure, functools.partial) and "c" in closure.keywords):
                 return f"a prior this batching does not know ({name})"
         for name in ("outputscale_prior", "lengthscale_prior", "noise_prior", "variance_prior",

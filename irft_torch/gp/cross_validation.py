@@ -32,7 +32,7 @@ from torch import Tensor
 
 from .backends import make_backend
 from .backends.base import touching
-from .mixture import mixture_moments
+from .hyper.mixture import mixture_moments
 
 __all__ = ["GroupPredictions", "cross_validate"]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..rft.contacts import Contacts
-from .embedding import embed_angles
+from .kernels.embedding import embed_angles
 
 __all__ = ["MapDiagnostics", "Diagnostics", "diagnose"]
 
@@ -104,4 +104,8 @@ def diagnose(model, n: int = 24) -> Diagnostics:
         out.append(MapDiagnostics(AXES[a], frac, float(ratio.mean()), flat, s, frac == 0.0 or s < 1.0))
     hp = getattr(model, "hyper_posterior", None)
     notes = [f"Hyperparameter draws: {hp.extra['truncated']}."] if hp is not None and "truncated" in hp.extra else []
+    err, tol = float(model.truncation_error().max()), getattr(model.backend, "tol", None)
+    if err > 0:  # an approximate kernel (the spectral basis): its error, and whether it is within the model's tol
+        within = "" if tol is None else f", within tol {tol:.0e}" if err <= tol else f", ABOVE tol {tol:.0e}"
+        notes.insert(0, f"Kernel: {model.backend.describe()}{within}.")
     return Diagnostics(out, notes)

@@ -16,14 +16,14 @@ from tqdm.auto import tqdm
 
 from .backends import RFTBackend, make_backend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs, pairs_may_move, spectral_step_cost
-from .fourier import FourierBasis
+from .kernels.fourier import FourierBasis
 
 if TYPE_CHECKING:
     from ..rft.contacts import Contacts
     from .backends.spectral import SpectralBackend
     from .backends.weight_space import FeatureStatistics
-    from .hyperparameters import RFTHyperparameters
-    from .surface import SurfaceOffset
+    from .kernels.hyperparameters import RFTHyperparameters
+    from .surface.offset import SurfaceOffset
 
 __all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
            "converged", "copy_into", "divergence", "progress_bar", "CONVERGED_NATS"]
@@ -50,7 +50,7 @@ def progress_bar(total: int, desc: str, enabled: bool = True) -> tqdm:
 def converged(history: list[float], n_samples: int, window: int = 25) -> bool:
     """Whether the last ``window`` steps of a fit (losses per sample) raised the log posterior by less than
     ``CONVERGED_NATS`` over the best of the ``window`` before them: Adam is then near the mode, and L-BFGS
-    (``gp.hyper_posterior._polish``) gets there in a few iterations where Adam would take hundreds."""
+    (``gp.hyper.posterior._polish``) gets there in a few iterations where Adam would take hundreds."""
     if len(history) < 2 * window or len(history) % window:
         return False
     before, last = min(history[-2 * window:-window]), min(history[-window:])

@@ -153,9 +153,9 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
                    surface: bool, tied_noise: bool, li_terms: tuple[bool, bool], retired_grid: bool) -> tuple[str, str]:
     """``InverseRFT``'s options checked (ValueError naming the argument, NotImplementedError for a combination
     that is not built); returns (method, hyper_posterior) with the retired and default values resolved."""
-    from .hyper_posterior import HYPER_POSTERIORS
+    from .hyper.posterior import HYPER_POSTERIORS
+    from .kernels.priors import PRIORS
     from .mean_average import check_average_options
-    from .priors import PRIORS
 
     if prior_mean not in ("zero", "physics", "average"):
         raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
@@ -172,7 +172,7 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
     if priors not in PRIORS:
         raise ValueError(f"priors must be 'physical' or None (the plain marginal likelihood), got {priors!r}")
     if hyper_posterior is None:  # the default: the honest one (InverseRFT's docstring, docs/calibration.md); but a
-        # learned surface has its own Laplace std (gp.surface), and without priors the posterior is improper
+        # learned surface has its own Laplace std (gp.surface.offset), and without priors the posterior is improper
         hyper_posterior = "map" if surface or priors is None else "laplace"
     if hyper_posterior not in HYPER_POSTERIORS:
         raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
@@ -186,7 +186,7 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
             raise TypeError(f"{name} must be True or False, got {flag!r}")
     if li_terms[1] and not li_terms[0]:
         raise ValueError("generic_shape=True needs li_basis=True: the generic shape is a rank-one update of Li et "
-                         "al.'s 9-function term (gp.li_basis)")
+                         "al.'s 9-function term (gp.kernels.li_basis)")
     if retired_grid:
         warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
                       FutureWarning, stacklevel=3)

@@ -22,7 +22,7 @@ the average takes whichever the forces support, and both where they cannot tell.
 ``InverseRFT(contacts, forces, prior_mean="average")`` is the zero-mean model (``model.hypers``,
 ``model.backend``: what ``fit`` trains first) with a physics-mean companion fitted after it on the same data
 (``model.companion``); ``model.mean_average`` holds the evidence and the weights. Every prediction is the
-mixture over both models' draws with weights pi_mc w_ms per map (``gp.mixture``).
+mixture over both models' draws with weights pi_mc w_ms per map (``gp.hyper.mixture``).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from .backends import RFTBackend
-from .hyper_posterior import HyperPosterior, _polish, hyper_spec, log_evidence
+from .hyper.posterior import HyperPosterior, _polish, hyper_spec, log_evidence
 
 if TYPE_CHECKING:
     from ..rft.contacts import Contacts

@@ -26,9 +26,8 @@ from .fit_control import (
     copy_into,
     progress_bar,
 )
-from .hyper_mixture import HyperMixtureMixin
-from .hyper_posterior import HyperPosterior, add_data_to_draws
-from .hyperparameters import RFTHyperparameters
+from .hyper.posterior import HyperPosterior, add_data_to_draws
+from .hyper.predictions import HyperMixtureMixin
 from .inputs import (
     _as_forces,
     _as_noise_scale,
@@ -42,11 +41,12 @@ from .inputs import (
     _noise_scale,
     _whiten,
 )
+from .kernels.hyperparameters import RFTHyperparameters
+from .kernels.priors import CentreSums, centres_of_sums, prior_centres, register_physical_priors
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
-from .priors import CentreSums, centres_of_sums, prior_centres, register_physical_priors
-from .surface import LearnedSurfaceMixin, SurfaceOffset
+from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
 
@@ -91,26 +91,26 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over several): the
             spectral backend skips its pass over the data. Checked against the data's sample count and force power
             (ValueError if they differ); ignored by the other backends; not allowed with a ``noise_scale``.
-        surface_offset: learn the free surface's height with the maps (``gp.surface``, docs/surface.md):
+        surface_offset: learn the free surface's height with the maps (``gp.surface.offset``, docs/surface.md):
             one offset in m (positive: the surface is higher than stated), fitted by the marginal
             likelihood through the segment depths; ``model.surface_offset`` gives it with its
             Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
         surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) (implies ``surface_offset``).
-        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.priors``: the map's variance
-            from the medium's scale, lengthscales that keep what the data cannot see at a documented extrapolation,
-            noise from the force spread), fitted by MAP; None: the paper's plain marginal likelihood.
+        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.kernels.priors``: the map's
+            variance from the medium's scale, lengthscales that keep what the data cannot see at a documented
+            extrapolation, noise from the force spread), fitted by MAP; None: the paper's plain marginal likelihood.
         hyper_posterior: "laplace" (default): after the fit, a posterior over the hyperparameters
-            (``gp.hyper_posterior``, Laplace at the mode, importance-reweighted from a fixed point set: a refit
+            (``gp.hyper.posterior``, Laplace at the mode, importance-reweighted from a fixed point set: a refit
             predicts the same); predictions are mixtures over its draws (``model.hyper_posterior``). "map": the
             plug-in at the fitted hyperparameters (the paper's; ``TerrainFilter`` and streaming use it), about
             1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts": pyro's
             NUTS, the reference. With ``surface_offset`` or ``priors=None`` the default is "map" (the offset has
             its own Laplace std; without priors the posterior is improper).
         li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
-            term with its own variance per map (default True; ``gp.li_basis``): what the forces leave unseen follows
-            shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
+            term with its own variance per map (default True; ``gp.kernels.li_basis``): what the forces leave unseen
+            follows shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
         generic_shape: with ``li_basis``, also Li et al.'s generic map with a scale of its own, integrated out
-            (``gp.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
+            (``gp.kernels.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
             angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
             vertical force beyond the spread (docs/calibration.md).
     Example:

@@ -16,8 +16,8 @@ from .._files import atomic_write
 from ..rft.contacts import Contacts
 
 if TYPE_CHECKING:
-    from .hyperparameters import RFTHyperparameters
-    from .surface import SurfaceOffset
+    from .kernels.hyperparameters import RFTHyperparameters
+    from .surface.offset import SurfaceOffset
 
 __all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
            "PersistenceMixin"]
@@ -80,7 +80,7 @@ def save_model(model, path) -> None:
         if comp.hyper_posterior is not None:
             payload["companion"]["hyper_posterior"] = comp.hyper_posterior.state()
         payload["mean_average"] = model.mean_average.state()
-    if model.surface is not None:  # a learned surface offset (gp.surface): its groups and value
+    if model.surface is not None:  # a learned surface offset (gp.surface.offset): its groups and value
         payload["options"]["surface_offset"] = True
         payload["options"]["surface_groups"] = model.surface.groups.cpu() if model.surface.grouped else None
         payload["surface_offset"] = model.surface.offset.detach().cpu()
@@ -129,11 +129,11 @@ def load_model(cls, path, map_location=None, others: dict | None = None):
             model.surface.offset.copy_(payload["surface_offset"].to(model.surface.offset))
         model._rebuild_backend()
     if "hyper_posterior" in payload:
-        from .hyper_posterior import HyperPosterior
+        from .hyper.posterior import HyperPosterior
 
         model._set_hyper_posterior(HyperPosterior.from_state(payload["hyper_posterior"]))
     if "companion" in payload:  # prior_mean="average"
-        from .hyper_posterior import HyperPosterior
+        from .hyper.posterior import HyperPosterior
         from .mean_average import MeanAverage
 
         saved = payload["companion"]

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..rft.contacts import Contacts
 from .backends import RFTBackend
-from .mixture import mixture_moments, mixture_quantile
+from .hyper.mixture import mixture_moments, mixture_quantile
 
 __all__ = ["Posterior"]
 
@@ -24,7 +24,7 @@ class Posterior:
     Averaged over hyperparameter draws (``InverseRFT(..., hyper_posterior="laplace")``) each marginal is a
     Gaussian mixture: ``mean`` and ``variance`` are its mean and total variance, ``components`` holds the
     draws' own means and variances (S, ..., 2) and their weights (S,), and ``interval`` inverts the mixture's
-    CDF (``gp.mixture``)."""
+    CDF (``gp.hyper.mixture``)."""
 
     mean: Tensor
     variance: Tensor
@@ -143,7 +143,7 @@ def marginal_interval(mean: Tensor, stddev: Tensor, components: tuple[Tensor, Te
                       level: float) -> tuple[Tensor, Tensor]:
     """Central interval (lower, upper) at ``level`` of each marginal: Gaussian (``normal_interval``), or, with
     ``components`` = (means, variances, weights) of a mixture over hyperparameter draws, the mixture CDF's
-    quantiles (``gp.mixture``). What ``Posterior.interval`` and the 3-D posterior's ``interval`` return."""
+    quantiles (``gp.hyper.mixture``). What ``Posterior.interval`` and the 3-D posterior's ``interval`` return."""
     _check_level(level)
     if components is not None:
         means, variances, weights = components

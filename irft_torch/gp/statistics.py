@@ -30,8 +30,8 @@ from torch import Tensor
 from ..rft.contacts import Contacts
 from .backends.spectral import restrict_statistics, spectral_statistics
 from .backends.weight_space import FeatureStatistics
-from .fourier import FourierBasis
-from .means import GenericShapeMean
+from .kernels.fourier import FourierBasis
+from .kernels.means import GenericShapeMean
 from .model_file import digest
 
 __all__ = ["initial_basis", "recording_statistics", "restrict_statistics", "statistics_arrays",

@@ -132,7 +132,7 @@ class Contacts:
         return self.with_depth_shift_cm(torch.as_tensor(delta) * M_TO_CM, groups)
 
     def with_depth_shift_cm(self, delta, groups=None) -> Contacts:
-        """``with_surface_offset`` with ``delta`` in cm, the unit of ``depth`` (what ``gp.surface``
+        """``with_surface_offset`` with ``delta`` in cm, the unit of ``depth`` (what ``gp.surface.offset``
         learns in)."""
         if not self.has_surface:
             raise ValueError("with_surface_offset needs Contacts.depth, area_x and area_z (the signed depths and "

@@ -47,8 +47,8 @@ from torch import Tensor
 
 from .. import metrics
 from ..gp import InverseRFT
-from ..gp.fourier import FourierBasis
-from ..gp.priors import GENERIC_RMS
+from ..gp.kernels.fourier import FourierBasis
+from ..gp.kernels.priors import GENERIC_RMS
 from ..rft import CToe, IToe, contacts, forces
 from ..rft.contacts import Contacts
 from ..rft.paths import pose_path, rotating_leg_path

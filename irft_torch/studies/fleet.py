@@ -81,7 +81,7 @@ def _dataset_statistics(path, basis, threads: int):
 def _part(path: str, n_beta: int, n_gamma: int, threads: int) -> tuple:
     """A Dask task: (statistics' state, from the file?, notes) of one dataset (plain tensors and strings:
     they pickle anywhere; the client turns the notes into warnings)."""
-    from ..gp.fourier import FourierBasis
+    from ..gp.kernels.fourier import FourierBasis
 
     stats, from_file, note = _dataset_statistics(path, FourierBasis(n_beta, n_gamma), threads)
     return stats.state(), int(from_file), [note] if note else []

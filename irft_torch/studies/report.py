@@ -237,7 +237,8 @@ def _priors_rows(s: StudySettings, pick) -> list[str]:
     if s.priors is None:
         return []
     rows = ["## Table I: hyperparameter priors (default) against the plain marginal likelihood", "",
-            f"The same fits (zero mean, noise 0) with `priors={s.priors!r}` (MAP, `gp.priors`) and `priors=None` "
+            f"The same fits (zero mean, noise 0) with `priors={s.priors!r}` (MAP, `gp.kernels.priors`) and "
+            "`priors=None` "
             "(the paper's plain marginal likelihood). Each cell: priors / plain / paper.", "",
             "| config | axis | RMSE priors / plain / paper | ACR% priors / plain / paper | at least as good as the "
             "paper (RMSE and ACR) | 95% calibration priors / plain |", "|---|---|---|---|---|---|"]
@@ -379,8 +380,8 @@ def _report(out: Path, s: StudySettings, results, pick, table2, elapsed, calibra
                   "lengthscales get no gradient and keep their initial value: it alone decides how far the map "
                   "extrapolates across beta. Longer lengthscales help X and hurt Z; the paper's I-toe gait 1 pattern "
                   "(X fair, Z poor) is what long beta lengthscales give. With the hyperparameter priors (the default) "
-                  "they go to the prior's centre (gp.priors, 1.5) whatever the start, so the Table I rows above do "
-                  "not depend on it.", "",
+                  "they go to the prior's centre (gp.kernels.priors, 1.5) whatever the start, so the Table I rows "
+                  "above do not depend on it.", "",
                   "| config | " + " | ".join(f"lengthscale {v}" for v in (s.lengthscale, *s.lengthscale_sensitivity))
                   + " | paper |", "|---|" + "---|" * (len(s.lengthscale_sensitivity) + 2)]
         for config in CONFIGS[:2]:

@@ -73,10 +73,10 @@ class StudySettings:
     noise_seeds: tuple[int, ...] = (0, 1, 2)  # ours
     lengthscale: float = 1.0  # ours: initial lengthscale of every embedding dimension
     lengthscale_sensitivity: tuple[float, ...] = (2.0, 4.0)  # extra I-toe fits in the report
-    priors: str | None = "physical"  # ours: hyperparameter priors (gp.priors); None: the paper's plain likelihood
-    hyper_posterior: str = "map"  # ours: "laplace" predicts with the hyperparameter posterior (gp.hyper_posterior)
-    li_basis: bool = False  # ours: Li et al.'s basis as a kernel term (gp.li_basis); the paper's kernel is the RBF
-    generic_shape: bool = False  # ours: with li_basis, the generic shape's uncertain scale too (gp.li_basis)
+    priors: str | None = "physical"  # ours: hyperparameter priors (gp.kernels.priors); None: the plain likelihood
+    hyper_posterior: str = "map"  # ours: "laplace" predicts with the hyperparameter posterior (gp.hyper.posterior)
+    li_basis: bool = False  # ours: Li et al.'s basis as a kernel term (gp.kernels.li_basis); the paper: the RBF alone
+    generic_shape: bool = False  # ours: with li_basis, the generic shape's uncertain scale too (gp.kernels.li_basis)
     device: str = "cpu"  # where the models are fitted ("cuda": the GPU); data, metrics and figures stay on the CPU
     seed: int = 0
     quick: bool = False

@@ -8,7 +8,7 @@ from gp.test_backends_vs_dense import random_contacts
 
 from design.test_scoring import dense_cov, eig_dense, fitted, iv_dense
 from irft_torch.design import MixtureScorer, ProbeScorer, Region, greedy_design
-from irft_torch.gp.hyper_posterior import HyperPosterior, hyper_spec
+from irft_torch.gp.hyper.posterior import HyperPosterior, hyper_spec
 
 TOL = {"observations": 1e-8, "pairs": 1e-8, "spectral": 1e-6}
 

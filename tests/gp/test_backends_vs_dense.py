@@ -363,7 +363,7 @@ def test_contacts_points_are_one_segment_functionals():
 
 def test_statistics_of_two_recordings_add_up_to_one_pass_over_both():
     from irft_torch.gp.backends.spectral import spectral_statistics
-    from irft_torch.gp.fourier import FourierBasis
+    from irft_torch.gp.kernels.fourier import FourierBasis
 
     c, f = data(T=50, M=4, seed=61)
     basis = FourierBasis(8, 9)  # more than lengthscales >= 1.5 need at the default tolerance
@@ -423,8 +423,8 @@ def test_many_queries_in_a_row_never_reuse_another_querys_structure():
 
 
 def test_composite_kernel_cache_never_serves_another_tensor():
-    from irft_torch.gp.encoding import encode_contacts
-    from irft_torch.gp.kernels import AngleKernel, RFTCompositeKernel
+    from irft_torch.gp.kernels.angle import AngleKernel, RFTCompositeKernel
+    from irft_torch.gp.kernels.encoding import encode_contacts
 
     kern = RFTCompositeKernel(AngleKernel())
     ids = set()
@@ -439,10 +439,10 @@ def test_composite_kernel_cache_never_serves_another_tensor():
 
 
 def test_the_one_rbf_is_gpytorchs_scalekernel_rbf():
-    """Every backend evaluates the kernel through gp.embedding.rbf with the stock
+    """Every backend evaluates the kernel through gp.kernels.embedding.rbf with the stock
     ScaleKernel(RBFKernel)'s hyperparameters: it equals that module's own forward."""
-    from irft_torch.gp.embedding import embed_angles
-    from irft_torch.gp.kernels import AngleKernel, angle_covariance
+    from irft_torch.gp.kernels.angle import AngleKernel, angle_covariance
+    from irft_torch.gp.kernels.embedding import embed_angles
 
     k = AngleKernel()
     k.lengthscale = 0.3 + torch.rand(2, 1, 4, generator=torch.Generator().manual_seed(1))
@@ -459,7 +459,7 @@ def test_observations_posterior_is_gpytorchs_own_prediction():
     gpytorch's ExactGP predicts from the same lazy W K W^T."""
     import gpytorch
 
-    from irft_torch.gp.encoding import encode_contacts
+    from irft_torch.gp.kernels.encoding import encode_contacts
 
     c, f = data(T=20, M=3, seed=91)
     model = irft.InverseRFT(c, f, method="observations", prior_mean="physics", priors=None, hyper_posterior="map",

@@ -1,5 +1,5 @@
 """The closed-form loss and gradient (``gp.backends.closed_form``) and the batched log posterior over
-hyperparameter draws (``gp.hyper_density``), each against two independent references: autograd through the
+hyperparameter draws (``gp.hyper.density``), each against two independent references: autograd through the
 backends' own ``loss`` (the code that existed before) and the dense reference (explicit W, explicit K,
 torch Cholesky; ``dense_reference``). float64 to 1e-8 (the spectral backend against the dense reference:
 1e-6, its truncation); float32 against float64."""
@@ -14,8 +14,8 @@ from gpytorch.priors import GammaPrior
 import irft_torch as irft
 from irft_torch.gp.backends.closed_form import ClosedForm, autograd_only, current_values
 from irft_torch.gp.backends.covariance_terms import LENGTHSCALE, OUTPUTSCALE, CovarianceTerm, PairsRBF
-from irft_torch.gp.hyper_density import log_posterior_and_grad, log_posterior_batch
-from irft_torch.gp.hyper_posterior import _SubSpec, hyper_spec, log_posterior
+from irft_torch.gp.hyper.density import log_posterior_and_grad, log_posterior_batch
+from irft_torch.gp.hyper.posterior import _SubSpec, hyper_spec, log_posterior
 from irft_torch.rft import FourierStressMap
 
 from .dense_reference import axis_reference

@@ -12,8 +12,8 @@ import torch
 
 import irft_torch as irft
 from irft_torch.gp import fit_control
-from irft_torch.gp import hyper_posterior as hp_mod
-from irft_torch.gp.laplace_guard import HyperPosteriorWarning, said_once
+from irft_torch.gp.hyper import posterior as hp_mod
+from irft_torch.gp.hyper.guard import HyperPosteriorWarning, said_once
 
 F64 = torch.float64
 

@@ -44,7 +44,7 @@ def test_a_float32_model_stays_float32_on_every_path():
 def test_fit_together_keeps_float32_models_in_float32(monkeypatch):
     """Its stacked prior centres are in the models' dtype and on their device: every prior term is checked as
     it is evaluated (the closures are looked up when the models are built)."""
-    from irft_torch.gp import priors
+    from irft_torch.gp.kernels import priors
     from irft_torch.studies.reproduce import configuration
 
     def checked(name):

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from irft_torch.gp.fourier import GRID, factor_coefficients, fourier_features, harmonics_for, truncation_errors
+from irft_torch.gp.kernels.fourier import GRID, factor_coefficients, fourier_features, harmonics_for, truncation_errors
 
 
 @pytest.mark.parametrize("ls", [(0.3, 0.5), (1.0, 1.0), (2.5, 0.8)])

@@ -1,6 +1,7 @@
 """The generic shape with an uncertain scale (``InverseRFT(..., li_basis=True, generic_shape=True)``,
-``gp.li_basis``): u_a g_a(theta) g_a(theta') added to the kernel, g_a Li et al.'s generic map. Each backend against
-the model written densely, with g evaluated from the published coefficients (``FourierStressMap.generic``, not from
+``gp.kernels.li_basis``): u_a g_a(theta) g_a(theta') added to the kernel, g_a Li et al.'s generic map. Each backend
+against the model written densely, with g evaluated from the published coefficients (``FourierStressMap.generic``, not
+from
 the term's own coefficients); the closed-form gradient against autograd and finite differences; the term as a mean
 of uncertain scale, by hand (Bayesian linear regression); the prior, the filter, save/load and the options."""
 
@@ -13,7 +14,7 @@ import irft_torch as irft
 from irft_torch import InverseRFT
 from irft_torch.gp.backends.closed_form import autograd_only
 from irft_torch.gp.batch_fit import shares_fit
-from irft_torch.gp.li_basis import generic_coefficients, li_features
+from irft_torch.gp.kernels.li_basis import generic_coefficients, li_features
 from irft_torch.rft import Contacts, forces
 from irft_torch.rft.stress_maps import FourierStressMap
 
@@ -247,8 +248,8 @@ def test_options_around_the_generic_term():
 
 
 def test_the_learned_surface_carries_the_generic_term():
-    """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
-    at the shifted contacts; its offset gradient equals central differences (``test_li_basis``'s check with the
+    """The surface likelihood (``gp.surface.offset``, its own pairs algebra) with the term equals the dense model
+    with it at the shifted contacts; its offset gradient equals central differences (``test_li_basis``'s check with the
     generic shape's term)."""
     check_learned_surface({"generic_shape": True}, _set, _dense)
 

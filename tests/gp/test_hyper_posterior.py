@@ -1,4 +1,4 @@
-"""Hyperparameter posteriors (gp.hyper_posterior, gp.mixture): against brute-force numerical integration on
+"""Hyperparameter posteriors (gp.hyper.posterior, gp.hyper.mixture): against brute-force numerical integration on
 the dense reference, hand-derived mixtures, Monte Carlo and finite differences."""
 
 import math
@@ -9,12 +9,18 @@ from scipy.optimize import brentq
 from scipy.stats import norm
 
 import irft_torch as irft
-from irft_torch.gp.hyper_posterior import hyper_spec, log_posterior, point_mass
-from irft_torch.gp.importance import _student_t
+from irft_torch.gp.hyper.importance import _student_t
+from irft_torch.gp.hyper.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.hyper.pareto import gpd_shape, pareto_khat
+from irft_torch.gp.hyper.posterior import hyper_spec, log_posterior, point_mass
 from irft_torch.gp.inputs import _data_scales
-from irft_torch.gp.mixture import mixture_moments, mixture_quantile
-from irft_torch.gp.pareto import gpd_shape, pareto_khat
-from irft_torch.gp.priors import LENGTHSCALE_CENTRE, LENGTHSCALE_LOG_SD, NOISE_LOG_SD, OUTPUTSCALE_LOG_SD, prior_centres
+from irft_torch.gp.kernels.priors import (
+    LENGTHSCALE_CENTRE,
+    LENGTHSCALE_LOG_SD,
+    NOISE_LOG_SD,
+    OUTPUTSCALE_LOG_SD,
+    prior_centres,
+)
 
 from .dense_reference import axis_reference
 
@@ -414,7 +420,7 @@ def test_nuts_metric_and_processes_arguments_and_the_in_process_fallback(fitted,
     pytest.importorskip("pyro")
     from concurrent.futures.process import BrokenProcessPool
 
-    from irft_torch.gp import hyper_nuts
+    from irft_torch.gp.hyper import nuts as hyper_nuts
 
     c, f, m0 = fitted
     m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
@@ -451,7 +457,7 @@ def test_nuts_says_when_pyro_does_not_take_the_laplace_metric(fitted, monkeypatc
     pytest.importorskip("pyro")
     from pyro.infer.mcmc.adaptation import WarmupAdapter
 
-    from irft_torch.gp import hyper_nuts
+    from irft_torch.gp.hyper import nuts as hyper_nuts
 
     c, f, m0 = fitted
     m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)

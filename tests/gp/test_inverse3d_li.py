@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from irft_torch.design import ProbeScorer3D
-from irft_torch.gp.hyper_posterior import hyper_spec
+from irft_torch.gp.hyper.posterior import hyper_spec
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
 
 from .test_inverse3d import CASES, _set, assert_predictions_match, dense, per_sample, turning_toe

@@ -1,4 +1,4 @@
-"""Where the Laplace approximation of the hyperparameter posterior fails (gp.laplace_guard): a noise driven to its
+"""Where the Laplace approximation of the hyperparameter posterior fails (gp.hyper.guard): a noise driven to its
 wall by noise-free forces, a direction the plain likelihood leaves flat, proposals that are all impossible; each
 against a hand-derived case, the truth or the plug-in."""
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import irft_torch as irft
-import irft_torch.gp.hyper_posterior as hyper_posterior
-from irft_torch.gp import laplace_guard as guard
+import irft_torch.gp.hyper.posterior as hyper_posterior
+from irft_torch.gp.hyper import guard
 from irft_torch.rft import FourierStressMap
 
 from .test_backends_vs_dense import data
@@ -134,8 +134,8 @@ def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
     unreliable (k-hat 1.3-1.5, ESS 5-10 of 256). With the second stage the weighted mean and covariance approach
     the target's (closed form) and the effective sample size grows (measured: mean error 0.3-0.7 -> 0.05-0.1,
     ESS -> 56-162 of 512)."""
-    from irft_torch.gp.importance import first_stage, importance_sample
-    from irft_torch.gp.pareto import pareto_khat
+    from irft_torch.gp.hyper.importance import first_stage, importance_sample
+    from irft_torch.gp.hyper.pareto import pareto_khat
 
     m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
     A = torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.2, 0.5]], dtype=F64)

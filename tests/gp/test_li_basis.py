@@ -1,5 +1,5 @@
-"""Li et al.'s 9-function kernel term (``InverseRFT(..., li_basis=True)``, ``gp.li_basis``): each backend against
-the model written densely with the term's closed form (1 + cos 2 dbeta)(1 + cos dgamma) / 4, the closed-form
+"""Li et al.'s 9-function kernel term (``InverseRFT(..., li_basis=True)``, ``gp.kernels.li_basis``): each backend
+against the model written densely with the term's closed form (1 + cos 2 dbeta)(1 + cos dgamma) / 4, the closed-form
 gradient against autograd and finite differences, and the options around it."""
 
 import math
@@ -10,7 +10,7 @@ import torch
 from irft_torch import InverseRFT
 from irft_torch.gp.backends.closed_form import autograd_only
 from irft_torch.gp.batch_fit import fit_together, shares_fit
-from irft_torch.gp.li_basis import li_features
+from irft_torch.gp.kernels.li_basis import li_features
 from irft_torch.rft import CToe, IToe, contacts, forces
 from irft_torch.rft.paths import pose_path
 from irft_torch.rft.stress_maps import FourierStressMap
@@ -236,7 +236,7 @@ def test_the_prior_variance_is_s_plus_v_in_scores_and_diagnostics(method):
 def test_options_that_do_not_carry_the_term_say_so():
     c, f = _data("rotating")
     from irft_torch.gp.backends.spectral import SpectralBackend
-    from irft_torch.gp.fourier import FourierBasis
+    from irft_torch.gp.kernels.fourier import FourierBasis
 
     model = InverseRFT(c, f, li_basis=True, hyper_posterior="map")
     with pytest.raises(ValueError, match="li_basis"):  # a basis without the first harmonics cannot hold the term
@@ -274,8 +274,8 @@ def test_fit_together_with_the_term_ends_where_each_fit_ends(tied, generic):
 
 
 def test_the_learned_surface_carries_the_term():
-    """The surface likelihood (``gp.surface``, its own pairs algebra) with the term equals the dense model with it
-    at the shifted contacts, and its offset gradient equals central differences."""
+    """The surface likelihood (``gp.surface.offset``, its own pairs algebra) with the term equals the dense model
+    with it at the shifted contacts, and its offset gradient equals central differences."""
     check_learned_surface({}, _set, _dense)
 
 

@@ -8,11 +8,17 @@ import pytest
 import torch
 
 import irft_torch as irft
-from irft_torch.gp.hyper_posterior import hyper_spec, log_evidence
+from irft_torch.gp.hyper.mixture import mixture_moments, mixture_quantile
+from irft_torch.gp.hyper.posterior import hyper_spec, log_evidence
 from irft_torch.gp.inputs import _data_scales
+from irft_torch.gp.kernels.priors import (
+    LENGTHSCALE_CENTRE,
+    LENGTHSCALE_LOG_SD,
+    NOISE_LOG_SD,
+    OUTPUTSCALE_LOG_SD,
+    prior_centres,
+)
 from irft_torch.gp.mean_average import MeanAverage, _polish_to_mode
-from irft_torch.gp.mixture import mixture_moments, mixture_quantile
-from irft_torch.gp.priors import LENGTHSCALE_CENTRE, LENGTHSCALE_LOG_SD, NOISE_LOG_SD, OUTPUTSCALE_LOG_SD, prior_centres
 
 from .dense_reference import axis_reference
 from .test_hyper_posterior import query, small_problem

@@ -68,7 +68,8 @@ class TestRFTKernelLinearOperatorRectangular(RectangularLinearOperatorTestCase, 
 
 
 def test_memory_budget_chunks_and_both_algebras_give_the_same_matrix(monkeypatch):
-    from irft_torch.gp import memory_budget, operators
+    from irft_torch.gp import memory_budget
+    from irft_torch.gp.kernels import operators
 
     monkeypatch.setattr(operators, "DENSE_WEIGHTS_MAX_RATIO", 0)  # force the gather path
 
@@ -95,20 +96,20 @@ class TestRFTKernelLinearOperatorGatherPath(TestRFTKernelLinearOperatorBatch):
     """The same battery on the gather algebra (large tables), forced."""
 
     def setUp(self):
-        from irft_torch.gp import operators
+        from irft_torch.gp.kernels import operators
 
         self._old = operators.DENSE_WEIGHTS_MAX_RATIO
         operators.DENSE_WEIGHTS_MAX_RATIO = 0
         super().setUp() if hasattr(super(), "setUp") else None
 
     def tearDown(self):
-        from irft_torch.gp import operators
+        from irft_torch.gp.kernels import operators
 
         operators.DENSE_WEIGHTS_MAX_RATIO = self._old
 
 
 def test_unique_pairs_agrees_with_torch_unique():
-    from irft_torch.gp.operators import unique_pairs
+    from irft_torch.gp.kernels.operators import unique_pairs
 
     g = torch.Generator().manual_seed(4)
     for dtype in (torch.float64, torch.float32):
@@ -172,7 +173,7 @@ class TestRowSeparableRFTOperatorRectangular(RectangularLinearOperatorTestCase, 
 
 def _dense_segments(b1, g1, w1, b2, g2, w2, ls, os):
     """sum_{m, m'} w1_tm w2_t'm' k(theta1_tm, theta2_t'm'), every segment pair written out (einsum)."""
-    from irft_torch.gp.embedding import embed_angles
+    from irft_torch.gp.kernels.embedding import embed_angles
 
     def emb(b, g):
         x = embed_angles(b, g) / ls[..., None, :, :]  # (2, T, M, 4)
@@ -192,7 +193,7 @@ def test_row_separable_structure_matches_every_segment_pair_written_out():
     operator when one side is not separable."""
     import math
 
-    from irft_torch.gp.operators import RowSeparableRFTOperator
+    from irft_torch.gp.kernels.operators import RowSeparableRFTOperator
 
     g = torch.Generator().manual_seed(0)
     dt = torch.float64

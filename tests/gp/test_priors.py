@@ -1,4 +1,4 @@
-"""Hyperparameter priors (gp.priors): against the generic map as truth and hand-derived values."""
+"""Hyperparameter priors (gp.kernels.priors): against the generic map as truth and hand-derived values."""
 
 import math
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import irft_torch as irft
-from irft_torch.gp.priors import GENERIC_RMS, medium_scale, prior_centres
+from irft_torch.gp.kernels.priors import GENERIC_RMS, medium_scale, prior_centres
 
 from .test_diagnostics import TRUTH, vertical_intrusion
 
@@ -121,7 +121,7 @@ def test_a_model_grown_by_add_data_has_the_objective_of_one_built_on_all_its_dat
 def test_centre_sums_of_two_parts_give_the_direct_formulas_on_all_the_data():
     """Streaming adds the parts' sums (O(new samples)); the centres equal the direct formulas on the joined data:
     zeta = sum F.g / sum g.g, residual rms(F - s g) / rms(sum |w|) per axis (hand-written here)."""
-    from irft_torch.gp.priors import CentreSums, _generic_forces, centres_of_sums
+    from irft_torch.gp.kernels.priors import CentreSums, _generic_forces, centres_of_sums
 
     toe = irft.rft.CToe(0.02, 0.008, opening="left")
     c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=70))

@@ -8,8 +8,8 @@ import torch
 
 import irft_torch as irft
 from irft_torch.gp.backends.spectral import spectral_statistics
-from irft_torch.gp.fourier import FourierBasis
-from irft_torch.gp.means import GenericShapeMean
+from irft_torch.gp.kernels.fourier import FourierBasis
+from irft_torch.gp.kernels.means import GenericShapeMean
 from irft_torch.gp.statistics import (
     initial_basis,
     recording_statistics,

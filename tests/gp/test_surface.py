@@ -1,4 +1,4 @@
-"""The free surface's height learned with the maps (``gp.surface``): contacts moved by an offset
+"""The free surface's height learned with the maps (``gp.surface.offset``): contacts moved by an offset
 equal contacts of the physically shifted path; the surface likelihood equals the dense reference at
 every offset; its offset gradient equals finite differences; a 1 cm error in the stated surface is
 recovered to 1 mm on simulated data and the map error returns to the correct surface's."""

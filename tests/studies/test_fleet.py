@@ -9,7 +9,7 @@ import torch
 
 import irft_torch as irft
 from irft_torch.data import Dataset, load_dataset, save_dataset
-from irft_torch.gp.fourier import FourierBasis
+from irft_torch.gp.kernels.fourier import FourierBasis
 from irft_torch.gp.statistics import recording_statistics, statistics_arrays
 from irft_torch.rft import Contacts, FourierStressMap
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from torch import Tensor, nn
 
 from ...rft.contacts import Contacts
-from ..hyperparameters import RFTHyperparameters
+from ..kernels.hyperparameters import RFTHyperparameters
 
 __all__ = ["FunctionalPosterior", "RFTBackend", "touching"]
 

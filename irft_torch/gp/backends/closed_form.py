@@ -16,7 +16,7 @@ Sigma is a sum of :class:`~irft_torch.gp.backends.covariance_terms.CovarianceTer
 d Sigma / d value. The registered priors' density (the physical ones in closed form, others by autograd)
 and the constraints' chain rule value -> raw parameter complete the gradient of ``RFTBackend.loss``
 (``loss_and_grad``, what ``InverseRFT.fit``'s Adam loop calls). ``ClosedForm.evaluate`` takes values
-with leading batch dimensions: S hyperparameter draws in one call (``gp.hyper_density``: Laplace's
+with leading batch dimensions: S hyperparameter draws in one call (``gp.hyper.density``: Laplace's
 proposals, NUTS).
 
 **Adding a kernel term** (say k_dev(theta, theta') = sum_k v_k h_k(theta) h_k(theta'), h_k fixed
@@ -45,7 +45,7 @@ from gpytorch.constraints.constraints import softplus as _gpytorch_softplus
 from gpytorch.priors import NormalPrior
 from torch import Tensor
 
-from ..li_basis import LI_GENERIC, LI_VARIANCE
+from ..kernels.li_basis import LI_GENERIC, LI_VARIANCE
 from .covariance_terms import LENGTHSCALE, MEAN, NOISE, OUTPUTSCALE, Adjoint, CovarianceTerm
 
 __all__ = ["ClosedForm", "autograd_only", "closed_form_enabled", "closed_form_of", "current_values", "loss_and_grad",
@@ -163,7 +163,7 @@ class ClosedForm:
 class _Plan:
     """What a step needs of an ``RFTHyperparameters``, found once (walking gpytorch's module tree each
     step costs more than the arithmetic at these sizes): the raw parameters with their constraints and the
-    registered priors, the physical ones (``gp.priors``: a ``NormalPrior`` of log(value) - centre)
+    registered priors, the physical ones (``gp.kernels.priors``: a ``NormalPrior`` of log(value) - centre)
     resolved for closed form."""
 
     def __init__(self, hypers) -> None:
@@ -295,7 +295,7 @@ def _plan(hypers) -> _Plan:
 def _resolve_prior(prior, closure):
     """(parameter name, centre + loc, 1 / scale^2, -log scale - log sqrt(2 pi)) of a physical prior, or None
     for any other registered prior."""
-    from .. import priors as physical
+    from ..kernels import priors as physical
 
     if type(prior) is not NormalPrior or getattr(prior, "_transform", None) is not None:
         return None

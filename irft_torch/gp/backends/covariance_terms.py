@@ -16,9 +16,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..embedding import embed_angles
-from ..fourier import GRID, _analysis, _grid
-from ..li_basis import LI_GENERIC, LI_VARIANCE, generic_features
+from ..kernels.embedding import embed_angles
+from ..kernels.fourier import GRID, _analysis, _grid
+from ..kernels.li_basis import LI_GENERIC, LI_VARIANCE, generic_features
 
 __all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF",
            "KroneckerFourier", "RowSeparable", "LiBasisTerm", "li_terms"]
@@ -171,7 +171,7 @@ class PairsRBF(CovarianceTerm):
 
 
 class LiBasisTerm(CovarianceTerm):
-    """Li et al.'s 9-function term (``gp.li_basis``): Sigma = H diag(v) H^T per map, H (2, n, 9) or (n, 9) the
+    """Li et al.'s 9-function term (``gp.kernels.li_basis``): Sigma = H diag(v) H^T per map, H (2, n, 9) or (n, 9) the
     features at the space's coordinates (the distinct pairs; with R None, the observations' weighted sums).
 
     d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = sum((G (R H)) o (R H)).
@@ -196,8 +196,8 @@ class LiBasisTerm(CovarianceTerm):
 
 
 def li_terms(hypers, features: Tensor) -> list[CovarianceTerm]:
-    """The closed-form terms of Li et al.'s 9 functions (``gp.li_basis``) with ``features`` (2, n, 9) or (n, 9) at
-    the space's coordinates: none without the term, the rank-9 term, and the generic shape's rank-one term where
+    """The closed-form terms of Li et al.'s 9 functions (``gp.kernels.li_basis``) with ``features`` (2, n, 9) or (n,
+    9) at the space's coordinates: none without the term, the rank-9 term, and the generic shape's rank-one term where
     the model has it."""
     li = getattr(hypers, "li", None)
     if li is None:

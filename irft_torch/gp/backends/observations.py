@@ -16,10 +16,10 @@ from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..encoding import encode_contacts
-from ..kernels import BATCH, RFTCompositeKernel, composite_covariance
-from ..li_basis import contact_li_features, li_features
-from ..operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
+from ..kernels.angle import BATCH, RFTCompositeKernel, composite_covariance
+from ..kernels.encoding import encode_contacts
+from ..kernels.li_basis import contact_li_features, li_features
+from ..kernels.operators import RFTKernelLinearOperator, _dense_weights, _use_dense_weights
 from .base import FunctionalPosterior, RFTBackend
 
 __all__ = ["CompositeExactGP", "ObservationsBackend", "PriorBackend"]
@@ -28,7 +28,7 @@ __all__ = ["CompositeExactGP", "ObservationsBackend", "PriorBackend"]
 class CompositeExactGP(gpytorch.models.ExactGP):
     """A batch of two exact GPs (x and z maps) observed through RFT-weighted sums.
 
-    Inputs are composite rows (2, T, 3M) (see ``gp.encoding``), targets the forces (2, T).
+    Inputs are composite rows (2, T, 3M) (see ``gp.kernels.encoding``), targets the forces (2, T).
     """
 
     def __init__(self, train_inputs: Tensor, train_targets: Tensor, likelihood, mean_module, covar_module) -> None:

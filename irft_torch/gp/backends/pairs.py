@@ -12,9 +12,9 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..kernels import angle_covariance, composite_covariance
-from ..li_basis import li_features
-from ..operators import unique_pairs
+from ..kernels.angle import angle_covariance, composite_covariance
+from ..kernels.li_basis import li_features
+from ..kernels.operators import unique_pairs
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
 __all__ = ["PairsBackend", "distinct_pairs"]

@@ -7,8 +7,8 @@ import types
 import torch
 
 from ...rft.contacts import Contacts
-from ..fourier import MAX_HARMONICS, FourierBasis
-from ..operators import row_separable, unique_pairs
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis
+from ..kernels.operators import row_separable, unique_pairs
 from .base import RFTBackend, touching
 from .observations import ObservationsBackend
 from .pairs import PairsBackend, distinct_pairs

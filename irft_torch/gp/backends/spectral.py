@@ -1,7 +1,7 @@
 r"""The "spectral" backend: the maps in a truncated Fourier basis on the angle torus.
 
 alpha_a(theta) = psi(theta)^T u_a with psi = psi_beta(2 beta) kron psi_gamma(gamma) and
-u_a ~ N(0, s_a Sigma_beta,a kron Sigma_gamma,a) (``gp.fourier``): the weight-space algebra
+u_a ~ N(0, s_a Sigma_beta,a kron Sigma_gamma,a) (``gp.kernels.fourier``): the weight-space algebra
 (``weight_space``) with F = (2 n_beta + 1)(2 n_gamma + 1) features. The sufficient statistics take
 one pass over the data (O(T M F + T F^2)); each Adam step costs O(r^3 + r^2 F) with r <= min(T, F),
 whatever T; streaming adds O(F^2) per sample. The basis is sized from the lengthscales and a
@@ -18,8 +18,8 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..fourier import MAX_HARMONICS, FourierBasis
-from ..li_basis import li_index, with_li_functions
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis
+from ..kernels.li_basis import li_index, with_li_functions
 from .base import FunctionalPosterior, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
@@ -198,8 +198,8 @@ class SpectralBackend(WeightSpaceBackend):
         return li_index(self.basis, self.stats.P.device)
 
     def _sigma_apply(self, X: Tensor, detach: bool) -> Tensor:
-        """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, P / 4, ``gp.li_basis``:
-        diag(v) / 4, or with the generic shape the full 9 x 9 P / 4)."""
+        """X (2, k, F) -> X Sigma, Sigma = s Sb kron Sg (+ Li et al.'s term on its 9 weights, P / 4,
+        ``gp.kernels.li_basis``: diag(v) / 4, or with the generic shape the full 9 x 9 P / 4)."""
         Y = self._kron(X, *self._sigma_factors(detach=detach))
         li = self.hypers.li
         if li is None:

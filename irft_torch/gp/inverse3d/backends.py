@@ -7,12 +7,12 @@ Gaussian linear model F_b = sum_c W_bc alpha_c + eps with one noise variance per
   lazy W K W^T (``RFTKernelLinearOperator``) over the rows' elements, made dense; a constant alpha_y is
   s_y (W 1)(W 1)^T. For few samples with few elements each (toes).
 - ``"pairs"``: u_c = map c at the U distinct angle pairs of the data, Sigma_c = K_c(U, U): exact, O(U^3).
-- ``"spectral"``: u_c = Fourier coefficients on the angle torus (``gp.fourier``), Sigma_c = s_c Sigma_beta
+- ``"spectral"``: u_c = Fourier coefficients on the angle torus (``gp.kernels.fourier``), Sigma_c = s_c Sigma_beta
   kron Sigma_gamma: exact up to the reported truncation; the wheels' tens of thousands of elements per run
   enter once, as T x F features.
 
-With ``li_basis=True`` each map over (beta, gamma) adds Li et al.'s rank-9 term (``gp.li_basis``): v_c (W f)(W' f)^T
-in the observations' space, f_U diag(v_c) f_U^T on the pairs table, v_c / 4 on the 9 first-harmonic weights.
+With ``li_basis=True`` each map over (beta, gamma) adds Li et al.'s rank-9 term (``gp.kernels.li_basis``): v_c (W
+f)(W' f)^T in the observations' space, f_U diag(v_c) f_U^T on the pairs table, v_c / 4 on the 9 first-harmonic weights.
 
 The weight-space pair (pairs, spectral) share one algebra. Per block, the rows of each axis a (group g)
 are reduced once, hyperparameter-free, to R_g (r_g x F), c_g = Q_g^T y_g and rho_g = |y_g|^2 - |c_g|^2
@@ -39,10 +39,10 @@ from torch import Tensor, nn
 
 from ...rft.contacts3d import Contacts3D
 from ..backends.weight_space import data_factor_from_rows
-from ..embedding import embed_angles, rbf
-from ..fourier import MAX_HARMONICS, FourierBasis
-from ..li_basis import li_features, li_index, weighted_li_features, with_li_functions
-from ..operators import RFTKernelLinearOperator, unique_pairs
+from ..kernels.embedding import embed_angles, rbf
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis
+from ..kernels.li_basis import li_features, li_index, weighted_li_features, with_li_functions
+from ..kernels.operators import RFTKernelLinearOperator, unique_pairs
 from .features import BankRows, SpectralFeatureBank, spectral_features
 from .hyperparameters import BLOCKS, RFT3DHyperparameters
 from .rows import block_rows, block_targets
@@ -363,7 +363,7 @@ class WeightSpace3D(Backend3D):
 
 
 class Spectral3D(WeightSpace3D):
-    """3-D I-RFT in a Fourier basis on the (beta, gamma) torus (``gp.fourier``), sized for the kernel's
+    """3-D I-RFT in a Fourier basis on the (beta, gamma) torus (``gp.kernels.fourier``), sized for the kernel's
     relative truncation error <= ``tol`` at the current lengthscales; grows (``refresh``) when they shrink."""
 
     name = "spectral"

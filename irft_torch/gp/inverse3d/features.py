@@ -7,8 +7,8 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
-from ..fourier import FourierBasis
-from ..operators import unique_pairs
+from ..kernels.fourier import FourierBasis
+from ..kernels.operators import unique_pairs
 from .hyperparameters import BLOCKS
 from .rows import block_rows
 

@@ -1,6 +1,6 @@
 r"""The 3-D model's predictions as mixtures over hyperparameter draws (``hyper_posterior="laplace"`` or "nuts").
 
-The planar machinery (``gp.hyper_posterior``: ``laplace``, ``nuts``, ``log_posterior``) works on any backend with
+The planar machinery (``gp.hyper.posterior``: ``laplace``, ``nuts``, ``log_posterior``) works on any backend with
 ``negative_log_likelihood()``, ``n_samples``, ``log_prior()`` and a hyperparameter module with gpytorch
 constraints; the 3-D backends and ``RFT3DHyperparameters`` have them, so it is used as it is. Here: the draws'
 backends (``Backend3D.with_hypers``: data and hyperparameter-free factors shared) and the mixture of each
@@ -8,8 +8,8 @@ sample's 3 x 3 force covariance over the draws (weights w_s, means mu_s, covaria
 
     mu = sum_s w_s mu_s,      C = sum_s w_s (C_s + (mu_s - mu)(mu_s - mu)^T)
 
-(the law of total covariance; its diagonal is ``gp.mixture.mixture_moments``' total variance). Intervals invert
-the mixture's CDF per axis (``gp.mixture.mixture_quantile``).
+(the law of total covariance; its diagonal is ``gp.hyper.mixture.mixture_moments``' total variance). Intervals invert
+the mixture's CDF per axis (``gp.hyper.mixture.mixture_quantile``).
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..hyper_mixture import backends_at_draws, posterior_over_hypers
-from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec
-from ..laplace_guard import said_once
+from ..hyper.guard import said_once
+from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, hyper_spec
+from ..hyper.predictions import backends_at_draws, posterior_over_hypers
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
 
@@ -58,7 +58,7 @@ class HyperMixture3DMixin:
             n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each).
             n_draws: draws kept for prediction (each one backend); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
-            options: for ``gp.hyper_posterior.laplace`` or ``nuts`` (``free``: the labels to marginalise, default
+            options: for ``gp.hyper.posterior.laplace`` or ``nuts`` (``free``: the labels to marginalise, default
                 all but what no likelihood sees: alpha_y's lengthscales when alpha_y is a constant).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``; labels ``lengthscale_x[sin2b]``, ...,

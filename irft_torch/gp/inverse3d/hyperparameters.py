@@ -11,7 +11,7 @@ and the planar model is the special case where the F_y rows see no map (they add
 term). alpha_y is either a third map over (beta, gamma) (an ARD RBF on the embedding, like the others) or
 a constant with a zero-mean normal prior of variance s_y (a rank-one kernel term s_y (W_y 1)(W_y 1)^T).
 With ``li_basis=True`` each map over (beta, gamma) also has Li et al.'s rank-9 term v_c f(theta) . f(theta')
-(``gp.li_basis``; not a constant alpha_y).
+(``gp.kernels.li_basis``; not a constant alpha_y).
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from gpytorch import Module
 from gpytorch.likelihoods import GaussianLikelihood
 from torch import Tensor
 
-from ..constraints import ScaledGreaterThan
-from ..kernels import AngleKernel
-from ..li_basis import LiBasisVariance
+from ..kernels.angle import AngleKernel
+from ..kernels.constraints import ScaledGreaterThan
+from ..kernels.li_basis import LiBasisVariance
 
 __all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "RFT3DHyperparameters"]
 
@@ -103,7 +103,7 @@ class RFT3DHyperparameters(Module):
     @property
     def prior_variance(self) -> Tensor:
         """(3,) each map's prior variance at any angle pair, (N/cm^3)^2: the outputscale, plus Li et al.'s v where
-        the map has the term (|f(theta)|^2 = 1, ``gp.li_basis``)."""
+        the map has the term (|f(theta)|^2 = 1, ``gp.kernels.li_basis``)."""
         s = self.outputscale
         if self.li is None:
             return s
@@ -127,7 +127,7 @@ class RFT3DHyperparameters(Module):
         return c == 1 and self.alpha_y == "constant"
 
     def hyper_labels(self, name: str, shape: torch.Size) -> list[str]:
-        """Readable names of a raw parameter's coordinates (``gp.hyper_posterior.hyper_spec``):
+        """Readable names of a raw parameter's coordinates (``gp.hyper.posterior.hyper_spec``):
         ``lengthscale_{x,y,z}[sin2b|cos2b|sing|cosg]``, ``outputscale_{x,y,z}`` (the maps alpha_x, alpha_y,
         alpha_z) and ``noise_{x,y,z}`` (the force axes F_x, F_y, F_z)."""
         base = {"kernel.base_kernel.raw_lengthscale": "lengthscale", "kernel.raw_outputscale": "outputscale",

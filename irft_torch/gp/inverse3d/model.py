@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, progress_bar
-from ..hyper_posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
+from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..posterior import marginal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
@@ -121,8 +121,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             a ``UserWarning`` after ``fit``).
         hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
             then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
-            ``gp.hyper_posterior`` machinery) and every prediction is a mixture over its draws.
-        li_basis: add Li et al.'s 9 functions as a kernel term of each map over (beta, gamma) (``gp.li_basis``,
+            ``gp.hyper.posterior`` machinery) and every prediction is a mixture over its draws.
+        li_basis: add Li et al.'s 9 functions as a kernel term of each map over (beta, gamma) (``gp.kernels.li_basis``,
             as the planar model's option; variances ``model.hypers.li_variance`` (3,), labels ``li_variance_x``...).
             Default False, unlike the planar model's: with ``li_basis=True, hyper_posterior="laplace"`` the measured
             wheels' held-out forces lose to the authors' 3-D RFT on the smooth wheel's longitudinal and lateral axes
@@ -196,7 +196,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 self.hypers.li.variance = self.hypers.outputscale
         if priors == "physical":
             register_priors_3d(self.hypers, centres)
-        from ..fourier import MAX_HARMONICS
+        from ..kernels.fourier import MAX_HARMONICS
 
         self.max_harmonics = MAX_HARMONICS if max_harmonics is None else int(max_harmonics)
         residual = f if G is None else f - G @ self.mean_scales
@@ -292,7 +292,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         """Streaming: append force samples with the hyperparameters fixed (no refit). The posterior is exactly
         that of a batch fit on all the data at these hyperparameters (each backend appends to its own exact
         factors: ``Backend3D.add_data``); hyperparameter draws are reweighted by the new samples' likelihood
-        (``gp.hyper_posterior.add_data_to_draws``). The physical priors' centres follow all the data, so a later
+        (``gp.hyper.posterior.add_data_to_draws``). The physical priors' centres follow all the data, so a later
         ``fit`` (and a saved and loaded model) has the objective of a model built on all of it."""
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")

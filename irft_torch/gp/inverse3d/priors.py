@@ -1,4 +1,4 @@
-"""Physical hyperparameter priors of 3-D I-RFT: the planar model's (``gp.priors``, its docstring gives the
+"""Physical hyperparameter priors of 3-D I-RFT: the planar model's (``gp.kernels.priors``, its docstring gives the
 reasons) with the third map added.
 
 - outputscale of map c: centre max(zeta rms_c, s_c, 0.5 rms_c max_c' s_c' / rms_c')^2, zeta the medium's
@@ -21,7 +21,7 @@ from torch import Tensor
 from ...rft.contacts3d import Contacts3D
 from ...rft.forces3d import forces_3d
 from ...rft.stress_maps import FourierStressMap
-from ..priors import (
+from ..kernels.priors import (
     GENERIC_RMS,
     JOINT_FRACTION,
     LENGTHSCALE_CENTRE,

@@ -2,7 +2,7 @@ r"""Parallel environments' terrain estimates averaged over a model's hyperparame
 by each environment's own samples (``TerrainFilterMixture``).
 
 A model fitted with ``hyper_posterior="laplace"`` (or ``"nuts"``, or ``prior_mean="average"``) predicts with a
-mixture over draws theta_s of weights w_s (``gp.mixture``). ``TerrainFilter`` keeps one environment's posterior at
+mixture over draws theta_s of weights w_s (``gp.hyper.mixture``). ``TerrainFilter`` keeps one environment's posterior at
 one set of hyperparameters (the mode); this keeps one ``TerrainFilter`` per draw, and weighs the draws per
 environment b by the evidence of that environment's samples y_b (its window's, with ``window``):
 
@@ -29,10 +29,10 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
-from ..rft.contacts import Contacts
-from .model import InverseRFT
-from .posterior import Posterior
-from .terrain_filter import TerrainFilter
+from ...rft.contacts import Contacts
+from ..model import InverseRFT
+from ..posterior import Posterior
+from .filter import TerrainFilter
 
 __all__ = ["TerrainFilterMixture"]
 

@@ -1,7 +1,7 @@
 """The front door's predictions as mixtures over hyperparameter draws: ``InverseRFT`` fits the
-posterior over its hyperparameters (``gp.hyper_posterior``: Laplace with importance reweighting, or
+posterior over its hyperparameters (``gp.hyper.posterior``: Laplace with importance reweighting, or
 NUTS) and keeps one backend per draw; every prediction averages over them with the draws' weights
-(``gp.mixture``). A mixin of ``InverseRFT`` (like botorch's ``FantasizeMixin``): it uses the model's
+(``gp.hyper.mixture``). A mixin of ``InverseRFT`` (like botorch's ``FantasizeMixin``): it uses the model's
 ``hypers``, ``backend``, training data and options."""
 
 from __future__ import annotations
@@ -13,16 +13,16 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
-from .backends import RFTBackend, make_backend
-from .hyper_nuts import nuts
-from .hyper_posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace
-from .hyperparameters import RFTHyperparameters
-from .laplace_guard import HyperPosteriorWarning, said_once
+from ..backends import RFTBackend, make_backend
+from ..kernels.hyperparameters import RFTHyperparameters
+from .guard import HyperPosteriorWarning, said_once
+from .nuts import nuts
+from .posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace
 
 if TYPE_CHECKING:
-    from ..rft.contacts import Contacts
-    from .backends.weight_space import FeatureStatistics
-    from .surface import SurfaceOffset
+    from ...rft.contacts import Contacts
+    from ..backends.weight_space import FeatureStatistics
+    from ..surface.offset import SurfaceOffset
 
 __all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
@@ -48,8 +48,8 @@ def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, dev
 
 def posterior_over_hypers(backend, method: str, n_proposals: int, n_draws: int | None, generator,
                           **options) -> HyperPosterior:
-    """The hyperparameter posterior of ``backend`` by ``method``: "laplace" (``gp.hyper_posterior.laplace``) or
-    "nuts" (``gp.hyper_nuts.nuts``, ``n_draws`` None: 16); planar or 3-D."""
+    """The hyperparameter posterior of ``backend`` by ``method``: "laplace" (``gp.hyper.posterior.laplace``) or
+    "nuts" (``gp.hyper.nuts.nuts``, ``n_draws`` None: 16); planar or 3-D."""
     if method == "laplace":
         return laplace(backend, n_proposals=n_proposals, n_draws=n_draws, generator=generator, **options)
     return nuts(backend, n_draws=16 if n_draws is None else n_draws, **options)
@@ -90,12 +90,12 @@ class HyperMixtureMixin(nn.Module):
         Args:
             method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
             n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each); as many again
-                where their weights are unreliable (``gp.importance.importance_sample``).
+                where their weights are unreliable (``gp.hyper.importance.importance_sample``).
             n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
                 plug-in's); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
-            options: passed to ``gp.hyper_posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
-                ``qmc``, ``adapt``) or ``gp.hyper_nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
+            options: passed to ``gp.hyper.posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
+                ``qmc``, ``adapt``) or ``gp.hyper.nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
                 ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With

@@ -1,6 +1,6 @@
 r"""Where the Laplace approximation of the hyperparameter posterior does not hold, and what is done then.
 
-``gp.hyper_posterior.laplace`` puts a Gaussian N(mode, H^-1) at the mode of log p(theta | F) and reweights
+``gp.hyper.posterior.laplace`` puts a Gaussian N(mode, H^-1) at the mode of log p(theta | F) and reweights
 proposals from a wider Student-t. Three situations break that, and each is met here instead of giving a
 silently wrong mixture:
 
@@ -16,7 +16,7 @@ silently wrong mixture:
   (``proposal_covariance``): such a direction is explored within a factor e^5 of its mode.
 - **Unreliable weights.** Pareto k-hat above 0.7 (PSIS's threshold) or an effective sample size below 2:
   the mixture rests on a few proposals. A second stage of proposals, moved to where the first stage's weights
-  lie (``gp.importance.importance_sample``), is drawn first; where the weights stay unreliable,
+  lie (``gp.hyper.importance.importance_sample``), is drawn first; where the weights stay unreliable,
   ``HyperPosteriorWarning`` says so, with the numbers and what
   to do (``hyper_posterior="nuts"``); where every proposal is impossible, the plug-in at the mode is kept
   (a point mass) with the same warning instead of an error in the middle of ``fit``.
@@ -42,7 +42,7 @@ MIN_ESS = 2.0  # below it the mixture is one proposal: not a posterior
 
 
 class HyperPosteriorWarning(UserWarning):
-    """The hyperparameter posterior is a poor approximation here (``gp.laplace_guard``): unreliable importance
+    """The hyperparameter posterior is a poor approximation here (``gp.hyper.guard``): unreliable importance
     weights, coordinates held at a wall, or the plug-in kept where every proposal was impossible."""
 
 
@@ -108,7 +108,7 @@ def walls(log_p_many: Callable[[Tensor], Tensor], mode: Tensor, sd: Tensor) -> T
 
 
 def lower_bounds(spec) -> Tensor:
-    """(P,) each coordinate's lower bound (its value must exceed it) of a ``gp.hyper_posterior.HyperSpec``."""
+    """(P,) each coordinate's lower bound (its value must exceed it) of a ``gp.hyper.posterior.HyperSpec``."""
     return torch.cat([c.lower_bound.expand(s).reshape(-1) if c.lower_bound.numel() > 1
                       else c.lower_bound.reshape(1).expand(s.numel())
                       for s, c in zip(spec.shapes, spec.constraints)])

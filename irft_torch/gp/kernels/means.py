@@ -6,7 +6,7 @@ import torch
 from gpytorch.means import Mean
 from torch import Tensor
 
-from ..rft.stress_maps import FourierStressMap
+from ...rft.stress_maps import FourierStressMap
 from .constraints import ScaledGreaterThan
 from .encoding import decode_rows
 

@@ -14,7 +14,7 @@ This term gives the 9 functions a prior variance of their own, one per map:
 with f the 9 functions divided by 2 (``li_features``). It is a rank-9 kernel: every backend adds
 (W f) diag(v) (W f)^T to the force covariance, W f (2, N, 9) the features summed with the contacts' weights
 (``contact_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
-prior at the outputscale's centre (``gp.priors``).
+prior at the outputscale's centre (``gp.kernels.priors``).
 
 **The generic shape with an uncertain scale** (``InverseRFT(..., li_basis=True, generic_shape=True)``). Li et al.
 found that the media they measured share one generic map g_a (``FourierStressMap.generic``) up to a scale per
@@ -27,7 +27,7 @@ u_a g_a(theta) g_a(theta') is a mean m_a g_a with m_a ~ N(0, u_a) integrated out
     P_a = \operatorname{diag}(v_a) + u_a c_a c_a^\top,
 
 so every backend adds (W f) P_a (W f)^T (``LiBasisVariance.weigh``). u (2,) in (N/cm^3)^2 has a log-normal prior at the
-medium's zeta squared (``gp.priors``). docs/calibration.md has the evidence (the rotating leg's alpha_z).
+medium's zeta squared (``gp.kernels.priors``). docs/calibration.md has the evidence (the rotating leg's alpha_z).
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def with_li_functions(basis: FourierBasis) -> FourierBasis:
 
 
 def li_index(basis: FourierBasis, device=None) -> Tensor:
-    """(9,) the positions of the 9 functions in a Fourier basis' beta-major features (``gp.fourier``; the basis
+    """(9,) the positions of the 9 functions in a Fourier basis' beta-major features (``gp.kernels.fourier``; the basis
     needs n_beta, n_gamma >= 1): there the term is diagonal, v / 4 on those weights (f = the functions / 2)."""
     Fg = basis.sizes[1]
     return (torch.arange(3, device=device)[:, None] * Fg + torch.arange(3, device=device)[None, :]).reshape(-1)
@@ -86,7 +86,7 @@ def li_index(basis: FourierBasis, device=None) -> Tensor:
 
 @functools.cache
 def _generic_coefficients_f64() -> Tensor:
-    from ..rft.stress_maps import FourierStressMap
+    from ...rft.stress_maps import FourierStressMap
 
     x = torch.linspace(-torch.pi, torch.pi, 13, dtype=torch.float64)[:-1]
     beta, gamma = (t.reshape(-1) for t in torch.meshgrid(x / 2, x, indexing="ij"))
@@ -117,7 +117,7 @@ def generic_features(features: Tensor, n_maps: int = 2) -> Tensor:
 class LiBasisVariance(Module):
     """The term's prior variance per map, v (2,) in (N/cm^3)^2, and with ``generic``, the generic shape's u (2,)
     too, each positive through ``ScaledGreaterThan`` (measured in the data's map scale, like the outputscale).
-    A gpytorch ``Module``: its priors are registered on it (``gp.priors``) and it is saved in state dicts."""
+    A gpytorch ``Module``: its priors are registered on it (``gp.kernels.priors``) and it is saved in state dicts."""
 
     def __init__(self, scale=1.0, n_maps: int = 2, generic: bool = False) -> None:
         """``scale``: the data's map scale squared per map ((N/cm^3)^2); ``n_maps``: 2 (x, z), or 2B for B models
@@ -174,7 +174,7 @@ class LiBasisVariance(Module):
     def mean_variance(self) -> Tensor:
         """(n_maps,) the term's prior variance of a map averaged over the canonical square, (N/cm^3)^2:
         v (|f(theta)|^2 = 1 everywhere) plus u times the mean square of the generic shape there
-        (``gp.priors.GENERIC_RMS``)."""
+        (``gp.kernels.priors.GENERIC_RMS``)."""
         v = self.variance
         if not self.generic:
             return v

@@ -36,7 +36,7 @@ exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
 The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
 copied when the filter is built.
 
-A model with ``li_basis=True`` (``gp.li_basis``) adds Li et al.'s rank-9 term f(theta)^T P_a f(theta') to
+A model with ``li_basis=True`` (``gp.kernels.li_basis``) adds Li et al.'s rank-9 term f(theta)^T P_a f(theta') to
 the kernel (P_a = diag(v_a), plus u_a c_a c_a^T with ``generic_shape``): each sample keeps its 9 weighted
 features per axis (``weighted_li_features``, cm^3), and every covariance above gains (W f)^T P_a (W' f): 81
 multiply-adds per pair at most beside the RBF's M^2 kernel values.
@@ -56,11 +56,11 @@ import copy
 import torch
 from torch import Tensor, nn
 
-from ..rft.contacts import Contacts
-from .embedding import embed_angles
-from .li_basis import weighted_li_features
-from .model import InverseRFT
-from .posterior import Posterior
+from ...rft.contacts import Contacts
+from ..kernels.embedding import embed_angles
+from ..kernels.li_basis import weighted_li_features
+from ..model import InverseRFT
+from ..posterior import Posterior
 
 __all__ = ["TerrainFilter"]
 

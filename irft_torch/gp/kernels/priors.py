@@ -41,9 +41,9 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   is the centre: the map keeps correlation exp(-4 / (2 * 1.5^2)) = 0.41 between beta = 0 and
   beta = +-pi/2 (exp(-1/4.5) = 0.80 at +-pi/4), so it extrapolates part of what it saw and reverts
   to the prior's variance beyond, and that is what the posterior std then says.
-- **Li et al.'s term** (``li_basis=True``, ``gp.li_basis``): its variance per map has the outputscale's
+- **Li et al.'s term** (``li_basis=True``, ``gp.kernels.li_basis``): its variance per map has the outputscale's
   centre and width: the 9 functions are given as much prior variance as the RBF part.
-- **the generic shape's variance** u (``generic_shape=True``, ``gp.li_basis``): the variance of the shape's
+- **the generic shape's variance** u (``generic_shape=True``, ``gp.kernels.li_basis``): the variance of the shape's
   scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2. As for
   the outputscale: with the physics mean (which already carries the shape at a fitted scale) the centre is
   (0.3 zeta)^2 and the width a factor 10, and with a learned surface (zeta not trusted) the width is a factor 10.
@@ -71,9 +71,9 @@ import torch
 from gpytorch.priors import NormalPrior
 from torch import Tensor
 
-from ..rft.contacts import Contacts
-from ..rft.forces import forces as rft_forces
-from ..rft.stress_maps import FourierStressMap
+from ...rft.contacts import Contacts
+from ...rft.forces import forces as rft_forces
+from ...rft.stress_maps import FourierStressMap
 
 __all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale", "prior_centres",
            "centres_of_sums",
@@ -210,7 +210,7 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
                                                  functools.partial(_log_noise_ratio, c=log_noise))
     if getattr(hypers, "li", None) is not None:
-        # Li et al.'s 9-function term (``gp.li_basis``): the same centre and width as the outputscale; the
+        # Li et al.'s 9-function term (``gp.kernels.li_basis``): the same centre and width as the outputscale; the
         # evidence for this centre (x 0.25 to x 4 all raise coverage): docs/calibration.md
         hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
                                  functools.partial(_log_li_ratio, c=log_os))

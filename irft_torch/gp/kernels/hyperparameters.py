@@ -12,8 +12,8 @@ from gpytorch import Module
 from gpytorch.likelihoods import GaussianLikelihood
 from torch import Tensor
 
+from .angle import BATCH, AngleKernel
 from .constraints import ScaledGreaterThan
-from .kernels import BATCH, AngleKernel
 from .li_basis import LiBasisVariance, generic_coefficients, li_features
 from .means import GenericShapeMean
 
@@ -37,7 +37,7 @@ class RFTHyperparameters(Module):
         kernel: :class:`AngleKernel` (lengthscale (2, 1, 4), outputscale (2,) in (N/cm^3)^2).
         likelihood: gpytorch ``GaussianLikelihood`` (noise in N^2).
         mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
-        li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.li_basis``, and with
+        li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.kernels.li_basis``, and with
             ``generic_shape`` the generic shape's variance (2,) too) or None (the RBF alone).
     """
 
@@ -54,7 +54,7 @@ class RFTHyperparameters(Module):
         self.mean = GenericShapeMean(scale=ms) if physics_mean else None
         if generic_shape and not li_basis:
             raise ValueError("generic_shape=True needs li_basis=True: the generic shape is a rank-one update of Li et "
-                             "al.'s 9-function term (gp.li_basis)")
+                             "al.'s 9-function term (gp.kernels.li_basis)")
         self.li = LiBasisVariance(scale=ms.pow(2), generic=generic_shape) if li_basis else None
 
     @property
@@ -100,7 +100,7 @@ class RFTHyperparameters(Module):
 
     def start_li(self, zeta: float) -> None:
         """Start Li et al.'s term at the RBF part's variance and the generic shape's at zeta^2 (the centres of their
-        priors, ``gp.priors``; zeta the medium's scale, ``priors.prior_centres``)."""
+        priors, ``gp.kernels.priors``; zeta the medium's scale, ``priors.prior_centres``)."""
         with torch.no_grad():
             self.li.variance = self.outputscale
             if self.li.generic:
@@ -115,14 +115,14 @@ class RFTHyperparameters(Module):
     @property
     def prior_variance(self) -> Tensor:
         """(2,) the prior variance of each map, (N/cm^3)^2: the outputscale, plus Li et al.'s v where the model has
-        the term (its 9 functions have |f(theta)|^2 = 1 at every theta, ``gp.li_basis``); with the generic shape,
-        plus u times its mean square over the canonical square (the one part that varies with the angles)."""
+        the term (its 9 functions have |f(theta)|^2 = 1 at every theta, ``gp.kernels.li_basis``); with the generic
+        shape, plus u times its mean square over the canonical square (the one part that varies with the angles)."""
         s = self.outputscale
         return s if self.li is None else s + self.li.mean_variance()
 
     def prior_variance_at(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """(..., 2) the prior variance of each map at angle pairs (...,) in radians, (N/cm^3)^2: ``prior_variance``
-        everywhere, except with the generic shape, whose part is u g(theta)^2 (``gp.li_basis``)."""
+        everywhere, except with the generic shape, whose part is u g(theta)^2 (``gp.kernels.li_basis``)."""
         s = self.outputscale if self.li is None else self.outputscale + self.li.variance
         beta, gamma = torch.broadcast_tensors(beta, gamma)
         if self.li is None or not self.li.generic:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..rft.contacts import Contacts
+from ...rft.contacts import Contacts
 
 __all__ = ["encode_rows", "decode_rows", "encode_contacts", "encode_points", "AXES"]
 

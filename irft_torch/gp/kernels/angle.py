@@ -29,7 +29,7 @@ class AngleKernel(ScaleKernel):
             (\phi_d(\theta) - \phi_d(\theta'))^2 / \ell_d^2\Big)
 
     Called on embeddings (..., n, 4) it is gpytorch's RBF. The backends evaluate it on angle
-    pairs through :func:`irft_torch.gp.embedding.rbf` (one fused matmul), with this module's
+    pairs through :func:`irft_torch.gp.kernels.embedding.rbf` (one fused matmul), with this module's
     ``lengthscale`` (2, 1, 4) and ``outputscale`` (2,) ((N/cm^3)^2); a test checks the two agree.
 
     Args:
@@ -75,7 +75,7 @@ def angle_covariance(kernel: AngleKernel, beta1: Tensor, gamma1: Tensor, beta2: 
 def composite_covariance(kernel: AngleKernel, c1, c2=None, li=None):
     """Lazy prior covariance (2, N1, N2) of the weighted sums of two sets of contacts (N, M) (c2 None:
     of c1 with itself), x and z axes, at the kernel's current hyperparameters (no gradient in them;
-    differentiable in the contacts). ``li``: a ``LiBasisVariance`` whose rank-9 term (``gp.li_basis``, with the
+    differentiable in the contacts). ``li``: a ``LiBasisVariance`` whose rank-9 term (``gp.kernels.li_basis``, with the
     generic shape where it has one: (W f) P (W f)^T) is added (the sum of the two operators), or None."""
     ls, os = kernel.lengthscale.detach(), kernel.outputscale.detach()
     w1 = torch.stack([c1.weight_x, c1.weight_z])
@@ -104,7 +104,7 @@ class RFTCompositeKernel(Kernel):
 
     Args:
         base_kernel: the :class:`AngleKernel` (its hyperparameters are this kernel's).
-        li: a ``LiBasisVariance``: Li et al.'s rank-9 term (``gp.li_basis``) is added, (W f) P (W f)^T with
+        li: a ``LiBasisVariance``: Li et al.'s rank-9 term (``gp.kernels.li_basis``) is added, (W f) P (W f)^T with
             P = diag(v) (+ u c c^T, the generic shape),
             differentiable in its variance; None (default): the RBF alone.
 

@@ -1,4 +1,4 @@
-"""Importance sampling of the hyperparameter posterior (``gp.hyper_posterior.laplace``): Student-t
+"""Importance sampling of the hyperparameter posterior (``gp.hyper.posterior.laplace``): Student-t
 proposals from a scrambled Sobol sequence, their log density, a second adaptive stage where the first stage's
 weights are unreliable, systematic resampling of the weighted draws and
 the merging of identical ones."""

@@ -9,7 +9,7 @@ theta = log(value), and
 
 with log p(F | theta) = -T * (the backend's negative log likelihood per sample, summed over the two
 axes): gpytorch's ``ExactMarginalLogLikelihood`` (and ``RFTBackend.loss``) divides by T, which is put
-back. The physical priors (``gp.priors``) are normal densities of log(value / centre), i.e. densities
+back. The physical priors (``gp.kernels.priors``) are normal densities of log(value / centre), i.e. densities
 in theta already: no change-of-variables term is needed in these coordinates (a prior stated on the
 value itself would add sum(theta)). Without priors (``priors=None``) the prior is flat in theta.
 
@@ -20,12 +20,12 @@ value itself would add sum(theta)). Without priors (``priors=None``) the prior i
   (sum w)^2 / sum w^2 and Pareto k-hat of the largest weights (Vehtari et al., PSIS: k-hat < 0.7
   means the weights are reliable). The draws kept for prediction are a systematic resample.
   Where the approximation does not hold (a hyperparameter at a wall, a flat direction, unreliable weights)
-  ``gp.laplace_guard`` holds, caps or warns (``HyperPosteriorWarning``) instead of a silently wrong mixture.
-- ``nuts`` (``gp.hyper_nuts``): pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install
+  ``gp.hyper.guard`` holds, caps or warns (``HyperPosteriorWarning``) instead of a silently wrong mixture.
+- ``nuts`` (``gp.hyper.nuts``): pyro's NUTS on the same potential -log p(theta | F) (optional: ``pip install
   pyro-ppl``), started at the mode with the Laplace covariance as its metric, chains in worker processes;
   the reference and the fallback when the Laplace weights are unreliable.
 
-Predictions are then the mixture over the draws (``gp.mixture``).
+Predictions are then the mixture over the draws (``gp.hyper.mixture``).
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
-from . import laplace_guard as guard
-from .hyper_density import closed_form_log_posterior, log_posterior_and_grad, log_posterior_batch
+from . import guard
+from .density import closed_form_log_posterior, log_posterior_and_grad, log_posterior_batch
 from .importance import _merge, _systematic, first_stage, importance_sample
 from .pareto import pareto_khat
 
@@ -156,7 +156,7 @@ def _swapped(hypers, raw: dict[str, Tensor]):
 def log_posterior(backend, spec: HyperSpec, theta: Tensor, exact_graph: bool = False) -> Tensor:
     """Unnormalised log p(theta | F) at theta (P,) (differentiable): -T x the backend's negative log
     likelihood per sample (both axes) plus the log prior; -inf where theta is impossible (a value below its
-    bound, a covariance that is not positive definite). In closed form where the backend has one (``gp.hyper_density``:
+    bound, a covariance that is not positive definite). In closed form where the backend has one (``gp.hyper.density``:
     first derivatives only); ``exact_graph``: through autograd, differentiable twice (the Laplace Hessian)."""
     if not exact_graph:
         fast = closed_form_log_posterior(backend, spec, theta)
@@ -246,7 +246,7 @@ def point_mass(backend) -> HyperPosterior:
 
 def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """log p, its gradient (P,) and the Hessian (P, P) of -log p at theta: central differences of the closed-form
-    gradient (``gp.hyper_density``; all 2 P + 1 points in one batch, step ``HESSIAN_STEP`` in log(value), error
+    gradient (``gp.hyper.density``; all 2 P + 1 points in one batch, step ``HESSIAN_STEP`` in log(value), error
     ~1e-8 relative) where the backend has one and every point is possible, else autograd's second derivatives."""
     fd = _hessian_by_differences(backend, spec, theta)
     if fd is not None:
@@ -352,7 +352,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
         generator: a ``torch.Generator`` for the proposals' scrambling and the resample; None (default): one seeded
             with ``DRAW_SEED``, so that the same data give the same draws and predictions in any process.
         adapt: where the first ``n_proposals`` weights are unreliable (Pareto k-hat above 0.7 or ESS below 2),
-            a second stage of as many proposals, moved to the weighted draws (``gp.importance.importance_sample``).
+            a second stage of as many proposals, moved to the weighted draws
+            (``gp.hyper.importance.importance_sample``).
     """
     spec = hyper_spec(backend.hypers)
     P = spec.size

@@ -28,7 +28,7 @@ docs/surface.md for the sign convention and what is and is not identified.
 
 The front door composes it: ``InverseRFT`` holds a ``SurfaceOffset`` and takes its methods from
 ``LearnedSurfaceMixin``; this module never imports the front door (the profile likelihood, which
-builds models, is ``gp.surface_profile``).
+builds models, is ``gp.surface.profile``).
 """
 
 from __future__ import annotations
@@ -41,15 +41,15 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
-from ..rft.contacts import M_TO_CM, Contacts
-from .backends import make_backend
-from .backends.pairs import distinct_pairs
-from .kernels import angle_covariance
-from .li_basis import li_features
+from ...rft.contacts import M_TO_CM, Contacts
+from ..backends import make_backend
+from ..backends.pairs import distinct_pairs
+from ..kernels.angle import angle_covariance
+from ..kernels.li_basis import li_features
 
 if TYPE_CHECKING:
-    from .backends import RFTBackend
-    from .hyperparameters import RFTHyperparameters
+    from ..backends import RFTBackend
+    from ..kernels.hyperparameters import RFTHyperparameters
 
 __all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate",
            "LearnedSurfaceMixin"]
@@ -158,7 +158,7 @@ def surface_negative_log_likelihood(hypers, contacts: Contacts, forces: Tensor, 
     w = torch.stack([contacts.weight_x, contacts.weight_z])  # (2, T, M)
     Phi = w.new_zeros(2, T, U).scatter_add(-1, index.expand(2, *index.shape), w)
     K = angle_covariance(hypers.kernel, table[:, 0], table[:, 1], table[:, 0], table[:, 1])  # (2, U, U)
-    if getattr(hypers, "li", None) is not None:  # Li et al.'s term (``gp.li_basis``) at the pairs
+    if getattr(hypers, "li", None) is not None:  # Li et al.'s term (``gp.kernels.li_basis``) at the pairs
         f = li_features(table[:, 0], table[:, 1])
         K = K + hypers.li.weigh(f) @ f.mT
     s2 = hypers.noise  # (2,)
@@ -270,7 +270,7 @@ class LearnedSurfaceMixin(nn.Module):
 
     @property
     def surface_offset(self):
-        """The learned surface offset(s) (``gp.surface.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
+        """The learned surface offset(s) (``gp.surface.offset.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
         (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
         Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
         if self.surface is None:

@@ -1,6 +1,6 @@
 """The profile likelihood of one surface offset: an ``InverseRFT`` refitted at each offset of a grid.
 
-Independent of the Laplace approximation of ``gp.surface`` (which the front door composes while it
+Independent of the Laplace approximation of ``gp.surface.offset`` (which the front door composes while it
 fits the offset with the maps), so it checks that one; it builds models, so it sits above the front
 door (``gp.model``), never imported by it.
 """
@@ -11,8 +11,8 @@ import math
 
 import torch
 
-from ..rft.contacts import Contacts
-from .model import InverseRFT
+from ...rft.contacts import Contacts
+from ..model import InverseRFT
 
 __all__ = ["profile_surface"]
 

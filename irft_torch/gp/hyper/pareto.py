@@ -1,5 +1,5 @@
 """Pareto k-hat: how far importance weights can be trusted (Vehtari, Simpson, Gelman, Yao & Gabry, "Pareto
-smoothed importance sampling", JMLR 2024). ``gp.hyper_posterior`` reports it for the Laplace proposals' weights."""
+smoothed importance sampling", JMLR 2024). ``gp.hyper.posterior`` reports it for the Laplace proposals' weights."""
 
 from __future__ import annotations
 

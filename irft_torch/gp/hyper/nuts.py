@@ -2,7 +2,7 @@ r"""NUTS (pyro) on the hyperparameters' log posterior, the reference for the Lap
 
 The target is ``hyper_posterior.log_posterior`` (the exact marginal likelihood times n, the Jacobian of
 log coordinates and the priors) over theta = log(value) of the free hyperparameters; its gradient is the
-closed form where the backend has one (``gp.hyper_density``).
+closed form where the backend has one (``gp.hyper.density``).
 
 **The metric.** NUTS is correct with any positive-definite metric (the inverse mass matrix), but how many
 leapfrog steps a draw takes depends on it. By default (``metric="laplace"``) each chain starts at the
@@ -31,8 +31,8 @@ import warnings
 import torch
 from torch import Tensor
 
-from . import laplace_guard as guard
-from .hyper_posterior import HyperPosterior, _free_mask, _polish, _SubSpec, hyper_spec, log_posterior
+from . import guard
+from .posterior import HyperPosterior, _free_mask, _polish, _SubSpec, hyper_spec, log_posterior
 
 __all__ = ["nuts", "METRICS"]
 

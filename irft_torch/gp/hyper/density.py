@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor
 
-from .backends.closed_form import closed_form_of, current_values, prior_terms
+from ..backends.closed_form import closed_form_of, current_values, prior_terms
 
 __all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior"]
 

@@ -1,0 +1,3 @@
+"""Learning while the data arrive, for many robots or environments at once: ``TerrainFilter`` (``filter``: B
+independent I-RFT posteriors over sliding windows, one batched update per step) and ``TerrainFilterMixture``
+(``filter_mixture``: the same averaged over hyperparameter draws)."""
