@@ -17,13 +17,13 @@ def _float64_default():
 
 
 def _fault_fuzz():
-    """experiments/fault_fuzz.py as a module (its simulated logs and edits serve the fault tests)."""
+    """experiments/validation/fault_fuzz.py as a module (its simulated logs and edits serve the fault tests)."""
     import importlib.util
     import pathlib
     import sys
 
     if "fault_fuzz" not in sys.modules:
-        path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "fault_fuzz.py"
+        path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "validation" / "fault_fuzz.py"
         spec = importlib.util.spec_from_file_location("fault_fuzz", path)
         mod = importlib.util.module_from_spec(spec)
         sys.modules["fault_fuzz"] = mod

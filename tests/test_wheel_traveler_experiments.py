@@ -17,7 +17,7 @@ needs_traveler = pytest.mark.skipif(not (TRAVELER / "traveler_trial_2024-02-02.c
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, next((ROOT / "experiments").glob(f"*/{name}.py")))
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod
     spec.loader.exec_module(mod)

@@ -191,7 +191,7 @@ class ProbeScorer:
                 own tolerance, if coarser). Ranking candidates does not need the fit's 1e-7: at 1e-4
                 the basis has about 40 % of the features (11 x 11 instead of 17 x 17 harmonics at
                 T = 1,000) and scoring is 2.5-3.5x faster, the scores within 2 % of the model's basis
-                and ranked the same (``experiments/bench_active_probing.py`` prints both; a test checks
+                and ranked the same (``experiments/benchmarks/bench_active_probing.py`` prints both; a test checks
                 the choice and the order). Cut from a spectral model's statistics: no pass over the data.
                 None: the model's own tolerance (a spectral model: its own backend and basis, exactly).
                 A float: a spectral basis sized for this truncation error (``method`` becomes

@@ -229,7 +229,7 @@ def test_dem_validation_experiment_runs_small(tmp_path, monkeypatch):
     import importlib
 
     # importable by name, as when run as a script: the fold workers (spawned processes) import it
-    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[2] / "experiments"))
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).resolve().parents[2] / "experiments" / "validation"))
     mod = importlib.import_module("dem_validation")
     small = ["--data", str(DATA), "--stride", "1000", "--eval-stride", "200", "--n-iter", "3", "--plain-iter", "3",
              "--no-li-basis", "--hyper-posterior", "map"]  # the script's machinery; the default's fit is tests/gp's
@@ -265,7 +265,7 @@ def test_run_effect_variant_matches_the_dense_likelihood():
     # K from gpytorch's own ScaleKernel(RBFKernel) on the embedding (sin 2b, cos 2b, sin g, cos g)
     import importlib.util
 
-    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "dem_validation.py"
+    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "validation" / "dem_validation.py"
     spec = importlib.util.spec_from_file_location("dem_validation_re", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -318,7 +318,7 @@ def test_force_bootstrap_resamples_whole_runs_by_hand():
     interval of RMSE(perfect) - RMSE(b) is then [-3, -1] N. Resampling samples one by one would not give it."""
     import importlib.util
 
-    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "dem_validation.py"
+    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "validation" / "dem_validation.py"
     spec = importlib.util.spec_from_file_location("dem_validation_bs", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -65,7 +65,7 @@ def test_active_probing_experiment_runs_quick(tmp_path):
     import pathlib
     import sys
 
-    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "active_probing.py"
+    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "validation" / "active_probing.py"
     spec = importlib.util.spec_from_file_location("active_probing_experiment", path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # its dataclasses look their module up

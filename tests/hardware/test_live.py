@@ -124,13 +124,14 @@ def test_the_scale_std_is_that_of_the_joint_posterior(walked):
 
 
 def test_live_convergence_script_runs_briefly(tmp_path):
-    """experiments/live_convergence.py (the docs' figure of the live map converging), 4 strides: its summary per
+    """experiments/validation/live_convergence.py (the docs' figure of the live map converging), 4 strides: its
+    summary per
     stance and its figure."""
     import importlib.util
     from pathlib import Path
 
     spec = importlib.util.spec_from_file_location("live_convergence", Path(__file__).parents[2] / "experiments" /
-                                                  "live_convergence.py")
+                                                  "validation" / "live_convergence.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     mod.main(["--strides", "4", "--out", str(tmp_path)])

@@ -1,4 +1,4 @@
-"""A small run of experiments/fault_fuzz.py (10^3 edited logs per class there, fault_fuzz.md): edited
+"""A small run of experiments/validation/fault_fuzz.py (10^3 edited logs per class there, fault_fuzz.md): edited
 logs of each class through irft ingest, against the oracle; zero silent-wrong, zero lost, zero refusals
 blaming another cause, zero tracebacks."""
 

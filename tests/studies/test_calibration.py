@@ -16,7 +16,7 @@ F64 = torch.float64
 
 
 def harness():
-    """experiments/calibration_harness.py as a module."""
+    """experiments/calibration/calibration_harness.py as a module."""
     return experiment("calibration_harness")
 
 
@@ -157,7 +157,8 @@ def test_resumed_rows_with_more_columns_keep_their_headings(tmp_path):
 
 
 def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
-    """experiments/calibration_limits.py's refit: the RBF outputscale's and Li et al.'s prior centres x factor against
+    """experiments/calibration/calibration_limits.py's refit: the RBF outputscale's and Li et al.'s prior centres x
+    factor against
     the library's model on the same data, the generic shape's and the lengthscales' priors unchanged."""
     limits = experiment("calibration_limits")
     truth, _ = cal.medium("perturbed", 1)
@@ -177,7 +178,8 @@ def test_the_limits_scan_scales_the_residual_terms_prior_and_nothing_else():
 
 
 def test_the_limits_terms_drop_only_the_residual_and_leave_regression_on_the_generic_shape():
-    """experiments/calibration_limits.py --terms: ``shrunk`` scales the RBF's and Li et al.'s variances and nothing
+    """experiments/calibration/calibration_limits.py --terms: ``shrunk`` scales the RBF's and Li et al.'s variances
+    and nothing
     else, and with them switched off the posterior is Bayesian linear regression of each force axis on the generic
     shape's forces (by hand), so on a scaled generic truth z^2 = (w - s)^2 / var(w) on every cell of the square."""
     limits = experiment("calibration_limits")

@@ -1,4 +1,5 @@
-"""experiments/fourier_kernel_term.py: its Li-basis kernel spans Li et al.'s fitting functions, and its dense
+"""experiments/calibration/fourier_kernel_term.py: its Li-basis kernel spans Li et al.'s fitting functions, and
+its dense
 zero-mean model is the library's (the same posterior at the same hyperparameters)."""
 
 import math

@@ -9,6 +9,8 @@ import pytest
 
 from irft_torch.cli import main
 
+from . import experiment_path
+
 
 def read(path):
     with open(path) as fh:
@@ -96,9 +98,8 @@ def dh_is(header):
 # ---- the experiment scripts' own outputs ------------------------------------------------------
 def _script(name):
     import importlib.util
-    import pathlib
 
-    path = pathlib.Path(__file__).resolve().parents[2] / "experiments" / f"{name}.py"
+    path = experiment_path(name)
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod  # dataclasses look their module up there
@@ -148,7 +149,7 @@ def test_importing_the_experiments_keeps_the_matplotlib_backend():
 
     code = ("import matplotlib, importlib.util, pathlib, sys; matplotlib.use('svg')\n"
             "for n in ('dem_validation', 'active_probing', 'experimental_validation'):\n"
-            "    s = importlib.util.spec_from_file_location(n, pathlib.Path('experiments') / (n + '.py'))\n"
+            "    s = importlib.util.spec_from_file_location(n, pathlib.Path('experiments') / 'validation' / (n + '.py'))\n"
             "    m = importlib.util.module_from_spec(s); sys.modules[n] = m; s.loader.exec_module(m)\n"
             "import irft_torch.studies.paper_study, irft_torch.plotting\n"
             "print(matplotlib.get_backend())")
@@ -163,16 +164,15 @@ def test_importing_the_experiments_keeps_the_matplotlib_backend():
 
 
 def test_calibration_study_quick_writes_coverage_that_matches_its_csv(tmp_path):
-    """experiments/calibration_study.py --quick: every cell's coverage is a share in [0, 1], the 95 %
+    """experiments/calibration/calibration_study.py --quick: every cell's coverage is a share in [0, 1], the 95 %
     interval covers at least the 50 % one's share (nested intervals), and the report's median is the
     median of the CSV's 95 % column (recomputed here)."""
     import csv
     import statistics
     import subprocess
     import sys
-    from pathlib import Path
 
-    script = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
+    script = experiment_path("calibration_study")
     subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)], check=True,
                    capture_output=True, text=True)
     rows = list(csv.DictReader(open(tmp_path / "calibration_study.csv")))
@@ -236,9 +236,8 @@ def test_bench_inference_quick_runs_and_checks_itself_against_the_dense_formula(
     # the benchmark asserts its paper-scale step equals the dense formula before timing it; a change
     # of defaults (priors, backends) must not break that check. No timing is asserted here.
     import subprocess
-    from pathlib import Path
 
-    bench = Path(__file__).resolve().parents[2] / "experiments" / "bench_inference.py"
+    bench = experiment_path("bench_inference")
     r = subprocess.run([sys.executable, str(bench), "--quick", "--repeats", "1",
                         "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -250,11 +249,10 @@ def test_calibration_prior_draws_have_the_kernels_covariance():
     # maps drawn by the calibration study's --truth prior: their covariance across draws at three angle
     # pairs against the RBF on the embedding (sin 2b, cos 2b, sin g, cos g) / l, written out here
     import importlib.util
-    from pathlib import Path
 
     import torch
 
-    path = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
+    path = experiment_path("calibration_study")
     spec = importlib.util.spec_from_file_location("calibration_study_draws", path)
     cs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cs)
@@ -275,9 +273,8 @@ def test_calibration_prior_draws_have_the_kernels_covariance():
 
 def _calibration_study():
     import importlib.util
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "experiments" / "calibration_study.py"
+    path = experiment_path("calibration_study")
     spec = importlib.util.spec_from_file_location("calibration_study_split", path)
     cs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cs)

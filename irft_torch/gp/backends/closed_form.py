@@ -59,7 +59,7 @@ _ENABLED = [True]
 def autograd_only():
     """Within this context the engine is the one before the closed form existed: every closed-form path
     stands aside and the autograd ones serve, and a data factor computed from rows keeps its zero rows
-    (``weight_space.data_factor_from_rows``). The reference in benchmarks (``experiments/bench_inference.py``)
+    (``weight_space.data_factor_from_rows``). The reference in benchmarks (``experiments/benchmarks/bench_inference.py``)
     and tests."""
     _ENABLED.append(False)
     try:

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
-# what a hyperparameter posterior without priors warns (measured: experiments/wheel_validation.py --study planar
+# what a hyperparameter posterior without priors warns (measured: experiments/validation/wheel_validation.py --study planar
 # --hyper-posterior laplace, the plain-likelihood row, 2026-11-27)
 IMPROPER = ("priors=None: under a flat prior on log(hyperparameters) the posterior is improper along any "
             "hyperparameter the forces do not bound; its draws there are as wide as the Laplace guard allows, and "

@@ -4,7 +4,7 @@ Li, Zhang & Goldman (Science 2013) fit the stress-per-depth maps of every medium
 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma}. The RBF on the embedding
 (sin 2beta, cos 2beta, sin gamma, cos gamma) gives their products (sin 2beta cos gamma, ...) almost no prior
 variance once its lengthscales are long (a smooth map), so a medium whose map differs from the data's
-mostly in those directions is extrapolated with false confidence (``experiments/fourier_kernel_term.py``).
+mostly in those directions is extrapolated with false confidence (``experiments/calibration/fourier_kernel_term.py``).
 This term gives the 9 functions a prior variance of their own, one per map:
 
 .. math::

@@ -46,7 +46,7 @@ differentiate through the terrain's past). ``stress_map`` and ``predict_forces``
 their inputs (the query angles, the contacts' angles and weights); the hyperparameters are constants.
 
 Cost per environment and step (float64, ``window`` n): n M^2 kernel values for the new sample's row,
-O(n^2) for the factor, O(n Q) for a tracked query. ``experiments/bench_inference.py`` case 9 measures it.
+O(n^2) for the factor, O(n Q) for a tracked query. ``experiments/benchmarks/bench_inference.py`` case 9 measures it.
 """
 
 from __future__ import annotations

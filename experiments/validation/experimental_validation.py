@@ -1,7 +1,9 @@
 """The paper's experimental analysis (Section V-B) on the simulated leg (or your own datasets).
 
-    python experiments/experimental_validation.py [--out experiments/results] [--quick]
-    python experiments/experimental_validation.py --datasets I1.npz I2.npz C1.npz C2.npz   # a real leg's
+Data: the simulated leg (or your datasets, --datasets). Run time: --quick 21 s; full: not measured here.
+
+    python experiments/validation/experimental_validation.py [--out experiments/results] [--quick]
+    python experiments/validation/experimental_validation.py --datasets I1.npz I2.npz C1.npz C2.npz   # a real leg's
 
 For each configuration (I-toe 80 x 8 mm, C-toe radius 40 x 8 mm; rectangle 50 / 300 / 50 mm and
 the experiment's cubic path) the simulated leg runs three noisy trials and one run in air through
@@ -120,7 +122,7 @@ def main(argv=None) -> None:
             print(f"{name:16s} I-RFT force RMSE {r['irft'][0]:6.2f} % (x) {r['irft'][1]:6.2f} % (z); "
                   f"reference map {r['reference'][0]:6.2f} / {r['reference'][1]:6.2f} %", flush=True)
     lines = ["# Experimental validation (Section V-B) on the simulated leg", "",
-             f"`python experiments/experimental_validation.py{' --quick' if a.quick else ''}`, "
+             f"`python experiments/validation/experimental_validation.py{' --quick' if a.quick else ''}`, "
              f"{time.perf_counter() - t0:.0f} s. Medium: closely packed poppy seeds (not the generic shape); "
              "3 trials + 1 air run each, friction 0.05 N m, cogging 0.02 N m, current noise 0.1 A, 1 % frames "
              f"dropped; I-RFT fitted on {n_fit} evenly spaced samples, evaluated on all.", "",

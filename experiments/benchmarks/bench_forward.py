@@ -1,6 +1,8 @@
 """Forward RFT throughput: segment evaluations per second, batched, against a per-segment loop.
 
-    python experiments/bench_forward.py [--n 1000000]
+Data: random segments. Run time: not measured here.
+
+    python experiments/benchmarks/bench_forward.py [--n 1000000]
 
 Prints segments/s for ``irft.rft.forces`` on n random segments (float64 and float32) and, as a
 same-run reference, a plain Python loop over the expanded Li et al. formula on a small sample.

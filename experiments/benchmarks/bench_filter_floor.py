@@ -1,6 +1,8 @@
 """What a TerrainFilter step cannot go below on this machine: the kernel row's exponentials, and the kernel row
 itself, eager and compiled.
 
+Data: simulated (a C-toe on the paper's gait). Run time: not measured here.
+
 Issue 33 asks for 1e5 env-steps per second at B = 4096 environments, M = 10 segments, one update and a
 16-point map query per step: 41 ms per step. An update must evaluate the new sample's kernel row against
 the n samples held (n M^2 kernel values per map axis, each one exponential): at window n = 16 that is
@@ -14,7 +16,7 @@ same run:
 3. with ``--compile``: the same row written for ``torch.compile`` (inductor, this machine's C++ compiler),
    the environments innermost so that every loop is vectorised over them: one fused kernel.
 
-    python experiments/bench_filter_floor.py [--compile] [--envs 4096] [--window 16]
+    python experiments/benchmarks/bench_filter_floor.py [--compile] [--envs 4096] [--window 16]
 
 Prints ms per step for float64 and float32 and the share of the 41 ms budget.
 """

@@ -1,5 +1,7 @@
 """The Laplace posterior's second importance-sampling stage, on the calibration harness' cases.
 
+Data: simulated (the harness' cases). Run time: not measured here.
+
 Each case (``studies.calibration``: a medium, a motion, a noise level, a seed) is fitted once; the plug-in, the
 Laplace posterior with its first stage only (``adapt=False``) and with the adaptive second stage (the default)
 are each scored from that same fit and the same first-stage proposals (``studies.calibration.score``: 95 %
@@ -8,7 +10,7 @@ to ``laplace_stages_<SET>.csv`` as each case finishes (a rerun skips the cases t
 and per motion (mean 95 % coverage, share overconfident beyond chance, x / z), the fits where stage 2 was
 drawn, k-hat above 0.7 and the median ESS are printed.
 
-    python experiments/laplace_stages.py --set main|held-out|held-out-2 [--limit N] [--out DIR]
+    python experiments/calibration/laplace_stages.py --set main|held-out|held-out-2 [--limit N] [--out DIR]
 
 ``main``: every family x motion at seed 0, and the generic-scaled family at seeds 0 and 1 (30 fits);
 ``held-out`` / ``held-out-2``: the harness' two held-out sets at seeds 0 and 1 (6 and 16 fits).
@@ -70,7 +72,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--set", choices=("main", "held-out", "held-out-2"), default="main")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     args = p.parse_args(argv)
     torch.set_default_dtype(torch.float64)
     args.out.mkdir(parents=True, exist_ok=True)

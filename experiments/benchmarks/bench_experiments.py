@@ -1,8 +1,11 @@
 """The experiments' wall time against the engine of an earlier commit, in the same run: issue #12's
 "dem_validation.py and irft reproduce at least 3x faster with the same tables".
 
-    python experiments/bench_experiments.py --data ../shared/data/dem_plate_intrusion [--reference 25da515]
-    python experiments/bench_experiments.py --only reproduce    # irft reproduce only (no data needed)
+Data: the DEM runs (--data DIR, not shipped; --only reproduce needs none) and a git checkout of the
+reference commit. Run time: about 4 min.
+
+    python experiments/benchmarks/bench_experiments.py --data ../shared/data/dem_plate_intrusion [--reference 25da515]
+    python experiments/benchmarks/bench_experiments.py --only reproduce    # irft reproduce only (no data needed)
 
 The reference commit (default 25da515: the engine when issue #12 was filed) is checked out into a
 temporary git worktree (this needs the repository's history: a git clone, not an sdist). Each command
@@ -20,7 +23,7 @@ runs in a fresh process, one after the other (nothing else should run on the mac
     likelihood: the same tables, compared cell by cell); and the reference's study driver
     (``reproduce.py`` of that commit, serial, its fits given
     ``priors=None``: the same model) on this engine, which isolates the engine;
-  * the current ``experiments/dem_validation.py`` (17 folds, 6 models), for the record.
+  * the current ``experiments/validation/dem_validation.py`` (17 folds, 6 models), for the record.
 
 The data are read from --data and never copied.
 """
@@ -36,7 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -170,7 +173,8 @@ def main(argv=None) -> None:
                              t_old, t_drv, tables))
                 print(rows[-1], flush=True)
             if not a.skip_current_dem and a.only in ("all", "dem"):
-                t_cur = run([py, "experiments/dem_validation.py", "--data", data, "--out", str(tmp / "dem_cur")],
+                t_cur = run([py, "experiments/validation/dem_validation.py", "--data", data,
+                             "--out", str(tmp / "dem_cur")],
                             ROOT, ROOT)
                 rows.append(("today's dem_validation.py (17 folds, 6 models) on this engine", None, t_cur, ""))
         finally:

@@ -1,8 +1,10 @@
 """Would Li et al.'s own fitting basis, as a kernel term, fix the narrow-slice intervals? A dense test.
 
+Data: simulated (the harness' cases). Run time: about 25 min for 24 cases.
+
 The harness (``docs/calibration.md``) finds the zero-mean model overconfident on generic-shaped media seen
 through a narrow slice of the square (40-sample strokes, the rotating leg), and NUTS shows that the
-hyperparameter posterior is not what fails (``experiments/nuts_vs_laplace.py``): the kernel is. Its RBF on
+hyperparameter posterior is not what fails (``experiments/calibration/nuts_vs_laplace.py``): the kernel is. Its RBF on
 the embedding (sin 2beta, cos 2beta, sin gamma, cos gamma) with the long lengthscales such smooth maps get
 gives the second-order terms of the embedding (sin 2beta cos gamma, ...) almost no prior variance, and
 those are half of the basis Li et al. (2013) fit every medium they measured with:
@@ -34,7 +36,8 @@ below 0.025). By default the plug-in predictions; ``--laplace N`` adds each mode
 proposals from N(mode, 1.5 H^-1) in log-hyperparameters, H the autograd Hessian, self-normalised importance
 weights; intervals from the mixture CDF, ``gp.hyper.mixture``) and the library's own Laplace posterior.
 
-    python experiments/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2] [--first-seed 0]
+    python experiments/calibration/fourier_kernel_term.py [--motions short,rotating,turning] [--seeds 2]
+        [--first-seed 0]
         [--held-out | --held-out-1] [--laplace N] [--generic] [--only-models rbf+li,...] [--no-library] [--out DIR]
 
 Rows go to ``fourier_kernel_term[_laplace].csv`` under --out as each case finishes (a rerun skips those there).
@@ -279,7 +282,7 @@ def main() -> None:
                    "with --seeds 6 --first-seed 2 scores seeds 2-5 only)")
     p.add_argument("--only-models", default=None, help="comma-separated subset of rbf,rbf+li,rbf+li+generic")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     a = p.parse_args()
     torch.set_num_threads(2)
     held = a.held_out or a.held_out_1

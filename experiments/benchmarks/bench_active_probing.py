@@ -1,7 +1,9 @@
 """Scoring candidate probes on a model with T = 1,000 force samples: time and agreement, against
 gpytorch's own exact predictive covariance in the same run.
 
-    python experiments/bench_active_probing.py [--T 1000] [--candidates 100] [--steps 200] [--device cuda]
+Data: simulated (random I- and C-toe probes, forward RFT). Run time: not measured here.
+
+    python experiments/benchmarks/bench_active_probing.py [--T 1000] [--candidates 100] [--steps 200] [--device cuda]
 
 The model: 5 random probes (I- and C-toe, 200 samples each: T = 1,000, about 9,000 segments in
 contact), hyperparameters at their data-scaled initial values (the cost does not depend on them).

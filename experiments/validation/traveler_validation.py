@@ -1,6 +1,9 @@
 """A real leg's log through this package's statics, and alpha_z at beta = 0 from its penetration.
 
-    python experiments/traveler_validation.py --data ../shared/data/traveler_leg [--out experiments/results]
+Data: a Traveler leg log (--data DIR, e.g. ../shared/data/traveler_leg; not shipped). Run time:
+about 60 s.
+
+    python experiments/validation/traveler_validation.py --data ../shared/data/traveler_leg [--out experiments/results]
 
 1. Statics: ``hardware.traveler`` maps the log's motor angles and torques to this package's
    FiveBarLeg (0.1 / 0.2 m links, 0.05 m extension) and F = -J^-T tau gives the force of the ground
@@ -129,7 +132,8 @@ def main(argv=None) -> None:
     log = read_traveler_log(path)
     t = log.time
     lines = ["# Traveler leg: statics and alpha_z at beta = 0 from a real log", "",
-             f"Command: `python experiments/traveler_validation.py --data DIR` (file {args.file}, {len(log)} samples "
+             f"Command: `python experiments/validation/traveler_validation.py --data DIR` "
+             f"(file {args.file}, {len(log)} samples "
              f"over {t[-1] - t[0]:.2f} s; data by others, read from DIR, not copied).", ""]
 
     # ---- 1. statics -----------------------------------------------------------------------

@@ -1,5 +1,8 @@
 """Calibration harness: the posterior intervals on media and motions nobody tuned for (issue 30).
 
+Data: simulated (the harness' families of media and motions, irft_torch.studies.calibration).
+Run time: not measured here for the full grid (--quick runs in the test suite).
+
 Families of media x motions x noise levels (``irft_torch.studies.calibration`` says what each is), one
 fit per case, scored twice from the same fit: the MAP plug-in and the Laplace hyperparameter
 posterior. Per fit: coverage of the truth over a 41 x 41 grid of the canonical square at 50/90/95 %,
@@ -8,7 +11,7 @@ posterior (< 0.025: overconfident beyond chance). Per family and per motion: the
 the share of overconfident fits, per map. The bar (issue 30): mean 95 % coverage in 0.90-0.98 and at
 most 10 % overconfident fits, for every family, motion and map.
 
-    python experiments/calibration_harness.py [--quick] [--held-out] [--seeds 2] [--out DIR]
+    python experiments/calibration/calibration_harness.py [--quick] [--held-out] [--seeds 2] [--out DIR]
 
 ``--li-basis`` fits with Li et al.'s 9 functions as a kernel term (``gp.kernels.li_basis``), scored as the
 plug-in and the Laplace mixture; ``--generic-shape`` adds the generic shape with an uncertain scale to that
@@ -354,7 +357,7 @@ def main(argv=None) -> None:
     p.add_argument("--seeds", type=int, default=2, help="seeds per family x motion (alternating noise 1 %%, 5 %%)")
     p.add_argument("--prior-mean", choices=("zero", "physics"), default="zero",
                    help="the model's prior mean (files get the suffix _physics)")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     p.add_argument("--held-out-2", action="store_true", help="the second held-out set (tilted and blended media, "
                    "scoop and drag motions)")
     p.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,

@@ -1,5 +1,7 @@
 """Is the Laplace mixture what fails on narrow slices? NUTS against Laplace on the calibration harness' cases.
 
+Data: simulated (the harness' cases; needs pyro-ppl). Run time: not measured here.
+
 The harness (``docs/calibration.md``) finds the Laplace mixture of the zero-mean model short of the bar on
 generic-shaped media seen through a narrow slice of the square (the rotating leg, 40-sample strokes). Either
 the Gaussian-in-log approximation of the hyperparameter posterior is what misses (a heavy tail toward short
@@ -9,7 +11,7 @@ and scored three ways from that fit (``studies.calibration.score``: 95 % coverag
 canonical square, the percentile among the fit's own posterior draws): the plug-in, Laplace (default
 settings), NUTS (``--chains`` chains of ``--samples`` draws after as many warm-up, in worker processes).
 
-    python experiments/nuts_vs_laplace.py [--motions rotating,short] [--seeds 1] [--limit N] [--out DIR]
+    python experiments/calibration/nuts_vs_laplace.py [--motions rotating,short] [--seeds 1] [--limit N] [--out DIR]
 
 Rows go to ``nuts_vs_laplace.csv`` under --out as each case finishes (a rerun skips the cases there); the
 summary per family and per motion (mean 95 % coverage, share overconfident beyond chance, x / z) is printed.
@@ -74,7 +76,7 @@ def main() -> None:
     p.add_argument("--chains", type=int, default=2)
     p.add_argument("--samples", type=int, default=256, help="draws per chain, after as many warm-up")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     a = p.parse_args()
     kinds = set(a.motions.split(","))
     todo = [c for c in cases(False, 2, False) if c.kind in kinds and c.seed < a.seeds][:a.limit]

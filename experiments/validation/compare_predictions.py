@@ -1,7 +1,9 @@
 """Is a change worse than the reference beyond what the choice of held-out runs alone could make? Two runs of a
 real-data study, paired run by run.
 
-    python experiments/compare_predictions.py REFERENCE CANDIDATE [--unit fold|run] [--models "I-RFT,..."]
+Data: two output folders of dem_validation.py or wheel_validation.py --study planar. Run time: not measured here.
+
+    python experiments/validation/compare_predictions.py REFERENCE CANDIDATE [--unit fold|run] [--models "I-RFT,..."]
 
 REFERENCE and CANDIDATE are output folders (or the CSV files) of ``dem_validation.py`` (``dem_predictions.csv``)
 or ``wheel_validation.py --study planar`` (``wheel_predictions.csv``), run with different settings on the same

@@ -1,5 +1,8 @@
 """The live map converging while the simulated leg walks (``hardware.LiveEstimator``, as ``irft live --simulate``).
 
+Data: the simulated leg walking in real time on a virtual bus. Run time: the walk's own length (it
+runs in real time; --strides).
+
 The leg walks ``--strides`` strides in real time on python-can's virtual bus through sand whose stress map is
 Li et al.'s generic map x (``--scale-x``, ``--scale-z``). After each stance the estimator publishes its map at
 81 points over the (beta, gamma) square; this script keeps each one and compares it with the sand's map:
@@ -11,7 +14,7 @@ Li et al.'s generic map x (``--scale-x``, ``--scale-z``). After each stance the 
 The start model is the estimator's (fitted on the first ``--warmup`` stances, the plug-in hyperparameters:
 every later stance is one streaming update).
 
-    python experiments/live_convergence.py [--strides 60] [--out experiments/results/live_convergence]
+    python experiments/validation/live_convergence.py [--strides 60] [--out experiments/results/live_convergence]
 """
 
 from __future__ import annotations

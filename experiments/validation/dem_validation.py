@@ -1,7 +1,11 @@
 """Does I-RFT learn a real granular medium better than the generic RFT map and a plain GP? Leave-one-beta-out
 and leave-one-gamma-out on independent DEM plate-intrusion simulations.
 
-    python experiments/dem_validation.py --data ../shared/data/dem_plate_intrusion [--out experiments/results]
+Data: the DEM plate-intrusion runs (--data DIR, e.g. ../shared/data/dem_plate_intrusion; not shipped).
+Run time: 30-36 s (38-40 s with the grouped-CV row).
+
+    python experiments/validation/dem_validation.py --data ../shared/data/dem_plate_intrusion
+        [--out experiments/results]
 
 The target is the data README's, exactly: each run's stress per depth *through the origin*
 (F = s x depth, no intercept, over the samples whose centre is deeper than 1 cm below z_top, s over
@@ -467,7 +471,8 @@ def _pair(v, fmt="{:.4f}") -> str:
 def write_report(a, data, report, results, fold_info, tau, elapsed, too_shallow=()) -> list[str]:
     names = IRFT + BASELINES
     lines = ["# I-RFT on independent DEM plate-intrusion data", "",
-             f"`python experiments/dem_validation.py --data DIR{'' if a.stride == 'auto' else f' --stride {a.stride}'}"
+             f"`python experiments/validation/dem_validation.py --data DIR"
+             f"{'' if a.stride == 'auto' else f' --stride {a.stride}'}"
              f"{'' if a.offset == '0' else f' --offset {a.offset}'}{' --cv-refit' if a.cv_refit else ''}"
              f"{LI_FLAG[getattr(a, 'li_basis', None)]}"
              f"{' --generic-shape' if getattr(a, 'generic_shape', False) else ''}"

@@ -1,6 +1,8 @@
 """What issue 34's fixes cost or save, each against a reference measured in the same run.
 
-    python experiments/bench_faults.py [--quick] [--out experiments/results]
+Data: simulated (the simulated leg on a virtual CAN bus). Run time: not measured here.
+
+    python experiments/benchmarks/bench_faults.py [--quick] [--out experiments/results]
 
 1. The loop docs/real_leg.md tells a newcomer to try first, with every default: ``irft record
    --simulate`` (a noise-free simulated leg, 21.7 s at 200 Hz), ``irft ingest`` (with its air run),
@@ -95,8 +97,8 @@ def main(argv=None) -> int:
     chunked, whole = predict(T, True), predict(T // 10, False)
     gb = 1024**3
     lines = [
-        "# Issue 34's fixes: costs against references from the same run (experiments/bench_faults.py)", "",
-        f"`python experiments/bench_faults.py{' --quick' if a.quick else ''}`", "",
+        "# Issue 34's fixes: costs against references from the same run (experiments/benchmarks/bench_faults.py)", "",
+        f"`python experiments/benchmarks/bench_faults.py{' --quick' if a.quick else ''}`", "",
         "## The simulated leg with every default", "",
         f"`irft record --simulate`: {p['record']:.1f} s; `irft ingest`: {p['ingest']:.1f} s ({p['samples']} samples); "
         f"`irft fit`: {p['fit']:.1f} s; in all {p['record'] + p['ingest'] + p['fit']:.1f} s.", "",

@@ -1,6 +1,8 @@
 """The free surface's height learned with the maps, on simulated data whose truth is known.
 
-    python experiments/surface_validation.py [--seeds 5] [--out experiments/results]
+Data: simulated plates. Run time: about 20 s for 2 seeds.
+
+    python experiments/validation/surface_validation.py [--seeds 5] [--out experiments/results]
 
 Flat plates (I-toes, 4 cm x 2 cm, 4 segments) at three tilts (-0.5, 0, +0.5 rad), each on the
 paper's rectangle gait (down 5 cm, along +x 10 cm, up 5 cm) starting 1.5 cm above the surface, in
@@ -90,7 +92,8 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     lines = ["# The free surface's height, learned (simulated truth)", "",
-             f"Command: `python experiments/surface_validation.py --seeds {args.seeds}`. Three plates (tilts -0.5, 0, "
+             f"Command: `python experiments/validation/surface_validation.py --seeds {args.seeds}`. "
+             "Three plates (tilts -0.5, 0, "
              "0.5 rad) on the rectangle gait from 1.5 cm above the surface, generic map x 0.2 N/cm^3, noise 2 % of the "
              f"largest force; the stated surface is 1 cm too high (true offset {TRUE_OFFSET:+.1f} cm). Map RMSE at the "
              "visited angle pairs, N/cm^3 (x / z).", "",

@@ -1,5 +1,8 @@
 """The rover wheels in 3-D: every run of both wheels at every slip angle (``wheel_validation.py --study 3d``).
 
+Data: the rover-wheel runs and meshes (via wheel_validation.py --data DIR). Run time: 22 min for
+both wheels with the defaults.
+
 Each run (smooth: 190, grousered: 197; slip angle 0-90 deg, slip -1..0.9, 1-3 trials) is one observation
 of its mean (longitudinal, lateral, vertical) force, with the 3-D contacts (``rft.contacts_3d``) of the wheel's
 mesh from the data folder at the run's measured carriage speed, rim speed and sinkage (the authors' contact

@@ -1,6 +1,8 @@
 """Active probing: do designed probes teach the maps faster than the paper's four configurations?
 
-    python experiments/active_probing.py [--out experiments/results] [--quick] [--seeds 0 1]
+Data: simulated (three media, forward RFT). Run time: --quick about 9 s; full: not measured here.
+
+    python experiments/validation/active_probing.py [--out experiments/results] [--quick] [--seeds 0 1]
 
 Starting from nothing, a robot runs probes one after another, refitting I-RFT after each, on three
 media (the generic Li et al. map at the paper's truth scale, and the two poppy-seed maps), with
@@ -187,7 +189,8 @@ def write_outputs(out: Path, results, a, s: Settings, length, paper, strategies,
                 w.writerow([medium, name, seed, r["probe"], r["name"], f"{r['length_m']:.4f}",
                             f"{r['total_length_m']:.4f}", f"{r['rmse_x']:.5f}", f"{r['rmse_z']:.5f}"])
     lines = ["# Active probing: designed probes vs the paper's configurations", "",
-             f"`python experiments/active_probing.py{' --quick' if a.quick else ''}`: {s.n_probes} probes, noise "
+             f"`python experiments/validation/active_probing.py{' --quick' if a.quick else ''}`: "
+             f"{s.n_probes} probes, noise "
              f"seeds {a.seeds}, multiplicative force noise of variance {s.noise} (the model told it is relative: "
              f"noise_scale = sqrt(F^2 + ({s.noise_floor} N)^2)); {elapsed:.0f} s. Designed probes are "
              f"{length:.3f} m long (the paper's gait 2; gait 1 is {paper[0].length:.3f} m), chosen from "

@@ -1,6 +1,8 @@
 """Real-world log faults against an oracle: 10^3 edited logs per class through ``irft ingest``.
 
-    python experiments/fault_fuzz.py [--n 1000] [--seed 0] [--out experiments/results]
+Data: simulated leg logs, edited. Run time: not measured here.
+
+    python experiments/validation/fault_fuzz.py [--n 1000] [--seed 0] [--out experiments/results]
 
 A simulated leg (``hardware.SimulatedLeg``, C-toe, the paper's cubic gait, noise-free, 100 Hz) runs a
 trial in sand and a run in air; its sand is known (the generic map), so every force ``irft ingest``
@@ -240,8 +242,8 @@ def main(argv=None) -> int:
     cols = ("correct", "refused", *FAILURES)
     rows = [f"| {cls} | " + " | ".join(str(counts[cls][c]) for c in cols) + " |" for cls in counts]
     text = "\n".join([
-        "# Real-world log faults against the oracle (experiments/fault_fuzz.py)", "",
-        f"`python experiments/fault_fuzz.py --n {a.n} --seed {a.seed}`: {a.n} edited logs per class through "
+        "# Real-world log faults against the oracle (experiments/validation/fault_fuzz.py)", "",
+        f"`python experiments/validation/fault_fuzz.py --n {a.n} --seed {a.seed}`: {a.n} edited logs per class through "
         f"`irft ingest`, {took:.0f} s. Correct: within {TOL} N of RFT of the dataset's own contacts in the known "
         "sand, the edit reported, nothing dropped unsaid; refused: one line naming the real cause.", "",
         "| class | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|", *rows, ""])

@@ -1,6 +1,8 @@
 """The I-RFT paper's numerical validation (Section V-A): Tables I and II and Fig. 5, rerun.
 
-    python experiments/numerical_validation.py [--out experiments/results] [--quick]
+Data: simulated (the paper's configurations, the generic map). Run time: about 10 s (irft reproduce).
+
+    python experiments/validation/numerical_validation.py [--out experiments/results] [--quick]
 
 Same as ``irft reproduce``; the study itself lives in ``irft_torch.studies`` so that the
 installed command can run it.

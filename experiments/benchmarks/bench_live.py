@@ -1,5 +1,7 @@
 """The live estimator's latency and throughput (hardware.LiveEstimator), on this machine.
 
+Data: the simulated leg walking on python-can's virtual bus. Run time: not measured here.
+
 1. Latency, end of stance -> updated estimate: a model holding ``--history`` stances (1,000 by default:
    ~150,000 force samples) is streamed the stances of the simulated leg walking in real time on python-can's
    virtual bus (2 motors x 1 kHz, encoder + current each: 4,000 frames/s); per stance, the wall-clock time
@@ -15,7 +17,7 @@ robot's controllers would not. A benchmark, not a test (timings depend on the ma
    it wrote through ``read_log`` -> ``resample`` -> ``forces_from_log`` -> ``zero_phase_filter`` ->
    ``build_dataset`` and ``add_data`` into the same start model: the largest difference of the maps.
 
-    python experiments/bench_live.py [--history 1000] [--strides 40] [--priors physical|none]
+    python experiments/benchmarks/bench_live.py [--history 1000] [--strides 40] [--priors physical|none]
                                      [--out experiments/results/bench_live.json]
 """
 
