@@ -149,7 +149,8 @@ def test_importing_the_experiments_keeps_the_matplotlib_backend():
 
     code = ("import matplotlib, importlib.util, pathlib, sys; matplotlib.use('svg')\n"
             "for n in ('dem_validation', 'active_probing', 'experimental_validation'):\n"
-            "    s = importlib.util.spec_from_file_location(n, pathlib.Path('experiments') / 'validation' / (n + '.py'))\n"
+            "    p = pathlib.Path('experiments') / 'validation' / (n + '.py')\n"
+            "    s = importlib.util.spec_from_file_location(n, p)\n"
             "    m = importlib.util.module_from_spec(s); sys.modules[n] = m; s.loader.exec_module(m)\n"
             "import irft_torch.studies.paper_study, irft_torch.plotting\n"
             "print(matplotlib.get_backend())")

@@ -59,8 +59,8 @@ _ENABLED = [True]
 def autograd_only():
     """Within this context the engine is the one before the closed form existed: every closed-form path
     stands aside and the autograd ones serve, and a data factor computed from rows keeps its zero rows
-    (``weight_space.data_factor_from_rows``). The reference in benchmarks (``experiments/benchmarks/bench_inference.py``)
-    and tests."""
+    (``weight_space.data_factor_from_rows``). The reference in benchmarks
+    (``experiments/benchmarks/bench_inference.py``) and tests."""
     _ENABLED.append(False)
     try:
         yield

@@ -26,8 +26,8 @@ if TYPE_CHECKING:
 
 __all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
-# what a hyperparameter posterior without priors warns (measured: experiments/validation/wheel_validation.py --study planar
-# --hyper-posterior laplace, the plain-likelihood row, 2026-11-27)
+# what a hyperparameter posterior without priors warns (measured: experiments/validation/wheel_validation.py
+# --study planar --hyper-posterior laplace, the plain-likelihood row, 2026-11-27)
 IMPROPER = ("priors=None: under a flat prior on log(hyperparameters) the posterior is improper along any "
             "hyperparameter the forces do not bound; its draws there are as wide as the Laplace guard allows, and "
             "the mixture can predict worse than the plug-in (the planar wheels' smooth F_z at held-out slips: 3.96 N "
