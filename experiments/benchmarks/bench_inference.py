@@ -170,7 +170,7 @@ def varied_case(q: bool, row) -> None:
     """12. Varied recordings (issue 52): default fits of 1,000 and 10,000 samples of short plate strokes, each with
     its own tilt sweep; time of the first and last Adam steps (median of 5), the whole fit, the basis it ended in and
     the kernel's truncation error there; and the 1,000-sample default against the mode's fit alone."""
-    sizes = (150, 300) if q else (1000, 10_000)
+    sizes = (150,) if q else (1000, 10_000)  # --quick (the test suite): one size, the mode row beside it
     whole = {}
     for T in sizes:
         c, f = on_device(*varied_recording(T))
