@@ -1,7 +1,7 @@
 """Inference speed: the issue-12 cases, each against a reference timed in the same run.
 
-Data: simulated (C-toe gaits, DEM-like plates, varied plate strokes). Run time: about 1 min for cases
-1-11; case 12 (varied recordings, default fits of 1,000 and 10,000 samples) about 80 s more.
+Data: simulated (C-toe gaits, DEM-like plates, varied plate strokes). Run time: cases 1-5 about 1 min (2026-11-22);
+case 11 alone 52-76 s; case 12's fits 32.6 + 46.2 + 12.7 s; all 12 together not measured here.
 
     python experiments/benchmarks/bench_inference.py [--quick] [--device cuda] [--out experiments/results]
 

@@ -1,6 +1,7 @@
 """Why the calibration harness' last rows fail (issue 30): four measurements, no tuning.
 
-Data: simulated (the harness' cases). Run time: about 1 min without options; --scan 8 min 36 s.
+Data: simulated (the harness' cases). Run time: about 1 min without options; --scan 8 min 36 s; --nuts about
+4 min; --terms about 1 min.
 
 1. **The outputscale prior's centre against the truth** (no fits). The prior on each map's variance is
    centred on an estimate from the forces (``gp.kernels.priors.prior_centres``: the generic shape at the medium's

@@ -2,7 +2,7 @@
 and leave-one-gamma-out on independent DEM plate-intrusion simulations.
 
 Data: the DEM plate-intrusion runs (--data DIR, e.g. ../shared/data/dem_plate_intrusion; not shipped).
-Run time: 30-36 s (38-40 s with the grouped-CV row).
+Run time: 38-40 s on 2 cores (2026-11-25, with the grouped-CV row; 30-36 s before it); --cv-refit 109 s.
 
     python experiments/validation/dem_validation.py --data ../shared/data/dem_plate_intrusion
         [--out experiments/results]

@@ -1,6 +1,6 @@
 """The I-RFT paper's numerical validation (Section V-A): Tables I and II and Fig. 5, rerun.
 
-Data: simulated (the paper's configurations, the generic map). Run time: about 10 s (irft reproduce).
+Data: simulated (the paper's configurations, the generic map). Run time: 9.3-9.6 s as irft reproduce; --quick 6 s.
 
     python experiments/validation/numerical_validation.py [--out experiments/results] [--quick]
 
