@@ -20,8 +20,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import torch
 
-__all__ = ["angle_grid", "sampled_angles", "plot_stress_map", "plot_map_comparison", "plot_posterior_map",
-           "plot_toe_path", "plot_coverage", "plot_forces", "plot_reliability", "plot_coverage_cells", "save"]
+__all__ = ["angle_grid", "sampled_angles", "plot_stress_map", "plot_terrain", "plot_map_comparison",
+           "plot_posterior_map", "plot_toe_path", "plot_coverage", "plot_forces", "plot_reliability",
+           "plot_coverage_cells", "save"]
 
 P = math.pi
 UNIT = "N/cm$^3$"
@@ -247,6 +248,36 @@ def plot_forces(time, forces, predicted=None, std=None, axes=None, labels=None, 
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
     (res_axes if residuals else axes)[-1].set_xlabel("time since the first sample (s)")
+    return axes[0].figure
+
+
+def plot_terrain(field, extent, footholds=None, n: int = 120, axes=None):
+    """A ``rft.TerrainField`` over the ground: alpha_z of a plate pushed straight down (beta 0, gamma 90 deg)
+    and alpha_x of a plate dragged forward (beta 0, gamma 0), N/cm^3, over ``extent`` = (x_min, x_max, y_min,
+    y_max) m, with the ``footholds`` (N, 2) m where given. Returns the figure (2 panels)."""
+    import math
+
+    x0, x1, y0, y1 = (float(v) for v in extent)
+    if axes is None:
+        tall = 1.6 + 5.0 * (y1 - y0) / max(x1 - x0, 1e-12)
+        fig, axes = plt.subplots(1, 2, figsize=(12, min(max(tall, 2.6), 6.0)), constrained_layout=True)
+    xs = torch.linspace(x0, x1, n, dtype=torch.float64)
+    ys = torch.linspace(y0, y1, max(2, int(n * (y1 - y0) / max(x1 - x0, 1e-12))), dtype=torch.float64)
+    s = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)  # (ny, nx, 2)
+    zero = torch.zeros(s.shape[:-1], dtype=torch.float64)
+    with torch.no_grad():
+        down = field(zero, zero + math.pi / 2, s)[..., 1]  # gamma positive downward (docs/conventions.md)
+        drag = field(zero, zero, s)[..., 0]
+    for ax, v, title in ((axes[0], down, "$\\alpha_z$ of a flat plate pushed down\n($\\beta$ 0, $\\gamma$ 90°)"),
+                         (axes[1], drag, "$\\alpha_x$ of a flat plate dragged forward\n($\\beta$ 0, $\\gamma$ 0)")):
+        im = ax.imshow(_np(v), origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", aspect="equal")
+        ax.figure.colorbar(im, ax=ax, label=UNIT, fraction=0.046 * (y1 - y0) / max(x1 - x0, 1e-12) * 2, pad=0.02)
+        if footholds is not None:
+            p = _np(torch.as_tensor(footholds))
+            ax.plot(p[:, 0], p[:, 1], "w^", ms=6, mec="k", label="footholds")
+            ax.legend(loc="upper right", fontsize=8)
+        ax.set(title=title, xlabel="x (m)", ylabel="y (m)")
+    axes[0].figure.suptitle(field.name)
     return axes[0].figure
 
 

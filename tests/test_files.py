@@ -133,3 +133,23 @@ def test_files_that_change_together(tmp_path):
     assert (tmp_path / "a").read_text() == "new a" and (tmp_path / "b").read_text() == "new b"
     assert _no_temporaries(tmp_path)
     assert atomic_write(tmp_path / "c.txt", lambda fh: fh.write(b"x")).read_bytes() == b"x"
+
+
+def test_a_dataset_keeps_each_sample_place_and_refuses_a_misshapen_one(tmp_path):
+    import numpy as np
+
+    c = irft.rft.contacts(irft.rft.IToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=20))
+    places = torch.stack([torch.linspace(0, 1, len(c)), torch.full((len(c),), 0.25)], -1).double()
+    ds = Dataset(c, torch.ones(len(c), 2), torch.arange(len(c)) * 0.01, torch.zeros(len(c), 2), locations=places)
+    back = load_dataset(save_dataset(tmp_path / "walk.npz", ds))
+    assert torch.equal(back.locations, places)
+    assert load_dataset(save_dataset(tmp_path / "plain.npz", Dataset(c, ds.forces, ds.time, ds.toe_position))) \
+        .locations is None
+    with pytest.raises(ValueError, match="locations"):
+        save_dataset(tmp_path / "bad.npz", Dataset(c, ds.forces, ds.time, ds.toe_position, locations=places[:5]))
+    # a file whose places do not match its samples is damaged, said so
+    d = dict(np.load(tmp_path / "walk.npz"))
+    d["locations"] = d["locations"][:-1]
+    np.savez(tmp_path / "cut.npz", **d)
+    with pytest.raises(ValueError, match="inconsistent array shapes"):
+        load_dataset(tmp_path / "cut.npz")

@@ -102,6 +102,10 @@ def cmd_fit(a) -> int:
         if a.jobs:
             raise UsageError("--jobs", "reduces in local processes, --dask on Dask: give one of them")
     parts = [load_dataset(p) for p in a.dataset]
+    placed = sum(d.locations is not None for d in parts)
+    if placed:  # a walk over changing ground (irft simulate --terrain): said, not dropped silently
+        print(f"{placed} of {len(parts)} dataset(s) carry each sample's place on the ground; this version fits one "
+              f"medium to every sample: the map is the walked ground's blend, not a map over space")
     ds = parts[0]
     if len(parts) > 1:  # one recording after another: times shifted so the time axis keeps increasing
         from ..rft import Contacts

@@ -33,13 +33,15 @@ __all__ = ["Dataset", "dataset_summary", "save_dataset", "load_dataset", "STATIS
 class Dataset:
     """What the inference model takes: contacts (T, M), forces (T, 2) N, time (T,) s, and the toe
     path (T, 2) m (world frame) for plots. ``statistics``: optional named arrays saved with the data
-    (the inference side's sufficient statistics, ``gp.statistics``; opaque here)."""
+    (the inference side's sufficient statistics, ``gp.statistics``; opaque here). ``locations``: optional
+    (T, 2) m, each sample's horizontal place on the ground (a walk over changing terrain: ``rft.walks``)."""
 
     contacts: Contacts
     forces: torch.Tensor
     time: torch.Tensor
     toe_position: torch.Tensor
     statistics: dict | None = None
+    locations: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.contacts)
@@ -77,7 +79,8 @@ STATISTICS_PREFIX = "statistics."
 
 def save_dataset(path, ds: Dataset, **meta) -> Path:
     """npz with beta, gamma, weight_x, weight_z (T, M) (and depth, area_x, area_z where the contacts
-    carry them), forces (T, 2), time, toe_position, meta, and ``ds.statistics`` (if any) as arrays
+    carry them), forces (T, 2), time, toe_position, locations (T, 2) where the dataset has them, meta,
+    and ``ds.statistics`` (if any) as arrays
     named "statistics.<name>". ".npz" is appended when ``path`` lacks it; the file is written whole
     or not at all (a temporary file, fsynced, renamed into place: ``_files.atomic_write``). Returns the
     path written."""
@@ -86,6 +89,10 @@ def save_dataset(path, ds: Dataset, **meta) -> Path:
         path = path.with_name(path.name + ".npz")
     arrays: dict[str, Any] = {k: v.detach().cpu().numpy() for k, v in ds.contacts.as_dict().items()}
     arrays.update({STATISTICS_PREFIX + k: np.asarray(v) for k, v in (ds.statistics or {}).items()})
+    if ds.locations is not None:
+        if tuple(ds.locations.shape) != (len(ds), 2):
+            raise ValueError(f"locations must be ({len(ds)}, 2), one place per sample, got {tuple(ds.locations.shape)}")
+        arrays["locations"] = ds.locations.detach().cpu().numpy()
     atomic_write(path, lambda fh: np.savez(fh, forces=ds.forces.numpy(), time=ds.time.numpy(),
                                           toe_position=ds.toe_position.numpy(), meta=np.array(repr(meta)), **arrays),
                  "dataset")
@@ -118,6 +125,8 @@ def load_dataset(path) -> Dataset:
             if surface and len(surface) != len(SURFACE_FIELDS):
                 raise ValueError(f"{path} is damaged: it holds {surface} but not all of {list(SURFACE_FIELDS)}")
             arrays.update({k: np.asarray(d[k]) for k in surface})
+            if "locations" in d.files:
+                arrays["locations"] = np.asarray(d["locations"])
     except ValueError as e:
         if "not an irft dataset" in str(e):
             raise
@@ -129,12 +138,14 @@ def load_dataset(path) -> Dataset:
     shapes = {k: v.shape for k, v in arrays.items()}
     ok = (arrays["forces"].shape == (T, 2) and arrays["time"].shape == (T,) and arrays["toe_position"].shape == (T, 2)
           and all(arrays[k].ndim == 2 and arrays[k].shape[0] == T for k in need[:4] + tuple(surface))
-          and len({arrays[k].shape for k in need[:4] + tuple(surface)}) == 1)
+          and len({arrays[k].shape for k in need[:4] + tuple(surface)}) == 1
+          and ("locations" not in arrays or arrays["locations"].shape == (T, 2)))
     if not ok:
         raise ValueError(f"{path}: inconsistent array shapes {shapes}; the file is damaged")
     bad = [k for k, v in arrays.items() if not np.issubdtype(v.dtype, np.floating) or not np.isfinite(v).all()]
     if bad:
         raise ValueError(f"{path}: non-finite or non-numeric values in {bad}; the file is damaged")
     c = Contacts(**{k: torch.as_tensor(arrays[k]) for k in need[:4] + tuple(surface)})
+    loc = torch.as_tensor(arrays["locations"]) if "locations" in arrays else None
     return Dataset(c, torch.as_tensor(arrays["forces"]), torch.as_tensor(arrays["time"]),
-                   torch.as_tensor(arrays["toe_position"]), stats or None)
+                   torch.as_tensor(arrays["toe_position"]), stats or None, loc)

@@ -194,3 +194,41 @@ def test_user_errors_are_one_line_naming_the_argument(tmp_path, capsys, argv, ar
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert arg.replace("AFILE", str(tmp_path / "AFILE")).replace("ADIR", str(tmp_path / "ADIR")) in err, err
     assert not (tmp_path / "out.npz").exists()
+
+
+def test_simulate_terrain_walks_two_media_and_writes_each_sample_place(tmp_path, capsys):
+    # a flat 2 cm x 0.8 cm plate in shear at 5 cm depth: 8 cm^3 times the medium's map at (beta 0, gamma 0), which
+    # is generic (F = (-0.136, 0.375) x 8 N, as above) before the boundary (x = 3 m / 2) and poppy seeds (close)
+    # beyond it. Stances 1 m apart; the shear drags the place 0.05..0.35 m past the foothold, so stance 0 is 23
+    # boundary widths (0.05 m) before it, stance 2 eleven beyond (share 1.7e-5 of the other), stance 3 31 beyond
+    from irft_torch import rft
+    from irft_torch.hardware import load_dataset
+    from irft_torch.rft import FourierStressMap
+
+    out = tmp_path / "walk.npz"
+    assert main(["simulate", "--toe", "I", "--length", "0.02", "--path", "rectangle", "--n-steps", "50",
+                 "--terrain", "two-media", "--stances", "4", "--stride", "1.0", "--out", str(out),
+                 "--plot", str(tmp_path / "fig")]) == 0
+    d, ds = np.load(out), load_dataset(out)
+    assert d["forces"].shape == (200, 2) and ds.locations.shape == (200, 2)
+    np.testing.assert_array_equal(d["stance"], np.repeat(np.arange(4), 50))
+    np.testing.assert_allclose(d["footholds"], [[0, 0], [1, 0], [2, 0], [3, 0]], atol=1e-12)
+    shear = (d["position"][:, 1] < -0.0499) & (np.abs(d["position"][:, 0]) < 0.15)
+    rows = shear & (d["stance"] == 0)
+    np.testing.assert_allclose(d["forces"][rows], np.tile([-0.136 * 8, 0.375 * 8], (rows.sum(), 1)), atol=1e-6)
+    close = rft.forces(FourierStressMap.poppy_seeds_close(), ds.contacts).numpy()  # the homogeneous bed of seeds
+    for k, rtol in ((2, 1e-4), (3, 1e-12)):
+        rows = shear & (d["stance"] == k)
+        np.testing.assert_allclose(d["forces"][rows], close[rows], rtol=rtol, atol=1e-12)
+        assert np.abs(close[rows] - np.array([-0.136 * 8, 0.375 * 8])).max() > 0.5  # the media differ here
+    # each sample's place: its foothold plus the stroke's drag along x
+    np.testing.assert_allclose(ds.locations.numpy()[:, 0], d["footholds"][d["stance"], 0]
+                               + d["position"][:, 0] - d["position"][0, 0])
+    assert (tmp_path / "fig" / "terrain.png").stat().st_size > 1000
+    capsys.readouterr()
+    # the homogeneous fit says what it does with the places (one medium for the whole walk)
+    assert main(["fit", str(out), "--out", str(tmp_path / "fit"), "--n-iter", "3", "--no-progress",
+                 "--hyper-posterior", "map"]) == 0
+    assert "carry each sample's place" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["simulate", "--terrain", "patches", "--stances", "0", "--out", str(tmp_path / "x.npz")])
