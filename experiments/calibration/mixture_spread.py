@@ -5,7 +5,7 @@ Data: the measured rover-wheel runs (--data DIR, e.g. ../shared/data/rover_wheel
 1 minute per wheel and setting at three streams here (2 cores; 32 s per fold with --proposals 1024).
 
     python experiments/calibration/mixture_spread.py --data ../shared/data/rover_wheel [--streams 5]
-        [--wheels smooth grouser] [--draws 16 all] [--proposals 128] [--out experiments/results]
+        [--wheels smooth grouser] [--draws 16 64] [--proposals 128] [--out experiments/results]
 
 For each wheel and held-out slip level (the planar study's folds: ``validation/wheel_validation.py --study
 planar``, its fit settings), the mode is fitted once with the plug-in; then the Laplace posterior over the
@@ -77,8 +77,9 @@ def main(argv=None) -> None:
     ap.add_argument("--data", type=Path, required=True, help="the rover-wheel .mat files (read, never copied)")
     ap.add_argument("--streams", type=int, default=3, help="random streams (point sets) per fold, >= 2 (default 3)")
     ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
-    ap.add_argument("--draws", nargs="+", default=["16", "all"],
-                    help="settings of n_draws to compare: numbers, or all (every weighted proposal)")
+    ap.add_argument("--draws", nargs="+", default=["16"],
+                    help="settings of n_draws to compare: numbers, or all (every weighted proposal: each draw is a "
+                         "backend of its own, over 12 GB on a wheel fold)")
     ap.add_argument("--proposals", type=int, default=128, help="Laplace proposals per stage (default 128)")
     ap.add_argument("--out", type=Path, default=Path("experiments/results"))
     args = ap.parse_args(argv)

@@ -257,33 +257,6 @@ def test_laplace_end_to_end_predictions_are_mixtures_of_the_draws(fitted, tmp_pa
     torch.testing.assert_close(back.predict_forces(c[5:12]).variance, got.variance, rtol=1e-10, atol=1e-14)
 
 
-def test_spectral_draws_share_one_basis_and_predict_as_models_of_their_own(fitted):
-    # every weighted proposal kept (n_draws=None); the draws share one basis, its statistics and data factor.
-    # Reference: a model of its own at each draw (its own basis, its own pass)
-    c, f, _ = fitted
-    m = irft.InverseRFT(c, f, method="spectral", hyper_posterior="map", li_basis=False)
-    m.fit(n_iter=100, progress=False)
-    own_data = list(m.backend._data)
-    hp = m.fit_hyper_posterior("laplace", n_proposals=48, n_draws=None, generator=torch.Generator().manual_seed(3))
-    backs = m._draw_backends
-    assert hp.n_draws == len(backs) > 16 and abs(float(hp.weights.sum()) - 1) < 1e-12
-    assert all(b.stats is backs[0].stats and b.basis == backs[0].basis for b in backs)
-    per = []
-    for th in hp.theta:
-        d = irft.InverseRFT(c, f, method="spectral", hyper_posterior="map", li_basis=False)
-        hyper_spec(d.hypers).load(d.hypers, th)
-        d.backend.refresh()
-        per.append(d.predict_forces(c[5:12]))
-    mean, var = mixture_moments(torch.stack([p.mean for p in per]), torch.stack([p.variance for p in per]),
-                                hp.weights)
-    got = m.predict_forces(c[5:12])
-    torch.testing.assert_close(got.mean, mean, rtol=1e-6, atol=1e-9)  # two truncations, each within tol 1e-7
-    torch.testing.assert_close(got.variance, var, rtol=1e-5, atol=1e-9)
-    # a draw's new samples are its own: the model's data stay as they were
-    backs[0].add_data(c[:3], f[:3])
-    assert len(m.backend._data) == len(own_data) and len(backs[1]._data) == len(own_data)
-
-
 def test_add_data_reweights_the_draws_by_the_new_samples_likelihood(fitted):
     c, f, m0 = fitted
     m = irft.InverseRFT(c[:30], f[:30], method="pairs", hyper_posterior="map", li_basis=False)

@@ -113,9 +113,6 @@ class SpectralBackend(WeightSpaceBackend):
         if not (0 < tol < 1):
             raise ValueError(f"tol must be in (0, 1), got {tol}")
         self.tol = float(tol)
-        # answer queries through the coefficients' posterior covariance A (2, F, F), formed once (False: the
-        # weight-space formulas, O(r F) kept; what a hyperparameter draw's backend does)
-        self.coefficient_space = True
         self.basis = basis or FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
         if getattr(hypers, "li", None) is not None and min(self.basis.n_beta, self.basis.n_gamma) < 1:
             if basis is not None:
@@ -307,12 +304,8 @@ class SpectralBackend(WeightSpaceBackend):
 
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False):
         """In coefficient space: mean Phi m_u, covariance Phi A Phi^T (the same numbers as the
-        weight-space formulas, fewer products per query once A (2, F, F) is formed); with
-        ``coefficient_space`` False, the weight-space formulas (no F x F matrix kept: a hyperparameter
-        posterior's draws, each one backend)."""
+        weight-space formulas, fewer products per query)."""
         self._ensure_basis()
-        if not self.coefficient_space:
-            return super().posterior(contacts, variance, covariance)
         m, _ = self._u_posterior()
         Phi = self._features_of(contacts)
         mean = (Phi @ m[..., None])[..., 0]
@@ -332,8 +325,6 @@ class SpectralBackend(WeightSpaceBackend):
 
     def cross_covariance(self, c1: Contacts, c2: Contacts) -> Tensor:
         self._ensure_basis()
-        if not self.coefficient_space:
-            return super().cross_covariance(c1, c2)
         return self._times_posterior(c1) @ self._features_of(c2).mT
 
     def root_size(self) -> int:
@@ -382,23 +373,6 @@ class SpectralBackend(WeightSpaceBackend):
         self._set_stats(self.stats + stats)
         self._data = None  # the raw data behind them is not here: the basis can no longer grow
         self._stored = None
-
-    def with_hypers(self, hypers) -> SpectralBackend | None:
-        """A backend at ``hypers`` sharing this one's basis, statistics and data factor (none depends on the
-        hyperparameters) where the basis has every harmonic ``hypers``' lengthscales need for ``tol`` (up to the
-        cap, as ``refresh``: a hyperparameter posterior's draws, no pass over the data and no F x F matrix of
-        their own); else None (a new backend, in the basis those lengthscales need)."""
-        need = FourierBasis.for_lengthscale(hypers.lengthscale.detach().reshape(-1, 1, 4), self.tol)
-        if self._data is None or need.n_beta > self.basis.n_beta or need.n_gamma > self.basis.n_gamma:
-            return None
-        new = SpectralBackend.__new__(SpectralBackend)
-        WeightSpaceBackend.__init__(new, hypers, self._data[0][0], None)  # stats hold y
-        new.tol, new.coefficient_space, new.basis = self.tol, self.coefficient_space, self.basis
-        new._data, new._stored, new.held = list(self._data), self._stored, self.held  # its own list: add_data
-        new._set_stats(self.stats)
-        new._data_factor = self._factor()
-        new._feature_cache = self.__dict__.setdefault("_feature_cache", {})  # features depend on the basis only
-        return new
 
     def stale(self) -> bool:
         if self.held:  # the basis is held (method="auto" on nearly noise-free data, gp.model): nothing to adapt

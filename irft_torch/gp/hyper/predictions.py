@@ -14,7 +14,6 @@ import torch
 from torch import Tensor, nn
 
 from ..backends import RFTBackend, make_backend
-from ..backends.spectral import SpectralBackend
 from ..kernels.hyperparameters import RFTHyperparameters
 from .guard import HyperPosteriorWarning, said_once
 from .nuts import nuts
@@ -35,19 +34,13 @@ IMPROPER = ("priors=None: under a flat prior on log(hyperparameters) the posteri
             "against 1.66 N). priors='physical' gives a proper posterior")
 
 
-def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, device, dtype,
-                      maker: Callable | None = None) -> list:
+def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, device, dtype) -> list:
     """One backend per draw of ``hp`` (``make(draw hyperparameters)``), in eval mode: what a model with a
-    hyperparameter posterior predicts with, planar or 3-D. ``maker``: given every draw's hyperparameters, the
-    ``make`` to use (one that shares what the draws have in common). Refuses a posterior over other
-    coordinates."""
+    hyperparameter posterior predicts with, planar or 3-D. Refuses a posterior over other coordinates."""
     spec = hyper_spec(hypers)
     if list(hp.labels) != spec.labels:
         raise ValueError(f"hyperparameter posterior over {hp.labels}, this model has {spec.labels}")
-    draws = [draw_hypers(hypers, spec, th.to(device, dtype)) for th in hp.theta]
-    if maker is not None:
-        make = maker(draws)
-    out = [make(h) for h in draws]
+    out = [make(draw_hypers(hypers, spec, th.to(device, dtype))) for th in hp.theta]
     for b in out:
         b.eval()
     return out
@@ -99,9 +92,7 @@ class HyperMixtureMixin(nn.Module):
             n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each); as many again
                 where their weights are unreliable (``gp.hyper.importance.importance_sample``).
             n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
-                plug-in's); None keeps every weighted proposal. In the spectral and pairs spaces the draws share
-                the data's statistics and factor, so many are cheap there; the Monte Carlo error they leave is
-                measured in docs/calibration.md.
+                plug-in's); None keeps every weighted proposal.
             generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
             options: passed to ``gp.hyper.posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
                 ``qmc``, ``adapt``) or ``gp.hyper.nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
@@ -140,49 +131,19 @@ class HyperMixtureMixin(nn.Module):
         """Keep ``hp`` and build one backend per draw (``_backend_at``: sharing what does not depend on them)."""
         self.hyper_posterior = hp
         self._draw_backends = None if hp is None else \
-            backends_at_draws(self.hypers, hp, self._backend_at, self._device, self.dtype, self._draw_maker)
+            backends_at_draws(self.hypers, hp, self._backend_at, self._device, self.dtype)
 
     def _backend_at(self, hypers: RFTHyperparameters) -> RFTBackend:
         """A backend like ``self.backend`` at other hyperparameters, sharing what does not depend on them:
         the pairs backend's statistics and data factor; the spectral backend's statistics wherever they
         cover the draw's basis (a draw with shorter lengthscales needs a larger basis: one pass)."""
         own = self.backend
-        b = own.with_hypers(hypers)
-        if b is None:
-            stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
-            b = make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
-                             tol=self.tol, statistics=stats if self.method == "spectral" else None)
-        if isinstance(b, SpectralBackend):  # one of many: no F x F coefficient covariance kept per draw
-            b.coefficient_space = False
-        return b
-
-    def _draw_maker(self, draws: list[RFTHyperparameters]) -> Callable:
-        """How the draws' backends are made: in the spectral space, from one backend whose basis holds every
-        draw's lengthscales within ``tol`` (the model's own, or one pass into the union of what they need), each
-        draw sharing its statistics and data factor (``SpectralBackend.with_hypers``); else ``_backend_at``."""
-        own = self.backend
-        if not isinstance(own, SpectralBackend) or own._data is None or not draws:
-            return self._backend_at
-        from ..kernels.fourier import FourierBasis
-
-        ls = torch.stack([h.lengthscale.detach() for h in draws]).reshape(-1, 1, 4)
-        need = FourierBasis.for_lengthscale(ls, self.tol)
-        basis = FourierBasis(max(need.n_beta, own.basis.n_beta), max(need.n_gamma, own.basis.n_gamma))
-        if basis == own.basis:
-            sharer = own
-        else:  # one pass into the union basis, for all of them
-            stats = self._statistics if self._statistics is not None else own.stats
-            sharer = SpectralBackend(self.hypers, self.train_contacts, self.train_forces, tol=self.tol, basis=basis,
-                                     statistics=stats)
-
-        def make(hypers: RFTHyperparameters) -> RFTBackend:
-            b = sharer.with_hypers(hypers)
-            if b is None:  # beyond what any basis holds within tol (the harmonics' cap): its own, as before
-                return self._backend_at(hypers)
-            b.coefficient_space = False
-            return b
-
-        return make
+        shared = own.with_hypers(hypers)
+        if shared is not None:
+            return shared
+        stats = self._statistics if self._statistics is not None else getattr(own, "stats", None)
+        return make_backend(self.method, hypers, self.train_contacts, self.train_forces, solver=self.solver,
+                            tol=self.tol, statistics=stats if self.method == "spectral" else None)
 
     def _weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
         """The backends predictions average over and their weights: None (the one plug-in backend), (S,)
