@@ -71,9 +71,12 @@ def spreads(data: Path, wheel: str, draws, proposals: int, streams: int) -> tupl
     return means.std(0, ddof=1) / sds.mean(0), float(np.mean(seconds)), float(np.mean(kept))
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """--help prints the whole module docstring as written, and every option's default."""
+
+
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="mixture_spread.py", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(prog="mixture_spread.py", description=__doc__, formatter_class=_HelpFormatter)
     ap.add_argument("--data", type=Path, required=True, help="the rover-wheel .mat files (read, never copied)")
     ap.add_argument("--streams", type=int, default=3, help="random streams (point sets) per fold, >= 2 (default 3)")
     ap.add_argument("--wheels", nargs="+", default=["smooth", "grouser"], choices=["smooth", "grouser"])
@@ -81,7 +84,7 @@ def main(argv=None) -> None:
                     help="settings of n_draws to compare: numbers, or all (every weighted proposal: each draw is a "
                          "backend of its own, over 12 GB on a wheel fold)")
     ap.add_argument("--proposals", type=int, default=128, help="Laplace proposals per stage (default 128)")
-    ap.add_argument("--out", type=Path, default=Path("experiments/results"))
+    ap.add_argument("--out", type=Path, default="experiments/results", help="where the CSV goes")
     args = ap.parse_args(argv)
     if args.streams < 2:
         ap.error("--streams must be at least 2 (a spread needs two)")
