@@ -14,9 +14,10 @@ import torch
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
 
-from ..rft.contacts import Contacts
+from ..rft.contacts import Contacts, check_locations
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
+from .backends.spatial import SpatialBackend
 from .fit_control import (
     FitControlMixin,
     FitDivergedWarning,
@@ -42,10 +43,18 @@ from .inputs import (
     _whiten,
 )
 from .kernels.hyperparameters import RFTHyperparameters
-from .kernels.priors import CentreSums, centres_of_sums, prior_centres, register_physical_priors
+from .kernels.priors import (
+    CentreSums,
+    centres_of_sums,
+    prior_centres,
+    register_physical_priors,
+    register_spatial_priors,
+    spatial_lengthscale_centre,
+)
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
 from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
+from .spatial import check_spatial_options, placed_contacts, placed_queries
 from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
@@ -145,7 +154,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                  method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
                  exact_max_segments=None, statistics=None, surface_offset: bool = False,
                  surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None,
-                 li_basis: bool = True, generic_shape: bool = False) -> None:
+                 li_basis: bool = True, generic_shape: bool = False, locations=None) -> None:
         super().__init__()
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
@@ -161,6 +170,11 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             raise ValueError(f"need at least 2 force observations, got {T}")
         device = contacts.beta.device
         c = contacts.to(dtype=dtype, device=device)
+        if locations is not None:
+            c = c.with_locations(check_locations(locations, T).to(device=device, dtype=dtype))
+        spatial = c.locations is not None
+        if spatial:
+            check_spatial_options(method, prior_mean, surface_offset or surface_groups is not None, statistics)
         f = _as_forces(forces, T, dtype, device)
         scale = _as_noise_scale(noise_scale, T, dtype, device)
         _check_units(c, f)  # as measured (whitened by a small noise_scale they would look too large)
@@ -198,7 +212,9 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
         force_scale, map_scale = _data_scales(c, f)
         self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
-                                         map_scale.cpu(), li_basis, generic_shape).to(device=device, dtype=dtype)
+                                         map_scale.cpu(), li_basis, generic_shape,
+                                         spatial_lengthscale_centre(c.locations) if spatial else None
+                                         ).to(device=device, dtype=dtype)
         with torch.no_grad():
             resid = y
             if prior_mean == "physics":
@@ -217,14 +233,16 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                 self.hypers.outputscale = centres["outputscale"].to(dtype)
         if self.hypers.li is not None:  # Li et al.'s term at the RBF part's variance, the generic shape's at zeta^2
             self.hypers.start_li(prior_centres(c, f, map_scale)["zeta"])
-        self.auto = method == "auto"
+        if spatial and priors == "physical":
+            register_spatial_priors(self.hypers, spatial_lengthscale_centre(c.locations))
+        self.auto = method == "auto" and not spatial
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "
                              "learns the surface (drop statistics or surface_offset)")
         own_mean = "physics" if prior_mean == "physics" else "zero"  # "average": this model is the zero mean's
         self._statistics = _check_statistics(statistics, f, noise_scale, own_mean)
-        self.backend: RFTBackend = make_backend(method, self.hypers, c, f, solver=solver, tol=tol,
-                                                statistics=self._statistics)
+        self.backend: RFTBackend = SpatialBackend(self.hypers, c, f, solver) if spatial else \
+            make_backend(method, self.hypers, c, f, solver=solver, tol=tol, statistics=self._statistics)
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
@@ -237,6 +255,11 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def method(self) -> str:
         """The backend in use: "observations", "pairs" or "spectral"."""
         return self.backend.name
+
+    @property
+    def spatial(self) -> bool:
+        """Whether the maps change over the ground (fitted with ``locations``, ``gp.spatial``)."""
+        return self.hypers.spatial is not None
 
     @property
     def kernel(self):
@@ -429,13 +452,18 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                 self._fit_companion(n_iter, lr, progress=False)
             self._set_mean_average()
 
-    def add_data(self, contacts: Contacts, forces, noise_scale=None) -> InverseRFT:
+    def add_data(self, contacts: Contacts, forces, noise_scale=None, locations=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
         exactly that of a batch fit on all the data at these hyperparameters. ``noise_scale``: as in
         the constructor, for the new samples. The physical priors' centres follow all the data (their sums
-        updated), so a later ``fit`` (and a saved and loaded model) has a batch model's objective."""
+        updated), so a later ``fit`` (and a saved and loaded model) has a batch model's objective. ``locations``
+        (T, 2) m: the new samples' places (a model fitted with places needs them)."""
         if not isinstance(contacts, Contacts) or contacts.beta.ndim != 2:
             raise ValueError("contacts must be a Contacts of shape (T, M)")
+        contacts = placed_contacts(self.spatial, contacts, None if locations is None else
+                                   check_locations(locations, len(contacts)), self.dtype, self._device)
+        if self.spatial and contacts.locations is None:
+            raise ValueError("locations: this model was fitted with places; give the new samples' places (T, 2) m")
         if self.surface is not None:
             raise NotImplementedError("add_data with a learned surface offset: the offset is fitted in batch; build "
                                       "a new InverseRFT on all the data (or fix the offset: "
@@ -467,24 +495,27 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         return self
 
     # ---- prediction ----------------------------------------------------------------------------
-    def stress_map(self, beta, gamma) -> Posterior:
+    def stress_map(self, beta, gamma, locations=None) -> Posterior:
         """Posterior of (alpha_x, alpha_z) at angles of any broadcast shape S (rad).
 
         Angles outside the canonical square are mapped in by the mirror identity. Returns mean and
-        variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2).
+        variance of shape S + (2,), in N/cm^3 and (N/cm^3)^2 (paper eqs. for mu and sigma^2). A model fitted
+        with places (``locations=``, ``gp.spatial``): ``locations`` (L, 2) m gives (L, *S, 2), the maps at
+        each place; without, the medium shared by the site.
         """
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = _check_angles(beta, gamma, "stress_map")
         self.eval()
-        c = Contacts.points(beta, gamma)
+        c, S = placed_queries(self.spatial, Contacts.points(beta, gamma), S, locations, self.dtype, self._device)
         backends, weights = self._weighted_backends()
         posts = [b.posterior(c) for b in backends]
         means = torch.stack([p.mean.T.reshape(*S, 2) for p in posts])
         variances = torch.stack([p.variance.T.reshape(*S, 2) for p in posts])
         return Posterior.mixture(means, variances, weights)
 
-    def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None) -> Tensor:
+    def sample_maps(self, beta, gamma, n: int = 1, generator: torch.Generator | None = None,
+                    locations=None) -> Tensor:
         """Maps drawn from the joint posterior at angles of any broadcast shape S (rad): (n, *S, 2) in
         N/cm^3, axis order (x, z). The points of one draw are jointly distributed (a plausible map, not
         independent noise per point), so a draw can be pushed through ``rft.forces`` or a design score
@@ -492,13 +523,14 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         pairs backends, within the reported truncation for the spectral one (its finite root). The
         dense backends factor the (N x N) covariance of the N points per axis: above 4096 points
         without a root, a ValueError says to sample in pieces or use ``method="spectral"``.
-        ``generator``: a ``torch.Generator`` on the model's device, for reproducible draws."""
+        ``generator``: a ``torch.Generator`` on the model's device, for reproducible draws. ``locations``
+        (L, 2) m, a model fitted with places: (n, L, *S, 2), jointly over places too."""
         if int(n) != n or n < 1:
             raise ValueError(f"n must be a positive integer (the number of maps to draw), got {n!r}")
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
         S = _check_angles(beta, gamma, "sample_maps")
-        c = Contacts.points(beta, gamma)
+        c, S = placed_queries(self.spatial, Contacts.points(beta, gamma), S, locations, self.dtype, self._device)
         N = c.beta.shape[0]
         if N > 4096 and self.backend.posterior_root(c) is None:
             raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
@@ -533,7 +565,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         return mean.T.reshape(*S, 2)
 
     def predict_forces(self, contacts: Contacts, variance: str = "exact", include_noise: bool = False,
-                       noise_scale=None) -> Posterior:
+                       noise_scale=None, locations=None) -> Posterior:
         """Posterior of the forces (F_x, F_z) for contacts of shape (..., T, M).
 
         The contacts are used as given: on a model that learned the surface offset
@@ -547,6 +579,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             noise_scale: with ``include_noise`` (a ValueError without), the new samples' relative noise
                 scales, as in the constructor (default 1): per sample, any shape ending in T that
                 broadcasts to the contacts' (..., T); or per sample and axis, ending in (T, 2).
+            locations: a model fitted with places: (..., T, 2) m, each sample's place (or the contacts' own
+                ``locations``); without, the forces of the medium shared by the site.
 
         Returns:
             Posterior with mean and variance (..., T, 2) in N and N^2. Differentiable in the
@@ -557,10 +591,12 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         if variance not in ("exact", "independent"):
             raise ValueError(f"variance must be 'exact' or 'independent', got {variance!r}")
         self.eval()
-        c = contacts.to(dtype=self.dtype, device=self._device)
+        c = placed_contacts(self.spatial, contacts.to(dtype=self.dtype, device=self._device), locations, self.dtype,
+                            self._device)
         _check_query(c, self.train_contacts)
         lead, M = c.shape[:-1], c.n_segments
-        flat = Contacts(*(v.reshape(-1, M) for v in c.as_dict().values()))
+        flat = Contacts(**{k: v.reshape(-1, M) for k, v in c.as_dict().items()},
+                        locations=None if c.locations is None else c.locations.reshape(-1, 2))
         # Rows with no segment in contact have force exactly 0 (mean and variance): skip them.
         rows = touching(flat)
         if noise_scale is not None and not include_noise:

@@ -63,7 +63,8 @@ def save_model(model, path) -> None:
         "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
         "forces": forces.detach().cpu(),
         "noise_scale": model.noise_scale.cpu(),
-        "options": {**model._options(), "method": model.method, "dtype": str(model.dtype).replace("torch.", ""),
+        "options": {**model._options(), "method": "observations" if model.spatial else model.method,
+                    "dtype": str(model.dtype).replace("torch.", ""),
                     "auto": bool(model.auto)},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
         "loss_history": list(model.loss_history),
@@ -71,6 +72,8 @@ def save_model(model, path) -> None:
         # bit only without a noise_scale (whitening by it and undoing it rounds), so the copy takes this one
         "data_digest": model.state_dict()["data_digest"].cpu(),
     }
+    if contacts.locations is not None:  # a model of maps over the ground: each sample's place, m
+        payload["locations"] = contacts.locations.detach().cpu()
     if model.hyper_posterior is not None:  # the hyperparameter draws and weights predictions average over
         payload["hyper_posterior"] = model.hyper_posterior.state()
     if getattr(model, "mean_average", None) is not None:  # prior_mean="average": the physics-mean companion
@@ -121,7 +124,8 @@ def load_model(cls, path, map_location=None, others: dict | None = None):
     opts.setdefault("hyper_posterior", "map")  # files written before these options: the plug-in RBF of then
     opts.setdefault("li_basis", False)
     auto = bool(opts.pop("auto", False))  # method="auto": the backend it was on, and free to move again in fit
-    model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"], **opts)
+    model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"],
+                locations=payload.get("locations"), **opts)
     model.auto = auto
     model.hypers.load_state_dict(payload["hypers"])
     if "surface_offset" in payload:
@@ -231,6 +235,8 @@ class PersistenceMixin(nn.Module):
         c, f = self._measured()
         # the weights (what the maps see); the signed depths and areas only where the surface is learned
         data = c.as_dict() if self.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
+        if c.locations is not None:
+            data = {**data, "locations": c.locations}
         d = digest({"contacts": data, "forces": f, "noise_scale": self.noise_scale})
         return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
 

@@ -36,7 +36,8 @@ from .paths import Path
 from .stress_maps import wrap_beta
 from .toes import Toe
 
-__all__ = ["Contacts", "SegmentKinematics", "segment_kinematics", "contacts", "M_TO_CM", "SURFACE_FIELDS"]
+__all__ = ["Contacts", "SegmentKinematics", "segment_kinematics", "contacts", "check_locations", "M_TO_CM",
+           "SURFACE_FIELDS"]
 
 M_TO_CM = 100.0  # the one place that converts SI lengths to the literature's centimetres
 SURFACE_FIELDS = ("depth", "area_x", "area_z")  # the optional fields that let the surface move
@@ -56,6 +57,10 @@ class Contacts:
         area_x: optional: the signed area multiplying relu(depth) in weight_x, cm^2 (it carries the
             sign of the drag, and is zero for a segment too slow to have a direction).
         area_z: optional: the area multiplying relu(depth) in weight_z, cm^2, >= 0.
+        locations: optional (..., T, 2): each sample's place on the ground (x, y), m, world frame (a foothold, or
+            where a drag has moved to): what a model of maps that change over the ground needs
+            (``InverseRFT(..., locations=)``). Carried by indexing, ``cat``, ``to`` and the weight changes; not
+            in ``as_dict`` (the per-segment tensors).
 
     With the optional three, ``weight_c = relu(depth) * area_c`` (checked), and
     ``with_surface_offset`` can move the surface; without them (older datasets, hand-built
@@ -69,13 +74,14 @@ class Contacts:
     depth: Tensor | None = None
     area_x: Tensor | None = None
     area_z: Tensor | None = None
+    locations: Tensor | None = None
 
     def __post_init__(self) -> None:
         extra = [getattr(self, n) is None for n in SURFACE_FIELDS]
         if any(extra) and not all(extra):
             missing = [n for n, e in zip(SURFACE_FIELDS, extra) if e]
             raise ValueError(f"Contacts.depth, area_x and area_z go together (all three or none); missing {missing}")
-        names = [f.name for f in fields(self) if getattr(self, f.name) is not None]
+        names = [f.name for f in fields(self) if getattr(self, f.name) is not None and f.name != "locations"]
         for name in names:
             v = getattr(self, name)
             if not isinstance(v, Tensor):
@@ -94,6 +100,12 @@ class Contacts:
                     f"Contacts.{name} has shape {tuple(getattr(self, name).shape)}, "
                     f"beta has {tuple(shape)}: all four must match"
                 )
+        if self.locations is not None:
+            loc = check_locations(self.locations, name="Contacts.locations").to(self.beta)
+            if loc.shape != (*self.beta.shape[:-1], 2):
+                raise ValueError(f"Contacts.locations must be {(*tuple(self.beta.shape[:-1]), 2)}, one place (x, y) "
+                                 f"in m per sample, got shape {tuple(loc.shape)}")
+            self.locations = loc
         if (self.weight_z < 0).any():
             raise ValueError("Contacts.weight_z must be >= 0 (depth x area)")
         if self.has_surface:
@@ -114,9 +126,15 @@ class Contacts:
         """Whether the signed depths and areas are kept (``with_surface_offset`` works)."""
         return self.depth is not None
 
-    def _apply(self, fn) -> Contacts:
-        """fn applied to every tensor held (the optional ones where present)."""
-        return Contacts(**{k: fn(v) for k, v in self.as_dict().items()})
+    def _apply(self, fn, on_locations: bool = True) -> Contacts:
+        """fn applied to every tensor held (the optional ones where present; the locations too where
+        ``on_locations``, else kept as they are)."""
+        loc = self.locations if self.locations is None or not on_locations else fn(self.locations)
+        return Contacts(**{k: fn(v) for k, v in self.as_dict().items()}, locations=loc)
+
+    def with_locations(self, locations) -> Contacts:
+        """The same contacts with each sample's place on the ground, (..., T, 2) m (None: without places)."""
+        return Contacts(**self.as_dict(), locations=locations)
 
     def with_surface_offset(self, delta, groups=None) -> Contacts:
         """The contacts for a free surface ``delta`` m higher than the stated one (every depth grows
@@ -151,14 +169,15 @@ class Contacts:
             shift = delta[groups][:, None]
         depth = self.depth + shift
         d = torch.relu(depth)
-        return Contacts(self.beta, self.gamma, d * self.area_x, d * self.area_z, depth, self.area_x, self.area_z)
+        return Contacts(self.beta, self.gamma, d * self.area_x, d * self.area_z, depth, self.area_x, self.area_z,
+                        self.locations)
 
     def scale_weights(self, sx: Tensor, sz: Tensor) -> Contacts:
         """Weights (and areas) of each axis multiplied by ``sx``, ``sz`` (broadcast against (..., T, M))."""
         if not self.has_surface:
-            return Contacts(self.beta, self.gamma, self.weight_x * sx, self.weight_z * sz)
+            return Contacts(self.beta, self.gamma, self.weight_x * sx, self.weight_z * sz, locations=self.locations)
         return Contacts(self.beta, self.gamma, self.weight_x * sx, self.weight_z * sz, self.depth, self.area_x * sx,
-                        self.area_z * sz)
+                        self.area_z * sz, self.locations)
 
     @property
     def shape(self) -> torch.Size:
@@ -180,6 +199,8 @@ class Contacts:
         """The contacts with every tensor ``.to(*args, **kwargs)``; ``self`` when nothing changes (as
         ``Tensor.to``: no copy, no second validation)."""
         old = self.as_dict()
+        if self.locations is not None:
+            old["locations"] = self.locations
         moved = {k: v.to(*args, **kwargs) for k, v in old.items()}
         if all(moved[k] is v for k, v in old.items()):
             return self
@@ -193,7 +214,7 @@ class Contacts:
         if extra == 0:
             return self
         pad = lambda v: torch.nn.functional.pad(v, (0, extra))  # noqa: E731
-        return self._apply(pad)
+        return self._apply(pad, on_locations=False)
 
     @classmethod
     def cat(cls, parts: list[Contacts]) -> Contacts:
@@ -203,7 +224,12 @@ class Contacts:
         M = max(p.n_segments for p in parts)
         parts = [p.pad_segments(M) for p in parts]
         names = [n for n in parts[0].as_dict() if all(getattr(p, n) is not None for p in parts)]
-        return cls(**{n: torch.cat([getattr(p, n) for p in parts], dim=-2) for n in names})
+        placed = [p.locations is not None for p in parts]
+        if any(placed) and not all(placed):
+            raise ValueError(f"Contacts.cat: parts {[i for i, h in enumerate(placed) if not h]} have no locations and "
+                             f"the others do; give every part its places on the ground (or none)")
+        loc = torch.cat([p.locations for p in parts], dim=-2) if all(placed) else None
+        return cls(**{n: torch.cat([getattr(p, n) for p in parts], dim=-2) for n in names}, locations=loc)
 
     @classmethod
     def points(cls, beta, gamma, dtype=None, device=None) -> Contacts:
@@ -226,8 +252,25 @@ class Contacts:
         return cls(bc[:, None], gc[:, None], sx[:, None], torch.ones_like(bc)[:, None])
 
     def as_dict(self) -> dict[str, Tensor]:
-        """The tensors held, by name, in field order (the optional depth and areas only where present)."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+        """The per-segment tensors (..., T, M) held, by name, in field order (the optional depth and areas only
+        where present; never ``locations``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if getattr(self, f.name) is not None and f.name != "locations"}
+
+
+def check_locations(locations, n: int | None = None, name: str = "locations") -> Tensor:
+    """``locations`` as a float tensor (..., 2) of finite horizontal places in m; ``n``: the number of
+    samples it must have (its first dimension). Raises ``ValueError`` naming ``name`` otherwise."""
+    s = torch.as_tensor(locations)
+    if not s.is_floating_point():
+        s = s.to(torch.get_default_dtype())
+    if s.ndim < 1 or s.shape[-1] != 2:
+        raise ValueError(f"{name} must be (..., 2) horizontal places (x, y) in m, got shape {tuple(s.shape)}")
+    if n is not None and (s.ndim != 2 or s.shape[0] != n):
+        raise ValueError(f"{name} must be ({n}, 2), one place per sample, got shape {tuple(s.shape)}")
+    if not bool(torch.isfinite(s).all()):
+        raise ValueError(f"{name} has NaN or infinite entries")
+    return s
 
 
 @dataclass

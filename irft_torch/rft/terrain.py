@@ -24,26 +24,12 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
+from .contacts import check_locations
 from .stress_maps import FourierStressMap
 
 __all__ = ["TerrainField", "check_locations"]
 
 StressMap = Callable[[Tensor, Tensor], Tensor]
-
-
-def check_locations(locations, n: int | None = None, name: str = "locations") -> Tensor:
-    """``locations`` as a float tensor (..., 2) of finite horizontal places in m; ``n``: the number of
-    samples it must have (its first dimension). Raises ``ValueError`` naming ``name`` otherwise."""
-    s = torch.as_tensor(locations)
-    if not s.is_floating_point():
-        s = s.to(torch.get_default_dtype())
-    if s.ndim < 1 or s.shape[-1] != 2:
-        raise ValueError(f"{name} must be (..., 2) horizontal places (x, y) in m, got shape {tuple(s.shape)}")
-    if n is not None and (s.ndim != 2 or s.shape[0] != n):
-        raise ValueError(f"{name} must be ({n}, 2), one place per sample, got shape {tuple(s.shape)}")
-    if not bool(torch.isfinite(s).all()):
-        raise ValueError(f"{name} has NaN or infinite entries")
-    return s
 
 
 def _direction(angle: float) -> Tensor:

@@ -16,6 +16,7 @@ from .angle import BATCH, AngleKernel
 from .constraints import ScaledGreaterThan
 from .li_basis import LiBasisVariance, generic_coefficients, li_features
 from .means import GenericShapeMean
+from .spatial import SpatialFactor
 
 __all__ = ["RFTHyperparameters", "force_likelihood"]
 
@@ -39,13 +40,17 @@ class RFTHyperparameters(Module):
         mean: ``GenericShapeMean`` (scales (2,) of the generic Li et al. shape) or None (zero mean).
         li: ``LiBasisVariance`` (variance (2,) of Li et al.'s 9-function kernel term, ``gp.kernels.li_basis``, and with
             ``generic_shape`` the generic shape's variance (2,) too) or None (the RBF alone).
+        spatial: ``SpatialFactor`` (maps that change over the ground, ``gp.kernels.spatial``: variance (2,) relative
+            to the shared medium, lengthscale (2,) m) or None (one homogeneous medium).
     """
 
     def __init__(self, tied_noise: bool = False, physics_mean: bool = False, noise_floor: float = 1e-6,
-                 force_scale=1.0, map_scale=1.0, li_basis: bool = False, generic_shape: bool = False) -> None:
+                 force_scale=1.0, map_scale=1.0, li_basis: bool = False, generic_shape: bool = False,
+                 spatial_lengthscale: float | None = None) -> None:
         """``force_scale`` (2,) N and ``map_scale`` (2,) N/cm^3: the data's typical force and stress per
         depth per axis; the raw parameters are measured in them (``ScaledGreaterThan``), so a fit does
-        not depend on the units the data come in."""
+        not depend on the units the data come in. ``spatial_lengthscale`` (m): maps over the ground, the
+        spatial factor starting at this lengthscale; None: one medium."""
         super().__init__()
         fs = torch.as_tensor(force_scale, dtype=torch.get_default_dtype()).expand(2)
         ms = torch.as_tensor(map_scale, dtype=torch.get_default_dtype()).expand(2)
@@ -56,6 +61,7 @@ class RFTHyperparameters(Module):
             raise ValueError("generic_shape=True needs li_basis=True: the generic shape is a rank-one update of Li et "
                              "al.'s 9-function term (gp.kernels.li_basis)")
         self.li = LiBasisVariance(scale=ms.pow(2), generic=generic_shape) if li_basis else None
+        self.spatial = None if spatial_lengthscale is None else SpatialFactor(float(spatial_lengthscale))
 
     @property
     def tied(self) -> bool:
@@ -153,4 +159,7 @@ class RFTHyperparameters(Module):
             out["li_variance"] = self.li.variance.tolist()
             if self.li.generic:
                 out["generic_variance"] = self.li.generic_variance.tolist()
+        if self.spatial is not None:
+            out["spatial_variance"] = self.spatial.variance.tolist()
+            out["spatial_lengthscale_m"] = self.spatial.lengthscale.tolist()
         return out

@@ -77,7 +77,7 @@ from ...rft.stress_maps import FourierStressMap
 
 __all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale", "prior_centres",
            "centres_of_sums",
-           "register_physical_priors"]
+           "register_physical_priors", "register_spatial_priors", "spatial_lengthscale_centre"]
 
 PRIORS = ("physical", None)
 GENERIC_RMS = (0.2088, 0.3805)  # rms of the generic Li et al. map over the square, (x, z), per unit zeta
@@ -89,6 +89,8 @@ NOISE_RELATIVE = 1e-2
 NOISE_LOG_SD = math.log(10.0)
 GENERIC_LOG_SD = math.log(2.0)  # of u, the generic shape's variance, around zeta^2
 MEAN_SCALE_LOG_SD = math.log(2.0)  # the physics mean's scale per axis, around the medium's zeta
+SPATIAL_VARIANCE_LOG_SD = math.log(4.0)  # v around SPATIAL_VARIANCE_START: 0.016 to 4 at two standard deviations
+SPATIAL_LENGTHSCALE_LOG_SD = math.log(3.0)  # l around a quarter of the ground walked (a factor 9 at two sd)
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
 
 
@@ -250,3 +252,28 @@ def _log_scale_ratio(m, c):
 
 def _log_noise_ratio(m, c):
     return m.noise.reshape(-1).log() - c.to(m.noise)
+
+
+def spatial_lengthscale_centre(locations: Tensor) -> float:
+    """The spatial lengthscale's prior centre, m: a quarter of the largest extent of the places (N, 2) walked
+    (1 m where every place is the same)."""
+    span = float((locations.max(0).values - locations.min(0).values).max()) if len(locations) else 0.0
+    return span / 4 if span > 0 else 1.0
+
+
+def register_spatial_priors(hypers, lengthscale_centre: float) -> None:
+    """Priors of the spatial factor (``gp.kernels.spatial``), gpytorch ``NormalPrior`` on log(value / centre):
+    the relative variance v around ``SPATIAL_VARIANCE_START`` (a proper prior: the hyperparameter posterior
+    needs one, and v -> 0, one medium, stays reachable), the lengthscale around ``lengthscale_centre`` m."""
+    from .spatial import SPATIAL_VARIANCE_START
+
+    k = hypers.spatial.kernel
+    zero = torch.zeros((), dtype=k.raw_outputscale.dtype, device=k.raw_outputscale.device)
+    k.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), SPATIAL_VARIANCE_LOG_SD)),
+                     functools.partial(_log_spatial_variance_ratio, c=math.log(SPATIAL_VARIANCE_START)))
+    k.base_kernel.register_prior("lengthscale_prior", _stateless(NormalPrior(zero.clone(), SPATIAL_LENGTHSCALE_LOG_SD)),
+                                 functools.partial(_log_lengthscale_ratio, c=math.log(lengthscale_centre)))
+
+
+def _log_spatial_variance_ratio(m, c):
+    return m.outputscale.log() - c
