@@ -72,6 +72,16 @@ print("KEY" + _json.dumps({name: _cover(m) for name, m in fits.items()}))
 """, lambda k: (k["paper's plug-in"][0] < 0.8 and k["li_basis plug-in"][0] >= 0.9  # measured 0.54, 0.97, 1.00
                 and k["default"][0] >= k["li_basis plug-in"][0]                  # (alpha_x)
                 and min(k["generic_shape plug-in"]) >= 0.9)),  # measured 1.00, 1.00
+    "06_walk_and_map": (2, RMSE_CODE + """
+_where = _torch.tensor([[0.5, 0.15], [1.1, -0.1], [2.3, 0.1], [2.9, -0.15]])  # off the footholds, both sands
+_t = _torch.stack([truth_field.at(_s)(_B, _G) for _s in _where])
+_p = model.stress_map(_B, _G, locations=_where)
+_h = homogeneous.stress_map(_B, _G).mean
+_lo, _hi = _p.interval(0.95)
+print("KEY" + _json.dumps({"spatial": (_p.mean - _t).pow(2).mean().sqrt().item(),
+                           "homogeneous": (_h - _t).pow(2).mean().sqrt().item(),
+                           "inside": ((_t >= _lo) & (_t <= _hi)).double().mean().item()}))
+""", lambda k: k["spatial"] < 0.8 * k["homogeneous"] and k["inside"] >= 0.85),
 }
 
 
