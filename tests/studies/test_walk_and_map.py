@@ -5,7 +5,7 @@ import sys
 
 import torch
 
-from tests.studies import experiment_path
+from . import experiment_path
 
 
 def _script():

@@ -1,0 +1,130 @@
+"""Where to step next: footholds scored by what a stance there would teach about the maps over a region of the
+ground, and a greedy planner that picks the next footholds within a reach (a model fitted with places,
+``InverseRFT(..., locations=)``).
+
+A candidate stance is one stroke (contacts (T, M) and each sample's offset (T, 2) m from its foothold) placed at a
+candidate foothold p. Its score is the expected fall of the maps' posterior variance over the region of interest,
+summed over the region's angles (a ``Region``) and places (L, 2) m, both maps, each divided by its prior variance:
+
+    score(p) = sum_a sum_q [S_qc (S_cc + noise)^-1 S_cq]_qq / prior_a / (N_angles L),
+
+exact for the model's plug-in hyperparameters (the backend's posterior covariances; a Gaussian's variance does not
+depend on the forces measured, so a planned stance is conditioned on without them). 0: nothing learned; 1: the
+region known exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..rft.contacts import Contacts, check_locations
+from .region import Region
+
+__all__ = ["Stance", "force_field", "foothold_scores", "plan_footholds"]
+
+
+@dataclass(frozen=True)
+class Stance:
+    """One stroke to place at footholds: ``contacts`` (T, M) and each sample's ``offsets`` (T, 2) m from the
+    foothold (a drag moves along the heading; ``rft.walk`` of one foothold at the origin gives both)."""
+
+    contacts: Contacts
+    offsets: Tensor
+
+    @classmethod
+    def of_stroke(cls, toe, stroke, heading: float = 0.0) -> Stance:
+        """The stroke of ``toe`` (``rft.Path``) walked at heading ``heading`` rad, samples out of contact dropped."""
+        from ..rft.walks import walk
+
+        w = walk(toe, stroke, torch.zeros(1, 2, dtype=torch.float64), torch.tensor([float(heading)]))
+        keep = (w.contacts.weight_x != 0).any(-1) | (w.contacts.weight_z != 0).any(-1)
+        return cls(w.contacts[keep], w.locations[keep])
+
+    def at(self, foothold: Tensor) -> Contacts:
+        """The stance's contacts placed at ``foothold`` (2,) m."""
+        return self.contacts.with_locations(foothold.to(self.offsets) + self.offsets)
+
+
+def force_field(model, stance: Stance, places, include_noise: bool = False):
+    """A planner's field: the forces (N) of ``stance`` placed at each of ``places`` (L, 2) m, predicted by a
+    model fitted with places: a ``Posterior`` with mean and variance (L, T, 2) (each sample of the stroke, F_x and
+    F_z), ``.interval(0.95)`` its band. ``include_noise``: a measurement's spread rather than the force's."""
+    if not getattr(model, "spatial", False):
+        raise ValueError("model: a force field needs a model fitted with places (InverseRFT(..., locations=))")
+    where = check_locations(places, name="places").to(model.dtype)
+    if where.ndim != 2:
+        raise ValueError(f"places must be (L, 2) m, got shape {tuple(where.shape)}")
+    L = where.shape[0]
+    c = Contacts(**{k: v.to(model.dtype).expand(L, *v.shape) for k, v in stance.contacts.as_dict().items()})
+    return model.predict_forces(c, include_noise=include_noise,
+                                locations=where[:, None, :] + stance.offsets.to(where)[None])
+
+
+def _region_queries(region: Region, places: Tensor) -> Contacts:
+    c = region.contacts()
+    N, L = len(c), places.shape[0]
+    return Contacts(**{k: v.repeat(L, 1) for k, v in c.as_dict().items()},
+                    locations=places.to(c.beta).repeat_interleave(N, 0))
+
+
+def _score(backend, queries: Contacts, weights: Tensor, stance: Stance, foothold: Tensor) -> Tensor:
+    c = stance.at(foothold).to(dtype=queries.beta.dtype, device=queries.beta.device)
+    S_qc = backend.cross_covariance(queries, c)  # (2, Q, T)
+    S_cc = backend.cross_covariance(c, c)
+    noise = backend.hypers.noise.detach()
+    eye = torch.eye(S_cc.shape[-1], dtype=S_cc.dtype, device=S_cc.device)
+    L = torch.linalg.cholesky(0.5 * (S_cc + S_cc.mT) + noise[:, None, None] * eye)
+    fall = torch.linalg.solve_triangular(L, S_qc.mT, upper=False).pow(2).sum(-2)  # (2, Q)
+    prior = backend.hypers.prior_variance.detach()
+    return ((fall * weights).sum(-1) / prior).mean()
+
+
+def foothold_scores(model, stance: Stance, candidates, places, region: Region | None = None) -> Tensor:
+    """Scores (K,) of a stance at each candidate foothold (K, 2) m for the maps over ``places`` (L, 2) m and the
+    angles of ``region`` (default ``Region.square(8)``) (module docstring). ``model``: a fitted ``InverseRFT``
+    with places (its plug-in backend: the mode's hyperparameters)."""
+    if not getattr(model, "spatial", False):
+        raise ValueError("model: foothold scores need a model fitted with places (InverseRFT(..., locations=))")
+    cand = check_locations(candidates, name="candidates").to(model.dtype)
+    where = check_locations(places, name="places").to(model.dtype)
+    if cand.ndim != 2 or where.ndim != 2:
+        raise ValueError("candidates and places must be (K, 2) and (L, 2) places in m")
+    region = region or Region.square(8, dtype=model.dtype)
+    queries = _region_queries(region, where)
+    weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
+    with torch.no_grad():
+        return torch.stack([_score(model.backend, queries, weights, stance, p) for p in cand])
+
+
+def plan_footholds(model, stance: Stance, start, n_steps: int, reach: float, candidates, places,
+                   region: Region | None = None) -> Tensor:
+    """The next ``n_steps`` footholds (n_steps, 2) m, greedily: from ``start`` (2,) m, each step the candidate
+    (K, 2) m within ``reach`` m of the last foothold with the highest score (``foothold_scores``) given the
+    stances planned before it (conditioned on, with the model's hyperparameters fixed). A step with no
+    candidate in reach raises ``ValueError`` naming ``reach``."""
+    if int(n_steps) != n_steps or n_steps < 1:
+        raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+    if not (reach > 0):
+        raise ValueError(f"reach must be a positive distance in m, got {reach}")
+    if not getattr(model, "spatial", False):
+        raise ValueError("model: planning footholds needs a model fitted with places (InverseRFT(..., locations=))")
+    cand = check_locations(candidates, name="candidates").to(model.dtype)
+    where = check_locations(places, name="places").to(model.dtype)
+    region = region or Region.square(8, dtype=model.dtype)
+    queries = _region_queries(region, where)
+    weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
+    here = check_locations(start, name="start").to(model.dtype).reshape(2)
+    backend, plan = model.backend, []
+    with torch.no_grad():
+        for _ in range(int(n_steps)):
+            near = ((cand - here).norm(dim=-1) <= reach).nonzero()[:, 0]
+            if len(near) == 0:
+                raise ValueError(f"reach: no candidate foothold within {reach} m of {here.tolist()}")
+            scores = torch.stack([_score(backend, queries, weights, stance, cand[i]) for i in near])
+            here = cand[near[int(scores.argmax())]]
+            plan.append(here)
+            backend = backend.condition(stance.at(here).to(dtype=model.dtype))
+    return torch.stack(plan)

@@ -1,0 +1,77 @@
+"""Foothold scores and the greedy planner (``design.footholds``) against the model's own conditioning done the
+long way (the posterior variance before and after a stance is added), and the planner's field against a
+per-place loop of ``predict_forces``."""
+
+import pytest
+import torch
+
+from irft_torch import InverseRFT, rft
+from irft_torch.design import Region, Stance, foothold_scores, force_field, plan_footholds
+from irft_torch.rft import CToe, FourierStressMap, TerrainField, course_path
+from irft_torch.rft.contacts import Contacts
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def setup():
+    stance = Stance.of_stroke(CToe(0.025, 0.02, n_segments=5),
+                              course_path([-0.8, -0.3, 0.4], 0.06, start=(0.0, 0.0), n_steps=8))
+    field = TerrainField.two_media(FourierStressMap.poppy_seeds_loose(), FourierStressMap.poppy_seeds_close(),
+                                   boundary=0.5, width=0.05)
+    feet = torch.stack([torch.linspace(0.0, 0.6, 4, dtype=F64), torch.zeros(4, dtype=F64)], -1)
+    c = Contacts.cat([stance.at(p) for p in feet])
+    F = rft.forces(field, c, locations=c.locations)
+    F = F + 0.02 * F.abs().mean(0) * torch.randn(F.shape, generator=torch.Generator().manual_seed(0), dtype=F64)
+    model = InverseRFT(c, F, hyper_posterior="map")
+    model.fit(n_iter=60, progress=False)
+    return stance, model
+
+
+def test_scores_are_the_fall_of_the_posterior_variance_over_the_region(setup):
+    stance, model = setup
+    region = Region.square(4)
+    places = torch.tensor([[0.2, 0.3], [1.2, 0.0]], dtype=F64)
+    cands = torch.tensor([[0.3, 0.0], [1.1, 0.1], [2.5, 0.0]], dtype=F64)
+    got = foothold_scores(model, stance, cands, places, region)
+    b, g = region.beta, region.gamma
+    prior = model.hypers.prior_variance.detach()
+    before = model.stress_map(b, g, locations=places).variance  # (L, N, 2)
+    for k, p in enumerate(cands):
+        after = model.backend.condition(stance.at(p))
+        q = Contacts.points(b.repeat(2), g.repeat(2)).with_locations(places.repeat_interleave(len(b), 0))
+        var_after = after.posterior(q).variance.T.reshape(2, len(b), 2)
+        want = ((before - var_after) * region.weight[None, :, None]).sum(1).mean(0) / prior
+        torch.testing.assert_close(got[k], want.mean(), rtol=1e-6, atol=1e-10)
+    assert got[1] > got[0] and got[1] > got[2]  # beside the unexplored place beats the walked one and far away
+    assert 0 <= float(got.min()) and float(got.max()) < 1
+
+
+def test_force_field_is_each_place_predicted_on_its_own(setup):
+    stance, model = setup
+    places = torch.tensor([[0.1, 0.0], [0.9, -0.2], [0.45, 0.3]], dtype=F64)
+    field = force_field(model, stance, places)
+    assert field.mean.shape == (3, len(stance.contacts), 2)
+    for k, p in enumerate(places):
+        one = model.predict_forces(stance.at(p))
+        torch.testing.assert_close(field.mean[k], one.mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(field.variance[k], one.variance, rtol=1e-10, atol=1e-12)
+
+
+def test_planner_steps_within_reach_and_refuses_none_in_reach(setup):
+    stance, model = setup
+    gx, gy = torch.meshgrid(torch.arange(0.0, 2.01, 0.2, dtype=F64), torch.arange(-0.4, 0.41, 0.2, dtype=F64),
+                            indexing="ij")
+    cands = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+    roi = torch.tensor([[1.5, 0.0], [1.8, 0.3]], dtype=F64)
+    plan = plan_footholds(model, stance, torch.tensor([0.6, 0.0], dtype=F64), 3, 0.45, cands, roi, Region.square(4))
+    assert plan.shape == (3, 2)
+    steps = torch.cat([torch.tensor([[0.6, 0.0]], dtype=F64), plan]).diff(dim=0).norm(dim=-1)
+    assert bool((steps <= 0.45 + 1e-12).all())
+    assert float(plan[-1, 0]) > 0.6  # heads for the region of interest
+    with pytest.raises(ValueError, match="reach"):
+        plan_footholds(model, stance, torch.tensor([9.0, 9.0], dtype=F64), 1, 0.3, cands, roi)
+    planar = InverseRFT(stance.contacts, rft.forces(FourierStressMap.generic(), stance.contacts) + 0.01,
+                        hyper_posterior="map")
+    with pytest.raises(ValueError, match="model"):
+        foothold_scores(planar, stance, cands, roi)
