@@ -114,7 +114,8 @@ def test_experiment_help_prints_the_whole_description_and_defaults(capsys):
                        ("active_probing", "active_probing_paths.png."),
                        ("experimental_validation", "z = -5, 0, -3, -1 cm"),
                        ("mixture_spread", "how many runs are above 10 %."),
-                       ("walk_and_map", "``walk_and_map.png``.")):
+                       ("walk_and_map", "``walk_and_map.png``."),
+                       ("explore_footholds", "Writes ``explore_footholds.csv``.")):
         mod = _script(name)
         with pytest.raises(SystemExit):
             mod.main(["--help"])
