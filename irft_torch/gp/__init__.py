@@ -25,6 +25,7 @@ from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
 from .streaming.filter import TerrainFilter
 from .streaming.filter_mixture import TerrainFilterMixture
+from .streaming.tiles import SpatialTiles
 from .surface.profile import profile_surface
 
 __all__ = [
@@ -35,5 +36,5 @@ __all__ = [
     "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
     "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface", "TerrainFilter",
-    "TerrainFilterMixture",
+    "TerrainFilterMixture", "SpatialTiles",
 ]

@@ -191,3 +191,39 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
         warnings.warn("grid_size and exact_max_segments belong to the retired grid path and are ignored",
                       FutureWarning, stacklevel=3)
     return method, hyper_posterior
+
+
+NOISE_FLOOR = 1e-8  # the force noise variance is at least this share of the force power (float64; float32: 1e-5)
+
+
+def initial_hyperparameters(c: Contacts, f: Tensor, dtype, tied_noise: bool, prior_mean: str, li_basis: bool,
+                            generic_shape: bool, lengthscale: float, spatial: bool):
+    """``RFTHyperparameters`` started from the (whitened) data c (T, M), f (T, 2) N, and the data's map scale (2,)
+    N/cm^3: bounds and raw units from the data's own force and stress-per-depth scales (a fit does not depend on
+    the units, N or mN, cm^3 or mm^3); the outputscale from the force power per squared weight (after the physics
+    mean's least-squares scale with ``prior_mean="physics"``), the noise at 1 % of the force power."""
+    from .kernels.hyperparameters import RFTHyperparameters
+    from .kernels.priors import spatial_lengthscale_centre
+
+    y = f.T
+    s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
+    power = y.pow(2).mean(-1)
+    rel_floor = NOISE_FLOOR if dtype == torch.float64 else max(NOISE_FLOOR, 1e-5)
+    noise_floor = max(float(power.min()) * rel_floor, 1e-12)
+    force_scale, map_scale = _data_scales(c, f)
+    hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(), map_scale.cpu(),
+                                li_basis, generic_shape, spatial_lengthscale_centre(c.locations) if spatial else None
+                                ).to(device=c.beta.device, dtype=dtype)
+    with torch.no_grad():
+        resid = y
+        if prior_mean == "physics":
+            shape_f = hypers.mean.shape_forces(c)
+            scales = (y * shape_f).sum(-1) / shape_f.pow(2).sum(-1).clamp_min(1e-300)
+            scales = torch.maximum(scales, 1e-3 * map_scale.to(scales))
+            hypers.mean.scales = scales
+            resid = y - scales[:, None] * shape_f
+        hypers.outputscale = torch.maximum(resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300),
+                                           1e-6 * map_scale.to(resid).pow(2))
+        hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
+        hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+    return hypers, map_scale

@@ -38,11 +38,10 @@ from .inputs import (
     _check_query,
     _check_statistics,
     _check_units,
-    _data_scales,
     _noise_scale,
     _whiten,
+    initial_hyperparameters,
 )
-from .kernels.hyperparameters import RFTHyperparameters
 from .kernels.priors import (
     CentreSums,
     centres_of_sums,
@@ -53,14 +52,13 @@ from .kernels.priors import (
 )
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
-from .posterior import Posterior, _force_posterior, _maps_from, _predict_chunk
+from .posterior import Posterior, _force_posterior, _mixture_maps, _predict_chunk
 from .spatial import check_spatial_options, placed_contacts, placed_queries
 from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
 
 
-NOISE_FLOOR = 1e-8  # the force noise variance is at least this share of the force power (float64; float32: 1e-5)
 
 
 class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, FitControlMixin,
@@ -202,31 +200,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self._device = device
         self._joined: tuple[Contacts, Tensor, Tensor] | None = None
 
-        # Data-scaled initial values and bounds (forces in N, maps in N/cm^3).
-        y = f.T
-        s = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)])  # (2, T)
-        power = y.pow(2).mean(-1)
-        rel_floor = NOISE_FLOOR if dtype == torch.float64 else max(NOISE_FLOOR, 1e-5)
-        noise_floor = max(float(power.min()) * rel_floor, 1e-12)
-        # The data's own force and stress-per-depth scales: the raw hyperparameters are measured in them,
-        # so the fit does not depend on the units (N or mN, cm^3 or mm^3).
-        force_scale, map_scale = _data_scales(c, f)
-        self.hypers = RFTHyperparameters(tied_noise, prior_mean == "physics", noise_floor, force_scale.cpu(),
-                                         map_scale.cpu(), li_basis, generic_shape,
-                                         spatial_lengthscale_centre(c.locations) if spatial else None
-                                         ).to(device=device, dtype=dtype)
-        with torch.no_grad():
-            resid = y
-            if prior_mean == "physics":
-                shape_f = self.hypers.mean.shape_forces(c)
-                scales = (y * shape_f).sum(-1) / shape_f.pow(2).sum(-1).clamp_min(1e-300)
-                scales = torch.maximum(scales, 1e-3 * map_scale.to(scales))
-                self.hypers.mean.scales = scales
-                resid = y - scales[:, None] * shape_f
-            self.hypers.outputscale = torch.maximum(resid.pow(2).mean(-1) / s.pow(2).mean(-1).clamp_min(1e-300),
-                                                    1e-6 * map_scale.to(resid).pow(2))
-            self.hypers.lengthscale = torch.full((2, 1, 4), float(lengthscale), dtype=dtype)
-            self.hypers.noise = (1e-2 * power).clamp_min(noise_floor * 10)
+        self.hypers, map_scale = initial_hyperparameters(c, f, dtype, tied_noise, prior_mean, li_basis, generic_shape,
+                                                         lengthscale, spatial)
         if priors == "physical":
             centres = self._register_priors(c, f)
             with torch.no_grad():  # start where the prior is (the data's guess can be a collapsed axis)
@@ -536,20 +511,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
                              "sample at most 4096 points at a time, or fit with method='spectral'")
         self.eval()
-        backends, weights = self._weighted_backends()
-        with torch.no_grad():
-            if weights is None:
-                draws = _maps_from(backends, [[int(n)], [int(n)]], c, generator)
-            elif weights.ndim == 1:  # how many maps each hyperparameter draw supplies
-                pick = torch.multinomial(weights, int(n), replacement=True, generator=generator)
-                counts = torch.bincount(pick, minlength=len(backends)).tolist()
-                draws = _maps_from(backends, [counts, counts], c, generator)
-            else:  # weights per map (models averaged per map): each map's draws picked on its own
-                counts = [torch.bincount(torch.multinomial(weights[:, a], int(n), replacement=True,
-                                                           generator=generator), minlength=len(backends)).tolist()
-                          for a in range(2)]
-                draws = _maps_from(backends, counts, c, generator)
-        return draws.permute(2, 1, 0).reshape(int(n), *S, 2)
+        return _mixture_maps(*self._weighted_backends(), int(n), c, generator).permute(2, 1, 0).reshape(int(n), *S, 2)
 
     def forward(self, beta: Tensor, gamma: Tensor) -> Tensor:
         """Posterior mean map (..., 2): a fitted model is a stress map (``rft.forces(model, c)``)."""

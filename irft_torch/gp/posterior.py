@@ -134,6 +134,22 @@ def _maps_from(backends: list[RFTBackend], counts: list[list[int]], c: Contacts,
     return draws
 
 
+def _mixture_maps(backends: list[RFTBackend], weights: Tensor | None, n: int, c: Contacts, generator) -> Tensor:
+    """``n`` joint draws (2, N, n) of the maps at point contacts c (N, 1) from the mixture over ``backends`` with
+    ``weights``: None (one backend), (S,) (hyperparameter draws: how many maps each supplies, picked by
+    ``generator``) or (S, 2) (models averaged per map: each map's draws picked on its own)."""
+    with torch.no_grad():
+        if weights is None:
+            return _maps_from(backends, [[n], [n]], c, generator)
+        if weights.ndim == 1:
+            pick = torch.multinomial(weights, n, replacement=True, generator=generator)
+            counts = torch.bincount(pick, minlength=len(backends)).tolist()
+            return _maps_from(backends, [counts, counts], c, generator)
+        per_map = [torch.bincount(torch.multinomial(weights[:, a], n, replacement=True, generator=generator),
+                                  minlength=len(backends)).tolist() for a in range(2)]
+        return _maps_from(backends, per_map, c, generator)
+
+
 def _check_level(level: float) -> None:
     if not 0 < level < 1:
         raise ValueError(f"level must be in (0, 1), got {level}")

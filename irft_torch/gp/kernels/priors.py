@@ -89,6 +89,7 @@ NOISE_RELATIVE = 1e-2
 NOISE_LOG_SD = math.log(10.0)
 GENERIC_LOG_SD = math.log(2.0)  # of u, the generic shape's variance, around zeta^2
 MEAN_SCALE_LOG_SD = math.log(2.0)  # the physics mean's scale per axis, around the medium's zeta
+SPATIAL_VARIANCE_START = 0.25  # v at the start and the centre of its prior: maps that vary by about 50 % (sd)
 SPATIAL_VARIANCE_LOG_SD = math.log(4.0)  # v around SPATIAL_VARIANCE_START: 0.016 to 4 at two standard deviations
 SPATIAL_LENGTHSCALE_LOG_SD = math.log(3.0)  # l around a quarter of the ground walked (a factor 9 at two sd)
 PHYSICS_MEAN_RESIDUAL = 0.3  # residual GP's centre, relative, with the physics mean
@@ -265,8 +266,6 @@ def register_spatial_priors(hypers, lengthscale_centre: float) -> None:
     """Priors of the spatial factor (``gp.kernels.spatial``), gpytorch ``NormalPrior`` on log(value / centre):
     the relative variance v around ``SPATIAL_VARIANCE_START`` (a proper prior: the hyperparameter posterior
     needs one, and v -> 0, one medium, stays reachable), the lengthscale around ``lengthscale_centre`` m."""
-    from .spatial import SPATIAL_VARIANCE_START
-
     k = hypers.spatial.kernel
     zero = torch.zeros((), dtype=k.raw_outputscale.dtype, device=k.raw_outputscale.device)
     k.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), SPATIAL_VARIANCE_LOG_SD)),

@@ -31,10 +31,9 @@ from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from .angle import BATCH
+from .priors import SPATIAL_VARIANCE_START
 
 __all__ = ["SpatialFactor", "SpatialCompositeKernel", "SPATIAL_VARIANCE_START"]
-
-SPATIAL_VARIANCE_START = 0.25  # v at the start and the centre of its prior: maps that vary by about 50 % (sd)
 
 
 class SpatialFactor(Module):

@@ -1,0 +1,78 @@
+"""``SpatialTiles`` (maps over the ground online at a bounded cost): one tile over the whole walk is the exact
+spatial model; tiles keep at most their cap; the approximation stays within its measured bound of the exact
+model at places off the footholds."""
+
+import pytest
+import torch
+
+from irft_torch import InverseRFT, rft
+from irft_torch.gp import SpatialTiles
+from irft_torch.rft import CToe, FourierStressMap, TerrainField, course_path, walk
+
+F64 = torch.float64
+
+
+def _walk(n, seed=0, length=3.0):
+    toe = CToe(0.025, 0.02, n_segments=5)
+    stroke = course_path([-0.8, -0.3, 0.4], 0.06, start=(0.0, 0.0), n_steps=8)
+    feet = torch.stack([torch.linspace(0.0, length, n, dtype=F64), torch.zeros(n, dtype=F64)], -1)
+    w = walk(toe, stroke, feet, torch.zeros(n, dtype=F64))
+    keep = (w.contacts.weight_z != 0).any(-1)
+    c, s, st = w.contacts[keep], w.locations[keep], w.stance[keep]
+    field = TerrainField.two_media(FourierStressMap.poppy_seeds_loose(), FourierStressMap.poppy_seeds_close(),
+                                   boundary=0.45 * length, width=0.05)
+    F = rft.forces(field, c, locations=s)
+    F = F + 0.02 * F.abs().mean(0) * torch.randn(F.shape, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    return c.with_locations(s), F, st
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    c, F, st = _walk(12)
+    m = InverseRFT(c, F, hyper_posterior="map")
+    m.fit(n_iter=80, progress=False)
+    return m
+
+
+def test_one_tile_over_the_whole_walk_is_the_exact_model(fitted):
+    c, F, st = _walk(12)
+    first = st < 6
+    exact = InverseRFT(c, F, hyper_posterior="map")
+    exact.hypers.load_state_dict(fitted.hypers.state_dict())
+    start = InverseRFT(c[first], F[first], hyper_posterior="map")
+    start.hypers.load_state_dict(fitted.hypers.state_dict())
+    tiles = SpatialTiles(start, tile=100.0, margin=0.0)
+    for j in range(6, 12):  # one stance at a time
+        tiles.add_data(c[st == j], F[st == j])
+    assert tiles.n_tiles == 1
+    places = torch.tensor([[0.3, 0.1], [1.6, -0.2], [2.9, 0.05]], dtype=F64)
+    beta, gamma = torch.tensor([0.2, -0.6, 1.0], dtype=F64), torch.tensor([1.1, 0.3, -0.4], dtype=F64)
+    a, b = tiles.stress_map(beta, gamma, places), exact.stress_map(beta, gamma, locations=places)
+    torch.testing.assert_close(a.mean, b.mean, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(a.variance, b.variance, rtol=1e-9, atol=1e-12)
+
+
+def test_tiles_hold_at_most_their_cap_and_stay_near_the_exact_model(fitted):
+    c, F, st = _walk(12)
+    tiles = SpatialTiles(fitted, tile=1.0, max_samples=80)
+    assert all(tiles.samples_in(k) <= 80 for k in tiles._data)
+    tiles = SpatialTiles(fitted, tile=1.0)  # the default cap holds the whole walk per tile
+    places = torch.tensor([[0.4, 0.1], [1.4, -0.1], [2.2, 0.15], [2.8, 0.0]], dtype=F64)
+    b, g = torch.meshgrid(torch.linspace(-1.4, 1.4, 7, dtype=F64), torch.linspace(-1.4, 1.4, 7, dtype=F64),
+                          indexing="ij")
+    a, e = tiles.stress_map(b, g, places), fitted.stress_map(b, g, locations=places)
+    gap = ((a.mean - e.mean).abs() / e.variance.sqrt()).max()
+    assert float(gap) < 0.25  # measured 2026-11-29 (docs/terrain.md)
+    assert bool((a.variance >= e.variance * (1 - 1e-9)).all())  # fewer samples, never surer
+
+
+def test_tiles_refuse_a_model_without_places_and_samples_without_them(fitted):
+    c, F, _ = _walk(4)
+    planar = InverseRFT(c.with_locations(None), F, hyper_posterior="map")
+    with pytest.raises(ValueError, match="model"):
+        SpatialTiles(planar)
+    tiles = SpatialTiles(fitted)
+    with pytest.raises(ValueError, match="locations"):
+        tiles.add_data(c.with_locations(None), F)
+    with pytest.raises(ValueError, match="tile"):
+        SpatialTiles(fitted, tile=0.0)
