@@ -4,7 +4,7 @@ as the walk grows, ``SpatialTiles`` against the exact spatial model, and the til
 Data: simulated (a C-toe's scoop every 0.2 m along a straight walk over a boundary and patches). Run time: about
 2 minutes here (2 cores).
 
-    python experiments/benchmarks/bench_walk_online.py [--stances 2000] [--exact-upto 150] [--tile 1.0]
+    python experiments/benchmarks/bench_walk_online.py [--stances 2000] [--exact-upto 150] [--tile 1.0] [--margin 1.0]
 
 The spatial model is fitted on the first 12 stances; then each step adds one stance (``add_data``, hyperparameters
 fixed) and asks for the maps at the new foothold over an 8 x 8 grid of angles. Reported: ms per step at steps 100
@@ -32,6 +32,8 @@ def main(argv=None) -> None:
     ap.add_argument("--stances", type=int, default=2000, help="stances walked (default 2000)")
     ap.add_argument("--exact-upto", type=int, default=150, help="stances the exact model is timed to (default 150)")
     ap.add_argument("--tile", type=float, default=1.0, help="tile side, m (default 1.0)")
+    ap.add_argument("--margin", type=float, default=1.0, help="how far beyond its square a tile takes samples, m "
+                                                              "(default 1.0)")
     args = ap.parse_args(argv)
     torch.set_default_dtype(F64)
     warnings.simplefilter("ignore")
@@ -69,7 +71,7 @@ def main(argv=None) -> None:
     def run(kind: str, upto: int) -> dict[int, float]:
         import copy
 
-        holder = SpatialTiles(model, tile=args.tile) if kind == "tiles" else copy.deepcopy(model)
+        holder = SpatialTiles(model, tile=args.tile, margin=args.margin) if kind == "tiles" else copy.deepcopy(model)
         times: dict[int, list[float]] = {m: [] for m in marks}
         for k in range(12, upto):
             t0 = time.perf_counter()
@@ -86,7 +88,8 @@ def main(argv=None) -> None:
         return {m: 1e3 * sum(v) / len(v) for m, v in times.items() if v}
 
     tiles = run("tiles", args.stances)
-    print(f"tiles ({args.tile:g} m): {tiles[marks[0]]:.1f} ms per step at step {marks[0]}, "
+    print(f"spatial lengthscale (x, z) {model.hypers.spatial.lengthscale.tolist()} m")
+    print(f"tiles ({args.tile:g} m, margin {args.margin:g} m): {tiles[marks[0]]:.1f} ms per step at step {marks[0]}, "
           f"{tiles[marks[1]]:.1f} ms at step {marks[1]}: ratio {tiles[marks[1]] / tiles[marks[0]]:.2f}")
     upto = min(args.exact_upto, args.stances)
     exact_marks = [100, upto - 5]
@@ -100,7 +103,7 @@ def main(argv=None) -> None:
     Fs = torch.cat([d[1] for d in data[:upto]])
     full = irft.InverseRFT(cs, Fs, hyper_posterior="map")
     full.hypers.load_state_dict(model.hypers.state_dict())
-    t = SpatialTiles(full, tile=args.tile)
+    t = SpatialTiles(full, tile=args.tile, margin=args.margin)
     x = torch.rand(20, generator=gen, dtype=F64) * 0.2 * (upto - 1)
     y = (torch.rand(20, generator=gen, dtype=F64) - 0.5) * 0.4
     where = torch.stack([x, y], -1)

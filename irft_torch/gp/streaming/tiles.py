@@ -53,7 +53,7 @@ class SpatialTiles:
         self.hypers = model.hypers
         self.dtype, self.device = model.dtype, model._device
         self.tile = float(tile)
-        ls = float(self.hypers.spatial.lengthscale.max())
+        ls = float(self.hypers.spatial.lengthscale.detach().max())
         self.margin = float(max(3 * ls, tile / 4)) if margin is None else float(margin)
         if not (math.isfinite(self.margin) and self.margin >= 0):
             raise ValueError(f"margin must be a non-negative length in m, got {margin}")
