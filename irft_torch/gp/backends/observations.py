@@ -61,8 +61,16 @@ class ObservationsBackend(RFTBackend):
         self.train_contacts, self.train_forces = contacts, forces
         self.n_segments = contacts.n_segments
         mean = hypers.mean if hypers.mean is not None else gpytorch.means.ZeroMean(batch_shape=BATCH)
-        self.gp = CompositeExactGP(encode_contacts(contacts), forces.T.contiguous(), hypers.likelihood, mean,
-                                   RFTCompositeKernel(hypers.kernel, hypers.li))
+        self.gp = CompositeExactGP(self._encode(contacts), forces.T.contiguous(), hypers.likelihood,
+                                   *self._gp_parts(mean))
+
+    def _encode(self, contacts: Contacts, M: int | None = None) -> Tensor:
+        """The ExactGP's input rows of ``contacts`` (``gp.kernels.encoding``), padded to M segments."""
+        return encode_contacts(contacts, M)
+
+    def _gp_parts(self, mean) -> tuple:
+        """The ExactGP's mean and kernel modules over ``_encode``'s rows."""
+        return mean, RFTCompositeKernel(self.hypers.kernel, self.hypers.li)
 
     def _settings(self):
         stack = contextlib.ExitStack()
@@ -135,7 +143,7 @@ class ObservationsBackend(RFTBackend):
     def _ensure_width(self, M: int) -> None:
         """Widen the training rows with zero-weight padding so test rows with M segments fit."""
         if M > self.n_segments:
-            self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, M), strict=False)
+            self.gp.set_train_data(inputs=self._encode(self.train_contacts, M), strict=False)
             self.n_segments = M
 
     # ---- prediction: the training covariance factored once per set of hyperparameters --------
@@ -231,7 +239,7 @@ class ObservationsBackend(RFTBackend):
         return self._block(s1, s2) - A1.mT @ A2
 
     def _with_data(self, c: Contacts, f: Tensor) -> ObservationsBackend:
-        return ObservationsBackend(self.hypers, Contacts.cat([self.train_contacts, c]),
+        return type(self)(self.hypers, Contacts.cat([self.train_contacts, c]),
                                    torch.cat([self.train_forces, f.to(self.train_forces)]), self.solver)
 
     def condition(self, contacts: Contacts, forces: Tensor | None = None) -> ObservationsBackend:
@@ -245,7 +253,7 @@ class ObservationsBackend(RFTBackend):
         self.train_forces = torch.cat([self.train_forces, forces.to(self.train_forces)])
         self.n_segments = max(self.n_segments, contacts.n_segments)
         self.n_samples = len(self.train_contacts)
-        self.gp.set_train_data(inputs=encode_contacts(self.train_contacts, self.n_segments),
+        self.gp.set_train_data(inputs=self._encode(self.train_contacts, self.n_segments),
                                targets=self.train_forces.T.contiguous(), strict=False)
 
 

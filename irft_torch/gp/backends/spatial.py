@@ -16,7 +16,7 @@ from ..kernels.angle import RFTCompositeKernel, composite_covariance
 from ..kernels.encoding import encode_contacts
 from ..kernels.spatial import SpatialCompositeKernel
 from .base import FunctionalPosterior
-from .observations import CompositeExactGP, ObservationsBackend
+from .observations import ObservationsBackend
 
 __all__ = ["SpatialBackend", "encode_placed"]
 
@@ -59,15 +59,17 @@ class SpatialBackend(ObservationsBackend):
     def __init__(self, hypers, contacts: Contacts, forces: Tensor, solver: str = "cholesky") -> None:
         if getattr(hypers, "spatial", None) is None:
             raise ValueError("the spatial backend needs hyperparameters with a spatial factor (RFTHyperparameters("
-                             "spatial=True))")
+                             "spatial_lengthscale=...))")
         if solver != "cholesky":
             raise ValueError(f"the spatial backend solves by Cholesky only, got solver={solver!r}")
         super().__init__(hypers, contacts, forces, solver)
-        encode_placed(contacts)  # the clear error where places are missing
-        self.gp = CompositeExactGP(encode_placed(contacts), forces.T.contiguous(), hypers.likelihood,
-                                   _PlacedMean(self.gp.mean_module),
-                                   SpatialCompositeKernel(RFTCompositeKernel(hypers.kernel, hypers.li),
-                                                          hypers.spatial))
+
+    def _encode(self, contacts: Contacts, M: int | None = None) -> Tensor:
+        return encode_placed(contacts, M)
+
+    def _gp_parts(self, mean) -> tuple:
+        return _PlacedMean(mean), SpatialCompositeKernel(RFTCompositeKernel(self.hypers.kernel, self.hypers.li),
+                                                         self.hypers.spatial)
 
     def with_hypers(self, hypers) -> SpatialBackend:
         """The same data at other hyperparameters (a hyperparameter draw)."""
@@ -76,11 +78,6 @@ class SpatialBackend(ObservationsBackend):
     def closed_form(self):
         """None: the factor breaks the planar closed forms (the hyperparameter posterior uses autograd)."""
         return None
-
-    def _ensure_width(self, M: int) -> None:
-        if M > self.n_segments:
-            self.gp.set_train_data(inputs=encode_placed(self.train_contacts, M), strict=False)
-            self.n_segments = M
 
     def _side(self, c: Contacts) -> dict:
         side = super()._side(c)
@@ -100,16 +97,3 @@ class SpatialBackend(ObservationsBackend):
                 prior = prior * self.hypers.spatial.diagonal(detach=True)[:, None]
             out.variance = prior - A.pow(2).sum(-2)
         return out
-
-    def _with_data(self, c: Contacts, f: Tensor) -> SpatialBackend:
-        return SpatialBackend(self.hypers, Contacts.cat([self.train_contacts, c]),
-                              torch.cat([self.train_forces, f.to(self.train_forces)]), self.solver)
-
-    def add_data(self, contacts: Contacts, forces: Tensor) -> None:
-        encode_placed(contacts)
-        self.train_contacts = Contacts.cat([self.train_contacts, contacts])
-        self.train_forces = torch.cat([self.train_forces, forces.to(self.train_forces)])
-        self.n_segments = max(self.n_segments, contacts.n_segments)
-        self.n_samples = len(self.train_contacts)
-        self.gp.set_train_data(inputs=encode_placed(self.train_contacts, self.n_segments),
-                               targets=self.train_forces.T.contiguous(), strict=False)
