@@ -32,7 +32,7 @@ import torch
 
 
 def spreads(data: Path, wheel: str, draws, proposals: int, streams: int,
-            smooth: bool = True) -> tuple[np.ndarray, float, float]:
+            smooth: bool = True, points: str = "moments") -> tuple[np.ndarray, float, float]:
     """(runs, 2) spread per held-out run and axis, seconds per fold and posterior fit, mean draws kept."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "validation"))
     import wheel_validation as wv
@@ -60,7 +60,7 @@ def spreads(data: Path, wheel: str, draws, proposals: int, streams: int,
         for s in range(streams):
             m = copy.deepcopy(base)
             t0 = time.perf_counter()
-            m.fit_hyper_posterior("laplace", n_proposals=proposals, n_draws=draws, smooth=smooth,
+            m.fit_hyper_posterior("laplace", n_proposals=proposals, n_draws=draws, smooth=smooth, points=points,
                                   generator=None if s == 0 else torch.Generator().manual_seed(s))
             with torch.no_grad():
                 post = m.predict_forces(c_test, include_noise=True)
@@ -87,6 +87,8 @@ def main(argv=None) -> None:
     ap.add_argument("--proposals", type=int, default=128, help="Laplace proposals per stage (default 128)")
     ap.add_argument("--weights", nargs="+", default=["psis"], choices=["psis", "raw"],
                     help="importance weights to compare: Pareto-smoothed (the default) or raw")
+    ap.add_argument("--points", nargs="+", default=["moments"], choices=["moments", "resample"],
+                    help="the draws kept: the moment-matched point set (the default) or a systematic resample")
     ap.add_argument("--out", type=Path, default="experiments/results", help="where the CSV goes")
     args = ap.parse_args(argv)
     if args.streams < 2:
@@ -97,18 +99,20 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for wheel in args.wheels:
-        for d, weights in [(d, wt) for d in args.draws for wt in args.weights]:
+        for d, weights, points in [(d, wt, pt) for d in args.draws for wt in args.weights for pt in args.points]:
             draws = None if d == "all" else int(d)
-            ratio, sec, kept = spreads(args.data, wheel, draws, args.proposals, args.streams, weights == "psis")
+            ratio, sec, kept = spreads(args.data, wheel, draws, args.proposals, args.streams, weights == "psis",
+                                       points)
             med, top, over = np.median(ratio, 0), ratio.max(0), (ratio > 0.1).sum(0)
-            print(f"{wheel}, n_draws={d}, {weights} weights, {args.proposals} proposals: "
+            print(f"{wheel}, n_draws={d}, {weights} weights, {points}, {args.proposals} proposals: "
                   f"spread / sd median {med[0]:.3f} / {med[1]:.3f}, "
                   f"max {top[0]:.3f} / {top[1]:.3f}, above 0.1: {over[0]} / {over[1]} of {len(ratio)} (x / z); "
                   f"{kept:.0f} draws kept, {sec:.1f} s per posterior fit and prediction")
-            rows += [[wheel, d, weights, args.proposals, i, f"{r[0]:.4f}", f"{r[1]:.4f}"] for i, r in enumerate(ratio)]
+            rows += [[wheel, d, weights, points, args.proposals, i, f"{r[0]:.4f}", f"{r[1]:.4f}"]
+                     for i, r in enumerate(ratio)]
     with open(args.out / "mixture_spread.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["wheel", "n_draws", "weights", "n_proposals", "run", "spread_x", "spread_z"])
+        w.writerow(["wheel", "n_draws", "weights", "points", "n_proposals", "run", "spread_x", "spread_z"])
         w.writerows(rows)
     print(f"wrote {args.out / 'mixture_spread.csv'}")
 

@@ -120,6 +120,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             (``gp.kernels.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
             angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
             vertical force beyond the spread (docs/calibration.md).
+        locations: (T, 2) m, each sample's place on the ground: maps that vary over it (``gp.kernels.spatial``,
+            docs/terrain.md); queries then take ``locations=`` too. None (default): one medium everywhere.
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)

@@ -201,6 +201,68 @@ def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameter
     torch.testing.assert_close(post.variance[:, 1], var_ref, rtol=1e-3, atol=0)
 
 
+def test_the_moment_matched_points_give_the_brute_force_mixture_with_few_draws(fitted):
+    """The default draws (``points="moments"``: 2 P = 4 points over two free hyperparameters, out of 2 x 256
+    weighed proposals) against trapezoidal integration: the mixture's mean and variance close to the exact
+    integral, where a systematic resample of as many draws is further from it."""
+    c, f, m0 = fitted
+    free = ["outputscale_z", "noise_z"]
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
+    m.load_state_dict(m0.state_dict())
+    hp = m.fit_hyper_posterior("laplace", n_proposals=256, n_draws=4, free=free)
+    assert hp.extra["points"] == "moments" and hp.n_draws == 4 and hp.extra["stages"] == 2
+    spec = hyper_spec(m.hypers)
+    i, j = spec.labels.index("outputscale_z"), spec.labels.index("noise_z")
+    sd = hp.covariance.diagonal().sqrt()
+    a = torch.linspace(float(hp.mode[i] - 8 * sd[i]), float(hp.mode[i] + 8 * sd[i]), 41, dtype=F64)
+    b = torch.linspace(float(hp.mode[j] - 8 * sd[j]), float(hp.mode[j] + 8 * sd[j]), 41, dtype=F64)
+    mean_ref, var_ref = _brute_force(m, c, f, None, torch.cartesian_prod(a, b), query())
+    got = m.stress_map(*query())
+    err_mean = float(((got.mean[:, 1] - mean_ref) / var_ref.sqrt()).abs().max())
+    err_var = float((got.variance[:, 1] / var_ref - 1).abs().max())
+    assert err_mean < 0.02 and err_var < 0.01
+    r = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
+    r.load_state_dict(m0.state_dict())
+    worse = 0
+    for seed in range(4):
+        r.fit_hyper_posterior("laplace", n_proposals=256, n_draws=4, free=free, points="resample",
+                              generator=torch.Generator().manual_seed(seed))
+        assert r.hyper_posterior.extra["points"] == "resample"
+        e = float(((r.stress_map(*query()).mean[:, 1] - mean_ref) / var_ref.sqrt()).abs().max())
+        worse += e > err_mean
+    assert worse >= 3
+
+
+def test_moment_points_fall_back_to_a_resample_where_too_few_draws_are_asked(fitted):
+    c, f, m0 = fitted
+    m = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", li_basis=False)
+    m.load_state_dict(m0.state_dict())
+    hp = m.fit_hyper_posterior("laplace", n_proposals=64, n_draws=2, free=["outputscale_z", "noise_z"])
+    assert hp.extra["points"] == "resample" and hp.n_draws <= 2
+    with pytest.raises(ValueError, match="points"):
+        m.fit_hyper_posterior("laplace", n_proposals=64, points="sigma")
+    with pytest.raises(ValueError, match="adapt"):
+        m.fit_hyper_posterior("laplace", n_proposals=64, adapt="sometimes")
+
+
+def test_moment_points_reproduce_the_weighted_mean_and_covariance():
+    from irft_torch.gp.hyper.importance import _moment_points
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(200, 5, generator=g, dtype=F64) @ torch.randn(5, 5, generator=g, dtype=F64)
+    w = torch.rand(200, generator=g, dtype=F64)
+    w = w / w.sum()
+    mu = (w[:, None] * x).sum(0)
+    C = ((x - mu).mT * w) @ (x - mu)
+    for n_draws, n in ((16, 10), (8, 6)):  # the symmetric set 2 P, the simplex P + 1
+        pts = _moment_points(x, w, n_draws, lambda p: torch.zeros(len(p), dtype=F64))
+        assert pts.shape == (n, 5)
+        torch.testing.assert_close(pts.mean(0), mu, rtol=0, atol=1e-12)
+        torch.testing.assert_close(((pts - mu).mT @ (pts - mu)) / n, C, rtol=1e-10, atol=1e-12)
+    assert _moment_points(x, w, 5, lambda p: torch.zeros(len(p), dtype=F64)) is None
+    assert _moment_points(x, w, 16, lambda p: torch.full((len(p),), -math.inf, dtype=F64)) is None
+
+
 def test_a_point_mass_gives_the_plug_in_predictions(fitted):
     """Exactly up to the round trip value -> log -> exp -> raw of the hyperparameters (a few ulps)."""
     c, f, m0 = fitted

@@ -1,7 +1,7 @@
 """Importance sampling of the hyperparameter posterior (``gp.hyper.posterior.laplace``): Student-t
 proposals from a scrambled Sobol sequence, their log density, a second adaptive stage where the first stage's
-weights are unreliable, systematic resampling of the weighted draws and
-the merging of identical ones."""
+weights are unreliable, the draws kept for prediction (a moment-matched point set, or a systematic resample of
+the weighted draws with identical ones merged)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["importance_sample", "first_stage", "second_stage", "_student_t", "_systematic", "_merge"]
+__all__ = ["importance_sample", "first_stage", "second_stage", "_student_t", "_systematic", "_merge", "_moment_points",
+           "_always"]
 
 
 def _generator_device(generator: torch.Generator | None) -> torch.device:
@@ -114,3 +115,41 @@ def _merge(theta: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     uniq, inv = torch.unique(theta, dim=0, return_inverse=True)
     w = weights.new_zeros(uniq.shape[0]).index_add_(0, inv, weights)
     return uniq, w
+
+
+def _always(log_weights: Tensor) -> bool:
+    """The second importance-sampling stage's rule for ``adapt="always"``."""
+    return True
+
+
+def _moment_points(x: Tensor, w: Tensor, n_draws: int | None, log_p_many) -> Tensor | None:
+    """Equally weighted points (n, P) whose mean and covariance are those of the weighted proposals x (N, P)
+    with weights w (N,): the symmetric set mu +- sqrt(P) R q_i (n = 2 P) where ``n_draws`` allows, else a regular
+    simplex (n = P + 1, at the same radius sqrt(P) in units of the covariance). R R^T is the covariance and q_i
+    the columns of a fixed rotation, so that each point moves every coordinate by about one sd rather than one
+    coordinate by sqrt(P) sd. None where ``n_draws`` (None: keep every proposal) is below P + 1 or a point is an
+    impossible setting (``log_p_many`` -inf): the caller then resamples."""
+    if n_draws is None:
+        return None
+    P = x.shape[1]
+    ok = w > 0
+    mu = (w[ok, None] * x[ok]).sum(0)
+    d = x[ok] - mu
+    C = (w[ok, None, None] * d[:, :, None] * d[:, None, :]).sum(0)
+    lam, V = torch.linalg.eigh(0.5 * (C + C.mT))
+    R = V * lam.clamp_min(0).sqrt()  # (P, P) columns: sd directions
+    g = torch.Generator().manual_seed(0)
+    Q, _ = torch.linalg.qr(torch.randn(P, P, generator=g, dtype=torch.float64))
+    R = R @ Q.to(R)  # a fixed rotation: each point moves every coordinate a little, none by sqrt(P) sd
+    if 2 * P <= n_draws:
+        pts = torch.cat([mu + math.sqrt(P) * R.mT, mu - math.sqrt(P) * R.mT])
+    elif P + 1 <= n_draws:
+        ones = x.new_ones(P + 1, 1) / math.sqrt(P + 1)
+        Q, _ = torch.linalg.qr(torch.cat([ones, torch.eye(P + 1, P, dtype=x.dtype, device=x.device)], 1))
+        Z = math.sqrt(P + 1) * Q[:, 1:]  # (P + 1, P): mean 0, covariance I (a regular simplex)
+        pts = mu + Z @ R.mT
+    else:
+        return None
+    if not bool(torch.isfinite(log_p_many(pts)).all()):
+        return None
+    return pts

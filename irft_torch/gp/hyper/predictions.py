@@ -91,12 +91,14 @@ class HyperMixtureMixin(nn.Module):
             method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
             n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each); as many again
                 where their weights are unreliable (``gp.hyper.importance.importance_sample``).
-            n_draws: draws kept for prediction (each is one backend: predictions cost n_draws times a
-                plug-in's); None keeps every weighted proposal.
+            n_draws: at most this many draws kept for prediction (each is one backend: predictions cost as many
+                times a plug-in's); Laplace keeps P + 1 points with the posterior's mean and covariance over its P
+                hyperparameters (2 P where ``n_draws`` allows; a resample where it is below P + 1); None keeps
+                every weighted proposal.
             generator: a ``torch.Generator`` for the draws (None: a fixed seed, so that a refit predicts the same).
             options: passed to ``gp.hyper.posterior.laplace`` (``free``, ``max_iter``, ``df``, ``inflate``,
-                ``qmc``, ``adapt``) or ``gp.hyper.nuts.nuts`` (``free``, ``n_samples``, ``warmup``,
-                ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
+                ``qmc``, ``adapt``, ``smooth``, ``points``) or ``gp.hyper.nuts.nuts`` (``free``, ``n_samples``,
+                ``warmup``, ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With
             ``prior_mean="average"`` the physics-mean companion gets the same and the weights are taken again.
