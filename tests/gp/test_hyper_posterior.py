@@ -202,7 +202,7 @@ def test_laplace_mixture_matches_brute_force_integration_over_two_hyperparameter
 
 
 def test_the_moment_matched_points_give_the_brute_force_mixture_with_few_draws(fitted):
-    """The default draws (``points="moments"``: 2 P = 4 points over two free hyperparameters, out of 2 x 256
+    """The default draws (``points="moments"``: 2 P = 4 points over two free hyperparameters, out of 256 + 128
     weighed proposals) against trapezoidal integration: the mixture's mean and variance close to the exact
     integral, where a systematic resample of as many draws is further from it."""
     c, f, m0 = fitted

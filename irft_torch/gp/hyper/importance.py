@@ -56,16 +56,17 @@ def _student_t_log_density(x: Tensor, mean: Tensor, L: Tensor, df: float) -> Ten
 
 def importance_sample(log_p_many: Callable[[Tensor], Tensor], first: tuple[Tensor, Tensor, Tensor], mean: Tensor,
                       cov: Tensor, df: float, generator, qmc: bool = True,
-                      adapt: Callable[[Tensor], bool] | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
+                      adapt: Callable[[Tensor], bool] | None = None,
+                      n2: int | None = None) -> tuple[Tensor, Tensor, Tensor, int]:
     """Proposals x (N, P), their log posterior (N,) and log importance weights (N,) (unnormalised), and the
     number of stages, from the first stage's draws ``first`` (``first_stage``: x, log proposal density, log
     posterior) of the Student-t (``mean``, ``cov``, ``df``). Where ``adapt(log weights)`` says they are
-    unreliable, stage 2 (``second_stage``) is drawn and both are weighed together. ``log_p_many``: (n, P) -> (n,),
-    -inf where impossible."""
+    unreliable, stage 2 (``second_stage``, ``n2`` proposals) is drawn and both are weighed together.
+    ``log_p_many``: (n, P) -> (n,), -inf where impossible."""
     logw1 = first[2] - first[1]
     if adapt is None or not torch.isfinite(logw1).any() or not adapt(logw1):
         return first[0], first[2], logw1, 1
-    return (*second_stage(log_p_many, *first, mean, cov, df, generator, qmc), 2)
+    return (*second_stage(log_p_many, *first, mean, cov, df, generator, qmc, n2), 2)
 
 
 def first_stage(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov: Tensor, df: float, n: int, generator,
@@ -77,12 +78,13 @@ def first_stage(log_p_many: Callable[[Tensor], Tensor], mean: Tensor, cov: Tenso
 
 
 def second_stage(log_p_many: Callable[[Tensor], Tensor], x1: Tensor, logq1: Tensor, logp1: Tensor, mean: Tensor,
-                 cov: Tensor, df: float, generator, qmc: bool = True) -> tuple[Tensor, Tensor, Tensor]:
-    """As many proposals again, from a Student-t moved to the first stage's weighted draws, with the average of
-    their weighted covariance and ``cov`` (the covariance of a few effective draws alone can be near singular);
-    every draw of both stages is weighed against the equal mixture of the two proposals (the balance heuristic:
-    Owen & Zhou 2000; adaptive multiple importance sampling, Cornuet et al. 2012). Returns x (2n, P), log
-    posterior (2n,) and log weights (2n,)."""
+                 cov: Tensor, df: float, generator, qmc: bool = True,
+                 n2: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """``n2`` proposals more (None: as many as the first stage's n1), from a Student-t moved to the first stage's
+    weighted draws, with the average of their weighted covariance and ``cov`` (the covariance of a few effective
+    draws alone can be near singular); every draw of both stages is weighed against the mixture of the two
+    proposals in the stages' proportions n1 : n2 (the balance heuristic: Owen & Zhou 2000; adaptive multiple
+    importance sampling, Cornuet et al. 2012). Returns x (n1 + n2, P), log posterior and log weights (n1 + n2,)."""
     logw1 = logp1 - logq1
     ok = torch.isfinite(logw1)
     w = torch.where(ok, (logw1 - logw1[ok].max()).exp(), torch.zeros_like(logw1))
@@ -91,13 +93,15 @@ def second_stage(log_p_many: Callable[[Tensor], Tensor], x1: Tensor, logq1: Tens
     dev = x1 - mu
     C = (w[:, None, None] * dev[:, :, None] * dev[:, None, :]).sum(0)
     cov2 = 0.25 * (C + C.mT) + 0.5 * cov
-    x2, _ = _student_t(mu, cov2, df, x1.shape[0], generator, qmc)
+    n1 = x1.shape[0]
+    n2 = n1 if n2 is None else int(n2)
+    x2, _ = _student_t(mu, cov2, df, n2, generator, qmc)
     logp2 = log_p_many(x2)
     x = torch.cat([x1, x2])
     logp = torch.cat([logp1, logp2])
     L1, L2 = torch.linalg.cholesky(cov), torch.linalg.cholesky(cov2)
-    logq = torch.logaddexp(_student_t_log_density(x, mean, L1, df), _student_t_log_density(x, mu, L2, df)) \
-        - math.log(2)
+    logq = torch.logaddexp(_student_t_log_density(x, mean, L1, df) + math.log(n1 / (n1 + n2)),
+                           _student_t_log_density(x, mu, L2, df) + math.log(n2 / (n1 + n2)))
     return x, logp, logp - logq
 
 
