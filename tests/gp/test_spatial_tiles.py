@@ -66,6 +66,31 @@ def test_tiles_hold_at_most_their_cap_and_stay_near_the_exact_model(fitted):
     assert bool((a.variance >= e.variance * (1 - 1e-9)).all())  # fewer samples, never surer
 
 
+def test_max_tiles_bounds_the_tiles_kept_and_leaves_the_kept_ones_exact(fitted):
+    """With ``max_tiles`` the least recently used tiles go: the ones kept answer exactly as without the bound (they
+    hold the same samples), and a place in a dropped tile gets the prior again (zero mean, the prior variance)."""
+    c, F, st = _walk(12)
+    free = SpatialTiles(fitted, tile=0.5, margin=0.25)
+    bounded = SpatialTiles(fitted, tile=0.5, margin=0.25, max_tiles=4)
+    for t in (free, bounded):  # the model's own samples, then the walk again stance by stance
+        for j in range(12):
+            t.add_data(c[st == j], F[st == j])
+    assert free.n_tiles > 8 and bounded.n_tiles == 4 and bounded.n_dropped >= free.n_tiles - 4
+    kept = list(bounded._data)
+    assert all(bounded.samples_in(k) == free.samples_in(k) for k in kept)
+    b, g = torch.tensor([0.3, -0.9], dtype=F64), torch.tensor([0.5, 1.2], dtype=F64)
+    near_end = torch.tensor([[2.9, 0.1]], dtype=F64)  # the walk's end: its tile is kept
+    torch.testing.assert_close(bounded.stress_map(b, g, near_end).mean, free.stress_map(b, g, near_end).mean,
+                               rtol=1e-12, atol=1e-14)
+    at_start = torch.tensor([[0.1, 0.1]], dtype=F64)  # the walk's start: dropped
+    assert bounded._key(at_start)[0].tolist() not in [list(k) for k in kept]
+    prior = bounded.stress_map(b, g, at_start)
+    assert bool((prior.mean == 0).all())
+    assert bool((prior.variance > 2 * free.stress_map(b, g, at_start).variance).all())
+    with pytest.raises(ValueError, match="max_tiles"):
+        SpatialTiles(fitted, max_tiles=2)
+
+
 def test_tiles_refuse_a_model_without_places_and_samples_without_them(fitted):
     c, F, _ = _walk(4)
     planar = InverseRFT(c.with_locations(None), F, hyper_posterior="map")

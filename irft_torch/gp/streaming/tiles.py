@@ -3,8 +3,11 @@ the samples within its square widened by a margin (``gp.backends.spatial``, the 
 
 A walk's per-step cost then depends on how many samples a tile holds, not on how long the walk has been: a new
 stance goes into the (at most four) tiles whose widened squares it falls in, and a query is answered by the tile
-its place lies in. Each tile keeps at most ``max_samples`` samples (the oldest dropped first), so memory is bounded
-by the ground covered, and per tile by ``max_samples``.
+its place lies in. Each tile keeps at most ``max_samples`` samples (the oldest dropped first), and with
+``max_tiles`` at most that many tiles are kept (the least recently used dropped: added to or asked about), so memory
+is bounded by ``max_tiles`` x ``max_samples`` samples however far the robot walks; a place in a dropped tile gets
+the prior again until new samples fall near it. Without ``max_tiles`` memory grows
+with the ground covered.
 
 The approximation: a place's maps are conditioned on the samples within the margin of its tile only. With the
 margin at least three spatial lengthscales the variation around the site's medium is barely correlated beyond it;
@@ -15,6 +18,7 @@ bench_walk_online.py`` measures the difference against the exact model and the c
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import torch
 from torch import Tensor
@@ -36,6 +40,8 @@ class SpatialTiles:
         margin: how far beyond its square a tile takes samples, m (default: three times the longer spatial
             lengthscale, at least ``tile`` / 4).
         max_samples: the most samples a tile keeps (the oldest dropped first).
+        max_tiles: the most tiles kept (the least recently used dropped first); None (default): no bound. At
+            least 4: a new stance can fall in the margins of four tiles.
 
     Example:
         >>> tiles = SpatialTiles(model, tile=1.0)
@@ -43,7 +49,8 @@ class SpatialTiles:
         >>> tiles.stress_map(beta, gamma, locations=places).mean                      # (L, *beta.shape, 2)
     """
 
-    def __init__(self, model, tile: float = 1.0, margin: float | None = None, max_samples: int = 400) -> None:
+    def __init__(self, model, tile: float = 1.0, margin: float | None = None, max_samples: int = 400,
+                 max_tiles: int | None = None) -> None:
         if not getattr(model, "spatial", False):
             raise ValueError("model: SpatialTiles needs a model fitted with places (InverseRFT(..., locations=))")
         if not (math.isfinite(tile) and tile > 0):
@@ -57,8 +64,12 @@ class SpatialTiles:
         self.margin = float(max(3 * ls, tile / 4)) if margin is None else float(margin)
         if not (math.isfinite(self.margin) and self.margin >= 0):
             raise ValueError(f"margin must be a non-negative length in m, got {margin}")
+        if max_tiles is not None and (int(max_tiles) != max_tiles or max_tiles < 4):
+            raise ValueError(f"max_tiles must be None or an integer >= 4, got {max_tiles!r}")
         self.max_samples = int(max_samples)
-        self._data: dict[tuple[int, int], tuple[Contacts, Tensor]] = {}
+        self.max_tiles = None if max_tiles is None else int(max_tiles)
+        self.n_dropped = 0  # tiles dropped to keep within max_tiles
+        self._data: OrderedDict[tuple[int, int], tuple[Contacts, Tensor]] = OrderedDict()
         self._backends: dict[tuple[int, int], SpatialBackend] = {}
         c, f, _ = model._join()
         self.add_data(c, f)  # the model's own samples (already whitened: noise scale 1 assumed for new ones)
@@ -102,12 +113,22 @@ class SpatialTiles:
                 if len(new_c) > self.max_samples:
                     new_c, new_f = new_c[-self.max_samples:], new_f[-self.max_samples:]
                 self._data[key] = (new_c, new_f)
+                self._data.move_to_end(key)
                 self._backends.pop(key, None)
+        self._drop_oldest()
         return self
+
+    def _drop_oldest(self) -> None:
+        """Drop the least recently used tiles beyond ``max_tiles``."""
+        while self.max_tiles is not None and len(self._data) > self.max_tiles:
+            key, _ = self._data.popitem(last=False)
+            self._backends.pop(key, None)
+            self.n_dropped += 1
 
     def _backend(self, key: tuple[int, int]) -> SpatialBackend | None:
         if key not in self._data:
             return None
+        self._data.move_to_end(key)  # asked about: recently used
         if key not in self._backends:
             self._backends[key] = SpatialBackend(self.hypers, *self._data[key])
         return self._backends[key]
