@@ -70,10 +70,12 @@ def test_max_tiles_bounds_the_tiles_kept_and_leaves_the_kept_ones_exact(fitted):
     """With ``max_tiles`` the least recently used tiles go: the ones kept answer exactly as without the bound (they
     hold the same samples), and a place in a dropped tile gets the prior again (zero mean, the prior variance)."""
     c, F, st = _walk(12)
-    free = SpatialTiles(fitted, tile=0.5, margin=0.25)
-    bounded = SpatialTiles(fitted, tile=0.5, margin=0.25, max_tiles=4)
-    for t in (free, bounded):  # the model's own samples, then the walk again stance by stance
-        for j in range(12):
+    start = InverseRFT(c[st == 0], F[st == 0], hyper_posterior="map")
+    start.hypers.load_state_dict(fitted.hypers.state_dict())
+    free = SpatialTiles(start, tile=0.5, margin=0.25)
+    bounded = SpatialTiles(start, tile=0.5, margin=0.25, max_tiles=4)
+    for t in (free, bounded):  # the first stance, then the walk stance by stance
+        for j in range(1, 12):
             t.add_data(c[st == j], F[st == j])
     assert free.n_tiles > 8 and bounded.n_tiles == 4 and bounded.n_dropped >= free.n_tiles - 4
     kept = list(bounded._data)
