@@ -322,8 +322,9 @@ def fit_together_case(q: bool, row) -> None:
 
 def hyper_posterior_case(q: bool, row, repeats: int = 3) -> None:
     """8. The default fit (``InverseRFT(c, f).fit()``: Li et al.'s term, Adam to near the mode, the Laplace
-    hyperparameter posterior: polish, Hessian, 128 + 64 weighed proposals, 15 draw backends) against the former default, the plug-in RBF (``hyper_posterior="map", li_basis=False``),
-    300 steps each, best of ``repeats`` fits alternated, on paper-scale and DEM-like data (issue 51: <= 1.5x)."""
+    hyperparameter posterior: polish, Hessian, 128 + 64 weighed proposals, 15 draw backends) against the former
+    default, the plug-in RBF (``hyper_posterior="map", li_basis=False``), 300 steps each, best of ``repeats`` fits
+    alternated, on paper-scale and DEM-like data (issue 51: <= 1.5x)."""
     n_iter = 60 if q else 300
     for name, (c, f) in (("paper scale, C-toe T = 200 x M = 10", _paper_case(60 if q else 200)),
                          ("DEM-like, T = 810 x M = 5", dem_like())):

@@ -2,15 +2,17 @@
 mixture's Monte Carlo spread at every held-out planar wheel run.
 
 Data: the measured rover-wheel runs (--data DIR, e.g. ../shared/data/rover_wheel; not shipped). Run time: about
-1 minute per wheel and setting at three streams here (2 cores; 32 s per fold with --proposals 1024).
+7 minutes per wheel and setting at five streams here (2 cores).
 
     python experiments/calibration/mixture_spread.py --data ../shared/data/rover_wheel [--streams 5]
-        [--wheels smooth grouser] [--draws 16 64] [--weights psis raw] [--proposals 128] [--out experiments/results]
+        [--wheels smooth grouser] [--draws 16 64] [--weights psis raw] [--points moments resample]
+        [--proposals 128] [--out experiments/results]
 
 For each wheel and held-out slip level (the planar study's folds: ``validation/wheel_validation.py --study
 planar``, its fit settings), the mode is fitted once with the plug-in; then the Laplace posterior over the
 hyperparameters is fitted ``--streams`` times, stream 0 the library's fixed point set and the others seeded
-generators, each keeping ``--draws`` draws ("all": every weighted proposal), and the held-out runs' forces are
+generators, each keeping at most ``--draws`` draws ("all": every weighted proposal; ``--points``: the default's
+moment-matched points or a systematic resample of the proposals), and the held-out runs' forces are
 predicted (with noise, as the study does). Per run and axis, the spread is the standard deviation of the
 predicted mean over the streams divided by the mean predictive sd: the share of its interval that the mixture's
 Monte Carlo error moves the centre by. The issue's bar is below 10 % at every run. Writes
