@@ -77,32 +77,28 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
 
     ``"auto"`` (default) takes the cheapest (``gp.backends.estimated_costs``), exact ones when close.
 
+    The options come in four groups, in this order below: the model (what the maps are and how sure:
+    ``li_basis``, ``generic_shape``, ``prior_mean``, ``priors``, ``hyper_posterior``), the noise (``tied_noise``,
+    ``noise_scale``), the free surface (``surface_offset``, ``surface_groups``) and the engine: how it is computed
+    (``method``, ``tol``, ``solver``, ``statistics``, ``dtype``) and where the fit starts (``lengthscale``).
+
     Args:
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
         forces: (T, 2) measured (F_x, F_z) in N, finite; each axis non-zero in some sample (ValueError
             otherwise: an axis that was not measured cannot be passed as zeros).
+        locations: (T, 2) m, each sample's place on the ground: maps that vary over it (``gp.kernels.spatial``,
+            docs/terrain.md); queries then take ``locations=`` too. None (default): one medium everywhere.
+        li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
+            term with its own variance per map (default True; ``gp.kernels.li_basis``): what the forces leave unseen
+            follows shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
+        generic_shape: with ``li_basis``, also Li et al.'s generic map with a scale of its own, integrated out
+            (``gp.kernels.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
+            angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
+            vertical force beyond the spread (docs/calibration.md).
         prior_mean: "zero" (the paper), "physics" (generic Li et al. shape x learned scales), or "average":
             both, weighed per map by their evidence (``gp.mean_average``: the zero-mean model is this one,
             the physics-mean model ``model.companion`` is fitted after it; ``model.mean_average`` holds
             the weights).
-        tied_noise: one noise variance for both axes (the paper) instead of one per axis. dtype: float64 or float32.
-        solver: observations backend: "cholesky" (default) or "gpytorch" (CG/Lanczos above its max_cholesky_size).
-        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an angle (an
-            I-toe samples beta = 0 only) the likelihood cannot move it: it sets how far the map extrapolates.
-        method: "auto", "observations" (or "exact"), "pairs" or "spectral" (see above).
-        tol: spectral backend: bound on the kernel's relative truncation error (default 1e-7).
-        noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and axis): sample t's
-            noise variance is ``noise * noise_scale[t]**2``, applied exactly by whitening each observation in every
-            backend; ``train_contacts`` and ``train_forces`` hold the whitened data.
-        statistics: spectral sufficient statistics of exactly these contacts and forces
-            (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over several): the
-            spectral backend skips its pass over the data. Checked against the data's sample count and force power
-            (ValueError if they differ); ignored by the other backends; not allowed with a ``noise_scale``.
-        surface_offset: learn the free surface's height with the maps (``gp.surface.offset``, docs/surface.md):
-            one offset in m (positive: the surface is higher than stated), fitted by the marginal
-            likelihood through the segment depths; ``model.surface_offset`` gives it with its
-            Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
-        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) (implies ``surface_offset``).
         priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.kernels.priors``: the map's
             variance from the medium's scale, lengthscales that keep what the data cannot see at a documented
             extrapolation, noise from the force spread), fitted by MAP; None: the paper's plain marginal likelihood.
@@ -113,15 +109,26 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts": pyro's
             NUTS, the reference. With ``surface_offset`` or ``priors=None`` the default is "map" (the offset has
             its own Laplace std; without priors the posterior is improper).
-        li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
-            term with its own variance per map (default True; ``gp.kernels.li_basis``): what the forces leave unseen
-            follows shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
-        generic_shape: with ``li_basis``, also Li et al.'s generic map with a scale of its own, integrated out
-            (``gp.kernels.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
-            angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
-            vertical force beyond the spread (docs/calibration.md).
-        locations: (T, 2) m, each sample's place on the ground: maps that vary over it (``gp.kernels.spatial``,
-            docs/terrain.md); queries then take ``locations=`` too. None (default): one medium everywhere.
+        tied_noise: one noise variance for both axes (the paper) instead of one per axis.
+        noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and axis): sample t's
+            noise variance is ``noise * noise_scale[t]**2``, applied exactly by whitening each observation in every
+            backend; ``train_contacts`` and ``train_forces`` hold the whitened data.
+        surface_offset: learn the free surface's height with the maps (``gp.surface.offset``, docs/surface.md):
+            one offset in m (positive: the surface is higher than stated), fitted by the marginal
+            likelihood through the segment depths; ``model.surface_offset`` gives it with its
+            Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
+        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) (implies ``surface_offset``).
+        method: "auto", "observations" (or "exact"), "pairs" or "spectral" (see above).
+        tol: spectral backend: bound on the kernel's relative truncation error (default 1e-7).
+        solver: observations backend: "cholesky" (default) or "gpytorch" (CG/Lanczos above its max_cholesky_size).
+        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an angle (an
+            I-toe samples beta = 0 only) the likelihood cannot move it: it sets how far the map extrapolates.
+        statistics: spectral sufficient statistics of exactly these contacts and forces
+            (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over several): the
+            spectral backend skips its pass over the data. Checked against the data's sample count and force power
+            (ValueError if they differ); ignored by the other backends; not allowed with a ``noise_scale``.
+        dtype: float64 (default) or float32.
+        grid_size: retired with the former grid path; ignored with a warning (as is ``exact_max_segments``).
     Example:
         >>> model = InverseRFT(contacts, forces)
         >>> model.fit(n_iter=300, lr=0.05)
@@ -598,3 +605,5 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, " \
                f"backend={self.backend.describe()!r}"
 
+
+# One concept: the front door, InverseRFT (its options, fit and queries); the machinery is in the modules it names.
