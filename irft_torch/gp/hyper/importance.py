@@ -1,7 +1,7 @@
 """Importance sampling of the hyperparameter posterior (``gp.hyper.posterior.laplace``): Student-t
-proposals from a scrambled Sobol sequence, their log density, a second adaptive stage where the first stage's
-weights are unreliable, the draws kept for prediction (a moment-matched point set, or a systematic resample of
-the weighted draws with identical ones merged)."""
+proposals from a scrambled Sobol sequence, their log density, a second stage moved to the first stage's weighted
+draws (always, or where the first stage's weights are unreliable), and the draws kept for prediction (a
+moment-matched point set, or a systematic resample of the weighted draws with identical ones merged)."""
 
 from __future__ import annotations
 
@@ -89,10 +89,8 @@ def second_stage(log_p_many: Callable[[Tensor], Tensor], x1: Tensor, logq1: Tens
     ok = torch.isfinite(logw1)
     w = torch.where(ok, (logw1 - logw1[ok].max()).exp(), torch.zeros_like(logw1))
     w = w / w.sum()
-    mu = (w[:, None] * x1).sum(0)
-    dev = x1 - mu
-    C = (w[:, None, None] * dev[:, :, None] * dev[:, None, :]).sum(0)
-    cov2 = 0.25 * (C + C.mT) + 0.5 * cov
+    mu, C = _weighted_moments(x1, w)
+    cov2 = 0.5 * C + 0.5 * cov
     n1 = x1.shape[0]
     n2 = n1 if n2 is None else int(n2)
     x2, _ = _student_t(mu, cov2, df, n2, generator, qmc)
@@ -121,6 +119,12 @@ def _merge(theta: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     return uniq, w
 
 
+def _weighted_moments(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean (P,) and covariance (P, P) (symmetric) of draws x (N, P) with non-negative weights w (N,)."""
+    C = torch.cov(x.mT, correction=0, aweights=w)
+    return (w[:, None] * x).sum(0) / w.sum(), 0.5 * (C + C.mT)
+
+
 def _always(log_weights: Tensor) -> bool:
     """The second importance-sampling stage's rule for ``adapt="always"``."""
     return True
@@ -136,11 +140,8 @@ def _moment_points(x: Tensor, w: Tensor, n_draws: int | None, log_p_many) -> Ten
     if n_draws is None:
         return None
     P = x.shape[1]
-    ok = w > 0
-    mu = (w[ok, None] * x[ok]).sum(0)
-    d = x[ok] - mu
-    C = (w[ok, None, None] * d[:, :, None] * d[:, None, :]).sum(0)
-    lam, V = torch.linalg.eigh(0.5 * (C + C.mT))
+    mu, C = _weighted_moments(x, w)
+    lam, V = torch.linalg.eigh(C)
     R = V * lam.clamp_min(0).sqrt()  # (P, P) columns: sd directions
     g = torch.Generator().manual_seed(0)
     Q, _ = torch.linalg.qr(torch.randn(P, P, generator=g, dtype=torch.float64))

@@ -89,8 +89,8 @@ class HyperMixtureMixin(nn.Module):
 
         Args:
             method: "laplace", "nuts" or "map" (drop the draws: plug-in predictions); default: the model's.
-            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each); as many again
-                where their weights are unreliable (``gp.hyper.importance.importance_sample``).
+            n_proposals: Laplace: importance-sampling proposals (one marginal likelihood each), then half as many
+                again moved to where the first weigh most (``gp.hyper.importance.importance_sample``).
             n_draws: at most this many draws kept for prediction (each is one backend: predictions cost as many
                 times a plug-in's); Laplace keeps P + 1 points with the posterior's mean and covariance over its P
                 hyperparameters (2 P where ``n_draws`` allows; a resample where it is below P + 1); None keeps
