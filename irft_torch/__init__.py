@@ -19,15 +19,15 @@ from typing import TYPE_CHECKING
 from ._version import package_version
 
 __version__ = package_version(Path(__file__).parent)
-__all__ = ["rft", "gp", "hardware", "data", "design", "studies", "metrics", "InverseRFT", "Posterior",
-           "TerrainFilter", "__version__"]
+__all__ = ["rft", "gp", "hardware", "data", "design", "studies", "metrics", "InverseRFT", "MapPrior", "Engine",
+           "Posterior", "TerrainFilter", "__version__"]
 
 _SUBMODULES = ("rft", "gp", "hardware", "data", "design", "studies", "metrics")
-_FROM_GP = ("InverseRFT", "Posterior", "TerrainFilter")
+_FROM_GP = ("InverseRFT", "MapPrior", "Engine", "Posterior", "TerrainFilter")
 
 if TYPE_CHECKING:  # what static tools and IDEs see
     from . import data, design, gp, hardware, metrics, rft, studies
-    from .gp import InverseRFT, Posterior, TerrainFilter
+    from .gp import Engine, InverseRFT, MapPrior, Posterior, TerrainFilter
 
 
 def __getattr__(name: str):

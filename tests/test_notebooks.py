@@ -69,9 +69,9 @@ def _cover(m):
     _lo, _hi = m.stress_map(_B, _G).interval(0.95)
     return ((_t >= _lo) & (_t <= _hi)).double().mean((0, 1)).tolist()
 print("KEY" + _json.dumps({name: _cover(m) for name, m in fits.items()}))
-""", lambda k: (k["paper's plug-in"][0] < 0.8 and k["li_basis plug-in"][0] >= 0.9  # measured 0.54, 0.97, 1.00
-                and k["default"][0] >= k["li_basis plug-in"][0]                  # (alpha_x)
-                and min(k["generic_shape plug-in"]) >= 0.9)),  # measured 1.00, 1.00
+""", lambda k: (k["paper's plug-in"][0] < 0.8 and k["Li basis plug-in"][0] >= 0.9  # measured 0.54, 0.97, 1.00
+                and k["default"][0] >= k["Li basis plug-in"][0]                  # (alpha_x)
+                and min(k["generic shape plug-in"]) >= 0.9)),  # measured 1.00, 1.00
     "06_walk_and_map": (2, RMSE_CODE + """
 _where = _torch.tensor([[0.5, 0.15], [1.1, -0.1], [2.3, 0.1], [2.9, -0.15]])  # off the footholds, both sands
 _t = _torch.stack([truth_field.at(_s)(_B, _G) for _s in _where])

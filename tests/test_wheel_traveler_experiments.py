@@ -37,9 +37,11 @@ def test_the_3d_study_runs_the_constructors_defaults_first_and_names_its_variant
     """--variants: the default row (the 3-D constructor's alpha_y and prior mean) always runs first; the others are
     added by name, an unknown name is refused with the choices."""
     from irft_torch.gp.inverse3d import InverseRFT3D
+    from irft_torch.gp.options import options_3d
 
     w = _script("wheel_validation_3d")
-    defaults = InverseRFT3D.__init__.__kwdefaults__
+    defaults = {"alpha_y": InverseRFT3D.__init__.__kwdefaults__["alpha_y"],
+                "prior_mean": options_3d(None, None, {})[0].mean}
     w._choose_variants("")
     assert list(w.VARIANTS.values()) == [(defaults["alpha_y"], defaults["prior_mean"])]
     w._choose_variants("zero, physics_alpha_y")

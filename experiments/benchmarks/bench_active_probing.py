@@ -76,8 +76,9 @@ def main(argv=None) -> None:
     f = irft.rft.forces(smap, train)
     f = f + 0.02 * f.abs().max() * torch.randn(f.shape, generator=torch.Generator().manual_seed(0))
     train, f = train.to(device=dev), f.to(dev)
-    model = irft.InverseRFT(train, f, hyper_posterior="map", li_basis=False)  # the scorer's speed: one plug-in
-    exact = irft.InverseRFT(train, f, method="observations", hyper_posterior="map", li_basis=False)
+    # the scorer's speed: one plug-in
+    model = irft.InverseRFT(train, f, hyper_posterior="map", prior=irft.MapPrior(kernel="rbf"))
+    exact = irft.InverseRFT(train, f, prior=irft.MapPrior(kernel="rbf"), engine="observations", hyper_posterior="map")
     n_seg = int((train.weight_z > 0).sum())
     cands = random_probes(toes, a.candidates // 2, 0.44, n_steps=a.steps, seed=2)
     cand_c = [p.contacts().to(device=dev) for p in cands]

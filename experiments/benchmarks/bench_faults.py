@@ -34,7 +34,7 @@ T, chunked = int(sys.argv[1]), sys.argv[2] == "1"
 c = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.spline_path(
     [(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=200))
 f = irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
-m = irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
+m = irft.InverseRFT(c, f, hyper_posterior="map", prior=irft.MapPrior(kernel="rbf"))
 m.fit(20, progress=False)
 big = irft.rft.Contacts(*(v.repeat((T + 199) // 200, 1)[:T] for v in c.as_dict().values()))
 if not chunked:
@@ -69,7 +69,7 @@ def pipeline(folder: Path, quick: bool) -> dict:
     out["fit"] = _irft("fit", "ds.npz", "--out", "fit", "--no-progress", cwd=folder)
     torch.set_default_dtype(torch.float64)
     ds = irft.data.load_dataset(folder / "ds.npz")
-    model = irft.InverseRFT(ds.contacts, ds.forces, hyper_posterior="map", li_basis=False)
+    model = irft.InverseRFT(ds.contacts, ds.forces, hyper_posterior="map", prior=irft.MapPrior(kernel="rbf"))
     chunks = []
     for _ in range(10):
         t0 = time.perf_counter()

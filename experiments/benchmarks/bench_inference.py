@@ -6,7 +6,7 @@ case 11 alone 52-76 s; case 12's fits 32.6 + 46.2 + 12.7 s; all 12 together not 
     python experiments/benchmarks/bench_inference.py [--quick] [--device cuda] [--out experiments/results]
 
 Cases (float64, this machine's threads; the engine cases fit the plug-in RBF, ``PLUG_IN``: ``InverseRFT(contacts,
-forces, hyper_posterior="map", li_basis=False)``, the former default; case 8 the default itself):
+forces, prior=MapPrior(kernel="rbf"), hyper_posterior="map")``, the former default; case 8 the default itself):
   1. paper scale: C-toe (M = 10) on the paper's cubic gait, T = 200: one likelihood + gradient step
      vs the paper's dense formula (explicit W, explicit K, Cholesky); same loss checked;
   2. DEM-like: T = 810 plate samples x M = 5 segments with 54 distinct (beta, gamma) pairs: Adam
@@ -61,7 +61,7 @@ import irft_torch as irft
 from irft_torch.gp.backends.closed_form import autograd_only
 
 TRUTH = irft.rft.FourierStressMap.generic(0.452, 0.417)
-PLUG_IN = {"hyper_posterior": "map", "li_basis": False}  # the engine cases: the plug-in RBF (the former default)
+PLUG_IN = {"hyper_posterior": "map", "prior": irft.MapPrior(kernel="rbf")}  # the engine cases: the plug-in RBF
 DEVICE = torch.device("cpu")
 
 
@@ -300,8 +300,9 @@ def fit_together_case(q: bool, row) -> None:
     g7 = torch.Generator().manual_seed(7)
     sets = [f7 * (1 + 0.3 * i / B7 * torch.randn(f7.shape, generator=g7, dtype=f7.dtype)) for i in range(B7)]
     c7, sets = on_device(c7, torch.stack(sets))
-    alone = [irft.InverseRFT(c7, fs, tied_noise=True, **PLUG_IN) for fs in sets]
-    together = [irft.InverseRFT(c7, fs, tied_noise=True, **PLUG_IN) for fs in sets]
+    tied = {**PLUG_IN, "prior": irft.MapPrior(kernel="rbf", noise="tied")}
+    alone = [irft.InverseRFT(c7, fs, **tied) for fs in sets]
+    together = [irft.InverseRFT(c7, fs, **tied) for fs in sets]
     sync()
     t0 = time.perf_counter()
     for m in alone:
@@ -384,7 +385,7 @@ def nuts_case(q: bool, row) -> None:
     f = irft.rft.forces(TRUTH, c)
     f = f * (1 + math.sqrt(0.05) * torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=f.dtype))
     c, f = on_device(c, f)
-    model = irft.InverseRFT(c, f, tied_noise=True, **PLUG_IN)
+    model = irft.InverseRFT(c, f, **{**PLUG_IN, "prior": irft.MapPrior(kernel="rbf", noise="tied")})
     model.fit(n_iter=300, progress=False)
     short = (10, 10) if q else (50, 50)
     times = {}
@@ -430,7 +431,7 @@ def backend_steps_case(q: bool, row, repeats: int) -> None:
         c, f = on_device(c, f)
         times = {}
         for method in ("observations", "pairs", "spectral"):
-            m = irft.InverseRFT(c, f, method=method, **PLUG_IN)
+            m = irft.InverseRFT(c, f, engine=method, **PLUG_IN)
             times[method] = best_time(lambda: step(m), max(2, repeats))
         auto = irft.InverseRFT(c, f, **PLUG_IN).method
         row(f"2b. {name}: one likelihood + gradient step per backend (auto picks {auto})",
@@ -455,8 +456,10 @@ def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
     bq, gq = e.repeat_interleave(4), e.repeat(4)  # 16 map points
     for window, dtype, li in ((8, torch.float64, False), (16, torch.float64, False), (32, torch.float64, False),
                               (16, torch.float32, False), (16, torch.float64, True)):
-        m = model if dtype == torch.float64 and not li else irft.InverseRFT(c[::10], f[::10], dtype=dtype,
-                                                                            **{**PLUG_IN, "li_basis": li})
+        prior = irft.MapPrior(kernel="li" if li else "rbf")
+        m = model if dtype == torch.float64 and not li else irft.InverseRFT(c[::10], f[::10], prior=prior,
+                                                                            engine=irft.Engine(dtype=dtype),
+                                                                            hyper_posterior="map")
         if m is not model:
             _same_hypers(m, model)
         if li:  # Li et al.'s term at the outputscale's size (its cost, not its fit)
@@ -482,7 +485,7 @@ def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
             refs = []
             for b in range(n_ref):
                 r = irft.InverseRFT(irft.rft.Contacts.cat([x[b:b + 1] for x in cs[:window]]),
-                                    torch.stack([x[b] for x in fs[:window]]), method="observations", **PLUG_IN)
+                                    torch.stack([x[b] for x in fs[:window]]), engine="observations", **PLUG_IN)
                 refs.append(_same_hypers(r, model))
             for r in refs:  # warm: the first query builds the factor
                 r.stress_map(bq, gq)
@@ -507,7 +510,7 @@ def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
             row(f"9. the same, window {window}, {dt}", f"{rate:,.0f} env-steps/s", "-",
                 ratio(rate / ref_rate) if window != 8 else "-", ">= 1e5 env-steps/s")
     # a hyperparameter posterior's draws, each environment its own mixture (S filters)
-    mixed = irft.InverseRFT(c[::10], f[::10], hyper_posterior="laplace", li_basis=False)
+    mixed = irft.InverseRFT(c[::10], f[::10], hyper_posterior="laplace", prior=irft.MapPrior(kernel="rbf"))
     torch.manual_seed(0)
     mixed.fit(n_iter=30 if q else 100, progress=False)
     filt_m = irft.gp.TerrainFilterMixture(mixed, B, window=16)
@@ -564,7 +567,8 @@ def main(argv=None) -> None:
         f = irft.rft.forces(TRUTH, c)
         f = f + 0.01 * f.abs().amax(0) * torch.randn(f.shape, generator=torch.Generator().manual_seed(1))
         c, f = on_device(c, f)
-        model = irft.InverseRFT(c, f, priors=None, **PLUG_IN)  # the dense formula is the plain marginal likelihood
+        # the dense formula is the plain marginal likelihood
+        model = irft.InverseRFT(c, f, **{**PLUG_IN, "prior": irft.MapPrior(kernel="rbf", hyperpriors=None)})
         ours, ref = step(model), dense_step(model, c, f)
         assert abs(ours - ref) <= 1e-6 * abs(ref), (ours, ref)
         t_ours = best_time(lambda: step(model), a.repeats)
@@ -582,7 +586,7 @@ def main(argv=None) -> None:
         t_new, model = fit_time(c, f, n, 3, **PLUG_IN)
         with autograd_only():
             t_old, _ = fit_time(c, f, n, 3, **PLUG_IN)
-        obs = irft.InverseRFT(c, f, method="observations", **PLUG_IN)
+        obs = irft.InverseRFT(c, f, engine="observations", **PLUG_IN)
         with autograd_only():
             t_obs = best_time(lambda: step(obs), 2)
         row(f"2. DEM-like, T = 810 x M = 5, 54 distinct pairs, Adam ({model.method}, best of 3 x {n} steps)",
@@ -603,7 +607,7 @@ def main(argv=None) -> None:
         model.stress_map(*grid())
         sync()
         t3 = time.perf_counter() - t0
-        ref = irft.InverseRFT(c[:1000], f[:1000], method="observations", **PLUG_IN)
+        ref = irft.InverseRFT(c[:1000], f[:1000], engine="observations", **PLUG_IN)
         t_ref = best_time(lambda: step(ref), 1)
         row(f"3. C-toe T = {T3} x M = 10 (all pairs distinct): build + 300 steps + 50 x 50 map ({model.method}, "
             f"F = {getattr(model.backend, 'basis', None) and model.backend.basis.size})", f"{t3:.1f} s",
@@ -627,7 +631,7 @@ def main(argv=None) -> None:
         # 5. streaming
         T5 = 2000 if q else 10_000
         c, f = on_device(*recording(T5 + 2000, seed=3))
-        model = irft.InverseRFT(c[:T5], f[:T5], method="spectral", **PLUG_IN)
+        model = irft.InverseRFT(c[:T5], f[:T5], engine="spectral", **PLUG_IN)
         sync()
         t0 = time.perf_counter()
         for i in range(T5, T5 + 2000, 100):

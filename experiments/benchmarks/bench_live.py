@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 import irft_torch as irft
-from irft_torch.gp import InverseRFT
+from irft_torch.gp import InverseRFT, MapPrior
 from irft_torch.hardware import LiveEstimator, WalkingLeg
 
 TOE = irft.rft.CToe(0.02, 0.008, n_segments=10)
@@ -59,7 +59,8 @@ def history_model(leg: WalkingLeg, n_stances: int, seed: int = 0, priors: str | 
 
     first = [noisy(k) for k in range(3)]
     c0 = irft.rft.Contacts(*(torch.cat(v) for v in zip(*(c.as_dict().values() for c, _ in first))))
-    model = InverseRFT(c0, torch.cat([f for _, f in first]), hyper_posterior="map", method="spectral", priors=priors)
+    model = InverseRFT(c0, torch.cat([f for _, f in first]), hyper_posterior="map", prior=MapPrior(hyperpriors=priors),
+                       engine="spectral")
     model.fit(100, progress=False)
     if n_stances:
         more = [noisy(k) for k in range(n_stances)]

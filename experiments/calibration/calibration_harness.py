@@ -361,9 +361,9 @@ def main(argv=None) -> None:
     p.add_argument("--held-out-2", action="store_true", help="the second held-out set (tilted and blended media, "
                    "scoop and drag motions)")
     p.add_argument("--li-basis", action=argparse.BooleanOptionalAction, default=None,
-                   help="InverseRFT(..., li_basis=True / False) (default: the constructor's, True): Li et al.'s basis "
+                   help="MapPrior(kernel='li' / 'rbf') (default: the constructor's, 'li'): Li et al.'s basis "
                    "as a kernel term (files get the suffix _li / _rbf)")
-    p.add_argument("--generic-shape", action="store_true", help="with --li-basis: InverseRFT(..., generic_shape=True), "
+    p.add_argument("--generic-shape", action="store_true", help="with --li-basis: MapPrior(kernel='li+generic'), "
                    "the generic shape with an uncertain scale as a rank-one term (files get the suffix _generic)")
     p.add_argument("--posteriors", default=None, help="comma-separated subset of " + ",".join(POSTERIORS) +
                    " (default: all four but default for the plain RBF (--no-li-basis), map,laplace otherwise); "

@@ -9,7 +9,7 @@ Data: simulated (the harness' cases). Run time: about 1 min without options; --s
    ``--seeds`` seeds: log10(centre / the true map's mean square over the canonical square), median and range.
    Where the forces see little of the map, the posterior there is this prior.
 2. **The residual terms' prior size against coverage** (``--scan``). The model with the generic shape as a
-   rank-one term (``InverseRFT(..., li_basis=True, generic_shape=True)``) is refitted with the centre of
+   rank-one term (``InverseRFT(..., prior=MapPrior(kernel="li+generic"))``) is refitted with the centre of
    its residual terms' priors (the RBF outputscale and Li et al.'s variance) scaled by each of
    ``--factors`` (1 is the library's), every family x motion at the seeds ``--first-seed`` ..
    ``--first-seed + --scan-seeds - 1``; the plug-in's 95 % coverage per family (``studies.calibration.score``)
@@ -47,7 +47,7 @@ from unittest import mock
 import torch
 
 import irft_torch.gp.model as front_door
-from irft_torch import InverseRFT
+from irft_torch import InverseRFT, MapPrior
 from irft_torch.studies.calibration import MEDIA, MOTIONS, grid, medium, motion, score, simulate
 
 GENERIC_SHAPED = ("scaled", "presets")
@@ -75,7 +75,8 @@ def centre_table(seeds: int) -> list[str]:
             for seed in range(seeds):
                 truth, _, c, f = _data(family, kind, seed)
                 truth_ms = truth(B, G).reshape(-1, 2).pow(2).mean(0)
-                logs.append((_os_centre(InverseRFT(c, f, hyper_posterior="map", li_basis=False)) / truth_ms).log10())
+                fitted = InverseRFT(c, f, hyper_posterior="map", prior=MapPrior(kernel="rbf"))
+                logs.append((_os_centre(fitted) / truth_ms).log10())
             v = torch.stack(logs)
             cells = [f"{float(v[:, a].median()):+.2f} ({float(v[:, a].min()):+.2f} .. {float(v[:, a].max()):+.2f})"
                      for a in range(2)]
@@ -102,7 +103,7 @@ def build_scaled(c, f, factor: float) -> InverseRFT:
         return out
 
     with mock.patch.object(front_door, "centres_of_sums", scaled):
-        return InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
+        return InverseRFT(c, f, prior=MapPrior(kernel="li+generic"), hyper_posterior="map")
 
 
 def shrunk(model: InverseRFT, shrink: float) -> InverseRFT:
@@ -143,7 +144,7 @@ def residual_terms(first_seed: int, n_seeds: int, out: Path) -> list[str]:
         for family in MEDIA:
             for kind in MOTIONS:
                 truth, _, c, f = _data(family, kind, seed)
-                model = InverseRFT(c, f, li_basis=True, generic_shape=True, hyper_posterior="map")
+                model = InverseRFT(c, f, prior=MapPrior(kernel="li+generic"), hyper_posterior="map")
                 model.fit(300, progress=False)
                 cov, z2 = z_statistics(model, truth)
                 cov0, z20 = z_statistics(shrunk(model, 1e-8), truth)
@@ -220,7 +221,7 @@ def residual_scan(factors: list[float], first_seed: int, n_seeds: int, out: Path
 def nuts_case() -> list[str]:
     """Claim 3: gp/long/4 with the default model, plug-in, Laplace and NUTS from the same fit."""
     truth, label, c, f = _data("gp", "long", 4)
-    fitted = InverseRFT(c, f, hyper_posterior="map", li_basis=False)
+    fitted = InverseRFT(c, f, hyper_posterior="map", prior=MapPrior(kernel="rbf"))
     fitted.fit(300, progress=False)
     lines = [f"gp/long/4 ({label}), default model ({fitted.method}):", "",
              "| posterior | 95 % coverage x / z | RMSE / mean std x / z | seconds |", "|---|---|---|---|"]

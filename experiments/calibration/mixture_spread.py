@@ -56,8 +56,9 @@ def spreads(data: Path, wheel: str, draws, proposals: int, streams: int,
         test, train = np.nonzero(group == g)[0], np.nonzero(group != g)[0]
         c_train = Contacts.cat([c_all[i] for i in train])
         c_test = Contacts.cat([c_all[i] for i in test])
-        base = irft.InverseRFT(c_train, F[train], prior_mean="zero", priors="physical", hyper_posterior="map",
-                               method=settings["method"], tol=settings["tol"])
+        base = irft.InverseRFT(c_train, F[train], prior=irft.MapPrior(mean="zero", hyperpriors="physical"),
+                               engine=irft.Engine(method=settings["method"], tol=settings["tol"]),
+                               hyper_posterior="map")
         base.fit(n_iter=settings["n_iter"], lr=settings["lr"], progress=False)
         for s in range(streams):
             m = copy.deepcopy(base)

@@ -93,7 +93,7 @@ def run_sequence(truth, next_probe, s: Settings, seed: int) -> list[dict]:
         torch.manual_seed(seed)
         if model is None:
             # the design loop's plug-in (the study as measured; a mixture scorer costs a plug-in's x its draws)
-            model = irft.InverseRFT(c, f, noise_scale=scale, hyper_posterior="map", li_basis=False)
+            model = irft.InverseRFT(c, f, noise_scale=scale, hyper_posterior="map", prior=irft.MapPrior(kernel="rbf"))
             model.fit(n_iter=s.fit_iter, progress=False)
         else:
             model.add_data(c, f, noise_scale=scale)

@@ -132,7 +132,7 @@ def run_effect_variance(hypers) -> torch.Tensor:
 
 def fit_run_effect(c: Contacts, f: torch.Tensor, prior_mean: str, n_iter: int) -> irft.InverseRFT:
     """I-RFT in the pairs space with a per-run random stress (see ``_RunEffectPairs``)."""
-    m = irft.InverseRFT(c, f, prior_mean=prior_mean, method="pairs", hyper_posterior="map", li_basis=False)
+    m = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel="rbf", mean=prior_mean), engine="pairs", hyper_posterior="map")
     h = m.hypers
     h.register_parameter("raw_run_effect", torch.nn.Parameter(torch.zeros(2, dtype=h.outputscale.dtype)))
     h.run_effect_scale = h.outputscale.detach().clone()
@@ -153,7 +153,8 @@ def plain_gp(train: list[RunData], target: str, n_iter: int) -> irft.InverseRFT:
     one = torch.ones(len(train), 1)
     y = torch.tensor(np.array([d.target[target] for d in train]))
     # the README's plain exact GP: ML-II on the plain marginal likelihood (no hyperparameter priors)
-    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y, priors=None, hyper_posterior="map", li_basis=False)
+    m = irft.InverseRFT(Contacts(th[:, :1], th[:, 1:], one, one), y,
+                        prior=irft.MapPrior(kernel="rbf", hyperpriors=None), hyper_posterior="map")
     torch.manual_seed(0)
     m.fit(n_iter=n_iter, lr=0.05, progress=False)
     return m
@@ -241,10 +242,9 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
             models[n] = fit_run_effect(ctr, ftr, pm, a.n_iter)
             continue
         with_shape = bool(getattr(a, "generic_shape", False))
-        li = getattr(a, "li_basis", None)
-        opts = {k: v for k, v in (("li_basis", True if with_shape else li),
-                                  ("hyper_posterior", getattr(a, "hyper_posterior", None))) if v is not None}
-        m = irft.InverseRFT(ctr, ftr, prior_mean=pm, generic_shape=with_shape, **opts)  # the rest: the defaults
+        kernel = "li+generic" if with_shape else ("rbf" if getattr(a, "li_basis", None) is False else "li")
+        m = irft.InverseRFT(ctr, ftr, prior=irft.MapPrior(kernel=kernel, mean=pm),  # the rest: the defaults
+                            hyper_posterior=getattr(a, "hyper_posterior", None))
         m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
         models[n] = m
     # The learned surface (gp.surface.offset): one offset for the bed, fitted with the maps. Its force residuals are
@@ -259,7 +259,7 @@ def run_fold(train: list[RunData], test: list[RunData], a, split: str = "beta") 
     parts_l = [d.contacts(off, stride_l) for d in train]
     c_l, f_l = Contacts.cat([p[0] for p in parts_l]), torch.cat([p[1] for p in parts_l])
     torch.manual_seed(0)
-    m = irft.InverseRFT(c_l, f_l, surface_offset=True)
+    m = irft.InverseRFT(c_l, f_l, surface=True)
     m.init_surface(torch.linspace(-0.03, 0.01, 17))
     m.fit(n_iter=a.n_iter, lr=0.05, progress=False)
     est = m.surface_offset.in_cm()  # cm, positive when the surface is above the stated one
@@ -353,8 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the I-RFT rows (zero and physics mean) with or without Li et al.'s basis as a kernel term "
                          "(default: the constructor's, with); the learned-surface row is left as it is")
     ap.add_argument("--generic-shape", action="store_true",
-                    help="the same rows with the generic shape's uncertain scale too (li_basis=True, "
-                         "generic_shape=True)")
+                    help="the same rows with the generic shape's uncertain scale too (MapPrior(kernel="
+                         "'li+generic'))")
     ap.add_argument("--hyper-posterior", default=None, choices=("map", "laplace"),
                     help="the same rows' hyperparameter posterior (InverseRFT(..., hyper_posterior=...); default: the "
                          "constructor's, laplace): map, the plug-in (the earlier default, with --no-li-basis)")

@@ -12,7 +12,7 @@ true offset is -1 cm. Three fits per seed (zero prior mean, 300 Adam steps, lr 0
 
 - "true surface": InverseRFT on the contacts at the true surface (the reference);
 - "stated surface": InverseRFT on the stated contacts, the offset ignored;
-- "learned surface": InverseRFT(stated, forces, surface_offset=True).
+- "learned surface": InverseRFT(stated, forces, surface=True).
 
 Reported: the learned offset, its Laplace std and 95 % interval, the error in mm, and the map RMSE
 at the visited angle pairs (where the data inform the maps) per axis, for each fit. For seed 0 also
@@ -106,7 +106,7 @@ def main(argv=None) -> None:
         c, f, truth = simulate(seed)
         stated = c.with_surface_offset(-TRUE_OFFSET / 100)  # every depth 1 cm too large
         m_true, m_stated = fit(c, f), fit(stated, f)
-        m = fit(stated, f, surface_offset=True)
+        m = fit(stated, f, surface=True)
         est = m.surface_offset.in_cm()
         lo, hi = est.interval(0.95)
         mu, sd = est.mean.item(), est.std.item()
@@ -171,7 +171,7 @@ def main(argv=None) -> None:
                        ("stated depth > 0 (1 cm of them above the true surface, force 0)", stated1.depth[:, 0] > 0),
                        ("in contact only (true depth > 0.5 cm)", c1.depth[:, 0] > 0.5),
                        ("in contact, true depth 3 to 4.5 cm only", (c1.depth[:, 0] > 3) & (c1.depth[:, 0] < 4.5))):
-        m1 = fit(stated1[keep], f1[keep], surface_offset=True)
+        m1 = fit(stated1[keep], f1[keep], surface=True)
         e1 = m1.surface_offset.in_cm()
         corr = e1.correlation.get("kernel.raw_outputscale[1]", [math.nan])[0]
         p = m1.stress_map(torch.tensor(0.0), torch.tensor(math.pi / 2))

@@ -104,10 +104,10 @@ def main(argv=None) -> None:
     ap.add_argument("--file", default="traveler_trial_2024-02-02.csv", help="the log's file name in --data")
     ap.add_argument("--out", type=FilePath, default="experiments/results", help="where the report and figure go")
     ap.add_argument("--li-basis", action="store_true",
-                    help="the I-RFT fits with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True))")
+                    help="the I-RFT fits with Li et al.'s basis as a kernel term (MapPrior(kernel='li'))")
     ap.add_argument("--generic-shape", action="store_true",
-                    help="the I-RFT fits with the generic shape's uncertain scale too (li_basis=True, "
-                         "generic_shape=True)")
+                    help="the I-RFT fits with the generic shape's uncertain scale too (MapPrior(kernel="
+                         "'li+generic'))")
     ap.add_argument("--toe-length", type=float, default=0.08, help="flat toe length, m (assumed; not in the log)")
     ap.add_argument("--toe-width", type=float, default=0.008, help="flat toe width, m (assumed; not in the log)")
     ap.add_argument("--min-speed", type=float, default=0.02, help="m/s: slower samples are not 'moving'")
@@ -212,11 +212,11 @@ def main(argv=None) -> None:
     fobs = torch.as_tensor(np.stack([Fx[idx], Fz[idx]], -1) - base)
     angles = (torch.tensor([0.0, 0.0]), torch.tensor([math.pi / 2, -math.pi / 2]))
     fits = {}
-    for key, kw in (("stated", {}), ("free", {"surface_offset": True}),
-                    ("per stroke", {"surface_groups": torch.as_tensor(np.where(down_rows, 0, 1))})):
+    kernel = "li+generic" if args.generic_shape else ("li" if args.li_basis else "rbf")
+    for key, kw in (("stated", {}), ("free", {"surface": True}),
+                    ("per stroke", {"surface": torch.as_tensor(np.where(down_rows, 0, 1))})):
         torch.manual_seed(0)
-        terms = {"li_basis": args.li_basis or args.generic_shape, "generic_shape": args.generic_shape}
-        m = irft.InverseRFT(c, fobs, **kw, **terms)
+        m = irft.InverseRFT(c, fobs, prior=irft.MapPrior(kernel=kernel), **kw)
         if kw:  # the likelihood in the offset has local optima: start at the best of a coarse grid
             m.init_surface(torch.arange(-3.5, 2.0001, 0.1) / 100)  # m
         m.fit(n_iter=args.n_iter, lr=0.05, progress=False)

@@ -204,7 +204,7 @@ def run_one(kind: str, seed: int, n_stances: int, held_out: bool = False, prior_
     truth = torch.stack([field.at(p)(b, g) for p in places])  # (L, 13, 13, 2)
     out: dict = {"kind": kind, "seed": seed, "samples": len(c)}
     t0 = time.perf_counter()
-    spatial = irft.InverseRFT(c, F, locations=s, prior_mean=prior_mean)
+    spatial = irft.InverseRFT(c, F, locations=s, prior=irft.MapPrior(mean=prior_mean))
     spatial.fit(progress=False)
     out["spatial_s"] = time.perf_counter() - t0
     post = spatial.stress_map(b, g, locations=places)

@@ -127,11 +127,10 @@ def run_contacts(profile, run, K: int, sinkage: float | None = None) -> Contacts
 
 def fit_irft(c: Contacts, f: torch.Tensor, prior_mean: str, args, priors: str | None = "physical"):
     generic = bool(getattr(args, "generic_shape", False))
-    li = True if generic else getattr(args, "li_basis", None)
-    opts = {k: v for k, v in (("li_basis", li), ("hyper_posterior", getattr(args, "hyper_posterior", None)))
-            if v is not None}  # the rest: the constructor's defaults
-    model = irft.InverseRFT(c, f, prior_mean=prior_mean, method=args.method, tol=args.tol, priors=priors,
-                            generic_shape=generic, **opts)
+    kernel = "li+generic" if generic else ("rbf" if getattr(args, "li_basis", None) is False else "li")
+    model = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel=kernel, mean=prior_mean, hyperpriors=priors),
+                            engine=irft.Engine(method=args.method, tol=args.tol),
+                            hyper_posterior=getattr(args, "hyper_posterior", None))  # the rest: the defaults
     model.fit(n_iter=args.n_iter, lr=args.lr, progress=False)
     if getattr(args, "seed", 0) and model.hyper_method != "map":  # another point set of draws: the level's stream
         model.fit_hyper_posterior(generator=torch.Generator().manual_seed(torch.initial_seed()))
@@ -591,8 +590,8 @@ def main(argv=None) -> None:
                     help="I-RFT with or without Li et al.'s basis as a kernel term, both studies (default: each "
                          "constructor's: with in the plane, without in 3-D)")
     ap.add_argument("--generic-shape", action="store_true",
-                    help="the planar study's I-RFT with the generic shape's uncertain scale too (li_basis=True, "
-                         "generic_shape=True; the 3-D model has no such term)")
+                    help="the planar study's I-RFT with the generic shape's uncertain scale too (MapPrior(kernel="
+                         "'li+generic'); the 3-D model has no such term)")
     ap.add_argument("--hyper-posterior", default=None, choices=("map", "laplace"),
                     help="I-RFT's hyperparameter posterior, both studies (default: each constructor's; map: the "
                          "plug-in)")

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from irft_torch.data import wheel as wd
+from irft_torch.gp import Engine, MapPrior
 from irft_torch.gp.inverse3d import InverseRFT3D
 from irft_torch.gp.inverse3d.features import SpectralFeatureBank
 from irft_torch.gp.kernels.fourier import MAX_HARMONICS
@@ -90,9 +91,12 @@ def model_options(args) -> tuple[dict, dict]:
     """The constructor's and fit's options this run passes: none but those given on the command line (the study
     runs with the library's defaults; ``--method``, ``--tol``, ``--harmonics``, ``--n-iter``, ``--lr``,
     ``--li-basis``, ``--hyper-posterior`` to ask for others)."""
-    names = (("method", "method"), ("tol", "tol"), ("max_harmonics", "harmonics"), ("li_basis", "li_basis"),
-             ("hyper_posterior", "hyper_posterior"))
-    given = {k: getattr(args, a, None) for k, a in names}
+    engine = {k: getattr(args, a, None) for k, a in (("method", "method"), ("tol", "tol"),
+                                                     ("max_harmonics", "harmonics"))}
+    engine = {k: v for k, v in engine.items() if v is not None}
+    given = {"hyper_posterior": getattr(args, "hyper_posterior", None), "engine": Engine(**engine) if engine else None}
+    if getattr(args, "li_basis", None) is not None:
+        given["kernel"] = "li" if args.li_basis else "rbf"
     fit_given = {k: getattr(args, k, None) for k in ("n_iter", "lr")}
     return ({k: v for k, v in given.items() if v is not None}, {k: v for k, v in fit_given.items() if v is not None})
 
@@ -100,7 +104,9 @@ def model_options(args) -> tuple[dict, dict]:
 def fit(d: dict, idx: np.ndarray, alpha_y: str, args, prior_mean: str = "physics") -> InverseRFT3D:
     i = torch.as_tensor(idx)
     options, fit_options = model_options(args)
-    model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, features=d["bank"].rows(i), prior_mean=prior_mean,
+    options = dict(options)
+    prior = MapPrior(kernel=options.pop("kernel", None), mean=prior_mean)
+    model = InverseRFT3D(d["c"][i], d["F"][i], alpha_y=alpha_y, features=d["bank"].rows(i), prior=prior,
                          **options)  # features: the folds' spectral features cut from one pass (the same numbers)
     model.fit(progress=False, **fit_options)
     return model
@@ -212,7 +218,9 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
     t0 = time.perf_counter()
     lines = ["## 3-D: every run, every slip angle (issue 31)", ""]
     options, fit_options = model_options(args)
-    lines += [f"I-RFT: `InverseRFT(contacts_3d, forces{''.join(f', {k}={v!r}' for k, v in options.items())})"
+    shown = {("prior" if k == "kernel" else k): (f"MapPrior(kernel={v!r})" if k == "kernel" else repr(v))
+             for k, v in options.items()}
+    lines += [f"I-RFT: `InverseRFT(contacts_3d, forces{''.join(f', {k}={v}' for k, v in shown.items())})"
               f".fit({', '.join(f'{k}={v!r}' for k, v in fit_options.items())})`"
               + (" (the constructor's defaults)" if not options and not fit_options else ""), ""]
     models, summary = {}, {}

@@ -92,6 +92,7 @@ def cmd_fit(a) -> int:
     from .._files import StagedFiles
     from ..gp import InverseRFT
     from ..gp.model import FitInterruptedWarning
+    from ..gp.options import MapPrior
     from ..hardware import load_dataset
 
     out = _out_dir(a.out, "--out")  # before the fit: a bad --out fails now, not after minutes of training
@@ -128,9 +129,10 @@ def cmd_fit(a) -> int:
         stats = _reduce_statistics(a.dataset, basis, a.jobs, len(ds), dask=a.dask)
     elif a.dask is not None:
         print("--dask: nothing to reduce (the fit does not start in the spectral space: its statistics are not used)")
-    model = InverseRFT(ds.contacts, ds.forces, prior_mean=a.prior_mean, method=a.method, statistics=stats,
-                       priors=None if a.priors == "none" else a.priors, li_basis=a.li_basis or a.generic_shape,
-                       generic_shape=a.generic_shape, hyper_posterior=a.hyper_posterior)
+    kernel = "li+generic" if a.generic_shape else ("li" if a.li_basis else "rbf")
+    model = InverseRFT(ds.contacts, ds.forces, statistics=stats, hyper_posterior=a.hyper_posterior, engine=a.method,
+                       prior=MapPrior(kernel=kernel, mean=a.prior_mean, hyperpriors=None if a.priors == "none"
+                                      else a.priors))
     print(f"backend {model.backend.describe()}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -215,7 +217,7 @@ def register(sub) -> None:
                         "--no-li-basis: the paper's RBF alone; docs/calibration.md)")
     p.add_argument("--generic-shape", action="store_true",
                    help="also give Li et al.'s generic map a scale of its own, integrated out (InverseRFT(..., "
-                        "li_basis=True, generic_shape=True); implies --li-basis; docs/calibration.md)")
+                        "prior=MapPrior(kernel='li+generic')); implies --li-basis; docs/calibration.md)")
     p.add_argument("--hyper-posterior", choices=["map", "laplace", "nuts"], default="laplace",
                    help="laplace (default): average the map and its uncertainty over the hyperparameters' posterior "
                         "(intervals that hold on media nobody tuned for); map: the plug-in at the fitted "

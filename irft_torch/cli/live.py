@@ -22,7 +22,7 @@ def _start_model(n_iter: int):
     def build(contacts, forces):
         from ..gp import InverseRFT
 
-        model = InverseRFT(contacts, forces, hyper_posterior="map", method="spectral")
+        model = InverseRFT(contacts, forces, hyper_posterior="map", engine="spectral")
         model.fit(n_iter=n_iter, progress=False)
         return model
 

@@ -56,11 +56,12 @@ def register(sub) -> None:
                    help="hyperparameter priors of every fit: the library's physical priors (MAP, default) or none "
                         "(the paper's plain marginal likelihood; its Table I rows are in every run)")
     p.add_argument("--li-basis", action="store_true",
-                   help="fit every model with Li et al.'s basis as a kernel term (InverseRFT(..., li_basis=True); "
+                   help="fit every model with Li et al.'s basis as a kernel term (InverseRFT's default, "
+                        "MapPrior(kernel='li'); "
                         "docs/calibration.md); the paper's kernel is the RBF alone")
     p.add_argument("--generic-shape", action="store_true",
                    help="also give Li et al.'s generic map an uncertain scale of its own (InverseRFT(..., "
-                        "li_basis=True, generic_shape=True); implies --li-basis)")
+                        "prior=MapPrior(kernel='li+generic')); implies --li-basis)")
     p.add_argument("--hyper-posterior", choices=["map", "laplace"], default="map",
                    help="map (the paper's plug-in, default) or laplace (predict with the hyperparameter posterior); "
                         "with --li-basis: the library's default fit, InverseRFT(contacts, forces)")

@@ -215,7 +215,7 @@ def run_contacts(run: DEMRun, n_segments: int = 10, stride: int = 1, min_depth: 
     ``min_depth`` cm below the effective surface ``z_top - surface_offset`` [cm]. Segment depths
     follow the plate's tilt (z of segment = z_centre + s sin tilt). The contacts keep the signed
     segment depths and areas (``Contacts.depth``, ``area_x``, ``area_z``), so that a model can learn
-    the surface (``InverseRFT(..., surface_offset=True)``, ``Contacts.with_surface_offset``)."""
+    the surface (``InverseRFT(..., surface=True)``, ``Contacts.with_surface_offset``)."""
     _check_offset(surface_offset)
     beta_c, gamma_c = canonical_angles(run)
     keep = np.nonzero(run.depth - surface_offset > min_depth)[0][::stride]

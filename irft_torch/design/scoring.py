@@ -86,8 +86,8 @@ class ProbeScorer:
         method: the backend's name.
         outputscale: (2,) the RBF kernel's variances s_a of the maps, (N/cm^3)^2.
         prior_variance: (2,) the maps' prior variances, (N/cm^3)^2: s_a, plus Li et al.'s v_a where the model
-            has that term (``li_basis=True``), plus u_a times the generic shape's mean square over the square
-            with ``generic_shape=True``. The integrated variances over a region are divided by the prior's mean
+            has that term (``kernel="li"``), plus u_a times the generic shape's mean square over the square
+            with ``kernel="li+generic"``. The integrated variances over a region are divided by the prior's mean
             over that region (this, but for the generic shape's part, which varies with the angles).
         noise: (2,) force noise variances sigma_a^2 of a sample of scale 1, N^2.
     """
@@ -407,7 +407,7 @@ class ProbeScorer:
 
     def _prior_over(self, region: Region) -> Tensor:
         """(2,) the maps' prior variance averaged over ``region`` with its weights, (N/cm^3)^2: ``prior_variance``
-        (uniform) but with the generic shape (``generic_shape=True``), whose part u g(theta)^2 varies."""
+        (uniform) but with the generic shape (``kernel="li+generic"``), whose part u g(theta)^2 varies."""
         h = self.backend.hypers
         if h.li is None or not h.li.generic:
             return self.prior_variance

@@ -53,7 +53,7 @@ class ProbeScorer3D:
 
     Attributes:
         outputscale: (3,) the kernel's variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
-        prior_variance: (3,) the maps' prior variances (s_c, plus Li et al.'s v_c with ``li_basis=True``): the
+        prior_variance: (3,) the maps' prior variances (s_c, plus Li et al.'s v_c with ``kernel="li"``): the
             integrated variances are divided by it.
         noise: (3,) force-noise variances of (F_x, F_y, F_z), N^2.
     """

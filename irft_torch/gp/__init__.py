@@ -21,6 +21,7 @@ from .kernels.means import GenericShapeMean
 from .kernels.operators import RFTKernelLinearOperator, RowSeparableRFTOperator, memory_budget, unique_pairs
 from .model import InverseRFT
 from .model_file import ModelFileError
+from .options import Engine, MapPrior
 from .posterior import Posterior
 from .statistics import recording_statistics, statistics_arrays, statistics_from_arrays
 from .streaming.filter import TerrainFilter
@@ -33,7 +34,8 @@ __all__ = [
     "RowSeparableRFTOperator",
     "memory_budget", "unique_pairs", "GenericShapeMean", "RFTHyperparameters", "FourierBasis", "RFTBackend",
     "FunctionalPosterior", "ObservationsBackend", "PairsBackend", "SpectralBackend", "FeatureStatistics",
-    "make_backend", "InverseRFT", "Posterior", "ModelFileError", "encode_rows", "decode_rows", "encode_contacts",
+    "make_backend", "InverseRFT", "MapPrior", "Engine", "Posterior", "ModelFileError", "encode_rows", "decode_rows",
+    "encode_contacts",
     "encode_points", "recording_statistics", "statistics_arrays", "statistics_from_arrays",
     "fit_together", "shares_fit", "cross_validate", "GroupPredictions", "profile_surface", "TerrainFilter",
     "TerrainFilterMixture", "SpatialTiles",

@@ -16,7 +16,7 @@ posterior per held-out group.
 
 The hyperparameters were fitted with every group, the held-out one included, so the estimate is
 optimistic, and more so for a model whose hyperparameters are free to follow the data (the plain
-likelihood, ``priors=None``) than for one held by priors: when the choice between such models is
+likelihood, ``MapPrior(hyperpriors=None)``) than for one held by priors: when the choice between such models is
 close, use ``refit=True`` (a model fitted without each group, G fits; docs/experiments.md shows both
 on measured data).
 """
@@ -33,6 +33,7 @@ from torch import Tensor
 from .backends import make_backend
 from .backends.base import touching
 from .hyper.mixture import mixture_moments
+from .options import grouped
 
 __all__ = ["GroupPredictions", "cross_validate"]
 
@@ -172,7 +173,8 @@ def _refit(model, groups, include_noise: bool, n_iter: int, lr: float) -> GroupP
     for g in range(len(labels)):
         held = index == g
         keep = ~held
-        m = type(model)(c[keep], f[keep], method=model._method_arg, noise_scale=s[keep], **model._options())
+        options = grouped({**model._options(), "method": model._method_arg})
+        m = type(model)(c[keep], f[keep], noise_scale=s[keep], **options)
         m.fit(n_iter=n_iter, lr=lr, progress=False)
         with torch.no_grad():
             post = m.predict_forces(c[held])

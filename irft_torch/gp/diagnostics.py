@@ -35,7 +35,7 @@ class MapDiagnostics:
             coordinate below 1e-3): the likelihood cannot move their lengthscales, whose initial
             value alone sets how the map extrapolates along them.
         signal_to_noise: prior force signal variance (the prior map variance, ``hypers.prior_variance``: the
-            outputscale, plus Li et al.'s v with ``li_basis=True`` and u mean(g^2) with ``generic_shape=True``,
+            outputscale, plus Li et al.'s v with ``kernel="li"`` and u mean(g^2) with ``kernel="li+generic"``,
             x the mean squared weight sum) over
             the noise variance; below 1 the outputscale has collapsed below what the noise resolves
             (the whole map's prior signal is smaller than one sample's noise).

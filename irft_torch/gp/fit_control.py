@@ -194,7 +194,7 @@ class FitControlMixin:
                     noise = [f"{v:.2g}" for v in self.hypers.noise.detach().tolist()]
                     warnings.warn(
                         f"the force noise fell to {noise} N^2, below {NOISE_FREE:g} of the force power (nearly "
-                        "noise-free data), and the lengthscales shrink to fit what is left: method='auto' holds the "
+                        "noise-free data), and the lengthscales shrink to fit what is left: engine 'auto' holds the "
                         f"spectral basis at {basis.size} features (kernel truncation error now "
                         f"{self.truncation_error().max().item():.1e}; {grown.size} features would cost "
                         f"{cost / self._held_cost:.0f}x a step). method='spectral' grows it anyway", stacklevel=3)

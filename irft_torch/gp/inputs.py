@@ -158,7 +158,8 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
     from .mean_average import check_average_options
 
     if prior_mean not in ("zero", "physics", "average"):
-        raise ValueError(f"prior_mean must be 'zero', 'physics' or 'average', got {prior_mean!r}")
+        raise ValueError(f"MapPrior(mean=...) (formerly prior_mean) must be 'zero', 'physics' or 'average', "
+                         f"got {prior_mean!r}")
     if prior_mean == "average":
         check_average_options(priors, surface, tied_noise)
     if not (math.isfinite(lengthscale) and lengthscale > 0.05):
@@ -178,7 +179,7 @@ def _check_options(prior_mean: str, priors, method: str, hyper_posterior, solver
         raise ValueError(f"hyper_posterior must be one of {HYPER_POSTERIORS}, got {hyper_posterior!r}")
     if hyper_posterior != "map" and surface:
         raise NotImplementedError("hyper_posterior with a learned surface offset: the offset has its own Laplace "
-                                  "std (model.surface_offset); use hyper_posterior='map' with surface_offset")
+                                  "std (model.surface_offset); use hyper_posterior='map' with surface=...")
     if solver not in ("cholesky", "gpytorch"):
         raise ValueError(f"solver must be 'cholesky' or 'gpytorch', got {solver!r}")
     for name, flag in zip(("li_basis", "generic_shape"), li_terms):
@@ -201,7 +202,7 @@ def initial_hyperparameters(c: Contacts, f: Tensor, dtype, tied_noise: bool, pri
     """``RFTHyperparameters`` started from the (whitened) data c (T, M), f (T, 2) N, and the data's map scale (2,)
     N/cm^3: bounds and raw units from the data's own force and stress-per-depth scales (a fit does not depend on
     the units, N or mN, cm^3 or mm^3); the outputscale from the force power per squared weight (after the physics
-    mean's least-squares scale with ``prior_mean="physics"``), the noise at 1 % of the force power."""
+    mean's least-squares scale with ``MapPrior(mean="physics")``), the noise at 1 % of the force power."""
     from .kernels.hyperparameters import RFTHyperparameters
     from .kernels.priors import spatial_lengthscale_centre
 

@@ -12,14 +12,14 @@ with equal prior odds; the two maps are weighed separately (each its own hyperpa
 so the evidence factorises over them: alpha_x may be generic-shaped while alpha_z is not). Each model's
 posterior is itself a mixture over its hyperparameter draws (``hyper_posterior``), or its plug-in.
 ``p(F_c | M_m)`` is the Laplace approximation at the mode of the model's hyperparameter posterior
-(``hyper_posterior.log_evidence``), which needs proper priors (``priors="physical"``).
+(``hyper_posterior.log_evidence``), which needs proper priors (``MapPrior(hyperpriors="physical")``, the default).
 
 Why: on the calibration harness (docs/calibration.md) a zero-mean GP seen through a narrow slice of the
 square (a rotating leg, a short stroke) extrapolates a generic-shaped medium with intervals that hold the
 truth on 30-80 % of the square, and a physics mean does the same to a medium that is not generic-shaped;
 the average takes whichever the forces support, and both where they cannot tell.
 
-``InverseRFT(contacts, forces, prior_mean="average")`` is the zero-mean model (``model.hypers``,
+``InverseRFT(contacts, forces, prior=MapPrior(mean="average"))`` is the zero-mean model (``model.hypers``,
 ``model.backend``: what ``fit`` trains first) with a physics-mean companion fitted after it on the same data
 (``model.companion``); ``model.mean_average`` holds the evidence and the weights. Every prediction is the
 mixture over both models' draws with weights pi_mc w_ms per map (``gp.hyper.mixture``).
@@ -37,6 +37,7 @@ from torch import Tensor
 
 from .backends import RFTBackend
 from .hyper.posterior import HyperPosterior, _polish, hyper_spec, log_evidence
+from .options import grouped
 
 if TYPE_CHECKING:
     from ..rft.contacts import Contacts
@@ -124,7 +125,7 @@ class MeanAverageMixin:
 
     @property
     def companion(self):
-        """The physics-mean model averaged with this one (``prior_mean="average"``, after ``fit``), or None."""
+        """The physics-mean model averaged with this one (``MapPrior(mean="average")``, after ``fit``), or None."""
         return self._companion[0] if self._companion else None
 
     def _set_companion(self, model) -> None:
@@ -138,10 +139,9 @@ class MeanAverageMixin:
         contacts, forces = self._measured()
         opts = self._options()
         opts["prior_mean"] = "physics"
-        opts.pop("dtype")
+        opts.update(dtype=self.dtype, method=method or self._method_arg)
         model: Any = type(self)  # the mixin's host: an InverseRFT (its constructor's arguments)
-        return model(contacts, forces, noise_scale=self.noise_scale, dtype=self.dtype,
-                     method=method or self._method_arg, **opts)
+        return model(contacts, forces, noise_scale=self.noise_scale, **grouped(opts))
 
     def _fit_companion(self, n_iter: int, lr: float, progress: bool) -> None:
         """Fit the physics-mean companion as this model was fitted (same steps and rate), on this model's
@@ -213,11 +213,11 @@ class MeanAverageMixin:
 
 
 def check_average_options(priors, surface: bool, tied_noise: bool) -> None:
-    """``prior_mean="average"`` needs proper priors (evidence) and no learned surface."""
+    """``MapPrior(mean="average")`` needs proper priors (evidence) and no learned surface."""
     if priors != "physical":
-        raise ValueError("prior_mean='average' weighs the two prior means by their evidence, which needs the "
-                         "physical hyperparameter priors (priors='physical')")
+        raise ValueError("MapPrior(mean='average') weighs the two prior means by their evidence, which needs the "
+                         "physical hyperparameter priors (MapPrior(hyperpriors='physical'))")
     if surface:
-        raise NotImplementedError("prior_mean='average' with a learned surface offset is not supported; use "
-                                  "prior_mean='zero' or 'physics' with surface_offset")
+        raise NotImplementedError("MapPrior(mean='average') with a learned surface offset is not supported; use "
+                                  "mean='zero' or 'physics' with surface=True")
     _ = math.inf if tied_noise else 0  # tied noise works: the evidence is then joint (log_evidence)

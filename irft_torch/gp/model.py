@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 
 import torch
 from linear_operator.utils.errors import NotPSDError
@@ -52,6 +53,7 @@ from .kernels.priors import (
 )
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
+from .options import Engine, MapPrior, flat_prior, planar_options
 from .posterior import Posterior, _force_posterior, _mixture_maps, _predict_chunk
 from .spatial import check_spatial_options, placed_contacts, placed_queries
 from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
@@ -77,10 +79,13 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
 
     ``"auto"`` (default) takes the cheapest (``gp.backends.estimated_costs``), exact ones when close.
 
-    The options come in four groups, in this order below: the model (what the maps are and how sure:
-    ``li_basis``, ``generic_shape``, ``prior_mean``, ``priors``, ``hyper_posterior``), the noise (``tied_noise``,
-    ``noise_scale``), the free surface (``surface_offset``, ``surface_groups``) and the engine: how it is computed
-    (``method``, ``tol``, ``solver``, ``statistics``, ``dtype``) and where the fit starts (``lengthscale``).
+    Four named choices, as botorch's ``SingleTaskGP`` takes a likelihood and modules: ``prior`` (what the maps are
+    before the data, a ``MapPrior``), ``hyper_posterior`` (how sure), ``surface`` (the free surface) and ``engine``
+    (how it is computed, an ``Engine``); each is held as resolved (``model.prior``, ``model.engine``) and the
+    machinery one attribute away (``model.hypers``, ``model.backend``, ``model.hyper_posterior``, ``model.surface``).
+    The former flat keywords (``li_basis=``, ``generic_shape=``, ``prior_mean=``, ``priors=``, ``tied_noise=``,
+    ``lengthscale=``, ``method=``, ``tol=``, ``dtype=``, ``surface_offset=``, ``surface_groups=``) still
+    work and raise a ``DeprecationWarning`` naming the new spelling (``gp.options``); removed in 0.4.
 
     Args:
         contacts: training ``Contacts`` (T, M) (canonical angles, weights in cm^3).
@@ -88,49 +93,35 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
             otherwise: an axis that was not measured cannot be passed as zeros).
         locations: (T, 2) m, each sample's place on the ground: maps that vary over it (``gp.kernels.spatial``,
             docs/terrain.md); queries then take ``locations=`` too. None (default): one medium everywhere.
-        li_basis: Li et al.'s 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} in the kernel as a
-            term with its own variance per map (default True; ``gp.kernels.li_basis``): what the forces leave unseen
-            follows shapes real media have, at no extra cost per step. False: the paper's RBF alone (Table I / II).
-        generic_shape: with ``li_basis``, also Li et al.'s generic map with a scale of its own, integrated out
-            (``gp.kernels.li_basis``). Its niche: media known to share the generic shape seen through a narrow slice of
-            angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar wheels'
-            vertical force beyond the spread (docs/calibration.md).
-        prior_mean: "zero" (the paper), "physics" (generic Li et al. shape x learned scales), or "average":
-            both, weighed per map by their evidence (``gp.mean_average``: the zero-mean model is this one,
-            the physics-mean model ``model.companion`` is fitted after it; ``model.mean_average`` holds
-            the weights).
-        priors: "physical" (default): hyperparameter priors with a physical meaning (``gp.kernels.priors``: the map's
-            variance from the medium's scale, lengthscales that keep what the data cannot see at a documented
-            extrapolation, noise from the force spread), fitted by MAP; None: the paper's plain marginal likelihood.
+        prior: a ``MapPrior`` (``gp.options``): the kernel ("li", the default: the RBF plus Li et al.'s 9 functions
+            as a term with its own variance per map; "rbf": the paper's, Table I / II; "li+generic": also the
+            generic map with an uncertain scale), the prior mean ("zero", default; "physics"; "average"), the
+            hyperparameter priors ("physical", default; None: the plain marginal likelihood), the noise
+            ("per_axis", default; "tied") and the starting lengthscale. Each field's docstring says where it wins.
         hyper_posterior: "laplace" (default): after the fit, a posterior over the hyperparameters
             (``gp.hyper.posterior``, Laplace at the mode, importance-reweighted from a fixed point set: a refit
             predicts the same); predictions are mixtures over its draws (``model.hyper_posterior``). "map": the
             plug-in at the fitted hyperparameters (the paper's; ``TerrainFilter`` and streaming use it), about
-            1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts": pyro's
-            NUTS, the reference. With ``surface_offset`` or ``priors=None`` the default is "map" (the offset has
-            its own Laplace std; without priors the posterior is improper).
-        tied_noise: one noise variance for both axes (the paper) instead of one per axis.
+            1.5x faster, overconfident on media unlike Li et al.'s generic one (docs/calibration.md). "nuts":
+            pyro's NUTS, the reference. With a learned surface or ``MapPrior(hyperpriors=None)`` the default is
+            "map" (the offset has its own Laplace std; without priors the posterior is improper).
+        surface: learn the free surface's height with the maps (``gp.surface.offset``, docs/surface.md): True for
+            one offset in m (positive: the surface is higher than stated), fitted by the marginal likelihood
+            through the segment depths, ``model.surface_offset`` gives it with its Laplace std; or (T,) integers
+            in [0, G), one offset per group (recording, trial). Needs contacts with ``depth``, ``area_x``,
+            ``area_z`` (``rft.contacts``). None (default): the surface is where the contacts say.
+        engine: an ``Engine`` (``gp.options``: method, tol, dtype) or just a method name: "auto"
+            (default), "observations" (or "exact"), "pairs" or "spectral" (above).
         noise_scale: (T,) or (T, 2) positive relative noise standard deviations per sample (and axis): sample t's
             noise variance is ``noise * noise_scale[t]**2``, applied exactly by whitening each observation in every
             backend; ``train_contacts`` and ``train_forces`` hold the whitened data.
-        surface_offset: learn the free surface's height with the maps (``gp.surface.offset``, docs/surface.md):
-            one offset in m (positive: the surface is higher than stated), fitted by the marginal
-            likelihood through the segment depths; ``model.surface_offset`` gives it with its
-            Laplace std. Needs contacts with ``depth``, ``area_x``, ``area_z`` (``rft.contacts``).
-        surface_groups: (T,) integers in [0, G): one offset per group (recording, trial) (implies ``surface_offset``).
-        method: "auto", "observations" (or "exact"), "pairs" or "spectral" (see above).
-        tol: spectral backend: bound on the kernel's relative truncation error (default 1e-7).
-        solver: observations backend: "cholesky" (default) or "gpytorch" (CG/Lanczos above its max_cholesky_size).
-        lengthscale: initial lengthscale of every embedding dimension. Where the data never vary an angle (an
-            I-toe samples beta = 0 only) the likelihood cannot move it: it sets how far the map extrapolates.
         statistics: spectral sufficient statistics of exactly these contacts and forces
             (``gp.statistics.recording_statistics``, e.g. saved with a dataset and summed over several): the
             spectral backend skips its pass over the data. Checked against the data's sample count and force power
             (ValueError if they differ); ignored by the other backends; not allowed with a ``noise_scale``.
-        dtype: float64 (default) or float32.
-        grid_size: retired with the former grid path; ignored with a warning (as is ``exact_max_segments``).
     Example:
-        >>> model = InverseRFT(contacts, forces)
+        >>> model = InverseRFT(contacts, forces)                       # the default: honest intervals
+        >>> paper = InverseRFT(contacts, forces, prior=MapPrior(kernel="rbf"), hyper_posterior="map")
         >>> model.fit(n_iter=300, lr=0.05)
         >>> post = model.stress_map(beta, gamma)        # .mean, .variance: (..., 2) in N/cm^3
         >>> pred = model.predict_forces(new_contacts)   # .mean, .variance: (T', 2) in N
@@ -156,13 +147,19 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
 
         return load_model(cls, path, map_location, {FORMAT_3D: InverseRFT3D._from_file} if cls is InverseRFT else None)
 
-    def __init__(self, contacts: Contacts, forces, *, prior_mean: str = "zero", tied_noise: bool = False,
-                 dtype: torch.dtype = torch.float64, solver: str = "cholesky", lengthscale: float = 1.0,
-                 method: str = "auto", tol: float = 1e-7, noise_scale=None, grid_size=None,
-                 exact_max_segments=None, statistics=None, surface_offset: bool = False,
-                 surface_groups=None, priors: str | None = "physical", hyper_posterior: str | None = None,
-                 li_basis: bool = True, generic_shape: bool = False, locations=None) -> None:
+    def __init__(self, contacts: Contacts, forces, locations=None, *, prior: MapPrior | None = None,
+                 hyper_posterior: str | None = None, surface=None, engine: Engine | str | None = None,
+                 noise_scale=None, statistics=None, **deprecated) -> None:
+        prior, engine, surface = planar_options(prior, engine, surface, deprecated)
+        surface_offset, surface_groups = surface is not None, None if surface is None or surface is True else surface
+        method, tol, dtype = engine.method, engine.tol, engine.dtype
+        solver = deprecated.get("_solver", "cholesky")
+        flat = flat_prior(prior)
+        li_basis, generic_shape, prior_mean = flat["li_basis"], flat["generic_shape"], flat["prior_mean"]
+        priors, tied_noise, lengthscale = flat["priors"], flat["tied_noise"], flat["lengthscale"]
+        grid_size, exact_max_segments = deprecated.get("grid_size"), deprecated.get("exact_max_segments")
         super().__init__()
+        self.prior, self.engine = prior, engine  # the choices as resolved (the planar defaults filled in)
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
@@ -171,6 +168,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                                                  surface_offset or surface_groups is not None, tied_noise,
                                                  (li_basis, generic_shape),
                                                  grid_size is not None or exact_max_segments is not None)
+        self.engine = replace(engine, method=method)  # a retired method name resolved
         _check_dtype(dtype)
         T = len(contacts)
         if T < 2:
@@ -222,7 +220,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self.auto = method == "auto" and not spatial
         if statistics is not None and self.surface is not None:
             raise ValueError("statistics are of the contacts at the stated surface: they cannot serve a model that "
-                             "learns the surface (drop statistics or surface_offset)")
+                             "learns the surface (drop statistics or surface=...)")
         own_mean = "physics" if prior_mean == "physics" else "zero"  # "average": this model is the zero mean's
         self._statistics = _check_statistics(statistics, f, noise_scale, own_mean)
         self.backend: RFTBackend = SpatialBackend(self.hypers, c, f, solver) if spatial else \
@@ -264,7 +262,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """The gpytorch ExactGP (observations backend only)."""
         gp = getattr(self.backend, "gp", None)
         if gp is None:
-            raise AttributeError(f"the {self.method!r} backend has no gpytorch ExactGP; use method='observations'")
+            raise AttributeError(f"the {self.method!r} backend has no gpytorch ExactGP; use engine='observations'")
         return gp
 
     @property
@@ -424,7 +422,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
 
     def _finish_fit(self) -> None:
         """What ends every fit (``fit``, ``gp.fit_together``): the hyperparameter posterior at the fitted
-        hyperparameters ("laplace", "nuts"), or the plug-in ("map"); with ``prior_mean="average"``, the
+        hyperparameters ("laplace", "nuts"), or the plug-in ("map"); with ``MapPrior(mean="average")``, the
         physics-mean companion (fitted here if ``fit`` did not: ``gp.fit_together``) and the weights."""
         if self.hyper_method != "map":
             self.fit_hyper_posterior()
@@ -451,7 +449,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         if self.surface is not None:
             raise NotImplementedError("add_data with a learned surface offset: the offset is fitted in batch; build "
                                       "a new InverseRFT on all the data (or fix the offset: "
-                                      "contacts.with_surface_offset(model.surface_offset.mean) and no surface_offset)")
+                                      "contacts.with_surface_offset(model.surface_offset.mean) and no surface=...)")
         device = self._parts[0][1].device
         c = contacts.to(dtype=self.dtype, device=device)
         f = _as_forces(forces, len(c), self.dtype, device)
@@ -518,7 +516,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         N = c.beta.shape[0]
         if N > 4096 and self.backend.posterior_root(c) is None:
             raise ValueError(f"{N} points: the {self.method} backend draws through the dense {N} x {N} covariance; "
-                             "sample at most 4096 points at a time, or fit with method='spectral'")
+                             "sample at most 4096 points at a time, or fit with engine='spectral'")
         self.eval()
         return _mixture_maps(*self._weighted_backends(), int(n), c, generator).permute(2, 1, 0).reshape(int(n), *S, 2)
 
@@ -540,7 +538,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """Posterior of the forces (F_x, F_z) for contacts of shape (..., T, M).
 
         The contacts are used as given: on a model that learned the surface offset
-        (``surface_offset=True``), contacts built at the stated surface predict forces there; to
+        (``surface=True``), contacts built at the stated surface predict forces there; to
         predict at the learned surface, pass ``contacts.with_surface_offset(model.surface_offset.mean)``.
 
         Args:
@@ -602,8 +600,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         return cross_validate(self, groups, include_noise=include_noise, refit=refit, n_iter=n_iter, lr=lr)
 
     def extra_repr(self) -> str:
-        return f"T={len(self.train_contacts)}, M={self.n_segments}, prior_mean={self.prior_mean_kind!r}, " \
-               f"backend={self.backend.describe()!r}"
+        return f"T={len(self.train_contacts)}, M={self.n_segments}, prior={self.prior}, " \
+               f"hyper_posterior={self.hyper_method!r}, backend={self.backend.describe()!r}"
 
 
 # One concept: the front door, InverseRFT (its options, fit and queries); the machinery is in the modules it names.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
+from dataclasses import replace
 from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
@@ -14,6 +15,7 @@ from torch import Tensor, nn
 
 from .._files import atomic_write
 from ..rft.contacts import Contacts
+from .options import grouped
 
 if TYPE_CHECKING:
     from .kernels.hyperparameters import RFTHyperparameters
@@ -125,8 +127,10 @@ def load_model(cls, path, map_location=None, others: dict | None = None):
     opts.setdefault("li_basis", False)
     auto = bool(opts.pop("auto", False))  # method="auto": the backend it was on, and free to move again in fit
     model = cls(Contacts(**payload["contacts"]), payload["forces"], noise_scale=payload["noise_scale"],
-                locations=payload.get("locations"), **opts)
+                locations=payload.get("locations"), **grouped(opts))
     model.auto = auto
+    if auto:  # built on the backend it was saved on, and free to move again: the choice was "auto"
+        model.engine = replace(model.engine, method="auto")
     model.hypers.load_state_dict(payload["hypers"])
     if "surface_offset" in payload:
         with torch.no_grad():
@@ -166,7 +170,7 @@ def _load_v1(cls, d: dict, path):
         opts["dtype"] = getattr(torch, opts["dtype"])
         opts.setdefault("priors", None)  # 0.1 fitted without hyperparameter priors
         opts.update(hyper_posterior="map", li_basis=False)  # nor a hyperparameter posterior or Li et al.'s term
-        model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **opts)
+        model = cls(Contacts(**d["contacts"]), d["forces"], noise_scale=d.get("noise_scale"), **grouped(opts))
         sd = d["state_dict"]
         sp = torch.nn.functional.softplus
 

@@ -28,7 +28,7 @@ def check_spatial_options(method: str, prior_mean: str, surface: bool, statistic
         raise ValueError(f"with locations the model is exact in the observations' space: method must be 'auto' or "
                          f"'observations', got {method!r}")
     if prior_mean == "average":
-        raise NotImplementedError("prior_mean='average' with locations is not supported: use 'zero' (the default) "
+        raise NotImplementedError("MapPrior(mean='average') with locations is not supported: use 'zero' (the default) "
                                   "or 'physics'")
     if surface:
         raise NotImplementedError("a learned surface offset with locations is not supported: fix the surface "

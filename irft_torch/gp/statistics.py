@@ -42,9 +42,9 @@ _KEYS = ("P", "b", "yy", "bg", "yg", "gg")
 
 
 def initial_basis(lengthscale: float = 1.0, tol: float = 1e-7) -> FourierBasis:
-    """The Fourier basis an ``InverseRFT(..., lengthscale=, tol=)`` starts its spectral backend in:
-    the smallest whose kernel truncation error is <= ``tol`` at that lengthscale on every embedding
-    dimension."""
+    """The Fourier basis an ``InverseRFT(..., prior=MapPrior(lengthscale=...), engine=Engine(tol=...))`` starts
+    its spectral backend in: the smallest whose kernel truncation error is <= ``tol`` at that lengthscale on every
+    embedding dimension."""
     return FourierBasis.for_lengthscale(torch.full((2, 1, 4), float(lengthscale), dtype=torch.float64), tol)
 
 

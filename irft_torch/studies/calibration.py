@@ -49,6 +49,7 @@ from .. import metrics
 from ..gp import InverseRFT
 from ..gp.kernels.fourier import FourierBasis
 from ..gp.kernels.priors import GENERIC_RMS
+from ..gp.options import grouped
 from ..rft import CToe, IToe, contacts, forces
 from ..rft.contacts import Contacts
 from ..rft.paths import pose_path, rotating_leg_path
@@ -317,7 +318,7 @@ def simulate(truth, c: Contacts, noise: float, seed: int) -> Tensor:
 def generic_residual_share(truth, n_grid: int = 41) -> Tensor:
     """(2,) per map: the rms over the ``grid`` of ``truth`` less the generic shape at its least-squares scale
     (clamped at 0), as a share of the truth's rms. 0 for the generic map at any scale, 1 for a map orthogonal to
-    the shape: how much of a medium a model with the generic shape (``generic_shape=True``) leaves to its residual
+    the shape: how much of a medium a model with the generic shape (``kernel="li+generic"``) leaves to its residual
     terms (docs/calibration.md, "Why generic-shaped media over-cover")."""
     B, G = grid(n_grid)
     t = truth(B, G).reshape(-1, 2)
@@ -386,9 +387,10 @@ def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_gri
     """Fit one case once and score each of ``posteriors``: "map" (the zero-mean plug-in), "laplace", "nuts"
     (that hyperparameter posterior of the zero-mean model, started from the same fit), "average_map" (the
     zero and physics prior means averaged per map by their evidence, each its plug-in) and "average" (the
-    same, each with its Laplace posterior: ``InverseRFT(..., prior_mean="average",
+    same, each with its Laplace posterior: ``InverseRFT(..., prior=MapPrior(mean="average"),
     hyper_posterior="laplace")``; the zero-mean model is the same fit). One row per posterior. "default" alone:
-    ``InverseRFT(contacts, forces, **model_options).fit(n_iter)`` as a user calls it, scored as it predicts."""
+    ``InverseRFT(contacts, forces, **model_options).fit(n_iter)`` as a user calls it, scored as it predicts
+    (``model_options``: the constructor's keywords; the former flat names are translated, ``gp.options.grouped``)."""
     truth, label = medium(case.family, case.seed)
     c = motion(case.kind, case.seed)
     f = simulate(truth, c, case.noise, case.seed)
@@ -396,7 +398,7 @@ def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_gri
     if "default" in posteriors:
         if tuple(posteriors) != ("default",):
             raise ValueError(f"posteriors: 'default' is a fit of its own, not scored beside others, got {posteriors}")
-        model = InverseRFT(c, f, **opts)
+        model = InverseRFT(c, f, **grouped(opts))
         t0 = time.perf_counter()
         model.fit(n_iter=n_iter, progress=False)
         info = model.hyper_posterior
@@ -413,7 +415,7 @@ def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_gri
     if average:
         opts["prior_mean"] = "average"
     opts["hyper_posterior"] = "map"
-    model = InverseRFT(c, f, **opts)
+    model = InverseRFT(c, f, **grouped(opts))
     t0 = time.perf_counter()
     model.fit(n_iter=n_iter, progress=False)
     fit_s = time.perf_counter() - t0

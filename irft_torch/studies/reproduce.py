@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 from .. import metrics
 from ..gp.batch_fit import fit_together
 from ..gp.model import InverseRFT
+from ..gp.options import grouped
 from ..rft import CToe, FourierStressMap, IToe, contacts, forces, rectangle_path, spline_path
 
 __all__ = ["StudySettings", "FitResult", "PAPER_TABLE1", "PAPER_TABLE2", "CONFIGS", "LEVELS", "configuration",
@@ -147,9 +148,9 @@ def _build(config, prior_mean, noise, seed, truth_map, s, lengthscale=None, prio
     ls = s.lengthscale if lengthscale is None else lengthscale
     priors = s.priors if priors == "settings" else priors
     dev = torch.device(s.device)
-    model = InverseRFT(c.to(device=dev), f.to(dev), prior_mean=prior_mean, tied_noise=s.tied_noise,
-                       lengthscale=ls, priors=priors, hyper_posterior=s.hyper_posterior, li_basis=s.li_basis,
-                       generic_shape=s.generic_shape)
+    model = InverseRFT(c.to(device=dev), f.to(dev), hyper_posterior=s.hyper_posterior,
+                       **grouped(dict(prior_mean=prior_mean, tied_noise=s.tied_noise, lengthscale=ls, priors=priors,
+                                      li_basis=s.li_basis, generic_shape=s.generic_shape)))
     return model, toe, path, c
 
 

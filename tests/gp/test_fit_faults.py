@@ -147,7 +147,7 @@ def test_forces_in_a_slipped_unit_or_sign_are_named(gait2):
             irft.InverseRFT(contacts, forces, hyper_posterior="map", li_basis=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        irft.InverseRFT(c, f, hyper_posterior="map", li_basis=False)
+        irft.InverseRFT(c, f, hyper_posterior="map", prior=irft.MapPrior(kernel="rbf"))
 
 
 def test_map_queries_and_predictions_check_their_units_and_shapes(gait2):

@@ -29,8 +29,8 @@ def test_the_default_mean_scales_alpha_x_and_alpha_z_only():
     its two scales exactly and s_y = 0, whatever the lateral forces; "physics_alpha_y" fits all three."""
     c, _ = turning_toe(T=12)
     f = forces_3d(FourierStressMap.generic(0.5, 0.6), c, alpha_y=0.0)
-    assert InverseRFT3D.__init__.__kwdefaults__["prior_mean"] == "physics"
     m = InverseRFT3D(c, f)
+    assert m.prior.mean == "physics"
     torch.testing.assert_close(m.mean_scales, torch.tensor([0.5, 0.0, 0.6], dtype=F64), rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(m.mean_forces(c), f, rtol=1e-10, atol=1e-12)
     # with a lateral stress the two scales are still the least-squares fit of the x-z shapes alone (by hand)

@@ -176,7 +176,7 @@ class LiBasisTerm(CovarianceTerm):
 
     d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = sum((G (R H)) o (R H)).
 
-    The generic shape's term (``generic_shape=True``) is the same with one feature per map, H c_a (2, n, 1), and
+    The generic shape's term (``kernel="li+generic"``) is the same with one feature per map, H c_a (2, n, 1), and
     its variance u (``name=LI_GENERIC``): ``li_terms`` builds both.
     """
 

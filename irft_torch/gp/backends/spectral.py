@@ -117,7 +117,7 @@ class SpectralBackend(WeightSpaceBackend):
         if getattr(hypers, "li", None) is not None and min(self.basis.n_beta, self.basis.n_gamma) < 1:
             if basis is not None:
                 raise ValueError(f"basis {basis} has no first harmonic of 2 beta or gamma: Li et al.'s term "
-                                 f"(li_basis=True) needs FourierBasis(n_beta >= 1, n_gamma >= 1)")
+                                 f"(li_basis: kernel='li') needs FourierBasis(n_beta >= 1, n_gamma >= 1)")
             self.basis = with_li_functions(self.basis)  # it never shrinks
         self._data = [(contacts, forces)] if keep_data else None
         self._stored = statistics if statistics is not None and self._covers(statistics, self.basis) else None

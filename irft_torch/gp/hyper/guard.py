@@ -10,8 +10,8 @@ silently wrong mixture:
   meaningless. A coordinate is *at a wall* when one Laplace standard deviation either way along it is
   impossible (``walls``). Such coordinates are held at the polished value (not marginalised: reported in
   ``HyperPosterior.extra["held"]``) and the rest are polished again.
-- **An improper direction.** Without priors (``priors=None``) a lengthscale the data do not constrain has a
-  flat likelihood: the Hessian is ~0 there and the Gaussian's width unbounded (a proposal at theta = 900, a
+- **An improper direction.** Without priors (``MapPrior(hyperpriors=None)``) a lengthscale the data do not constrain
+  has a flat likelihood: the Hessian is ~0 there and the Gaussian's width unbounded (a proposal at theta = 900, a
   lengthscale of e^900). The proposal's standard deviation is capped at ``MAX_LOG_SD`` in every direction
   (``proposal_covariance``): such a direction is explored within a factor e^5 of its mode.
 - **Unreliable weights.** Pareto k-hat above 0.7 (PSIS's threshold) or an effective sample size below 2:

@@ -11,7 +11,7 @@ bisection (a mixture's quantile is not mu + z sigma: that would be the moment-ma
 
 The weights are (S,), one per draw, or (S, K) with K the outputs' last dimension (the two maps or force
 axes): a mixture per axis, for draws whose weight differs between the maps (models averaged per map,
-``InverseRFT(..., prior_mean="average")``); or already shaped like the components, with 1 where they are
+``InverseRFT(..., prior=MapPrior(mean="average"))``); or already shaped like the components, with 1 where they are
 shared (``TerrainFilterMixture``: (S, B, 1, 2), each environment's own weights).
 """
 

@@ -11,7 +11,7 @@ with log p(F | theta) = -T * (the backend's negative log likelihood per sample, 
 axes): gpytorch's ``ExactMarginalLogLikelihood`` (and ``RFTBackend.loss``) divides by T, which is put
 back. The physical priors (``gp.kernels.priors``) are normal densities of log(value / centre), i.e. densities
 in theta already: no change-of-variables term is needed in these coordinates (a prior stated on the
-value itself would add sum(theta)). Without priors (``priors=None``) the prior is flat in theta.
+value itself would add sum(theta)). Without priors (``MapPrior(hyperpriors=None)``) the prior is flat in theta.
 
 - ``laplace``: the mode theta_hat (the fitted hyperparameters, polished by a few Newton steps on the
   exact Hessian), the Gaussian N(theta_hat, H^-1) with H the Hessian of -log p(theta | F) by autograd,
@@ -538,12 +538,13 @@ def log_evidence(backend, hessian: Tensor | None = None) -> Tensor:
     with theta_c the d_c log-hyperparameters of map c and H_c their block of the Hessian of
     -log p(theta | F). The two maps' models are independent (each its own hyperparameters and force
     axis), so the evidence factorises over them; where a hyperparameter is shared (tied noise) the two
-    entries are both the joint evidence / 2. The priors must be proper (``priors="physical"``): a flat
-    prior has no evidence (ValueError). ``hessian``: H at these hyperparameters if already known (P, P)
+    entries are both the joint evidence / 2. The priors must be proper (``MapPrior(hyperpriors="physical")``, the
+    default): a flat prior has no evidence (ValueError). ``hessian``: H at these hyperparameters if already known (P, P)
     (``laplace`` keeps it in ``extra["hessian"]``), else computed by autograd."""
     hypers = backend.hypers
     if not any(True for _ in hypers.named_priors()):
-        raise ValueError("the evidence needs proper hyperparameter priors (priors='physical'); these have none")
+        raise ValueError("the evidence needs proper hyperparameter priors (MapPrior(hyperpriors='physical')); these "
+                         "have none")
     spec = hyper_spec(hypers)
     theta = spec.theta(hypers)
     H = _hessian(backend, spec, theta)[2] if hessian is None else hessian.to(theta)

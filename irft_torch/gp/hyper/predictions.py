@@ -28,10 +28,10 @@ __all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
 # what a hyperparameter posterior without priors warns (measured: experiments/validation/wheel_validation.py
 # --study planar --hyper-posterior laplace, the plain-likelihood row, 2026-11-27)
-IMPROPER = ("priors=None: under a flat prior on log(hyperparameters) the posterior is improper along any "
-            "hyperparameter the forces do not bound; its draws there are as wide as the Laplace guard allows, and "
+IMPROPER = ("MapPrior(hyperpriors=None): under a flat prior on log(hyperparameters) the posterior is improper along "
+            "any hyperparameter the forces do not bound; its draws there are as wide as the Laplace guard allows, and "
             "the mixture can predict worse than the plug-in (the planar wheels' smooth F_z at held-out slips: 3.96 N "
-            "against 1.66 N). priors='physical' gives a proper posterior")
+            "against 1.66 N). hyperpriors='physical' gives a proper posterior")
 
 
 def backends_at_draws(hypers: nn.Module, hp: HyperPosterior, make: Callable, device, dtype) -> list:
@@ -101,7 +101,7 @@ class HyperMixtureMixin(nn.Module):
                 ``warmup``, ``num_chains``, ``seed``, ``metric``, ``adapt_mass``, ``processes``).
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``), None for "map". With
-            ``prior_mean="average"`` the physics-mean companion gets the same and the weights are taken again.
+            ``MapPrior(mean="average")`` the physics-mean companion gets the same and the weights are taken again.
         """
         method = self.hyper_method if method is None else method
         if method not in HYPER_POSTERIORS:

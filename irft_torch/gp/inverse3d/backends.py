@@ -11,7 +11,7 @@ Gaussian linear model F_b = sum_c W_bc alpha_c + eps with one noise variance per
   kron Sigma_gamma: exact up to the reported truncation; the wheels' tens of thousands of elements per run
   enter once, as T x F features.
 
-With ``li_basis=True`` each map over (beta, gamma) adds Li et al.'s rank-9 term (``gp.kernels.li_basis``): v_c (W
+With ``kernel="li"`` each map over (beta, gamma) adds Li et al.'s rank-9 term (``gp.kernels.li_basis``): v_c (W
 f)(W' f)^T in the observations' space, f_U diag(v_c) f_U^T on the pairs table, v_c / 4 on the 9 first-harmonic weights.
 
 The weight-space pair (pairs, spectral) share one algebra. Per block, the rows of each axis a (group g)

@@ -63,7 +63,7 @@ def _distinct_pairs(beta: Tensor, gamma: Tensor, ws: list[Tensor]) -> tuple[Tens
 class SpectralFeatureBank:
     """Spectral features of a data set's samples, computed once per basis (and cut from a larger nested basis
     where one is held), for fits on subsets of its samples (cross-validation folds):
-    ``InverseRFT3D(contacts[idx], forces[idx], method="spectral", features=bank.rows(idx))``.
+    ``InverseRFT3D(contacts[idx], forces[idx], engine="spectral", features=bank.rows(idx))``.
 
     Args:
         contacts: the data set's contacts (T, K).

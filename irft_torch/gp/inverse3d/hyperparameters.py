@@ -10,7 +10,7 @@ in-plane direction u) and alpha_y (through e1). So the force covariance is block
 and the planar model is the special case where the F_y rows see no map (they add only their own noise
 term). alpha_y is either a third map over (beta, gamma) (an ARD RBF on the embedding, like the others) or
 a constant with a zero-mean normal prior of variance s_y (a rank-one kernel term s_y (W_y 1)(W_y 1)^T).
-With ``li_basis=True`` each map over (beta, gamma) also has Li et al.'s rank-9 term v_c f(theta) . f(theta')
+With ``kernel="li"`` each map over (beta, gamma) also has Li et al.'s rank-9 term v_c f(theta) . f(theta')
 (``gp.kernels.li_basis``; not a constant alpha_y).
 """
 

@@ -1,6 +1,6 @@
 r"""A physics prior mean for 3-D models: Li et al.'s generic maps, one scale per map fitted to the training forces.
 
-With ``InverseRFT(contacts_3d, forces, prior_mean=...)`` the GPs model what the generic medium does not
+With ``InverseRFT(contacts_3d, forces, prior=MapPrior(mean=...))`` the GPs model what the generic medium does not
 explain: the prior mean of the maps is
 
     mu_x(beta, gamma) = s_x g_x(beta, gamma),   mu_y = s_y g_x(0, 0),   mu_z(beta, gamma) = s_z g_z(beta, gamma)

@@ -19,6 +19,7 @@ from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, progress_bar
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
+from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import marginal_interval
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
@@ -102,31 +103,32 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     Args:
         contacts: training ``Contacts3D`` (T, K) (``rft.contacts_3d``).
         forces: (T, 3) measured (F_x, F_y, F_z) in N.
-        alpha_y: "map" (default: a GP over (beta, gamma) like the other two) or "constant" (one value with a
-            zero-mean normal prior: a rank-one kernel term).
-        method: "auto", "observations", "pairs" or "spectral" (``gp.inverse3d.backends``).
-        priors: "physical" (default, ``gp.inverse3d.priors``) or None (the plain marginal likelihood).
-        prior_mean: "physics" (default), "physics_alpha_y" or "zero". "physics": alpha_x and alpha_z's prior
-            means are Li et al.'s generic maps, one least-squares scale each fitted to these forces and then fixed
-            (``gp.inverse3d.mean``; ``model.mean_scales``), alpha_y's is zero: where the forces do not constrain a
-            map, predictions fall back on the scaled generic medium instead of zero. "physics_alpha_y": alpha_y
-            too (its shape the generic alpha_x(0, 0)). "zero": every map zero-mean (the planar model's default).
-            Why "physics" is the default: the rover wheels' held-out forces (docs/inverse3d.md).
-        dtype: float64 (default) or float32. lengthscale: initial lengthscale. tol: spectral truncation bound.
-        features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
-            data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
-            then share one pass over the elements.
-        max_harmonics: spectral backend: at most this many harmonics per angle (default 30); below the
-            lengthscales ``tol`` needs, the kernel is the RBF truncated there (``truncation_error`` says by how much;
-            a ``UserWarning`` after ``fit``).
+        prior: a ``MapPrior`` (``gp.options``), with the 3-D defaults where a field is None. ``kernel``: "rbf"
+            (default) or "li" (Li et al.'s 9 functions as a term of each map over (beta, gamma),
+            ``gp.kernels.li_basis``; variances ``model.hypers.li_variance`` (3,)). "rbf", unlike the planar model's
+            default: with "li" and ``hyper_posterior="laplace"`` the measured wheels' held-out forces lose to the
+            authors' 3-D RFT on the smooth wheel's longitudinal and lateral axes and the Laplace weights are
+            unreliable there (docs/inverse3d.md, "Which defaults in 3-D"). ``mean``: "physics" (default),
+            "physics_alpha_y" or "zero". "physics": alpha_x and alpha_z's prior means are Li et al.'s generic
+            maps, one least-squares scale each fitted to these forces and then fixed (``gp.inverse3d.mean``;
+            ``model.mean_scales``), alpha_y's is zero: where the forces do not constrain a map, predictions fall
+            back on the scaled generic medium instead of zero; "physics_alpha_y": alpha_y too (its shape the
+            generic alpha_x(0, 0)); "zero": every map zero-mean. Why "physics": the rover wheels' held-out forces
+            (docs/inverse3d.md). ``hyperpriors``: "physical" (default, ``gp.inverse3d.priors``) or None;
+            ``lengthscale``: the initial lengthscale.
         hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
             then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
             ``gp.hyper.posterior`` machinery) and every prediction is a mixture over its draws.
-        li_basis: add Li et al.'s 9 functions as a kernel term of each map over (beta, gamma) (``gp.kernels.li_basis``,
-            as the planar model's option; variances ``model.hypers.li_variance`` (3,), labels ``li_variance_x``...).
-            Default False, unlike the planar model's: with ``li_basis=True, hyper_posterior="laplace"`` the measured
-            wheels' held-out forces lose to the authors' 3-D RFT on the smooth wheel's longitudinal and lateral axes
-            and the Laplace weights are unreliable there (docs/inverse3d.md, "Which defaults in 3-D").
+        alpha_y: "map" (default: a GP over (beta, gamma) like the other two) or "constant" (one value with a
+            zero-mean normal prior: a rank-one kernel term).
+        engine: an ``Engine`` (``gp.options``) or a method name: "auto" (default), "observations", "pairs" or
+            "spectral" (``gp.inverse3d.backends``); its ``tol`` bounds the spectral truncation and
+            ``max_harmonics`` caps the spectral basis per angle (default 30; below the lengthscales ``tol`` needs,
+            the kernel is the RBF truncated there: ``truncation_error`` says by how much, a ``UserWarning`` after
+            ``fit``).
+        features: spectral backend: the training rows' features from a ``SpectralFeatureBank`` over a larger
+            data set (``bank.rows(index)``, these contacts being its samples ``index``): folds of a cross-validation
+            then share one pass over the elements.
 
     Example:
         >>> model = InverseRFT(contacts_3d, forces)       # (T, 3) forces: a 3-D model
@@ -135,11 +137,15 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         >>> model.stress_map(beta, gamma).mean           # (..., 3): alpha_x, alpha_y, alpha_z
     """
 
-    def __init__(self, contacts: Contacts3D, forces, *, alpha_y: str = "map", method: str = "auto",
-                 priors: str | None = "physical", dtype: torch.dtype = torch.float64, lengthscale: float = 1.0,
-                 tol: float = 1e-7, features=None, max_harmonics: int | None = None,
-                 hyper_posterior: str | None = None, prior_mean: str = "physics", li_basis: bool = False) -> None:
+    def __init__(self, contacts: Contacts3D, forces, *, prior: MapPrior | None = None,
+                 hyper_posterior: str | None = None, alpha_y: str = "map", engine: Engine | str | None = None,
+                 features=None, **deprecated) -> None:
+        prior, engine = options_3d(prior, engine, deprecated)
+        method, tol, dtype, max_harmonics = engine.method, engine.tol, engine.dtype, engine.max_harmonics
+        priors, lengthscale, prior_mean = prior.hyperpriors, prior.lengthscale, prior.mean
+        li_basis = prior.kernel == "li"
         super().__init__()
+        self.prior, self.engine = prior, engine  # the choices as resolved (the 3-D defaults filled in)
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts3D, got {type(contacts).__name__}")
         if alpha_y not in ALPHA_Y:
@@ -152,7 +158,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         if priors not in ("physical", None):
             raise ValueError(f"priors must be 'physical' or None, got {priors!r}")
         if prior_mean not in ("zero", *MEAN_MAPS):
-            raise ValueError(f"prior_mean must be one of {('zero', *MEAN_MAPS)} for a 3-D model, got {prior_mean!r}")
+            raise ValueError(f"MapPrior(mean=...) (formerly prior_mean) must be one of {('zero', *MEAN_MAPS)} for a "
+                             f"3-D model, got {prior_mean!r}")
         if not isinstance(li_basis, bool):
             raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
         _check_dtype(dtype)
@@ -408,7 +415,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 raise ValueError("cross_validate needs at least two groups")
             ctr, ftr = self.train_contacts[~test], self.train_forces[~test]
             if refit:
-                m = InverseRFT3D(ctr, ftr, **self._options())
+                m = InverseRFT3D(ctr, ftr, **grouped_3d(self._options()))
                 m.fit(n_iter=n_iter, lr=lr, progress=False)
                 p = m.predict_forces(self.train_contacts[test], include_noise=include_noise)
                 mean[0, test], cov[0, test] = p.mean, p.covariance
@@ -478,7 +485,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def _from_file(cls, d: dict, path=None) -> InverseRFT3D:
         """The model of a loaded 3-D file's dict (``load``; ``InverseRFT.load`` of a 3-D file)."""
         opts = {"prior_mean": "zero", **d["options"]}  # files from before prior_mean: a zero mean
-        model = cls(Contacts3D(**d["contacts"]), d["forces"], **opts)
+        model = cls(Contacts3D(**d["contacts"]), d["forces"], **grouped_3d(opts))
         if "mean_scales" in d:  # the scales it was built with (after add_data, not those of all its data)
             model.mean_scales = d["mean_scales"].to(device=model._device, dtype=model.dtype)
             model.backend = make_backend_3d(model.method_arg, model.hypers, model.train_contacts,
@@ -492,5 +499,5 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
 
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, K={self.train_contacts.n_elements}, alpha_y={self.alpha_y!r}, " \
-               f"prior_mean={self.prior_mean!r}, " \
+               f"prior={self.prior}, hyper_posterior={self.hyper_method!r}, " \
                f"backend={self.backend.describe()!r}"

@@ -7,7 +7,7 @@ reasons) with the third map added.
   alpha_y 0.136: the constant, alpha_z 0.381), s_c the data's own stress per depth of map c; log-sd ln 2;
 - lengthscales: centre 1.5, log-sd 1.5 (as planar);
 - noise of each axis: centre 1e-2 of its mean squared force (floored), log-sd ln 10;
-- Li et al.'s term (``li_basis=True``): its variance per map has the outputscale's centre and width (as planar).
+- Li et al.'s term (``kernel="li"``): its variance per map has the outputscale's centre and width (as planar).
 """
 
 from __future__ import annotations

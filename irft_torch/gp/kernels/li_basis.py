@@ -1,4 +1,4 @@
-r"""Li et al.'s own basis as a kernel term (``InverseRFT(..., li_basis=True)``, docs/calibration.md).
+r"""Li et al.'s own basis as a kernel term (``MapPrior(kernel="li")``, ``InverseRFT``'s default; docs/calibration.md).
 
 Li, Zhang & Goldman (Science 2013) fit the stress-per-depth maps of every medium they measured with the
 9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma}. The RBF on the embedding
@@ -16,7 +16,7 @@ with f the 9 functions divided by 2 (``li_features``). It is a rank-9 kernel: ev
 (``contact_li_features``). v (2,) is in (N/cm^3)^2, a hyperparameter like the outputscale, with a log-normal
 prior at the outputscale's centre (``gp.kernels.priors``).
 
-**The generic shape with an uncertain scale** (``InverseRFT(..., li_basis=True, generic_shape=True)``). Li et al.
+**The generic shape with an uncertain scale** (``InverseRFT(..., prior=MapPrior(kernel="li+generic"))``). Li et al.
 found that the media they measured share one generic map g_a (``FourierStressMap.generic``) up to a scale per
 medium. That shape is one direction in the span of the 9 functions, g_a(theta) = f(theta) . c_a
 (``generic_coefficients``), and the term above gives it no more prior variance than any other direction. Adding
@@ -45,7 +45,7 @@ __all__ = ["LI_VARIANCE", "LI_GENERIC", "LiBasisVariance", "li_features", "weigh
            "contact_li_features", "generic_coefficients", "generic_features", "li_index", "with_li_functions"]
 
 LI_VARIANCE = "li.raw_variance"  # the raw parameter's name in ``RFTHyperparameters``; value (*S, 2)
-LI_GENERIC = "li.raw_generic_variance"  # the generic shape's variance u (``generic_shape=True``); value (*S, 2)
+LI_GENERIC = "li.raw_generic_variance"  # the generic shape's variance u (``kernel="li+generic"``); value (*S, 2)
 
 
 FIRST_HARMONICS = FourierBasis(1, 1)  # the spectral basis' own first harmonics: the same 9 functions, same order
@@ -145,7 +145,7 @@ class LiBasisVariance(Module):
     @generic_variance.setter
     def generic_variance(self, value) -> None:
         if not self.generic:
-            raise AttributeError("this term has no generic shape (generic_shape=False)")
+            raise AttributeError("this term has no generic shape (MapPrior(kernel='li+generic') not chosen)")
         value = torch.as_tensor(value, dtype=self.raw_generic_variance.dtype,
                                 device=self.raw_generic_variance.device).expand(self.raw_generic_variance.shape)
         self.initialize(raw_generic_variance=self.raw_generic_variance_constraint.inverse_transform(value))

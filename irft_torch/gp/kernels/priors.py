@@ -1,8 +1,8 @@
 """Hyperparameter priors with a physical meaning (MAP fitting), registered the gpytorch way.
 
-``InverseRFT(..., priors="physical")`` (the default) registers three priors on the shared
+``InverseRFT(...)`` (``MapPrior(hyperpriors="physical")``, the default) registers three priors on the shared
 hyperparameter modules (``register_prior``); every backend's ``loss`` then subtracts their log
-density / T, as gpytorch's ``ExactMarginalLogLikelihood`` does. ``priors=None`` is the paper's
+density / T, as gpytorch's ``ExactMarginalLogLikelihood`` does. ``MapPrior(hyperpriors=None)`` is the paper's
 plain marginal likelihood.
 
 Each prior is a normal density on log(value / centre), i.e. a log-normal prior on the value with
@@ -41,13 +41,13 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   is the centre: the map keeps correlation exp(-4 / (2 * 1.5^2)) = 0.41 between beta = 0 and
   beta = +-pi/2 (exp(-1/4.5) = 0.80 at +-pi/4), so it extrapolates part of what it saw and reverts
   to the prior's variance beyond, and that is what the posterior std then says.
-- **Li et al.'s term** (``li_basis=True``, ``gp.kernels.li_basis``): its variance per map has the outputscale's
+- **Li et al.'s term** (``kernel="li"``, ``gp.kernels.li_basis``): its variance per map has the outputscale's
   centre and width: the 9 functions are given as much prior variance as the RBF part.
-- **the generic shape's variance** u (``generic_shape=True``, ``gp.kernels.li_basis``): the variance of the shape's
+- **the generic shape's variance** u (``kernel="li+generic"``, ``gp.kernels.li_basis``): the variance of the shape's
   scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2. As for
   the outputscale: with the physics mean (which already carries the shape at a fitted scale) the centre is
   (0.3 zeta)^2 and the width a factor 10, and with a learned surface (zeta not trusted) the width is a factor 10.
-- **mean scale** (with the physics mean, ``prior_mean="physics"`` or ``"average"``): the generic shape's
+- **mean scale** (with the physics mean, ``MapPrior(mean="physics")`` or ``"average"``): the generic shape's
   scale per axis, centre the medium's zeta (as above), log-sd ln 2. A proper prior, so that a model with
   the physics mean has a marginal likelihood (evidence) to weigh against the zero mean's.
 - **noise** variance of each force axis: centre 1e-2 of the mean squared force of that axis (a noise

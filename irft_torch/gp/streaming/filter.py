@@ -28,7 +28,7 @@ The last map query's points are *tracked*: their A is extended by one row per sa
 and carried through the window's update, and their posterior is refreshed inside each update, so that
 a policy asking the same points every step reads it instead of evaluating n M Q kernel values.
 
-Exactness: the same numbers as each environment's own ``InverseRFT(..., method="observations")`` at
+Exactness: the same numbers as each environment's own ``InverseRFT(..., engine="observations")`` at
 these hyperparameters fed the same samples with ``add_data`` (``tests/gp/test_terrain_filter.py``
 checks 1e-8 against it, the pairs backend and the dense formula); a model fitted with another backend
 is the same GP, so a spectral model's own posterior differs from the filter's as it differs from the
@@ -36,7 +36,7 @@ exact posterior, within its truncation (the test: 1e-6 at the default tol 1e-7).
 The hyperparameters are the model's fitted ones (the plug-in; with ``hyper_posterior`` draws, the mode),
 copied when the filter is built.
 
-A model with ``li_basis=True`` (``gp.kernels.li_basis``) adds Li et al.'s rank-9 term f(theta)^T P_a f(theta') to
+A model with ``kernel="li"`` (``gp.kernels.li_basis``) adds Li et al.'s rank-9 term f(theta)^T P_a f(theta') to
 the kernel (P_a = diag(v_a), plus u_a c_a c_a^T with ``generic_shape``): each sample keeps its 9 weighted
 features per axis (``weighted_li_features``, cm^3), and every covariance above gains (W f)^T P_a (W' f): 81
 multiply-adds per pair at most beside the RBF's M^2 kernel values.

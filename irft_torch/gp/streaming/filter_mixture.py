@@ -1,7 +1,7 @@
 r"""Parallel environments' terrain estimates averaged over a model's hyperparameter draws, each draw weighed
 by each environment's own samples (``TerrainFilterMixture``).
 
-A model fitted with ``hyper_posterior="laplace"`` (or ``"nuts"``, or ``prior_mean="average"``) predicts with a
+A model fitted with ``hyper_posterior="laplace"`` (or ``"nuts"``, or ``MapPrior(mean="average")``) predicts with a
 mixture over draws theta_s of weights w_s (``gp.hyper.mixture``). ``TerrainFilter`` keeps one environment's posterior at
 one set of hyperparameters (the mode); this keeps one ``TerrainFilter`` per draw, and weighs the draws per
 environment b by the evidence of that environment's samples y_b (its window's, with ``window``):
@@ -54,7 +54,7 @@ class TerrainFilterMixture(nn.Module):
         prior_log_weights: (S, 2) log w_s, per map.
 
     Example:
-        >>> model = irft.InverseRFT(c, f, li_basis=True, hyper_posterior="laplace").fit()
+        >>> model = irft.InverseRFT(c, f).fit()  # Li et al.'s term and the Laplace posterior: the default
         >>> filt = irft.gp.TerrainFilterMixture(model, n_envs=256, window=16)
         >>> filt.update(contacts, forces)                  # (B, M), (B, 2)
         >>> post = filt.stress_map(beta, gamma)            # mixture per environment; post.interval(0.95)

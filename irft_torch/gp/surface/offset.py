@@ -4,7 +4,7 @@ cm, the unit of the segment depths; reported in m, the package's unit of length)
 A real log never knows exactly where the sand surface is. With contacts that carry their signed
 depths and areas (``rft.contacts`` fills them), a surface ``delta`` higher than stated gives the
 weights ``relu(depth + delta) x area`` (``Contacts.with_surface_offset``). ``InverseRFT(contacts,
-forces, surface_offset=True)`` (or ``surface_groups=g``, one offset per group) fits delta with the
+forces, surface=True)`` (or ``surface=groups``, one offset per group) fits delta with the
 hyperparameters by the exact marginal likelihood, its gradient flowing through the weights.
 
 The likelihood while delta moves (W changes every step, so no statistics of W can be cached): the
@@ -102,9 +102,10 @@ class SurfaceOffset(nn.Module):
     def __init__(self, contacts: Contacts, groups=None) -> None:
         super().__init__()
         if not contacts.has_surface:
-            raise ValueError("surface_offset needs contacts with depth, area_x and area_z (the signed depths and "
-                             "areas that rft.contacts fills); these contacts carry weights only, so the surface "
-                             "cannot move. Rebuild them with rft.contacts(toe, path) or pass depth/area_x/area_z")
+            raise ValueError("a learned surface (surface=...) needs contacts with depth, area_x and area_z (the signed "
+                             "depths and areas that rft.contacts fills); these contacts carry weights only, so the "
+                             "surface cannot move. Rebuild them with rft.contacts(toe, path) or pass "
+                             "depth/area_x/area_z")
         T = len(contacts)
         dtype, device = contacts.depth.dtype, contacts.depth.device
         if groups is None:
@@ -274,7 +275,7 @@ class LearnedSurfaceMixin(nn.Module):
         (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
         Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
         if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
         return surface_estimate(self)
 
     def init_surface(self, offsets) -> Tensor:
@@ -283,7 +284,7 @@ class LearnedSurfaceMixin(nn.Module):
         several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
         ``stress_map`` and ``predict_forces`` are then at it."""
         if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface_offset=True))")
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
         grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
         with torch.no_grad():
             for g in range(self.surface.n_groups):
