@@ -44,12 +44,18 @@ def test_live_simulate_prints_a_converging_estimate(tmp_path, capsys):
     assert z_std[-1] < z_std[0]  # the interval narrows
 
 
+def _interruptible() -> None:
+    """The child's SIGINT as a terminal gives it: a suite started as a background job (``cmd &``, CI scripts)
+    passes SIGINT on ignored, and Python then installs no KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_sigint_ends_it_cleanly_with_a_readable_log_and_snapshot(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "irft_torch.cli", "live", "--simulate", "--strides", "1000",
                              "--out", str(out), "--json", "--snapshot-period", "0.2", *FAST],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_interruptible)
     stances = 0
     deadline = time.monotonic() + 120
     while stances < 4 and time.monotonic() < deadline:
