@@ -433,7 +433,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
 
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
-        the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere."""
+        the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere. Under "kernel":
+        the backend, the kernel's relative error bound per map (3,) (nonzero only where the spectral basis
+        approximates it: ``truncation_error``), the ``tol`` asked for and whether the bound is within it."""
         b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
@@ -444,6 +446,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         for name, s in zip(MAPS, share):
             if float(s) == 0:
                 warnings.warn(f"{name} is not constrained by these forces: its posterior is the prior", stacklevel=2)
+        err = self.truncation_error()
+        out["kernel"] = {"backend": self.backend.describe(), "truncation_error": err.tolist(), "tol": self.tol,
+                         "within_tol": bool((err <= self.tol).all())}
         return out
 
     # ---- persistence -----------------------------------------------------------------------------------------------
