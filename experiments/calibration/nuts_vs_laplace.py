@@ -12,7 +12,8 @@ and scored three ways from that fit (``studies.calibration.score``: 95 % coverag
 canonical square, the percentile among the fit's own posterior draws): the plug-in, Laplace (default
 settings), NUTS (``--chains`` chains of ``--samples`` draws after as many warm-up, in worker processes).
 
-    python experiments/calibration/nuts_vs_laplace.py [--motions rotating,short] [--seeds 1] [--limit N] [--out DIR]
+    python experiments/calibration/nuts_vs_laplace.py [--motions rotating,short] [--seeds 1] [--first-seed 0]
+        [--limit N] [--out DIR]
 
 Rows go to ``nuts_vs_laplace.csv`` under --out as each case finishes (a rerun skips the cases there); the
 summary per family and per motion (mean 95 % coverage, share overconfident beyond chance, x / z) is printed.
@@ -74,13 +75,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--motions", default="rotating,short", help="comma-separated harness motions")
     p.add_argument("--seeds", type=int, default=1, help="seeds per family x motion")
+    p.add_argument("--first-seed", type=int, default=0, help="the first seed (the harness' fresh seeds: 10)")
     p.add_argument("--chains", type=int, default=2)
     p.add_argument("--samples", type=int, default=256, help="draws per chain, after as many warm-up")
     p.add_argument("--limit", type=int, default=None, help="only the first N cases (a smoke run)")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     a = p.parse_args()
     kinds = set(a.motions.split(","))
-    todo = [c for c in cases(False, 2, False) if c.kind in kinds and c.seed < a.seeds][:a.limit]
+    todo = [c for c in cases(False, a.first_seed + a.seeds, False, first_seed=a.first_seed)
+            if c.kind in kinds][:a.limit]
     a.out.mkdir(parents=True, exist_ok=True)
     path = a.out / "nuts_vs_laplace.csv"
     kept = run_resumable(todo, path, lambda case: run(case, a.chains, a.samples))
