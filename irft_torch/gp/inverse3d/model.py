@@ -441,7 +441,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         post = self.stress_map(beta, gamma)
         prior = self.hypers.prior_variance.detach().sqrt()  # with Li et al.'s term: s + v
         share = (post.stddev < 0.5 * prior).reshape(-1, 3).to(self.dtype).mean(0)
-        out = {name: {"constrained_share": float(s), "prior_std": float(p)}
+        out: dict[str, dict] = {name: {"constrained_share": float(s), "prior_std": float(p)}
                for name, s, p in zip(MAPS, share, prior)}
         for name, s in zip(MAPS, share):
             if float(s) == 0:
