@@ -53,7 +53,7 @@ from .kernels.priors import (
 )
 from .mean_average import MeanAverageMixin
 from .model_file import PersistenceMixin
-from .options import Engine, MapPrior, flat_prior, planar_options
+from .options import Engine, MapPrior, planar_options
 from .posterior import Posterior, _force_posterior, _mixture_maps, _predict_chunk
 from .spatial import check_spatial_options, placed_contacts, placed_queries
 from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
@@ -154,12 +154,12 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         surface_offset, surface_groups = surface is not None, None if surface is None or surface is True else surface
         method, tol, dtype = engine.method, engine.tol, engine.dtype
         solver = deprecated.get("_solver", "cholesky")
-        flat = flat_prior(prior)
-        li_basis, generic_shape, prior_mean = flat["li_basis"], flat["generic_shape"], flat["prior_mean"]
-        priors, tied_noise, lengthscale = flat["priors"], flat["tied_noise"], flat["lengthscale"]
+        li_basis, generic_shape = prior.kernel in ("li", "li+generic"), prior.kernel == "li+generic"
+        prior_mean, priors, tied_noise, lengthscale = prior.mean, prior.hyperpriors, prior.noise == "tied", \
+            prior.lengthscale
         grid_size, exact_max_segments = deprecated.get("grid_size"), deprecated.get("exact_max_segments")
         super().__init__()
-        self.prior, self.engine = prior, engine  # the choices as resolved (the planar defaults filled in)
+        self.prior = prior  # the choices as resolved (the planar defaults filled in; the engine's below)
         if not isinstance(contacts, Contacts):
             raise TypeError(f"contacts must be an irft_torch.rft.Contacts, got {type(contacts).__name__}")
         if contacts.beta.ndim != 2:
@@ -168,7 +168,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                                                  surface_offset or surface_groups is not None, tied_noise,
                                                  (li_basis, generic_shape),
                                                  grid_size is not None or exact_max_segments is not None)
-        self.engine = replace(engine, method=method)  # a retired method name resolved
+        self.engine = replace(engine, method=method)  # with a retired method name resolved
         _check_dtype(dtype)
         T = len(contacts)
         if T < 2:

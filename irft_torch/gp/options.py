@@ -20,6 +20,7 @@ import torch
 __all__ = ["MapPrior", "Engine", "KERNELS", "planar_options", "options_3d", "grouped", "grouped_3d"]
 
 KERNELS = ("li", "rbf", "li+generic")
+DEFAULTS = {"InverseRFT": {"kernel": "li", "mean": "zero"}, "InverseRFT3D": {"kernel": "rbf", "mean": "physics"}}
 REMOVED_IN = "0.4"
 
 
@@ -140,6 +141,12 @@ def _as_engine(engine, owner: str) -> Engine:
     return engine
 
 
+def _with_defaults(prior: MapPrior, owner: str) -> MapPrior:
+    """The MapPrior with the model's defaults (``DEFAULTS``) where a field is None."""
+    d = DEFAULTS[owner]
+    return replace(prior, kernel=prior.kernel or d["kernel"], mean=prior.mean or d["mean"])
+
+
 def _as_prior(prior, owner: str) -> MapPrior:
     if prior is None:
         return MapPrior()
@@ -196,7 +203,7 @@ def planar_options(prior, engine, surface, flat: dict) -> tuple[MapPrior, Engine
     p, e = _with_flat(_as_prior(prior, owner), _as_engine(engine, owner), flat)
     if flat or solver:
         _warn_flat(owner, flat, p, e, solver)
-    p = replace(p, kernel=p.kernel or "li", mean=p.mean or "zero")
+    p = _with_defaults(p, owner)
     if e.max_harmonics is not None:
         raise ValueError("Engine(max_harmonics=...) is the 3-D spectral backend's cap; the planar one sizes its "
                          "basis by tol")
@@ -218,7 +225,7 @@ def options_3d(prior, engine, flat: dict) -> tuple[MapPrior, Engine]:
     p, e = _with_flat(_as_prior(prior, owner), _as_engine(engine, owner), flat)
     if flat:
         _warn_flat(owner, flat, p, e)
-    p = replace(p, kernel=p.kernel or "rbf", mean=p.mean or "physics")
+    p = _with_defaults(p, owner)
     if p.kernel == "li+generic":
         raise ValueError("MapPrior(kernel='li+generic') is planar only; a 3-D model takes 'rbf' or 'li'")
     if p.noise != "per_axis":
@@ -238,8 +245,7 @@ def grouped(options: dict) -> dict:
     if rest.get("solver", "cholesky") != "cholesky":
         rest["_solver"] = rest.pop("solver")  # the deprecated solver, kept without a warning
     rest.pop("solver", None)
-    prior = _as_prior(rest.pop("prior", None), "InverseRFT")
-    prior = replace(prior, kernel=prior.kernel or "li", mean=prior.mean or "zero")
+    prior = _with_defaults(_as_prior(rest.pop("prior", None), "InverseRFT"), "InverseRFT")
     p, e = _with_flat(prior, _as_engine(rest.pop("engine", None), "InverseRFT"), flat)
     if flat.get("surface_groups") is not None:
         rest["surface"] = flat["surface_groups"]
@@ -252,15 +258,6 @@ def grouped_3d(options: dict) -> dict:
     """``grouped`` for ``InverseRFT3D`` (``alpha_y``, ``hyper_posterior``, ``features`` pass through)."""
     rest = dict(options)
     flat = {k: rest.pop(k) for k in _PRIOR_KEYS + _ENGINE_KEYS if k in rest}
-    prior = _as_prior(rest.pop("prior", None), "InverseRFT3D")
-    prior = replace(prior, kernel=prior.kernel or "rbf", mean=prior.mean or "physics")
+    prior = _with_defaults(_as_prior(rest.pop("prior", None), "InverseRFT3D"), "InverseRFT3D")
     p, e = _with_flat(prior, _as_engine(rest.pop("engine", None), "InverseRFT3D"), flat)
     return {**rest, "prior": p, "engine": e}
-
-
-def flat_prior(prior: MapPrior) -> dict:
-    """The MapPrior as the internal flat names (li_basis, generic_shape, prior_mean, priors, tied_noise,
-    lengthscale)."""
-    return {"li_basis": prior.kernel in ("li", "li+generic"), "generic_shape": prior.kernel == "li+generic",
-            "prior_mean": prior.mean, "priors": prior.hyperpriors, "tied_noise": prior.noise == "tied",
-            "lengthscale": prior.lengthscale}

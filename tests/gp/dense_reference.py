@@ -58,3 +58,18 @@ def axis_reference(contacts, y, weight, lengthscale, outputscale, noise, mean=No
         return mu, var
 
     return mll / T, map_posterior, force_posterior
+
+
+def truncation_gaps(basis, lengthscale, n=300, seed=1):
+    """(A,) the largest |k - k_basis| per map over n random angle pairs of the canonical square: the ARD RBF on the
+    embedding (unit variance, ``embed``) against the Fourier ``basis``'s truncated kernel at ``lengthscale``
+    (A, 1, 4)."""
+    g = torch.Generator().manual_seed(seed)
+    b1, b2, g1, g2 = ((torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * math.pi for _ in range(4))
+    ls = lengthscale[:, 0]  # (A, 4)
+    exact = torch.exp(-0.5 * ((embed(b1, g1)[None] - embed(b2, g2)[None]) / ls[:, None]).pow(2).sum(-1))  # (A, n)
+    Sb, Sg = basis.coefficients(lengthscale)
+    pb1, pg1 = basis.features(b1, g1)
+    pb2, pg2 = basis.features(b2, g2)
+    approx = torch.einsum("ni,aij,nj->an", pb1, Sb, pb2) * torch.einsum("ni,aij,nj->an", pg1, Sg, pg2)
+    return (exact - approx).abs().amax(-1)

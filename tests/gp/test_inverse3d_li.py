@@ -105,10 +105,11 @@ def test_diagnostics_report_the_kernels_error_bound_and_it_holds():
     """Issue 52: a 3-D spectral model capped below its tol says so in diagnostics() (bound per map, tol, whether
     within), and the bound holds against the exact RBF on the embedding, written out here, at random angle
     pairs; an exact backend reports zero."""
-    import math
     import warnings
 
     from irft_torch.gp.options import Engine, MapPrior
+
+    from .dense_reference import truncation_gaps
 
     c, f = turning_toe()
     model = InverseRFT3D(c, f, prior=MapPrior(mean="zero"), engine=Engine("spectral", tol=1e-3, max_harmonics=4))
@@ -121,20 +122,7 @@ def test_diagnostics_report_the_kernels_error_bound_and_it_holds():
         d = model.diagnostics()["kernel"]
     bound = torch.tensor(d["truncation_error"], dtype=torch.float64)
     assert d["tol"] == 1e-3 and not d["within_tol"] and bool((bound > 1e-3).any())
-    g = torch.Generator().manual_seed(1)
-    b1, g1, b2, g2 = ((torch.rand(300, generator=g, dtype=torch.float64) - 0.5) * math.pi for _ in range(4))
-    ls = model.hypers.lengthscale.detach()[:, 0]  # (3, 4)
-
-    def embed(b, gm):
-        return torch.stack([torch.sin(2 * b), torch.cos(2 * b), torch.sin(gm), torch.cos(gm)], -1)
-
-    exact = torch.exp(-0.5 * ((embed(b1, g1)[None] - embed(b2, g2)[None]) / ls[:, None]).pow(2).sum(-1))  # (3, 300)
-    basis = model.backend.basis
-    Sb, Sg = basis.coefficients(model.hypers.lengthscale.detach())
-    pb1, pg1 = basis.features(b1, g1)
-    pb2, pg2 = basis.features(b2, g2)
-    approx = torch.einsum("ni,aij,nj->an", pb1, Sb, pb2) * torch.einsum("ni,aij,nj->an", pg1, Sg, pg2)
-    gap = (exact - approx).abs().amax(-1)
+    gap = truncation_gaps(model.backend.basis, model.hypers.lengthscale.detach())  # the exact RBF, written out
     assert (gap <= bound + 1e-12).all() and bool((gap > 0.2 * bound).all())  # a bound, and not a loose one
     exact_model = InverseRFT3D(c, f, prior=MapPrior(mean="zero"), engine="pairs")
     with warnings.catch_warnings():
