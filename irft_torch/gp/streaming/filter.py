@@ -41,6 +41,12 @@ the kernel (P_a = diag(v_a), plus u_a c_a c_a^T with ``generic_shape``): each sa
 features per axis (``weighted_li_features``, cm^3), and every covariance above gains (W f)^T P_a (W' f): 81
 multiply-adds per pair at most beside the RBF's M^2 kernel values.
 
+A spatial model (``InverseRFT(..., locations=xy)``, ``gp.kernels.spatial``) gives a spatial filter: each sample
+then carries its place s (m), every covariance above is multiplied by the factor 1 + v_a k_s(|s - s'| / l_a)
+between the two places (Matern 5/2, the model's v and l), and queries name the places they ask about
+(``locations=``; none: the medium shared by the site, factor 1). A sample's own variance takes 1 + v_a. So an
+environment whose robot walks on weighs its samples by how near they were, beside how recent (the window).
+
 Gradients: the filter's state carries none (``update`` runs without autograd: a policy does not
 differentiate through the terrain's past). ``stress_map`` and ``predict_forces`` are differentiable in
 their inputs (the query angles, the contacts' angles and weights); the hyperparameters are constants.
@@ -52,6 +58,7 @@ O(n^2) for the factor, O(n Q) for a tracked query. ``experiments/benchmarks/benc
 from __future__ import annotations
 
 import copy
+import math
 
 import torch
 from torch import Tensor, nn
@@ -61,32 +68,9 @@ from ..kernels.embedding import embed_angles
 from ..kernels.li_basis import weighted_li_features
 from ..model import InverseRFT
 from ..posterior import Posterior
+from .window import env_index, forget_oldest, pad_slots
 
 __all__ = ["TerrainFilter"]
-
-
-def _index(env_ids, B: int, device) -> Tensor:
-    """Environment indices (k,) from a bool mask (B,), integer indices, a list or None (all)."""
-    if env_ids is None:
-        return torch.arange(B, device=device)
-    ids = torch.as_tensor(env_ids, device=device)
-    if ids.dtype == torch.bool:
-        if ids.shape != (B,):
-            raise ValueError(f"env_ids as a mask must have shape ({B},), got {tuple(ids.shape)}")
-        return ids.nonzero()[:, 0]
-    if ids.dtype.is_floating_point or ids.dtype.is_complex:
-        raise ValueError(f"env_ids must be integer indices or a bool mask, got {ids.dtype}")
-    ids = ids.reshape(-1).long()
-    if ids.numel() and (int(ids.min()) < -B or int(ids.max()) >= B):
-        raise ValueError(f"env_ids must be in [-{B}, {B}), got values from {int(ids.min())} to {int(ids.max())}")
-    return ids % B
-
-
-def _pad_slots(t: Tensor, N: int, M: int, N2: int, M2: int) -> Tensor:
-    """(..., N * M) slot-major columns -> (..., N2 * M2), zeros in the new slots and segments."""
-    lead = t.shape[:-1]
-    t = t.reshape(*lead, N, M)
-    return torch.nn.functional.pad(t, (0, M2 - M, 0, N2 - N)).reshape(*lead, N2 * M2)
 
 
 class TerrainFilter(nn.Module):
@@ -123,6 +107,8 @@ class TerrainFilter(nn.Module):
     mean_scales: Tensor | None
     li_variance: Tensor | None
     li_covariance: Tensor | None
+    spatial_variance: Tensor | None
+    spatial_lengthscale: Tensor | None
     count: Tensor
     start: Tensor
     U: Tensor
@@ -131,6 +117,7 @@ class TerrainFilter(nn.Module):
     cp: Tensor
     wt: Tensor
     lf: Tensor
+    loc: Tensor
     At: Tensor
     post_mean: Tensor
     post_var: Tensor
@@ -166,6 +153,12 @@ class TerrainFilter(nn.Module):
             self.register_buffer("li_variance", None if li is None else li.detach().clone().to(dtype=dt, device=dev))
             P = hypers.li.covariance if hypers.li is not None and hypers.li.generic else None  # (2, 9, 9) or None
             self.register_buffer("li_covariance", None if P is None else P.detach().clone().to(dtype=dt, device=dev))
+            sp = getattr(hypers, "spatial", None)  # the spatial factor (gp.kernels.spatial), or None
+            self.register_buffer("spatial_variance",
+                                 None if sp is None else sp.variance.detach().clone().to(dtype=dt, device=dev))
+            self.register_buffer("spatial_lengthscale",
+                                 None if sp is None else sp.lengthscale.detach().clone().to(dtype=dt, device=dev))
+        self.spatial = sp is not None
         self._shape = (None if hypers.mean is None
                        else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
         # The state of environment b, map axis a (the module docstring): n = capacity sample positions
@@ -180,11 +173,14 @@ class TerrainFilter(nn.Module):
         self.register_buffer("wt", torch.zeros(B, 2, N, 0, dtype=dt, device=dev))  # their weights (x, z), by slot
         # Li et al.'s term: each sample's weighted features per axis (B, 2, N, 9) by slot (9 -> 0 without it)
         self.register_buffer("lf", torch.zeros(B, 2, N, 0 if li is None else 9, dtype=dt, device=dev))
+        # a spatial model's samples' places (B, N, 2) in m by slot ((B, N, 0) without one)
+        self.register_buffer("loc", torch.zeros(B, N, 2 if self.spatial else 0, dtype=dt, device=dev))
         # the tracked map points: A^T (B, 2, Q, n) and the posterior there (B, 2, Q), kept current
         self.register_buffer("At", torch.zeros(B, 2, 0, N, dtype=dt, device=dev))
         self.register_buffer("post_mean", torch.zeros(B, 2, 0, dtype=dt, device=dev))
         self.register_buffer("post_var", torch.zeros(B, 2, 0, dtype=dt, device=dev))
-        # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), li (2, Q, 9) or None, prior mean / var (2, Q)
+        # key (angles), emb (5, Q), cp (2, 1, Q), w (2, Q), li (2, Q, 9) or None, places (B, L, 2) or None (the
+        # shared medium; L = 1), prior mean / var (2, L Q)
         self._query: dict | None = None
         self._exported = False  # a query's autograd graph holds the state: copy it before writing in place
 
@@ -200,7 +196,7 @@ class TerrainFilter(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"n_envs={self.n_envs}, window={self.window}, capacity={self.capacity}, M={self.n_segments}, "
-                f"dtype={self.dtype}, device={self.device}")
+                f"spatial={self.spatial}, dtype={self.dtype}, device={self.device}")
 
     # ---- the kernel pieces ------------------------------------------------------------------------
     def _sides(self, beta: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -256,6 +252,29 @@ class TerrainFilter(nn.Module):
         """f P_a per map (..., 2, P, 9): diag(v_a) without the generic shape (9 products a row), P_a with it."""
         return f * self.li_variance[:, None, None] if self.li_covariance is None else f @ self.li_covariance
 
+    def _factor(self, s1: Tensor, s2: Tensor) -> Tensor:
+        """The spatial factor 1 + v_a k_5/2(|s1 - s2| / l_a) per map between places s1 (..., P, 2) and s2
+        (..., R, 2) in m: (..., 2, P, R)."""
+        d2 = (s1.unsqueeze(-2) - s2.unsqueeze(-3)).pow(2).sum(-1)  # (..., P, R)
+        r = d2.clamp_min(1e-300).sqrt().unsqueeze(-3) / self.spatial_lengthscale.view(2, 1, 1)
+        k = (1 + math.sqrt(5) * r + (5 / 3) * r.pow(2)) * torch.exp(-math.sqrt(5) * r)
+        return 1 + self.spatial_variance.view(2, 1, 1) * k
+
+    def _places(self, locations, want: tuple[int, ...], name: str) -> Tensor | None:
+        """``locations`` checked against a spatial model: (*want, 2) places in m, finite; None where the filter is
+        not spatial, or (queries) the shared medium."""
+        if locations is None:
+            return None
+        if not self.spatial:
+            raise ValueError(f"{name} given, but the model has no spatial factor (a model fitted with "
+                             "InverseRFT(..., locations=xy) gives a spatial filter)")
+        s = torch.as_tensor(locations, dtype=self.dtype, device=self.device)
+        if tuple(s.shape) != (*want, 2):
+            raise ValueError(f"{name} must have shape {(*want, 2)} (x, y in m), got {tuple(s.shape)}")
+        if not torch.isfinite(s).all():
+            raise ValueError(f"{name} contains NaN or inf")
+        return s
+
     def _blocks(self, per_env: int) -> list[tuple[int, int]]:
         """Ranges of environments whose working set (``per_env`` elements each) fits ``block_bytes``; one
         range on a GPU. Blocks of many environments, each computed at once (never one environment at a time)."""
@@ -276,11 +295,12 @@ class TerrainFilter(nn.Module):
 
     # ---- updates ----------------------------------------------------------------------------------
     @torch.no_grad()
-    def update(self, contacts: Contacts, forces, mask=None) -> TerrainFilter:
+    def update(self, contacts: Contacts, forces, mask=None, locations=None) -> TerrainFilter:
         """Add one sample per environment (contacts (B, M), forces (B, 2) = (F_x, F_z) in N), or t per
         environment in time order (contacts (B, t, M), forces (B, t, 2)). ``mask`` (B,) or (B, t) bool:
         False leaves that sample out (the environment is unchanged by it, and it does not count toward the
-        window). Returns self."""
+        window). ``locations`` (B, 2) or (B, t, 2): each sample's place in m (its foothold), required by a spatial
+        filter and refused by any other. Returns self."""
         c = self._contacts(contacts, "contacts", "(B, M) or (B, t, M)", (2, 3))
         block = c.beta.ndim == 3
         want = (self.n_envs, *(c.shape[1:2] if block else ()), 2)
@@ -295,15 +315,20 @@ class TerrainFilter(nn.Module):
             if mask.dtype != torch.bool or tuple(mask.shape) != want[:-1]:
                 raise ValueError(f"mask must be a bool tensor of shape {want[:-1]} (True: add the sample), got "
                                  f"{mask.dtype} of shape {tuple(mask.shape)}")
+        s = self._places(locations, want[:-1], "locations")
+        if self.spatial and s is None:
+            raise ValueError(f"locations is required: the model is spatial, so each sample needs its place, shape "
+                             f"{(*want[:-1], 2)} (x, y in m)")
         if not block:
-            self._append(c, f, mask)
+            self._append(c, f, mask, s)
             return self
         for i in range(c.shape[1]):  # a block's samples in time order, each step vectorised over environments
-            self._append(c[i], f[:, i], None if mask is None else mask[:, i])  # c[i]: sample i of each
+            self._append(c[i], f[:, i], None if mask is None else mask[:, i],
+                         None if s is None else s[:, i])  # c[i]: sample i of each
         return self
 
     def _state_names(self) -> tuple[str, ...]:
-        return ("U", "z", "emb", "cp", "wt", "lf", "At", "post_mean", "post_var")
+        return ("U", "z", "emb", "cp", "wt", "lf", "loc", "At", "post_mean", "post_var")
 
     def _own_state(self) -> None:
         """Copy the state before writing it in place if a query's autograd graph may hold it."""
@@ -322,13 +347,14 @@ class TerrainFilter(nn.Module):
             self.U = U
             self.z = torch.nn.functional.pad(self.z, (0, N2 - N))
             self.At = torch.nn.functional.pad(self.At, (0, N2 - N))
-        self.emb = _pad_slots(self.emb, N, M, N2, M2)
-        self.cp = _pad_slots(self.cp, N, M, N2, M2)
+        self.emb = pad_slots(self.emb, N, M, N2, M2)
+        self.cp = pad_slots(self.cp, N, M, N2, M2)
         self.wt = torch.nn.functional.pad(self.wt, (0, M2 - M, 0, N2 - N))
         self.lf = torch.nn.functional.pad(self.lf, (0, 0, 0, N2 - N))
+        self.loc = torch.nn.functional.pad(self.loc, (0, 0, 0, N2 - N))
 
-    def _append(self, c: Contacts, f: Tensor, mask: Tensor | None) -> None:
-        """One sample per environment (c (B, M), f (B, 2)); ``mask`` (B,) or None."""
+    def _append(self, c: Contacts, f: Tensor, mask: Tensor | None, s: Tensor | None = None) -> None:
+        """One sample per environment (c (B, M), f (B, 2)); ``mask`` (B,) or None; places s (B, 2) m or None."""
         self._own_state()
         B = self.n_envs
         add = torch.ones(B, dtype=torch.bool, device=self.device) if mask is None else mask
@@ -356,23 +382,26 @@ class TerrainFilter(nn.Module):
             sl = slice(i, j)
             self._step(sl, left[sl], right[sl], c_right[sl], w[sl], None if fl is None else fl[sl], y[sl],
                        None if mask is None else add[sl], full[sl] if any_full else None, start[sl], held[sl],
-                       pos[sl], slot[sl])
+                       pos[sl], slot[sl], None if s is None else s[sl])
         self.start = start
         self.count = held + add.long()
 
-    def _step(self, sl: slice, left, right, c_right, w, fl, y, add, full, start, held, pos, slot) -> None:
+    def _step(self, sl: slice, left, right, c_right, w, fl, y, add, full, start, held, pos, slot, s=None) -> None:
         """The update of the environments ``sl`` (one block: everything below stays in cache)."""
         b = left.shape[0]
         N, M = self.capacity, self.n_segments
         U, z, At = self.U[sl], self.z[sl], self.At[sl]
         if full is not None and bool(full.any()):
-            self._forget_oldest(U, z, At, full)
+            forget_oldest(U, z, At, full)
         w4 = w.view(b, 2, 1, M)
         k_new = self._kernel(left, w4, right, c_right, w4).view(b, 2)
         k = self._kernel(left, w4, self.emb[sl], self.cp[sl].unsqueeze(-2), self.wt[sl]).view(b, 2, N)
         if fl is not None:  # Li et al.'s term (by slot, like k)
             k_new = k_new + self._li_cross(fl, fl).view(b, 2)
             k = k + self._li_cross(fl, self.lf[sl]).view(b, 2, N)
+        if s is not None:  # a spatial model: the factor between the new place and each slot's (by slot, like k)
+            k = k * self._factor(s[:, None], self.loc[sl]).view(b, 2, N)
+            k_new = k_new * (1 + self.spatial_variance)
         order = (start[:, None] + torch.arange(N, device=self.device)) % N  # Cholesky position -> ring slot
         k = k.gather(-1, order[:, None, :].expand(b, 2, N))
         k.mul_((torch.arange(N, device=self.device) < held[:, None])[:, None, :])  # only the samples held
@@ -399,12 +428,18 @@ class TerrainFilter(nn.Module):
         put(self.wt[sl], -2, slot.view(b, 1, 1, 1).expand(b, 2, 1, M), w4)
         if fl is not None:
             put(self.lf[sl], -2, slot.view(b, 1, 1, 1).expand(b, 2, 1, 9), fl)
+        if s is not None:
+            put(self.loc[sl], -2, slot.view(b, 1, 1).expand(b, 1, 2), s[:, None])
         q = self._query
         if q is not None:  # the tracked points: a new row of A, and the posterior there
             Q = q["w"].shape[-1]
             kq = self._kernel(left, w4, q["emb"][None], q["cp"][None], q["w"][None, :, :, None]).view(b, 2, Q)
             if fl is not None:
                 kq = kq + self._li_cross(fl, q["li"][None]).view(b, 2, Q)
+            if q["loc"] is not None:  # each place asked about: the angle part times the factor to the new place
+                L = q["loc"].shape[1]
+                kq = (kq[:, :, None, :] * self._factor(s[:, None], q["loc"][sl]).view(b, 2, L, 1)).reshape(b, 2, L * Q)
+                Q = L * Q
             a_new = torch.baddbmm(kq.view(X, Q, 1), At.view(X, Q, N), l.view(X, N, 1), alpha=-1).view(b, 2, Q)
             put(At, -1, pos.view(b, 1, 1, 1).expand(b, 2, Q, 1), a_new.div_(d[..., None])[..., None])
             self._posterior_into(At, z, self.post_mean[sl], self.post_var[sl])
@@ -416,42 +451,16 @@ class TerrainFilter(nn.Module):
         mean.add_(q["prior_mean"])
         torch.sub(q["prior_var"], torch.linalg.vector_norm(At, dim=-1).pow_(2), out=var)
 
-    @staticmethod
-    def _forget_oldest(U: Tensor, z: Tensor, At: Tensor, full: Tensor) -> None:
-        """Remove the oldest sample of the environments ``full`` (b,) of a block, in place (U: U^T (b, 2, n, n),
-        z, A^T): the module docstring's rank-one update of the remaining factor, as a prefix sum."""
-        p = -U[..., 0, 1:] / U[..., 0, :1]  # (b, 2, n - 1): L22^{-1} c
-        p2 = p.pow(2)
-        t = 1 + p2.cumsum(-1)
-        t_prev = t - p2
-        d = (t / t_prev).sqrt()
-        coef = p / (t_prev * d)
-
-        def solve(X: Tensor) -> Tensor:
-            """Lt^{-1} X along the last (sample) axis: X d - coef cumsum(p X) (1 / d + coef p = d)."""
-            extra = X.ndim - p.ndim
-            pp, dd, cc = (v.view(*v.shape[:-1], *[1] * extra, v.shape[-1]) for v in (p, d, coef))
-            return (X * dd).addcmul_(cc, (X * pp).cumsum_(-1), value=-1)
-
-        f3, f4 = full.view(-1, 1, 1), full.view(-1, 1, 1, 1)
-        U_new = torch.nn.functional.pad(solve(U[..., 1:, 1:]), (0, 1, 0, 1))
-        U_new[..., -1, -1] = 1.0  # the freed last position: an identity row and column
-        U.copy_(torch.where(f4, U_new, U))
-        z.copy_(torch.where(f3, torch.nn.functional.pad(solve(torch.addcmul(z[..., 1:], p, z[..., :1])), (0, 1)), z))
-        if At.shape[-2]:
-            A_new = solve(torch.addcmul(At[..., 1:], At[..., :1], p[..., None, :]))
-            At.copy_(torch.where(f4, torch.nn.functional.pad(A_new, (0, 1)), At))
-
     @torch.no_grad()
     def reset(self, env_ids=None) -> TerrainFilter:
         """Return environments to the prior (forget all their samples): ``env_ids`` integer indices, a bool
         mask (B,) or None (all). Returns self."""
-        ids = _index(env_ids, self.n_envs, self.device)
+        ids = env_index(env_ids, self.n_envs, self.device)
         if ids.numel() == 0:
             return self
         self._own_state()
         self.U[ids] = torch.eye(self.capacity, dtype=self.dtype, device=self.device)
-        for t in (self.z, self.emb, self.cp, self.wt, self.lf, self.At):
+        for t in (self.z, self.emb, self.cp, self.wt, self.lf, self.loc, self.At):
             t[ids] = 0.0
         if self._query is not None:  # the prior, exactly
             self.post_mean[ids] = self._query["prior_mean"]
@@ -461,10 +470,11 @@ class TerrainFilter(nn.Module):
         return self
 
     # ---- queries ----------------------------------------------------------------------------------
-    def _cross_t(self, left: Tensor, w: Tensor, fl: Tensor | None) -> Tensor:
+    def _cross_t(self, left: Tensor, w: Tensor, fl: Tensor | None, places: Tensor | None = None) -> Tensor:
         """K^T (B, 2, P, n): the prior covariance of P functionals per environment (left sides
         (B, 2, P * Ml, 5), weights (B, 2, P, Ml), the term's features (B, 2, P, 9) or None; expanded views are
-        fine) with the samples held, in Cholesky order (zero past them)."""
+        fine; a spatial filter's places (B, P, 2) m, or None: the shared medium) with the samples held, in
+        Cholesky order (zero past them)."""
         B, N, M = self.n_envs, self.capacity, self.n_segments
         P = w.shape[-2]
         if torch.is_grad_enabled() and (left.requires_grad or w.requires_grad):
@@ -477,14 +487,17 @@ class TerrainFilter(nn.Module):
         K = torch.cat(parts) if len(parts) > 1 else parts[0]
         if fl is not None:
             K = K + self._li_cross(fl, self.lf)  # zero features in the empty slots
+        if places is not None:
+            K = K * self._factor(places, self.loc)
         order = (self.start[:, None] + torch.arange(N, device=self.device)) % N
         return K.gather(-1, order[:, None, None, :].expand(B, 2, P, N))
 
-    def stress_map(self, beta, gamma) -> Posterior:
+    def stress_map(self, beta, gamma, locations=None) -> Posterior:
         """Each environment's posterior of (alpha_x, alpha_z) at angles (rad) of any broadcast shape S, the
         same points for every environment (per-environment points: ``predict_forces`` of one-segment
         contacts of unit weight, ``Contacts.points``). Returns mean and variance (B, *S, 2) in N/cm^3 and
-        (N/cm^3)^2.
+        (N/cm^3)^2. A spatial filter takes ``locations``: (B, 2), each environment's place in m (result
+        (B, *S, 2)), or (B, L, 2), L places each (result (B, L, *S, 2)); None: the medium shared by the site.
 
         The last points asked are *tracked*: every later ``update`` extends their posterior, so asking
         them again costs nothing more. Differentiable in beta and gamma (then computed afresh)."""
@@ -492,10 +505,20 @@ class TerrainFilter(nn.Module):
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self.device)
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         B = self.n_envs
+        shape = tuple(torch.as_tensor(locations).shape) if locations is not None else ()
+        one_place = len(shape) == 2
+        where = self._places(locations, (B,) if one_place else (B, shape[1] if len(shape) == 3 else 1), "locations")
+        if where is not None and one_place:
+            where = where[:, None]  # (B, L, 2)
+        L = 1 if where is None else where.shape[1]
+        lead = (B, *S) if where is None or one_place else (B, L, *S)
         grad = torch.is_grad_enabled() and (beta.requires_grad or gamma.requires_grad)
         key = torch.stack(torch.broadcast_tensors(beta, gamma)).reshape(2, -1).detach()
         q = self._query
-        if not grad and q is not None and q["key"].shape == key.shape and torch.equal(q["key"], key):
+        same = (q is not None and q["key"].shape == key.shape and torch.equal(q["key"], key)
+                and (q["loc"] is None) == (where is None) and (where is None or (q["loc"].shape == where.shape
+                                                                                and torch.equal(q["loc"], where))))
+        if not grad and same:
             mean, var = self.post_mean, self.post_var
         else:
             pts = Contacts.points(beta, gamma)  # (Q, 1): canonical angles, weights (mirror sign, 1)
@@ -507,33 +530,42 @@ class TerrainFilter(nn.Module):
             fq = self._li_features(pts.beta, pts.gamma, w[..., None])  # (2, Q, 9) or None
             if fq is not None:
                 prior_var = prior_var + (self._li_weigh(fq) * fq).sum(-1)
+            if where is not None:  # at a place: the shared medium and the variation there
+                prior_var = prior_var * (1 + self.spatial_variance[:, None])
+            prior, prior_var = prior.repeat(1, L), prior_var.repeat(1, L)  # (2, L Q), place-major
             left, right, c_right = self._sides(pts.beta[:, 0], pts.gamma[:, 0])  # (2, Q, 5), (5, Q), (2, 1, Q)
-            K_t = self._cross_t(left.unsqueeze(0).expand(B, 2, Q, 5), w[None, :, :, None].expand(B, 2, Q, 1),
-                                None if fq is None else fq.expand(B, 2, Q, 9))
+            P = L * Q
+            left_q = left.unsqueeze(0).unsqueeze(2).expand(B, 2, L, Q, 5).reshape(B, 2, P, 5)
+            fq_b = None if fq is None else fq.unsqueeze(1).expand(2, L, Q, 9).reshape(2, P, 9).expand(B, 2, P, 9)
+            places = None if where is None else where.repeat_interleave(Q, 1)  # (B, L Q, 2)
+            K_t = self._cross_t(left_q, w.repeat(1, L)[None, :, :, None].expand(B, 2, P, 1), fq_b, places)
             At = K_t @ self.U
             if grad:
                 mean = prior[..., None] + At @ self.z[..., None]
-                return Posterior((mean[..., 0]).mT.reshape(B, *S, 2),
-                                 (prior_var - At.pow(2).sum(-1)).mT.reshape(B, *S, 2))
-            self._query = {"key": key.clone(), "emb": right, "cp": c_right, "w": w, "li": fq, "prior_mean": prior,
+                return Posterior((mean[..., 0]).mT.reshape(*lead, 2),
+                                 (prior_var - At.pow(2).sum(-1)).mT.reshape(*lead, 2))
+            self._query = {"key": key.clone(), "emb": right, "cp": c_right, "w": w, "li": fq,
+                           "loc": None if where is None else where.clone(), "prior_mean": prior,
                            "prior_var": prior_var}
             self.At = At
-            self.post_mean, self.post_var = At.new_empty(B, 2, Q), At.new_empty(B, 2, Q)
+            self.post_mean, self.post_var = At.new_empty(B, 2, P), At.new_empty(B, 2, P)
             self._posterior_into(At, self.z, self.post_mean, self.post_var)
             mean, var = self.post_mean, self.post_var
-        return Posterior(mean.mT.reshape(B, *S, 2).clone(), var.mT.reshape(B, *S, 2).clone())
+        return Posterior(mean.mT.reshape(*lead, 2).clone(), var.mT.reshape(*lead, 2).clone())
 
-    def predict_forces(self, contacts: Contacts, include_noise: bool = False) -> Posterior:
+    def predict_forces(self, contacts: Contacts, include_noise: bool = False, locations=None) -> Posterior:
         """Each environment's posterior of the forces (F_x, F_z) on its own contacts (B, T, M): mean and
         variance (B, T, 2) in N and N^2 (the exact variance w^T Sigma w, segments correlated);
-        ``include_noise`` adds the noise variance (predict a measurement). Differentiable in the contacts'
+        ``include_noise`` adds the noise variance (predict a measurement). A spatial filter takes each sample's
+        place, ``locations`` (B, T, 2) in m (None: the shared medium's forces). Differentiable in the contacts'
         angles and weights."""
         c = self._contacts(contacts, "contacts", "(B, T, M)", (3,))
         B, T, M = c.shape
+        places = self._places(locations, (B, T), "locations")
         left, right, c_right = self._sides(c.beta, c.gamma)  # (B, T, 2, M, 5), (B, T, 5, M), (B, T, 2, 1, M)
         w = torch.stack([c.weight_x, c.weight_z], 1)  # (B, 2, T, M)
         fl = self._li_features(c.beta, c.gamma, w)  # (B, 2, T, 9) or None
-        At = self._cross_t(left.transpose(1, 2).reshape(B, 2, T * M, 5), w, fl) @ self.U  # (B, 2, T, n)
+        At = self._cross_t(left.transpose(1, 2).reshape(B, 2, T * M, 5), w, fl, places) @ self.U  # (B, 2, T, n)
         mean = (At @ self.z[..., None])[..., 0]
         prior = self._prior_mean(c)
         if prior is not None:
@@ -543,6 +575,8 @@ class TerrainFilter(nn.Module):
                            c_right.reshape(B * T, 2, 1, M), w_own).view(B, T, 2)
         if fl is not None:
             own = own + (self._li_weigh(fl) * fl).sum(-1).mT
+        if places is not None:
+            own = own * (1 + self.spatial_variance)
         var = own - At.pow(2).sum(-1).mT
         if include_noise:
             var = var + self.noise

@@ -117,10 +117,11 @@ class TerrainFilterMixture(nn.Module):
 
     # ---- what a TerrainFilter does ---------------------------------------------------------------------
     @torch.no_grad()
-    def update(self, contacts: Contacts, forces, mask=None) -> TerrainFilterMixture:
-        """Add samples to every draw's filter (``TerrainFilter.update``). Returns self."""
+    def update(self, contacts: Contacts, forces, mask=None, locations=None) -> TerrainFilterMixture:
+        """Add samples to every draw's filter (``TerrainFilter.update``; ``locations`` for a spatial model). Returns
+        self."""
         for f in self._each():
-            f.update(contacts, forces, mask)
+            f.update(contacts, forces, mask, locations)
         return self
 
     @torch.no_grad()
@@ -130,11 +131,13 @@ class TerrainFilterMixture(nn.Module):
             f.reset(env_ids)
         return self
 
-    def stress_map(self, beta, gamma) -> Posterior:
+    def stress_map(self, beta, gamma, locations=None) -> Posterior:
         """Each environment's mixture posterior of (alpha_x, alpha_z) at angles of broadcast shape S (rad): mean
-        and total variance (B, *S, 2), ``interval`` from the mixture's CDF."""
-        return self._mixture([f.stress_map(beta, gamma) for f in self._each()])
+        and total variance (B, *S, 2) (a spatial model's ``locations``: as ``TerrainFilter.stress_map``),
+        ``interval`` from the mixture's CDF."""
+        return self._mixture([f.stress_map(beta, gamma, locations) for f in self._each()])
 
-    def predict_forces(self, contacts: Contacts, include_noise: bool = False) -> Posterior:
-        """Each environment's mixture posterior of the forces on its own contacts (B, T, M): (B, T, 2) in N."""
-        return self._mixture([f.predict_forces(contacts, include_noise) for f in self._each()])
+    def predict_forces(self, contacts: Contacts, include_noise: bool = False, locations=None) -> Posterior:
+        """Each environment's mixture posterior of the forces on its own contacts (B, T, M) (at ``locations`` (B, T,
+        2) m, a spatial model): (B, T, 2) in N."""
+        return self._mixture([f.predict_forces(contacts, include_noise, locations) for f in self._each()])
