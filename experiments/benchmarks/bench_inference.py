@@ -25,7 +25,8 @@ forces, prior=MapPrior(kernel="rbf"), hyper_posterior="map")``, the former defau
   9. parallel environments (issue 33): ``TerrainFilter`` with B = 4096 environments of a C-toe (M = 10)
      on the paper's gait, one update and a 16-point map query per step (windows of 8, 16 and 32 samples):
      env-steps per second, vs a loop over one ``InverseRFT`` per environment doing the same (``add_data``
-     of the sample, ``stress_map`` of the 16 points), timed on 8 environments and scaled.
+     of the sample, ``stress_map`` of the 16 points), timed on 8 environments and scaled; and a spatial model's
+     filter (each sample at its environment's foothold, the map asked at one place each) against the planar one.
  10. a turning C-toe (T = 200 x M = 12, the calibration harness' ``turning`` motion): Adam steps of the
      default fit, closed form vs autograd (issue 30: < 3.3 ms);
  11. NUTS (pyro) on C-toe gait 2 (the paper study's configuration, tied noise): 4 chains x 500 draws after
@@ -498,6 +499,8 @@ def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
             sync()
             ref_rate = n_ref * 3 / (time.perf_counter() - t0)  # (each equals its filter: tests/gp/test_terrain_filter)
         dt = "float32" if dtype == torch.float32 else "float64"
+        if window == 16 and dtype == torch.float64 and not li:
+            planar_rate = rate
         if li:
             row(f"9. the same, window {window}, {dt}, li_basis=True", f"{rate:,.0f} env-steps/s", "-",
                 ratio(rate / ref_rate), ">= 1e5 env-steps/s")
@@ -509,6 +512,32 @@ def terrain_filter_case(q: bool, row, n_ref: int = 8) -> None:
         else:
             row(f"9. the same, window {window}, {dt}", f"{rate:,.0f} env-steps/s", "-",
                 ratio(rate / ref_rate) if window != 8 else "-", ">= 1e5 env-steps/s")
+    # over the ground: a spatial model's filter, each sample at its environment's foothold (a random walk, m)
+    places = torch.rand(len(c[::10]), 2, generator=g, dtype=torch.float64).to(DEVICE) * 3.0
+    spatial = _same_hypers(irft.InverseRFT(c[::10], f[::10], locations=places, **PLUG_IN), model)
+    filt_s = irft.TerrainFilter(spatial, B, window=16)
+    idx = torch.randint(0, len(c), (19 + steps, B), generator=g).to(DEVICE)
+    cs, fs = [c[i] for i in idx], [f[i] for i in idx]
+    walk = (torch.rand(B, 2, generator=g, dtype=torch.float64) * 3.0).to(DEVICE)
+    steps_s = [walk + 0.2 * t * torch.tensor([1.0, 0.0], dtype=torch.float64, device=DEVICE)
+               for t in range(19 + steps)]
+    here = steps_s[-1][:, None]  # (B, 1, 2): each environment's place at the end of the timed steps
+
+    def step_s(t):
+        filt_s.update(cs[t], fs[t], locations=steps_s[t])
+        return filt_s.stress_map(bq, gq, locations=here)
+
+    for t in range(19):
+        step_s(t)
+    sync()
+    t0 = time.perf_counter()
+    for t in range(19, 19 + steps):
+        step_s(t)
+    sync()
+    rate_s = B * steps / (time.perf_counter() - t0)
+    row("9. over the ground: a spatial model's TerrainFilter, window 16, float64 (each sample at its environment's "
+        "foothold, the map asked at one place each)", f"{rate_s:,.0f} env-steps/s",
+        f"the planar filter, window 16: {planar_rate:,.0f} env-steps/s", ratio(rate_s / planar_rate), "-")
     # a hyperparameter posterior's draws, each environment its own mixture (S filters)
     mixed = irft.InverseRFT(c[::10], f[::10], hyper_posterior="laplace", prior=irft.MapPrior(kernel="rbf"))
     torch.manual_seed(0)
