@@ -133,7 +133,7 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
     theta = spec.theta(model.hypers)
     x = theta + 0.15 * torch.randn(6, theta.numel(), generator=torch.Generator().manual_seed(9))
     for sp, pts in ((spec, x), (_SubSpec(spec, theta, torch.tensor([0, 3, 9])), x[:, [0, 3, 9]])):
-        batch = log_posterior_batch(model.backend, sp, pts)  # grows the spectral basis for all draws first
+        batch = log_posterior_batch(model.backend, sp, pts, grouped=False)  # one basis, grown for all draws first
         with autograd_only():
             one_by_one = torch.stack([log_posterior(model.backend, sp, p) for p in pts])
         torch.testing.assert_close(batch, one_by_one, rtol=1e-9, atol=0)  # summation order differs
@@ -143,6 +143,61 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
             t = p.clone().requires_grad_(True)
             (want,) = torch.autograd.grad(log_posterior(model.backend, sp, t, exact_graph=True), t)
             torch.testing.assert_close(g, want, rtol=1e-9, atol=1e-9 * want.abs().max())
+
+
+@pytest.mark.parametrize("kernel", ["rbf", "li"])
+def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
+    """A batch of draws, some with lengthscales far shorter than the fit's: the spectral backend evaluates them in
+    groups, each in the basis its draws need (more than one group here), its own basis unchanged; every value
+    against the exact pairs space (the RBF itself at the distinct angle pairs) within what the kernel's tolerance
+    allows, and against one basis grown for all of them."""
+    from irft_torch.gp.backends import make_backend
+    from irft_torch.gp.backends.covariance_terms import LENGTHSCALE as LS
+
+    c, f = data(T=30, M=4, seed=7)
+    model = irft.InverseRFT(c, f, engine="spectral", hyper_posterior="map", prior=irft.MapPrior(kernel=kernel))
+    set_hypers(model, seed=8, low=1.5)
+    backend = model.backend
+    before = backend.basis
+    spec = hyper_spec(model.hypers)
+    theta = spec.theta(model.hypers)
+    x = theta + 0.1 * torch.randn(12, theta.numel(), generator=torch.Generator().manual_seed(3), dtype=theta.dtype)
+    ls = [i for i, name in enumerate(spec.labels) if name.startswith("lengthscale")]
+    x[6:, ls] -= torch.linspace(0.5, 2.5, 6, dtype=theta.dtype)[:, None]  # down to e^-2.5 of the fit's
+    from irft_torch.gp.hyper.density import _values
+    values, _ = _values(backend, spec, x)
+    groups = backend.draw_groups(values[LS])
+    assert len(groups) >= 3 and sum(int(m.sum()) for m, _ in groups) == 12
+    # the two shortest settings need more than MAX_HARMONICS per angle for tol: the exact pairs space takes them
+    beyond = [m for m, b in groups if b.name == "pairs"]
+    assert len(beyond) == 1 and beyond[0].nonzero()[:, 0].tolist() == [10, 11]
+    grouped = log_posterior_batch(backend, spec, x)
+    assert backend.basis == before  # the fit's own basis is kept
+    exact = make_backend("pairs", model.hypers, model.train_contacts, model.train_forces)
+    want = log_posterior_batch(exact, spec, x)
+    torch.testing.assert_close(grouped, want, rtol=1e-8, atol=1e-7)
+    with pytest.warns(UserWarning, match="need more than 30 harmonics"):  # one basis for all: truncated, and said
+        one = log_posterior_batch(backend, spec, x, grouped=False)
+    torch.testing.assert_close(grouped[:10], one[:10], rtol=1e-8, atol=1e-7)
+    assert abs(float(one[11] - want[11])) > 1e-4  # the truncated kernel's value, 1.3e-3 off
+    # a kept draw that short predicts in the exact space too; one the fit's basis holds keeps the spectral space
+    import copy
+
+    short = copy.deepcopy(model.hypers)
+    short.lengthscale = values[LS][11]
+    assert backend.with_hypers(short).name == "pairs"
+    assert backend.with_hypers(copy.deepcopy(model.hypers)) is None  # the model builds it from its statistics
+
+
+def test_draw_groups_partition_by_hand():
+    """The grouping's partition by hand: sorted costs [1, 1, 1, 10] in two groups cost 3 x 1 + 1 x 10 = 13 (one
+    group: 40); three equal costs stay one group; one item, one group."""
+    from irft_torch.gp.backends.spectral import _split_sizes
+
+    assert _split_sizes([1, 1, 1, 10], 2) == [3, 1]
+    assert _split_sizes([1, 2, 50, 60], 2) == [2, 2]
+    assert _split_sizes([5, 5, 5], 3) == [3]
+    assert _split_sizes([7], 4) == [1]
 
 
 def test_impossible_draws_get_minus_infinity_and_no_gradient():

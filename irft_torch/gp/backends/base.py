@@ -130,6 +130,12 @@ class RFTBackend(nn.Module):
         none (then ``loss()`` and autograd serve)."""
         return None
 
+    def draw_groups(self, lengthscale: Tensor) -> list | None:
+        """A batch of hyperparameter settings (lengthscales (S, 2, 1, 4)) split by the backend each is evaluated in
+        at least cost: [(mask (S,), backend)] (the spectral backend: by the basis each needs), or None: every
+        setting here (the exact spaces' cost does not depend on them)."""
+        return None
+
     def prepare(self, values: dict) -> None:
         """Adapt to hyperparameter values about to be evaluated by ``closed_form()`` (name -> (*S, *shape);
         the spectral basis grows to hold their lengthscales). Nothing by default."""

@@ -18,12 +18,17 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..kernels.fourier import MAX_HARMONICS, FourierBasis
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis, truncation_errors
 from ..kernels.li_basis import li_index, with_li_functions
-from .base import FunctionalPosterior, split_blocks
+from .base import FunctionalPosterior, RFTBackend, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
-__all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features"]
+__all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features", "DRAW_HARMONICS", "DRAW_GROUPS",
+           "EXACT_PAIRS"]
+
+DRAW_HARMONICS = 4  # a batch of hyperparameter draws is grouped by the basis each needs, rounded up to this step
+DRAW_GROUPS = 4  # and those this backend's basis does not hold into at most this many groups
+EXACT_PAIRS = 4096  # draws beyond every basis go to the exact pairs space up to this many distinct angle pairs
 
 
 def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
@@ -81,10 +86,31 @@ def restrict_statistics(stats: FeatureStatistics, basis: FourierBasis) -> Featur
         return stats
     Fb, Fg = basis.sizes
     full = (2 * nb + 1, 2 * ng + 1)
-    idx = (torch.arange(Fb)[:, None] * full[1] + torch.arange(Fg)[None, :]).reshape(-1).to(stats.P.device)
     out_meta = {**meta, **_meta(basis)}
-    return FeatureStatistics(stats.P[:, idx][:, :, idx], stats.b[:, idx], stats.yy, stats.bg[:, idx], stats.yg,
-                             stats.gg, stats.n, out_meta)
+
+    def cut(v: Tensor) -> Tensor:  # the leading Fb x Fg block of each (beta, gamma) feature axis: one strided copy
+        lead = v.shape[:1]
+        k = (v.ndim - 1)
+        v = v.reshape(*lead, *(full * k))
+        v = v[(slice(None), *([slice(0, Fb), slice(0, Fg)] * k))]
+        return v.reshape(*lead, *([Fb * Fg] * k))
+
+    return FeatureStatistics(cut(stats.P), cut(stats.b), stats.yy, cut(stats.bg), stats.yg, stats.gg, stats.n,
+                             out_meta)
+
+
+def _split_sizes(costs: list[float], groups: int) -> list[int]:
+    """Contiguous groups (their lengths) of sorted per-item costs, at most ``groups`` of them, minimizing the sum over
+    groups of (items x the group's largest cost): what evaluating each group at its largest item's size costs."""
+    n = len(costs)
+    best: dict[tuple[int, int], tuple[float, list[int]]] = {(0, 0): (0.0, [])}  # (placed, groups) -> (cost, lengths)
+    for g in range(1, groups + 1):
+        for j in range(1, n + 1):
+            options = [(best[i, g - 1][0] + (j - i) * costs[j - 1], best[i, g - 1][1] + [j - i])
+                       for i in range(j) if (i, g - 1) in best]
+            if options:
+                best[j, g] = min(options, key=lambda o: o[0])
+    return min((best[n, g] for g in range(1, groups + 1) if (n, g) in best), key=lambda o: o[0])[1]
 
 
 class SpectralBackend(WeightSpaceBackend):
@@ -219,6 +245,99 @@ class SpectralBackend(WeightSpaceBackend):
             H[self._li_index().to(H.device), torch.arange(9, device=H.device)] = 0.5
             terms += li_terms(self.hypers, H)
         return terms
+
+    def draw_groups(self, lengthscale: Tensor) -> list[tuple[Tensor, RFTBackend]] | None:
+        """A batch of hyperparameter settings (lengthscales (S, 2, 1, 4)) grouped by the basis each needs for
+        ``tol``: [(mask (S,), a backend on these data in that basis)], this backend itself for those it holds, and
+        for the others the basis their own lengthscales need (each angle's harmonics rounded up to a multiple of
+        ``DRAW_HARMONICS``, at most ``MAX_HARMONICS``), cut from one pass over the data in the largest of them. So a
+        batch costs what each setting needs, not what its shortest lengthscale needs, and this backend's basis
+        stays the fit's. Settings that no basis up to ``MAX_HARMONICS`` holds within ``tol`` go to the exact space
+        of the data's distinct angle pairs (``exact_twin``) where it is affordable, else stay in the largest basis
+        with a warning (their kernel truncated). None where the data are not kept whole (statistics only, or
+        samples added since): the caller then grows this basis for the batch (``prepare``)."""
+        if not self._data or sum(len(c) for c, _ in self._data) != self.n_samples:
+            return None
+        ls = lengthscale.detach().reshape(-1, 2, 4).double()
+        eb, eg = truncation_errors(ls[..., 0:2]), truncation_errors(ls[..., 2:4])  # (S, 2, MAX_HARMONICS + 1)
+        own = (eb[..., self.basis.n_beta] + eg[..., self.basis.n_gamma] <= self.tol).all(-1)  # (S,)
+
+        def need(e: Tensor) -> Tensor:  # the fewest harmonics with e_n <= tol / 2 in every map (the cap if none)
+            ok = e <= self.tol / 2
+            n = torch.where(ok.any(-1), ok.int().argmax(-1), MAX_HARMONICS)
+            step = DRAW_HARMONICS
+            return ((n.amax(-1).clamp_min(1) + step - 1) // step * step).clamp_max(MAX_HARMONICS)
+
+        nb, ng = need(eb), need(eg)
+        capped = (eb[..., MAX_HARMONICS] + eg[..., MAX_HARMONICS] > self.tol).any(-1)  # beyond any basis for tol
+        exact = self.exact_twin() if bool((capped & ~own).any()) else None
+        if exact is None:  # they stay in the largest basis, truncated there: said (a draw's kernel is not exact)
+            own = own | ((nb <= self.basis.n_beta) & (ng <= self.basis.n_gamma))  # a larger basis would not help
+            if bool(capped.any()):
+                warnings.warn(f"the shortest lengthscale {float(ls[capped].min()):.3g} of a batch of {len(ls)} "
+                              f"settings need more than {MAX_HARMONICS} harmonics per angle; the truncation error may "
+                              f"exceed tol={self.tol:.0e}", stacklevel=3)
+        groups: list[tuple[Tensor, RFTBackend]] = [(own, self)] if bool(own.any()) else []
+        if exact is not None:
+            capped = capped & ~own
+            if bool(capped.any()):
+                groups.append((capped, exact))  # the exact space: no truncation, whatever the lengthscale
+            own = own | capped
+        rest = ~own
+        if not bool(rest.any()):
+            return groups
+        # at most DRAW_GROUPS groups of the others, by the features they need (each group's basis holds all of its
+        # draws): fewer backends to build, each draw in a basis near its own
+        idx = rest.nonzero()[:, 0]
+        size = (2 * nb[idx] + 1) * (2 * ng[idx] + 1)
+        order = idx[size.argsort(stable=True)]
+        for part in order.split(_split_sizes(size.sort().values.tolist(), DRAW_GROUPS)):
+            nb[part], ng[part] = nb[part].max(), ng[part].max()
+        keys = sorted({(int(a), int(b)) for a, b in zip(nb[rest].tolist(), ng[rest].tolist())})
+        bases = [with_li_functions(FourierBasis(a, b)) if self.hypers.li is not None else FourierBasis(a, b)
+                 for a, b in keys]
+        big = FourierBasis(max(b.n_beta for b in bases), max(b.n_gamma for b in bases))
+        # kept while the data are: the statistics in the largest basis asked for so far and a backend per basis
+        hit = self.__dict__.get("_draw_cache")
+        if hit is None or hit[0] is not self.stats:
+            hit = self._draw_cache = [self.stats, self.stats, {}]
+        c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
+                                                          torch.cat([d[1] for d in self._data]))
+        if not self._covers(hit[1], big):
+            held = hit[1].meta
+            grown = FourierBasis(max(big.n_beta, int(held["n_beta"])), max(big.n_gamma, int(held["n_gamma"])))
+            hit[1] = spectral_statistics(c, f, grown, self.hypers.mean)
+        for (a, b), basis in zip(keys, bases):
+            if basis not in hit[2]:
+                hit[2][basis] = SpectralBackend(self.hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
+            groups.append((rest & (nb == a) & (ng == b), hit[2][basis]))
+        return groups
+
+    def with_hypers(self, hypers) -> RFTBackend | None:
+        """A draw's backend: for a draw whose lengthscales no basis up to ``MAX_HARMONICS`` holds within ``tol``, the
+        exact pairs space (``exact_twin``, its statistics shared) where that is affordable; else None (the model
+        builds a spectral backend from its statistics)."""
+        ls = hypers.lengthscale.detach().reshape(-1, 2, 4).double()
+        top = truncation_errors(ls[..., 0:2])[..., MAX_HARMONICS] + truncation_errors(ls[..., 2:4])[..., MAX_HARMONICS]
+        twin = self.exact_twin() if bool((top > self.tol).any()) else None
+        return twin.with_hypers(hypers) if twin is not None else super().with_hypers(hypers)
+
+    def exact_twin(self) -> RFTBackend | None:
+        """The pairs backend on this backend's data and hyperparameters (exact at any lengthscale), built once, where
+        the data have at most ``EXACT_PAIRS`` distinct angle pairs (the pairs space's step is O(U^2 T)); else None."""
+        hit = self.__dict__.get("_exact_twin")
+        if hit is not None and hit[0] is self.stats:
+            return hit[1]
+        from .pairs import PairsBackend, distinct_pairs
+
+        twin = None
+        if self._data and sum(len(c) for c, _ in self._data) == self.n_samples:
+            c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
+                                                              torch.cat([d[1] for d in self._data]))
+            if distinct_pairs(c)[0].shape[0] <= EXACT_PAIRS:
+                twin = PairsBackend(self.hypers, c, f)
+        self._exact_twin = (self.stats, twin)
+        return twin
 
     def prepare(self, values: dict) -> None:
         """Outside a fit loop, grow the basis so that its truncation error is below ``tol`` for every

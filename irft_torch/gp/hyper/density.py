@@ -15,16 +15,31 @@ hand, a free parameter no term covers), each function returns None and the autog
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
 from torch import Tensor
 
 from ..backends.closed_form import closed_form_of, current_values, prior_terms
+from ..backends.covariance_terms import LENGTHSCALE
 
-__all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior"]
+__all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior", "draws_in_one_basis"]
 
 BATCH_ELEMENTS = 2**22  # a batch's largest intermediate (S x 2 x r x F numbers) is kept near this size
+_GROUPED = [True]
+
+
+@contextlib.contextmanager
+def draws_in_one_basis():
+    """Within this context a batch of draws is evaluated as before draws were grouped (``log_posterior_batch(...,
+    grouped=False)``: one spectral basis grown to hold every draw, truncated beyond ``MAX_HARMONICS``): the reference
+    of ``experiments/benchmarks/bench_inference.py``."""
+    _GROUPED.append(False)
+    try:
+        yield
+    finally:
+        _GROUPED.pop()
 
 
 def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
@@ -44,9 +59,11 @@ def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
     return values, valid
 
 
-def log_posterior_and_grad(backend, spec, theta: Tensor, grad: bool = True) -> tuple[Tensor, Tensor | None] | None:
+def log_posterior_and_grad(backend, spec, theta: Tensor, grad: bool = True,
+                           prepare: bool = True) -> tuple[Tensor, Tensor | None] | None:
     """log p(theta | F) (*S,) (-inf where a value is impossible or the covariance not positive definite)
-    and its gradient (*S, P_free) (zeros where -inf), for theta (*S, P_free); None without a closed form."""
+    and its gradient (*S, P_free) (zeros where -inf), for theta (*S, P_free); None without a closed form.
+    ``prepare``: let the backend adapt to the values first (False: it holds them already)."""
     cf = closed_form_of(backend)
     if cf is None or any(name not in cf.names for name in spec.names):
         return None
@@ -56,8 +73,9 @@ def log_posterior_and_grad(backend, spec, theta: Tensor, grad: bool = True) -> t
     if not bool(valid.any()):  # nothing possible to evaluate (nor to size a basis for)
         lp = theta.new_full(theta.shape[:-1], -math.inf)
         return lp, (torch.zeros_like(theta) if grad else None)
-    backend.prepare({n: v[valid] for n, v in values.items()} if valid.dim() else values)
-    cf = closed_form_of(backend)  # rebuilt if ``prepare`` grew the spectral basis
+    if prepare:
+        backend.prepare({n: v[valid] for n, v in values.items()} if valid.dim() else values)
+        cf = closed_form_of(backend)  # rebuilt if ``prepare`` grew the spectral basis
     lp_prior, g_prior, others = prior_terms(hypers, values, grad)
     if others:
         return None
@@ -79,9 +97,11 @@ def log_posterior_and_grad(backend, spec, theta: Tensor, grad: bool = True) -> t
     return lp, torch.where(good[..., None], d_theta, torch.zeros_like(d_theta))
 
 
-def log_posterior_batch(backend, spec, theta: Tensor) -> Tensor | None:
+def log_posterior_batch(backend, spec, theta: Tensor, grouped: bool = True) -> Tensor | None:
     """log p(theta_s | F) (S,) for theta (S, P_free), in chunks of draws (no gradient); None without a
-    closed form."""
+    closed form. ``grouped``: each draw in the space its own values need (``backend.draw_groups``: a spectral
+    backend evaluates each group of draws in the basis their lengthscales need, and keeps its own); False: every
+    draw in this backend, grown first to hold them all."""
     cf = closed_form_of(backend)
     if cf is None:
         return None
@@ -89,16 +109,38 @@ def log_posterior_batch(backend, spec, theta: Tensor) -> Tensor | None:
     if S == 0:
         return theta.new_zeros(0)
     values, valid = _values(backend, spec, theta)
-    if bool(valid.any()):
-        backend.prepare({n: v[valid] for n, v in values.items()})  # one basis for every possible draw
+    grouped = grouped and _GROUPED[-1]
+    groups = (backend.draw_groups(values[LENGTHSCALE][valid]) if grouped and bool(valid.any())
+              and LENGTHSCALE in values else None)
+    if groups is None or (len(groups) == 1 and groups[0][1] is backend):
+        if bool(valid.any()):
+            backend.prepare({n: v[valid] for n, v in values.items()})  # one basis for every possible draw
+        return _in_chunks(backend, spec, theta, prepare=True)
+    lp = theta.new_full((S,), -math.inf)
+    where = valid.nonzero()[:, 0]
+    for mask, part in groups:  # each part holds its draws already
+        idx = where[mask]
+        if len(idx):
+            got = _in_chunks(part, spec, theta[idx], prepare=False)
+            if got is None:
+                return None
+            lp[idx] = got
+    return lp
+
+
+def _in_chunks(backend, spec, theta: Tensor, prepare: bool) -> Tensor | None:
+    """``log_posterior_and_grad`` (no gradient) over theta (S, P_free) in chunks whose largest intermediate is
+    about ``BATCH_ELEMENTS`` numbers."""
     cf = closed_form_of(backend)
+    if cf is None:
+        return None
     R = cf.R
     per = 2 * (R.shape[-2] * R.shape[-1] if R is not None else cf.c_y.shape[-1] ** 2)
     chunk = max(1, BATCH_ELEMENTS // max(per, 1))
     out = []
     with torch.no_grad():
-        for i in range(0, S, chunk):
-            res = log_posterior_and_grad(backend, spec, theta[i:i + chunk], grad=False)
+        for i in range(0, theta.shape[0], chunk):
+            res = log_posterior_and_grad(backend, spec, theta[i:i + chunk], grad=False, prepare=prepare)
             if res is None:
                 return None
             out.append(res[0])
