@@ -6,7 +6,7 @@ generic-like, sharp and preset media for our seeds; blends, sloped beds and GP d
 Run time: about 20 s per terrain and seed here (2 cores); the default run about 6 minutes.
 
     python experiments/validation/walk_and_map.py [--seeds 0 1 2] [--held-out 100 101] [--stances 16]
-        [--prior-mean zero|physics] [--out experiments/results] [--plot]
+        [--prior-mean zero|physics] [--kernel li|li+generic|rbf] [--out experiments/results] [--plot]
 
 A C-toe walks 3 m along x, one stroke per foothold (two strokes alternating: a shallow scoop and a steep one),
 0.2 m apart, with 2 % force noise. The maps are then asked for at 12 places off the footholds (x along the
@@ -193,7 +193,8 @@ def filter_maps(model, c, F, stance, feet, places, window_stances: int = 3):
     return torch.stack([snaps[int(i)] for i in near])
 
 
-def run_one(kind: str, seed: int, n_stances: int, held_out: bool = False, prior_mean: str = "zero") -> dict:
+def run_one(kind: str, seed: int, n_stances: int, held_out: bool = False, prior_mean: str = "zero",
+            kernel: str | None = None) -> dict:
     import irft_torch as irft
     from irft_torch.rft import FourierStressMap
 
@@ -204,7 +205,7 @@ def run_one(kind: str, seed: int, n_stances: int, held_out: bool = False, prior_
     truth = torch.stack([field.at(p)(b, g) for p in places])  # (L, 13, 13, 2)
     out: dict = {"kind": kind, "seed": seed, "samples": len(c)}
     t0 = time.perf_counter()
-    spatial = irft.InverseRFT(c, F, locations=s, prior=irft.MapPrior(mean=prior_mean))
+    spatial = irft.InverseRFT(c, F, locations=s, prior=irft.MapPrior(mean=prior_mean, kernel=kernel))
     spatial.fit(progress=False)
     out["spatial_s"] = time.perf_counter() - t0
     post = spatial.stress_map(b, g, locations=places)
@@ -280,6 +281,8 @@ def main(argv=None) -> None:
     ap.add_argument("--plot", action="store_true", help="also write walk_and_map.png")
     ap.add_argument("--prior-mean", default="zero", choices=["zero", "physics"],
                     help="the spatial model's prior mean (the library's default: zero)")
+    ap.add_argument("--kernel", default=None, choices=["li", "li+generic", "rbf"],
+                    help="the spatial model's angle kernel (default: the library's, li+generic with places)")
     args = ap.parse_args(argv)
     torch.set_default_dtype(F64)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -289,7 +292,7 @@ def main(argv=None) -> None:
             for seed in seeds:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the unit checks on simulated media far from the generic
-                    r = run_one(kind, seed, args.stances, group == "held-out", args.prior_mean)
+                    r = run_one(kind, seed, args.stances, group == "held-out", args.prior_mean, args.kernel)
                 r["group"] = group
                 if last is None or (last["kind"] != "boundary" and kind == "boundary"):
                     last = r  # the figure: the first boundary walk

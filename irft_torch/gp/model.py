@@ -150,7 +150,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def __init__(self, contacts: Contacts, forces, locations=None, *, prior: MapPrior | None = None,
                  hyper_posterior: str | None = None, surface=None, engine: Engine | str | None = None,
                  noise_scale=None, statistics=None, **deprecated) -> None:
-        prior, engine, surface = planar_options(prior, engine, surface, deprecated)
+        prior, engine, surface = planar_options(prior, engine, surface, deprecated, spatial=locations is not None or
+                                                getattr(contacts, "locations", None) is not None)
         surface_offset, surface_groups = surface is not None, None if surface is None or surface is True else surface
         method, tol, dtype = engine.method, engine.tol, engine.dtype
         solver = deprecated.get("_solver", "cholesky")

@@ -20,22 +20,28 @@ import torch
 __all__ = ["MapPrior", "Engine", "KERNELS", "planar_options", "options_3d", "grouped", "grouped_3d"]
 
 KERNELS = ("li", "rbf", "li+generic")
-DEFAULTS = {"InverseRFT": {"kernel": "li", "mean": "zero"}, "InverseRFT3D": {"kernel": "rbf", "mean": "physics"}}
+DEFAULTS = {"InverseRFT": {"kernel": "li", "mean": "zero"}, "InverseRFT3D": {"kernel": "rbf", "mean": "physics"},
+            # maps over the ground (InverseRFT(..., locations=xy)): Li et al.'s generic shape as a term too, so its
+            # scale can vary over the ground (docs/terrain.md: below every baseline on walks, own and held-out media)
+            "InverseRFT spatial": {"kernel": "li+generic", "mean": "zero"}}
 REMOVED_IN = "0.4"
 
 
 @dataclass(frozen=True)
 class MapPrior:
-    """What the stress maps are before the data. None: the model's default (planar / 3-D).
+    """What the stress maps are before the data. None: the model's default (planar, over the ground / 3-D).
 
     Args:
-        kernel: "li" (planar default): the RBF on the angle torus plus Li et al.'s 9 functions {1, cos 2beta,
-            sin 2beta} x {1, cos gamma, sin gamma} as a term with its own variance per map (``gp.kernels.li_basis``):
+        kernel: "li" (planar default; with ``locations``, "li+generic"): the RBF on the angle torus plus Li et al.'s
+            9 functions {1, cos 2beta, sin 2beta} x {1, cos gamma, sin gamma} as a term with its own variance per map
+            (``gp.kernels.li_basis``):
             what the forces leave unseen follows shapes real media have (docs/calibration.md). "rbf" (3-D
             default): the paper's RBF alone (Table I / II). "li+generic": also Li et al.'s generic map with a scale
             of its own, integrated out; its niche: media known to share the generic shape seen through a narrow
-            slice of angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84); it loses the planar
-            wheels' vertical force beyond the spread (planar only).
+            slice of angles (a leg rotating about its hip: alpha_z coverage 0.98 against 0.84), and maps over the
+            ground (the spatial default: its scale varies over the ground; walks over two media, a gradient and
+            patches, own and held-out media: below every baseline, docs/terrain.md); it loses the planar wheels'
+            vertical force beyond the spread (planar only).
         mean: the prior mean. "zero" (planar default, the paper). "physics" (3-D default: Li et al.'s generic
             shape x learned scales): wins on the rover wheels in 3-D and on walks over media of the generic shape
             (docs/terrain.md); on the DEM plate it is worse in z (docs/experiments.md). "average" (planar: both,
@@ -190,10 +196,10 @@ def _with_flat(prior: MapPrior, engine: Engine, flat: dict) -> tuple[MapPrior, E
     return replace(prior, **p), replace(engine, **e)
 
 
-def planar_options(prior, engine, surface, flat: dict) -> tuple[MapPrior, Engine, object]:
-    """``InverseRFT``'s choices resolved: (MapPrior with the planar defaults, Engine, surface: None, True or groups
-    (T,)); ``flat``: the deprecated keywords given (warned once, here). ``grid_size`` and ``exact_max_segments``
-    stay in ``flat`` for the caller (retired, ignored with a FutureWarning)."""
+def planar_options(prior, engine, surface, flat: dict, spatial: bool = False) -> tuple[MapPrior, Engine, object]:
+    """``InverseRFT``'s choices resolved: (MapPrior with the planar defaults, or a spatial model's where ``spatial``,
+    Engine, surface: None, True or groups (T,)); ``flat``: the deprecated keywords given (warned once, here).
+    ``grid_size`` and ``exact_max_segments`` stay in ``flat`` for the caller (retired, ignored with a FutureWarning)."""
     owner = "InverseRFT"
     retired = {k: flat.pop(k) for k in ("grid_size", "exact_max_segments", "_solver") if k in flat}
     solver = "solver" in flat  # no replacement: nothing measured where CG / Lanczos wins here
@@ -203,7 +209,7 @@ def planar_options(prior, engine, surface, flat: dict) -> tuple[MapPrior, Engine
     p, e = _with_flat(_as_prior(prior, owner), _as_engine(engine, owner), flat)
     if flat or solver:
         _warn_flat(owner, flat, p, e, solver)
-    p = _with_defaults(p, owner)
+    p = _with_defaults(p, "InverseRFT spatial" if spatial else owner)
     if e.max_harmonics is not None:
         raise ValueError("Engine(max_harmonics=...) is the 3-D spectral backend's cap; the planar one sizes its "
                          "basis by tol")

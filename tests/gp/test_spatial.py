@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from irft_torch import InverseRFT, rft
+from irft_torch import InverseRFT, MapPrior, rft
 from irft_torch.rft import CToe, FourierStressMap, TerrainField, course_path, walk
 from irft_torch.rft.contacts import Contacts
 
@@ -59,6 +59,10 @@ def _angle_kernel(model, b1, g1, b2, g2):
 
     if h.li is not None:
         K = K + h.li.variance.detach()[:, None, None] * (li(b1, g1) @ li(b2, g2).T)[None]
+    if h.li is not None and h.li.generic:  # the generic shape's term u_a g_a(theta) g_a(theta'), g: Li et al.'s map
+        gen = FourierStressMap.generic().to(F64)
+        a, b = gen(b1, g1).T, gen(b2, g2).T  # (2, N)
+        K = K + h.li.generic_variance.detach()[:, None, None] * a[:, :, None] * b[:, None, :]
     return K
 
 
@@ -95,10 +99,11 @@ def _dense(model, c, F, s, qc, qs):
     return mean, var, K11
 
 
-@pytest.mark.parametrize("li_basis", [False, True])
+@pytest.mark.parametrize("li_basis", [False, True, "generic"])
 def test_spatial_posterior_is_the_dense_product_covariance_model(li_basis):
     c, F, s = _walk()
-    m = InverseRFT(c, F, locations=s, hyper_posterior="map", li_basis=li_basis)
+    kernel = {False: "rbf", True: "li", "generic": "li+generic"}[li_basis]
+    m = InverseRFT(c, F, locations=s, hyper_posterior="map", prior=MapPrior(kernel=kernel))
     _set(m)
     assert m.spatial and m.method == "spatial"
     # maps at places on and off the footholds
@@ -149,20 +154,27 @@ def test_gpytorch_exact_gp_predicts_what_the_spatial_backend_does():
     torch.testing.assert_close(got.variance, ref.variance.T, rtol=1e-6, atol=1e-8)
 
 
-def test_equal_places_are_the_planar_model_with_the_factor_in_its_variances():
+@pytest.mark.parametrize("kernel", ["li", "li+generic"])
+def test_equal_places_are_the_planar_model_with_the_factor_in_its_variances(kernel):
     """Every sample at one place: the factor is 1 + v everywhere, so the spatial model is the planar one with its
-    angle variances times 1 + v (to 1e-10); with no places at all the planar model is built."""
+    angle variances times 1 + v (to 1e-10), for the planar default's kernel and the spatial default's; with no
+    places at all the planar model is built."""
+    from irft_torch import MapPrior
+
     c, F, s = _walk(n_stances=4)
     here = torch.tensor([0.3, -0.1], dtype=F64)
-    sp = InverseRFT(c, F, locations=here.expand(len(c), 2), hyper_posterior="map")
+    prior = MapPrior(kernel=kernel)
+    sp = InverseRFT(c, F, locations=here.expand(len(c), 2), hyper_posterior="map", prior=prior)
     _set(sp)
-    pl = InverseRFT(c, F, hyper_posterior="map")
+    pl = InverseRFT(c, F, hyper_posterior="map", prior=prior)
     assert not pl.spatial and pl.method != "spatial"
     v = sp.hypers.spatial.variance.detach()
     with torch.no_grad():
         pl.hypers.lengthscale = sp.hypers.lengthscale.detach()
         pl.hypers.outputscale = sp.hypers.outputscale.detach() * (1 + v)
         pl.hypers.li.variance = sp.hypers.li.variance.detach() * (1 + v)
+        if kernel == "li+generic":
+            pl.hypers.li.generic_variance = sp.hypers.li.generic_variance.detach() * (1 + v)
         pl.hypers.noise = sp.hypers.noise.detach()
     beta, gamma = torch.meshgrid(torch.linspace(-1.4, 1.4, 7, dtype=F64), torch.linspace(-3, 3, 9, dtype=F64),
                                  indexing="ij")
@@ -170,6 +182,19 @@ def test_equal_places_are_the_planar_model_with_the_factor_in_its_variances():
     b = pl.stress_map(beta, gamma)
     torch.testing.assert_close(a.mean[0], b.mean, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(a.variance[0], b.variance, rtol=1e-10, atol=1e-12)
+
+
+def test_the_defaults_over_the_ground_add_the_generic_shape():
+    """A model with places takes MapPrior(kernel="li+generic") by default (its scale then varies over the ground),
+    one without keeps "li"; a kernel asked for is kept."""
+    from irft_torch import MapPrior
+
+    c, F, s = _walk(n_stances=3)
+    assert InverseRFT(c, F, locations=s, hyper_posterior="map").prior.kernel == "li+generic"
+    assert InverseRFT(c.with_locations(s), F, hyper_posterior="map").prior.kernel == "li+generic"
+    assert InverseRFT(c, F, hyper_posterior="map").prior.kernel == "li"
+    m = InverseRFT(c, F, locations=s, hyper_posterior="map", prior=MapPrior(kernel="li"))
+    assert m.prior.kernel == "li" and not m.hypers.li.generic
 
 
 def test_streaming_stances_equals_the_batch_model():

@@ -42,7 +42,7 @@ def _close(a, b, tol=1e-8):
     torch.testing.assert_close(a, b, rtol=tol, atol=tol * max(float(b.abs().max()), 1e-12))
 
 
-@pytest.mark.parametrize("kernel,window", [("li", None), ("rbf", 5)])
+@pytest.mark.parametrize("kernel,window", [("li+generic", None), ("li", 4), ("rbf", 5)])
 def test_each_environment_is_the_dense_product_covariance_model(kernel, window):
     m = _model(kernel)
     envs = _envs()
