@@ -189,6 +189,13 @@ def varied_case(q: bool, row) -> None:
             row(f"12. the same {T:,} samples: the default (Laplace) against the mode's fit (hyper_posterior='map', "
                 f"ended in {plug_in.backend.describe()})", f"{whole[T]:.1f} s; {len(said)} warnings",
                 f"mode only {mode:.1f} s; {len(said_map)} warnings", f"{whole[T] / mode:.1f}x", "<= 2x, no warning")
+            from irft_torch.gp.hyper.density import draws_in_one_basis
+
+            with draws_in_one_basis():  # the draws as before they were grouped: one basis grown for all of them
+                _, one, _, said_one = timed_fit(c, f)
+            row(f"12. the same {T:,} samples: the default, the draws each in the basis they need", f"{whole[T]:.1f} s",
+                f"every draw in one basis grown for all {one:.1f} s; {len(said_one)} warnings",
+                f"{one / whole[T]:.2f}x", "-")
 
 
 def step(model) -> float:

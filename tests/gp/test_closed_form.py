@@ -176,28 +176,38 @@ def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
     exact = make_backend("pairs", model.hypers, model.train_contacts, model.train_forces)
     want = log_posterior_batch(exact, spec, x)
     torch.testing.assert_close(grouped, want, rtol=1e-8, atol=1e-7)
-    with pytest.warns(UserWarning, match="need more than 30 harmonics"):  # one basis for all: truncated, and said
-        one = log_posterior_batch(backend, spec, x, grouped=False)
-    torch.testing.assert_close(grouped[:10], one[:10], rtol=1e-8, atol=1e-7)
-    assert abs(float(one[11] - want[11])) > 1e-4  # the truncated kernel's value, 1.3e-3 off
-    # a kept draw that short predicts in the exact space too; one the fit's basis holds keeps the spectral space
+    # a kept draw that short predicts in the exact space too; a shorter one than the fit's in the basis it needs
     import copy
 
     short = copy.deepcopy(model.hypers)
     short.lengthscale = values[LS][11]
     assert backend.with_hypers(short).name == "pairs"
-    assert backend.with_hypers(copy.deepcopy(model.hypers)) is None  # the model builds it from its statistics
+    mid = copy.deepcopy(model.hypers)
+    mid.lengthscale = values[LS][8]  # a longer basis than the fit's: cut from the batch's statistics, no pass
+    from irft_torch.gp.kernels.fourier import FourierBasis
+
+    got = backend.with_hypers(mid)
+    assert got.name == "spectral" and got.basis == FourierBasis.for_lengthscale(mid.lengthscale, backend.tol)
+    fresh = make_backend("spectral", mid, model.train_contacts, model.train_forces)  # its own pass over the data
+    torch.testing.assert_close(got.loss(), fresh.loss(), rtol=1e-12, atol=0)
+    backend.forget_draws()
+    assert backend.with_hypers(mid) is None  # the model builds it from its own statistics
+    with pytest.warns(UserWarning, match="need more than 30 harmonics"):  # one basis for all: truncated, and said
+        one = log_posterior_batch(backend, spec, x, grouped=False)
+    torch.testing.assert_close(grouped[:10], one[:10], rtol=1e-8, atol=1e-7)
+    assert abs(float(one[11] - want[11])) > 1e-4  # the truncated kernel's value, 1.3e-3 off
 
 
 def test_draw_groups_partition_by_hand():
-    """The grouping's partition by hand: sorted costs [1, 1, 1, 10] in two groups cost 3 x 1 + 1 x 10 = 13 (one
-    group: 40); three equal costs stay one group; one item, one group."""
-    from irft_torch.gp.backends.spectral import _split_sizes
+    """The grouping's partition of (n_beta, n_gamma) keys by hand: [(8, 24) x 10, (12, 16) x 10, (30, 30) x 1] in
+    two groups: the first two share (12, 24) (20 x 25 x 49 + 61 x 61 = 28,221 features evaluated) rather than
+    (8, 24) alone and the rest in (30, 30) (10 x 17 x 49 + 11 x 61^2 = 49,261) or one group (21 x 61^2); (4, 28)
+    and (28, 4) stay apart (their union would be (28, 28)); one key, one group."""
+    from irft_torch.gp.backends.spectral import _split_keys
 
-    assert _split_sizes([1, 1, 1, 10], 2) == [3, 1]
-    assert _split_sizes([1, 2, 50, 60], 2) == [2, 2]
-    assert _split_sizes([5, 5, 5], 3) == [3]
-    assert _split_sizes([7], 4) == [1]
+    assert _split_keys([(8, 24), (12, 16), (30, 30)], [10, 10, 1], 2) == [2, 1]
+    assert _split_keys([(4, 28), (28, 4)], [5, 5], 2) == [1, 1]
+    assert _split_keys([(8, 8)], [3], 4) == [1]
 
 
 def test_impossible_draws_get_minus_infinity_and_no_gradient():

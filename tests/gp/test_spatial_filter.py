@@ -42,12 +42,15 @@ def _close(a, b, tol=1e-8):
     torch.testing.assert_close(a, b, rtol=tol, atol=tol * max(float(b.abs().max()), 1e-12))
 
 
-@pytest.mark.parametrize("kernel,window", [("li+generic", None), ("li", 4), ("rbf", 5)])
-def test_each_environment_is_the_dense_product_covariance_model(kernel, window):
+@pytest.mark.parametrize("kernel,window,small", [("li+generic", None, True), ("li", 4, False), ("rbf", 5, False)])
+def test_each_environment_is_the_dense_product_covariance_model(kernel, window, small):
+    """``small``: room for 2 samples to start (the capacity doubles as samples come) and one environment per
+    block (the per-block slices of places and tracked points)."""
     m = _model(kernel)
     envs = _envs()
     T = len(envs[0][0])
-    filt = TerrainFilter(m, n_envs=B, window=window)
+    sizes = {"capacity": 2, "block_bytes": 1} if small else {}
+    filt = TerrainFilter(m, n_envs=B, window=window, **sizes)
     assert filt.spatial and "spatial=True" in repr(filt)
     beta = torch.tensor([0.2, -0.6, 1.0], dtype=F64)
     gamma = torch.tensor([1.1, -0.4, 2.2], dtype=F64)

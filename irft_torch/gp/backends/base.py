@@ -136,6 +136,9 @@ class RFTBackend(nn.Module):
         setting here (the exact spaces' cost does not depend on them)."""
         return None
 
+    def forget_draws(self) -> None:
+        """Drop what evaluating a batch of hyperparameter draws kept (nothing by default)."""
+
     def prepare(self, values: dict) -> None:
         """Adapt to hyperparameter values about to be evaluated by ``closed_form()`` (name -> (*S, *shape);
         the spectral basis grows to hold their lengthscales). Nothing by default."""

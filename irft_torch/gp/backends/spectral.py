@@ -12,6 +12,7 @@ keeps).
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 
 import torch
@@ -24,11 +25,25 @@ from .base import FunctionalPosterior, RFTBackend, split_blocks
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
 __all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features", "DRAW_HARMONICS", "DRAW_GROUPS",
-           "EXACT_PAIRS"]
+           "EXACT_PAIRS", "draws_in_one_basis"]
 
 DRAW_HARMONICS = 4  # a batch of hyperparameter draws is grouped by the basis each needs, rounded up to this step
 DRAW_GROUPS = 4  # and those this backend's basis does not hold into at most this many groups
 EXACT_PAIRS = 4096  # draws beyond every basis go to the exact pairs space up to this many distinct angle pairs
+_GROUPED = [True]  # False inside ``draws_in_one_basis``
+
+
+@contextlib.contextmanager
+def draws_in_one_basis():
+    """Within this context a batch of hyperparameter draws is evaluated as before draws were grouped: one spectral
+    basis grown to hold every draw (truncated beyond ``MAX_HARMONICS``), each kept draw's backend built from the fit's
+    statistics in the basis it needs (``draw_groups`` and ``with_hypers`` stand aside). The reference of
+    ``experiments/benchmarks/bench_inference.py``."""
+    _GROUPED.append(False)
+    try:
+        yield
+    finally:
+        _GROUPED.pop()
 
 
 def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
@@ -99,14 +114,20 @@ def restrict_statistics(stats: FeatureStatistics, basis: FourierBasis) -> Featur
                              out_meta)
 
 
-def _split_sizes(costs: list[float], groups: int) -> list[int]:
-    """Contiguous groups (their lengths) of sorted per-item costs, at most ``groups`` of them, minimizing the sum over
-    groups of (items x the group's largest cost): what evaluating each group at its largest item's size costs."""
-    n = len(costs)
+def _split_keys(keys: list[tuple[int, int]], counts: list[int], groups: int) -> list[int]:
+    """Contiguous groups (their lengths) of (n_beta, n_gamma) keys sorted by size, at most ``groups`` of them,
+    minimizing the sum over groups of (draws x the features of the group's basis: its largest n_beta by its largest
+    n_gamma), what evaluating each group in one basis that holds all its draws costs. ``counts``: draws per key."""
+    n = len(keys)
+
+    def cost(i: int, j: int) -> float:  # keys i..j-1 in one basis
+        nb, ng = max(k[0] for k in keys[i:j]), max(k[1] for k in keys[i:j])
+        return sum(counts[i:j]) * (2 * nb + 1) * (2 * ng + 1)
+
     best: dict[tuple[int, int], tuple[float, list[int]]] = {(0, 0): (0.0, [])}  # (placed, groups) -> (cost, lengths)
     for g in range(1, groups + 1):
         for j in range(1, n + 1):
-            options = [(best[i, g - 1][0] + (j - i) * costs[j - 1], best[i, g - 1][1] + [j - i])
+            options = [(best[i, g - 1][0] + cost(i, j), best[i, g - 1][1] + [j - i])
                        for i in range(j) if (i, g - 1) in best]
             if options:
                 best[j, g] = min(options, key=lambda o: o[0])
@@ -254,9 +275,11 @@ class SpectralBackend(WeightSpaceBackend):
         batch costs what each setting needs, not what its shortest lengthscale needs, and this backend's basis
         stays the fit's. Settings that no basis up to ``MAX_HARMONICS`` holds within ``tol`` go to the exact space
         of the data's distinct angle pairs (``exact_twin``) where it is affordable, else stay in the largest basis
-        with a warning (their kernel truncated). None where the data are not kept whole (statistics only, or
-        samples added since): the caller then grows this basis for the batch (``prepare``)."""
-        if not self._data or sum(len(c) for c, _ in self._data) != self.n_samples:
+        with a warning (their kernel truncated). None where this backend does not keep all of its data (built from
+        statistics, or statistics merged in) or its basis is held (``method="auto"`` on nearly noise-free data): the
+        caller then grows this basis for the batch (``prepare``). Inside ``draws_in_one_basis()``: None."""
+        if self.held or not _GROUPED[-1] or not self._data or \
+                sum(len(c) for c, _ in self._data) != self.n_samples:
             return None
         ls = lengthscale.detach().reshape(-1, 2, 4).double()
         eb, eg = truncation_errors(ls[..., 0:2]), truncation_errors(ls[..., 2:4])  # (S, 2, MAX_HARMONICS + 1)
@@ -286,13 +309,19 @@ class SpectralBackend(WeightSpaceBackend):
         rest = ~own
         if not bool(rest.any()):
             return groups
-        # at most DRAW_GROUPS groups of the others, by the features they need (each group's basis holds all of its
+        # at most DRAW_GROUPS groups of the others, by the bases they need (each group's basis holds all of its
         # draws): fewer backends to build, each draw in a basis near its own
-        idx = rest.nonzero()[:, 0]
-        size = (2 * nb[idx] + 1) * (2 * ng[idx] + 1)
-        order = idx[size.argsort(stable=True)]
-        for part in order.split(_split_sizes(size.sort().values.tolist(), DRAW_GROUPS)):
-            nb[part], ng[part] = nb[part].max(), ng[part].max()
+        need_keys = sorted({(int(a), int(b)) for a, b in zip(nb[rest].tolist(), ng[rest].tolist())},
+                           key=lambda k: ((2 * k[0] + 1) * (2 * k[1] + 1), k))
+        counts = [int((rest & (nb == a) & (ng == b)).sum()) for a, b in need_keys]
+        start = 0
+        for length in _split_keys(need_keys, counts, DRAW_GROUPS):
+            part = need_keys[start:start + length]
+            top = (max(k[0] for k in part), max(k[1] for k in part))
+            for a, b in part:
+                at = rest & (nb == a) & (ng == b)
+                nb[at], ng[at] = top
+            start += length
         keys = sorted({(int(a), int(b)) for a, b in zip(nb[rest].tolist(), ng[rest].tolist())})
         bases = [with_li_functions(FourierBasis(a, b)) if self.hypers.li is not None else FourierBasis(a, b)
                  for a, b in keys]
@@ -306,7 +335,9 @@ class SpectralBackend(WeightSpaceBackend):
         if not self._covers(hit[1], big):
             held = hit[1].meta
             grown = FourierBasis(max(big.n_beta, int(held["n_beta"])), max(big.n_gamma, int(held["n_gamma"])))
-            hit[1] = spectral_statistics(c, f, grown, self.hypers.mean)
+            stored = self._stored
+            hit[1] = (restrict_statistics(stored, grown) if stored is not None and self._covers(stored, grown)
+                      else spectral_statistics(c, f, grown, self.hypers.mean))
         for (a, b), basis in zip(keys, bases):
             if basis not in hit[2]:
                 hit[2][basis] = SpectralBackend(self.hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
@@ -315,12 +346,32 @@ class SpectralBackend(WeightSpaceBackend):
 
     def with_hypers(self, hypers) -> RFTBackend | None:
         """A draw's backend: for a draw whose lengthscales no basis up to ``MAX_HARMONICS`` holds within ``tol``, the
-        exact pairs space (``exact_twin``, its statistics shared) where that is affordable; else None (the model
-        builds a spectral backend from its statistics)."""
+        exact pairs space (``exact_twin``, its statistics shared) where that is affordable; for another, a spectral
+        backend in the basis it needs, cut from the statistics its batch was evaluated in (``draw_groups``) where
+        they cover it; else None (the model builds one from its own statistics). Inside ``draws_in_one_basis()``:
+        None."""
+        if not _GROUPED[-1] or self.held:
+            return None
         ls = hypers.lengthscale.detach().reshape(-1, 2, 4).double()
         top = truncation_errors(ls[..., 0:2])[..., MAX_HARMONICS] + truncation_errors(ls[..., 2:4])[..., MAX_HARMONICS]
         twin = self.exact_twin() if bool((top > self.tol).any()) else None
-        return twin.with_hypers(hypers) if twin is not None else super().with_hypers(hypers)
+        if twin is not None:
+            return twin.with_hypers(hypers)
+        hit = self.__dict__.get("_draw_cache")
+        if hit is None or hit[0] is not self.stats or not self._data:
+            return None
+        basis = FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
+        basis = with_li_functions(basis) if hypers.li is not None else basis
+        if not self._covers(hit[1], basis):
+            return None
+        c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
+                                                          torch.cat([d[1] for d in self._data]))
+        return SpectralBackend(hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
+
+    def forget_draws(self) -> None:
+        """Drop what evaluating a batch of draws kept (``draw_groups``: statistics in the largest basis a draw needed,
+        up to 2 x 3721^2 numbers, and a backend per group): called once the draws' own backends are built."""
+        self.__dict__.pop("_draw_cache", None)
 
     def exact_twin(self) -> RFTBackend | None:
         """The pairs backend on this backend's data and hyperparameters (exact at any lengthscale), built once, where

@@ -15,7 +15,6 @@ hand, a free parameter no term covers), each function returns None and the autog
 
 from __future__ import annotations
 
-import contextlib
 import math
 
 import torch
@@ -23,25 +22,11 @@ from torch import Tensor
 
 from ..backends.closed_form import closed_form_of, current_values, prior_terms
 from ..backends.covariance_terms import LENGTHSCALE
+from ..backends.spectral import draws_in_one_basis
 
 __all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior", "draws_in_one_basis"]
 
 BATCH_ELEMENTS = 2**22  # a batch's largest intermediate (S x 2 x r x F numbers) is kept near this size
-_GROUPED = [True]
-
-
-@contextlib.contextmanager
-def draws_in_one_basis():
-    """Within this context a batch of draws is evaluated as before draws were grouped (``log_posterior_batch(...,
-    grouped=False)``: one spectral basis grown to hold every draw, truncated beyond ``MAX_HARMONICS``): the reference
-    of ``experiments/benchmarks/bench_inference.py``."""
-    _GROUPED.append(False)
-    try:
-        yield
-    finally:
-        _GROUPED.pop()
-
-
 def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
     """Every hyperparameter's value (name -> (*S, *shape)) for theta (*S, P_free), the fixed ones at their
     current values, and whether each draw is possible (every value above its constraint's lower bound)."""
@@ -109,7 +94,6 @@ def log_posterior_batch(backend, spec, theta: Tensor, grouped: bool = True) -> T
     if S == 0:
         return theta.new_zeros(0)
     values, valid = _values(backend, spec, theta)
-    grouped = grouped and _GROUPED[-1]
     groups = (backend.draw_groups(values[LENGTHSCALE][valid]) if grouped and bool(valid.any())
               and LENGTHSCALE in values else None)
     if groups is None or (len(groups) == 1 and groups[0][1] is backend):

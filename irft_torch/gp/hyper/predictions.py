@@ -121,6 +121,7 @@ class HyperMixtureMixin(nn.Module):
                 finally:
                     self.eval()
                 self._set_hyper_posterior(hp)
+            self.backend.forget_draws()  # the draws' own backends are built: what their batch kept can go
             if truncated and hp is not None:  # reported by diagnostics(): the draws' share is small, nothing to do
                 hp.extra["truncated"] = f"{len(truncated)} of the draws' kernels are truncated ({truncated[0]})"
         companion = getattr(self, "companion", None)

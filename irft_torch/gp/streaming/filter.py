@@ -497,7 +497,9 @@ class TerrainFilter(nn.Module):
         same points for every environment (per-environment points: ``predict_forces`` of one-segment
         contacts of unit weight, ``Contacts.points``). Returns mean and variance (B, *S, 2) in N/cm^3 and
         (N/cm^3)^2. A spatial filter takes ``locations``: (B, 2), each environment's place in m (result
-        (B, *S, 2)), or (B, L, 2), L places each (result (B, L, *S, 2)); None: the medium shared by the site.
+        (B, *S, 2)), or (B, L, 2), L places each (result (B, L, *S, 2)); None: the medium shared by the site. (The
+        same L places for every environment: expand them to (B, L, 2); an (L, 2) tensor is read as one place per
+        environment.)
 
         The last points asked are *tracked*: every later ``update`` extends their posterior, so asking
         them again costs nothing more. Differentiable in beta and gamma (then computed afresh)."""
@@ -506,6 +508,9 @@ class TerrainFilter(nn.Module):
         S = torch.broadcast_shapes(beta.shape, gamma.shape)
         B = self.n_envs
         shape = tuple(torch.as_tensor(locations).shape) if locations is not None else ()
+        if locations is not None and self.spatial and len(shape) not in (2, 3):
+            raise ValueError(f"locations must have shape (B, 2) or (B, L, 2) (x, y in m) with B = n_envs = {B}, got "
+                             f"{shape}")
         one_place = len(shape) == 2
         where = self._places(locations, (B,) if one_place else (B, shape[1] if len(shape) == 3 else 1), "locations")
         if where is not None and one_place:
