@@ -473,8 +473,8 @@ class TerrainFilter(nn.Module):
     def _cross_t(self, left: Tensor, w: Tensor, fl: Tensor | None, places: Tensor | None = None) -> Tensor:
         """K^T (B, 2, P, n): the prior covariance of P functionals per environment (left sides
         (B, 2, P * Ml, 5), weights (B, 2, P, Ml), the term's features (B, 2, P, 9) or None; expanded views are
-        fine; a spatial filter's places (B, P, 2) m, or None: the shared medium) with the samples held, in
-        Cholesky order (zero past them)."""
+        fine; a spatial filter's places (B, L, 2) m, L dividing P, each the place of P / L consecutive functionals,
+        or None: the shared medium) with the samples held, in Cholesky order (zero past them)."""
         B, N, M = self.n_envs, self.capacity, self.n_segments
         P = w.shape[-2]
         if torch.is_grad_enabled() and (left.requires_grad or w.requires_grad):
@@ -487,8 +487,9 @@ class TerrainFilter(nn.Module):
         K = torch.cat(parts) if len(parts) > 1 else parts[0]
         if fl is not None:
             K = K + self._li_cross(fl, self.lf)  # zero features in the empty slots
-        if places is not None:
-            K = K * self._factor(places, self.loc)
+        if places is not None:  # one factor per place, shared by its functionals
+            L = places.shape[1]
+            K = (K.view(B, 2, L, P // L, N) * self._factor(places, self.loc).unsqueeze(-2)).view(B, 2, P, N)
         order = (self.start[:, None] + torch.arange(N, device=self.device)) % N
         return K.gather(-1, order[:, None, None, :].expand(B, 2, P, N))
 
@@ -542,8 +543,7 @@ class TerrainFilter(nn.Module):
             P = L * Q
             left_q = left.unsqueeze(0).unsqueeze(2).expand(B, 2, L, Q, 5).reshape(B, 2, P, 5)
             fq_b = None if fq is None else fq.unsqueeze(1).expand(2, L, Q, 9).reshape(2, P, 9).expand(B, 2, P, 9)
-            places = None if where is None else where.repeat_interleave(Q, 1)  # (B, L Q, 2)
-            K_t = self._cross_t(left_q, w.repeat(1, L)[None, :, :, None].expand(B, 2, P, 1), fq_b, places)
+            K_t = self._cross_t(left_q, w.repeat(1, L)[None, :, :, None].expand(B, 2, P, 1), fq_b, where)
             At = K_t @ self.U
             if grad:
                 mean = prior[..., None] + At @ self.z[..., None]
