@@ -176,6 +176,13 @@ def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
     exact = make_backend("pairs", model.hypers, model.train_contacts, model.train_forces)
     want = log_posterior_batch(exact, spec, x)
     torch.testing.assert_close(grouped, want, rtol=1e-8, atol=1e-7)
+    # one setting at a time with its gradient (L-BFGS, NUTS): the same spaces, this backend's basis unchanged
+    for k in (8, 11):
+        lp, g = log_posterior_and_grad(backend, spec, x[k])
+        lp_exact, g_exact = log_posterior_and_grad(exact, spec, x[k])
+        torch.testing.assert_close(lp, lp_exact, rtol=1e-8, atol=1e-7)
+        torch.testing.assert_close(g, g_exact, rtol=1e-6, atol=1e-6 * float(g_exact.abs().max()))
+    assert backend.basis == before
     # a kept draw that short predicts in the exact space too; a shorter one than the fit's in the basis it needs
     import copy
 

@@ -136,6 +136,11 @@ class RFTBackend(nn.Module):
         setting here (the exact spaces' cost does not depend on them)."""
         return None
 
+    def space_for(self, lengthscale: Tensor) -> RFTBackend:
+        """The backend one hyperparameter setting (lengthscales (2, 1, 4)) is evaluated in at least cost: this one
+        (the spectral backend: the basis the setting needs, ``draw_groups``)."""
+        return self
+
     def forget_draws(self) -> None:
         """Drop what evaluating a batch of hyperparameter draws kept (nothing by default)."""
 

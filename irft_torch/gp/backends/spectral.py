@@ -368,6 +368,15 @@ class SpectralBackend(WeightSpaceBackend):
                                                           torch.cat([d[1] for d in self._data]))
         return SpectralBackend(hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
 
+    def space_for(self, lengthscale: Tensor) -> RFTBackend:
+        """The backend one hyperparameter setting (lengthscales (2, 1, 4)) is evaluated in: this one where its basis
+        holds them within ``tol`` (the cheap check a step makes anyway), else ``draw_groups``' choice (the basis they
+        need, or the exact pairs space beyond ``MAX_HARMONICS``); this one where it cannot choose."""
+        if bool((self.basis.truncation_error(lengthscale.detach()) <= self.tol).all()):
+            return self
+        groups = self.draw_groups(lengthscale.detach()[None])
+        return self if not groups else groups[0][1]
+
     def forget_draws(self) -> None:
         """Drop what evaluating a batch of draws kept (``draw_groups``: statistics in the largest basis a draw needed,
         up to 2 x 3721^2 numbers, and a backend per group): called once the draws' own backends are built."""

@@ -58,6 +58,10 @@ def log_posterior_and_grad(backend, spec, theta: Tensor, grad: bool = True,
     if not bool(valid.any()):  # nothing possible to evaluate (nor to size a basis for)
         lp = theta.new_full(theta.shape[:-1], -math.inf)
         return lp, (torch.zeros_like(theta) if grad else None)
+    if prepare and theta.dim() == 1 and LENGTHSCALE in values:  # one setting (L-BFGS, NUTS): the space it needs
+        space = backend.space_for(values[LENGTHSCALE])
+        if space is not backend:
+            return log_posterior_and_grad(space, spec, theta, grad, prepare=False)
     if prepare:
         backend.prepare({n: v[valid] for n, v in values.items()} if valid.dim() else values)
         cf = closed_form_of(backend)  # rebuilt if ``prepare`` grew the spectral basis
