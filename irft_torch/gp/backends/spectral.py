@@ -267,6 +267,15 @@ class SpectralBackend(WeightSpaceBackend):
             terms += li_terms(self.hypers, H)
         return terms
 
+    def _whole_data(self) -> tuple[Contacts, Tensor] | None:
+        """The training contacts and forces, where this backend keeps all of them (None: built from statistics, or
+        statistics merged in)."""
+        if not self._data or sum(len(c) for c, _ in self._data) != self.n_samples:
+            return None
+        if len(self._data) == 1:
+            return self._data[0]
+        return Contacts.cat([d[0] for d in self._data]), torch.cat([d[1] for d in self._data])
+
     def draw_groups(self, lengthscale: Tensor) -> list[tuple[Tensor, RFTBackend]] | None:
         """A batch of hyperparameter settings (lengthscales (S, 2, 1, 4)) grouped by the basis each needs for
         ``tol``: [(mask (S,), a backend on these data in that basis)], this backend itself for those it holds, and
@@ -278,9 +287,10 @@ class SpectralBackend(WeightSpaceBackend):
         with a warning (their kernel truncated). None where this backend does not keep all of its data (built from
         statistics, or statistics merged in) or its basis is held (``method="auto"`` on nearly noise-free data): the
         caller then grows this basis for the batch (``prepare``). Inside ``draws_in_one_basis()``: None."""
-        if self.held or not _GROUPED[-1] or not self._data or \
-                sum(len(c) for c, _ in self._data) != self.n_samples:
+        data = self._whole_data()
+        if self.held or not _GROUPED[-1] or data is None:
             return None
+        c, f = data
         ls = lengthscale.detach().reshape(-1, 2, 4).double()
         eb, eg = truncation_errors(ls[..., 0:2]), truncation_errors(ls[..., 2:4])  # (S, 2, MAX_HARMONICS + 1)
         own = (eb[..., self.basis.n_beta] + eg[..., self.basis.n_gamma] <= self.tol).all(-1)  # (S,)
@@ -330,8 +340,6 @@ class SpectralBackend(WeightSpaceBackend):
         hit = self.__dict__.get("_draw_cache")
         if hit is None or hit[0] is not self.stats:
             hit = self._draw_cache = [self.stats, self.stats, {}]
-        c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
-                                                          torch.cat([d[1] for d in self._data]))
         if not self._covers(hit[1], big):
             held = hit[1].meta
             grown = FourierBasis(max(big.n_beta, int(held["n_beta"])), max(big.n_gamma, int(held["n_gamma"])))
@@ -357,16 +365,14 @@ class SpectralBackend(WeightSpaceBackend):
         twin = self.exact_twin() if bool((top > self.tol).any()) else None
         if twin is not None:
             return twin.with_hypers(hypers)
-        hit = self.__dict__.get("_draw_cache")
-        if hit is None or hit[0] is not self.stats or not self._data:
+        hit, data = self.__dict__.get("_draw_cache"), self._whole_data()
+        if hit is None or hit[0] is not self.stats or data is None:
             return None
         basis = FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
         basis = with_li_functions(basis) if hypers.li is not None else basis
         if not self._covers(hit[1], basis):
             return None
-        c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
-                                                          torch.cat([d[1] for d in self._data]))
-        return SpectralBackend(hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
+        return SpectralBackend(hypers, *data, tol=self.tol, basis=basis, statistics=hit[1])
 
     def space_for(self, lengthscale: Tensor) -> RFTBackend:
         """The backend one hyperparameter setting (lengthscales (2, 1, 4)) is evaluated in: this one where its basis
@@ -390,12 +396,9 @@ class SpectralBackend(WeightSpaceBackend):
             return hit[1]
         from .pairs import PairsBackend, distinct_pairs
 
-        twin = None
-        if self._data and sum(len(c) for c, _ in self._data) == self.n_samples:
-            c, f = self._data[0] if len(self._data) == 1 else (Contacts.cat([d[0] for d in self._data]),
-                                                              torch.cat([d[1] for d in self._data]))
-            if distinct_pairs(c)[0].shape[0] <= EXACT_PAIRS:
-                twin = PairsBackend(self.hypers, c, f)
+        twin, data = None, self._whole_data()
+        if data is not None and distinct_pairs(data[0])[0].shape[0] <= EXACT_PAIRS:
+            twin = PairsBackend(self.hypers, *data)
         self._exact_twin = (self.stats, twin)
         return twin
 

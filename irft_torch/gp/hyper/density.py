@@ -27,6 +27,8 @@ from ..backends.spectral import draws_in_one_basis
 __all__ = ["log_posterior_and_grad", "log_posterior_batch", "closed_form_log_posterior", "draws_in_one_basis"]
 
 BATCH_ELEMENTS = 2**22  # a batch's largest intermediate (S x 2 x r x F numbers) is kept near this size
+
+
 def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
     """Every hyperparameter's value (name -> (*S, *shape)) for theta (*S, P_free), the fixed ones at their
     current values, and whether each draw is possible (every value above its constraint's lower bound)."""

@@ -58,9 +58,9 @@ O(n^2) for the factor, O(n Q) for a tracked query. ``experiments/benchmarks/benc
 from __future__ import annotations
 
 import copy
-import math
 
 import torch
+from linear_operator import to_dense
 from torch import Tensor, nn
 
 from ...rft.contacts import Contacts
@@ -107,8 +107,6 @@ class TerrainFilter(nn.Module):
     mean_scales: Tensor | None
     li_variance: Tensor | None
     li_covariance: Tensor | None
-    spatial_variance: Tensor | None
-    spatial_lengthscale: Tensor | None
     count: Tensor
     start: Tensor
     U: Tensor
@@ -153,12 +151,11 @@ class TerrainFilter(nn.Module):
             self.register_buffer("li_variance", None if li is None else li.detach().clone().to(dtype=dt, device=dev))
             P = hypers.li.covariance if hypers.li is not None and hypers.li.generic else None  # (2, 9, 9) or None
             self.register_buffer("li_covariance", None if P is None else P.detach().clone().to(dtype=dt, device=dev))
-            sp = getattr(hypers, "spatial", None)  # the spatial factor (gp.kernels.spatial), or None
-            self.register_buffer("spatial_variance",
-                                 None if sp is None else sp.variance.detach().clone().to(dtype=dt, device=dev))
-            self.register_buffer("spatial_lengthscale",
-                                 None if sp is None else sp.lengthscale.detach().clone().to(dtype=dt, device=dev))
+        sp = getattr(hypers, "spatial", None)  # the spatial factor (gp.kernels.spatial), or None
         self.spatial = sp is not None
+        # its gpytorch kernel v k_s (ScaleKernel(MaternKernel(nu=2.5)), batch (2,)), copied like the prior mean's shape
+        self._spatial = (None if sp is None
+                         else copy.deepcopy(sp.kernel).to(dtype=dt, device=dev).requires_grad_(False))
         self._shape = (None if hypers.mean is None
                        else copy.deepcopy(hypers.mean).to(dtype=dt, device=dev).requires_grad_(False))
         # The state of environment b, map axis a (the module docstring): n = capacity sample positions
@@ -252,13 +249,17 @@ class TerrainFilter(nn.Module):
         """f P_a per map (..., 2, P, 9): diag(v_a) without the generic shape (9 products a row), P_a with it."""
         return f * self.li_variance[:, None, None] if self.li_covariance is None else f @ self.li_covariance
 
+    @property
+    def spatial_variance(self) -> Tensor:
+        """(2,) v per map: the spatial variation's variance relative to the shared medium (a spatial filter)."""
+        return self._spatial.outputscale
+
     def _factor(self, s1: Tensor, s2: Tensor) -> Tensor:
         """The spatial factor 1 + v_a k_5/2(|s1 - s2| / l_a) per map between places s1 (..., P, 2) and s2
-        (..., R, 2) in m: (..., 2, P, R)."""
-        d2 = (s1.unsqueeze(-2) - s2.unsqueeze(-3)).pow(2).sum(-1)  # (..., P, R)
-        r = d2.clamp_min(1e-300).sqrt().unsqueeze(-3) / self.spatial_lengthscale.view(2, 1, 1)
-        k = (1 + math.sqrt(5) * r + (5 / 3) * r.pow(2)) * torch.exp(-math.sqrt(5) * r)
-        return 1 + self.spatial_variance.view(2, 1, 1) * k
+        (..., R, 2) in m: (..., 2, P, R), from the model's own gpytorch kernel."""
+        x1 = s1.unsqueeze(-3).expand(*s1.shape[:-2], 2, *s1.shape[-2:])
+        x2 = s2.unsqueeze(-3).expand(*s2.shape[:-2], 2, *s2.shape[-2:])
+        return 1 + to_dense(self._spatial(x1, x2))
 
     def _places(self, locations, want: tuple[int, ...], name: str) -> Tensor | None:
         """``locations`` checked against a spatial model: (*want, 2) places in m, finite; None where the filter is
