@@ -38,6 +38,8 @@ class Adjoint:
       term that contracts R^T G R with a structured d Sigma (a Kronecker product) needs one triangular
       solve, not G R (half the flops) nor R^T G R (F x F);
     - ``GR`` = G R and ``sigma`` = R^T G R (= G where R is None);
+    - ``quadratic(X)``: <G, X X^T> for a few columns X (*S, 2, r, k): from G where it is formed, else by one
+      triangular solve with k right-hand sides ((|L^{-1} X|^2 - |alpha^T X|^2) / (2n)), no r x r inverse;
     - ``trace_inverse()``: tr (sigma^2 I + A)^{-1}, from whichever inverse is at hand.
     """
 
@@ -91,6 +93,14 @@ class Adjoint:
                 v = self.v
                 self._sigma = (self.H.mT @ self.H - v[..., :, None] * v[..., None, :]) / (2 * self.n)
         return self._sigma
+
+    def quadratic(self, X: Tensor) -> Tensor:
+        """<G, X X^T> (*S, 2): sum over X's k columns of x^T G x, X (2, r, k) or (*S, 2, r, k)."""
+        if self._G is not None:
+            return ((self._G @ X) * X).sum((-1, -2))
+        Z = torch.linalg.solve_triangular(self.L, X.expand(*self.L.shape[:-1], X.shape[-1]), upper=False)
+        a = self.alpha.mT @ X  # (*S, 2, 1, k)
+        return (Z.pow(2).sum((-1, -2)) - a.pow(2).sum((-1, -2))) / (2 * self.n)
 
     def trace_inverse(self) -> Tensor:
         """tr (sigma^2 I + A)^{-1} (*S, 2)."""
@@ -174,7 +184,7 @@ class LiBasisTerm(CovarianceTerm):
     """Li et al.'s 9-function term (``gp.kernels.li_basis``): Sigma = H diag(v) H^T per map, H (2, n, 9) or (n, 9) the
     features at the space's coordinates (the distinct pairs; with R None, the observations' weighted sums).
 
-    d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = sum((G (R H)) o (R H)).
+    d nll / d v_a = <R^T G R, h h^T> summed over the 9 functions = <G, (R H) (R H)^T> (``Adjoint.quadratic``).
 
     The generic shape's term (``kernel="li+generic"``) is the same with one feature per map, H c_a (2, n, 1), and
     its variance u (``name=LI_GENERIC``): ``li_terms`` builds both.
@@ -192,7 +202,7 @@ class LiBasisTerm(CovarianceTerm):
         return (RH * values[self.name][..., None, None]) @ RH.mT, RH
 
     def backward(self, values, adj, RH):
-        return {self.name: ((adj.G @ RH) * RH).sum((-1, -2))}
+        return {self.name: adj.quadratic(RH)}
 
 
 def li_terms(hypers, features: Tensor) -> list[CovarianceTerm]:
@@ -247,8 +257,8 @@ class KroneckerFourier(CovarianceTerm):
         Y1 = R.reshape(2, k * Fb, Fg) @ Sg  # R (I kron Sigma_gamma): (*S, 2, k Fb, Fg), as SpectralBackend._kron
         Y1p = Y1.reshape(*batch, 2, k, Fb, Fg).transpose(-3, -2).reshape(*batch, 2, Fb, k * Fg)
         Y = (Sb.mT @ Y1p).reshape(*batch, 2, Fb, k, Fg).transpose(-3, -2)
-        Y = s[..., None, None] * Y.reshape(*batch, 2, k, Fb * Fg)  # R Sigma
-        return Y @ R.mT, (Sb, Kb, Kg, Sg)
+        Y = Y.reshape(*batch, 2, k, Fb * Fg)  # R (Sigma_beta kron Sigma_gamma)
+        return s[..., None, None] * (Y @ R.mT), (Sb, Kb, Kg, Sg)  # s on r x r, not r x F
 
     def backward(self, values, adj, state):
         Sb, Kb, Kg, Sg = state
