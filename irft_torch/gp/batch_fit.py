@@ -159,7 +159,7 @@ def shares_fit(models: Sequence) -> str | None:
 def _auto_may_switch(model) -> bool:
     """Whether ``InverseRFT.fit`` could move this model out of the pairs space mid-fit (``method="auto"``,
     ``select.pairs_may_move``): if not, the batch follows each model's own fit exactly."""
-    return model.auto and model._may_leave_pairs()
+    return model.auto and model.fit_control.may_leave_pairs(model)
 
 
 def _prior(model, name):
@@ -295,7 +295,7 @@ def _fit_batch(models: list, n_iter: int, lr: float, progress: bool) -> list[lis
         if raw is not None:  # the best iterate restored where the loss ended above it, as InverseRFT.fit does
             own = m.hypers.likelihood.noise_covar.raw_noise
             raw["likelihood.noise_covar.raw_noise"] = raw["likelihood.noise_covar.raw_noise"].reshape(own.shape)
-            m._keep_best((value, {**m._snapshot(), **raw}, step), h, lr)
+            m.fit_control.keep_best(m, (value, {**m.fit_control.snapshot(m), **raw}, step), h, lr, stacklevel=3)
         m.loss_history.extend(h)
         m.eval()
         m._last_fit = (int(n_iter), float(lr))

@@ -1,7 +1,8 @@
 """What steers an ``InverseRFT`` fit beyond Adam's step: the backend following the hyperparameters
 (``method="auto"`` moving to a cheaper space, the spectral basis growing, and held when nearly
 noise-free data would make each step many times dearer) and the best iterate kept when the loss
-diverges. A mixin of ``InverseRFT``; ``fit`` itself is in ``gp.model``."""
+diverges: ``FitControl``, an object each ``InverseRFT`` holds (``model.fit_control``), whose ``run`` is the
+fit's Adam loop."""
 
 from __future__ import annotations
 
@@ -11,21 +12,19 @@ import warnings
 from typing import TYPE_CHECKING, cast
 
 import torch
+from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .backends import RFTBackend, make_backend
+from .backends import make_backend
 from .backends.select import cheaper_space, estimate_pairs, estimated_costs, pairs_may_move, spectral_step_cost
 from .kernels.fourier import FourierBasis
+from .surface.offset import surface_loss
 
 if TYPE_CHECKING:
-    from ..rft.contacts import Contacts
     from .backends.spectral import SpectralBackend
-    from .backends.weight_space import FeatureStatistics
-    from .kernels.hyperparameters import RFTHyperparameters
-    from .surface.offset import SurfaceOffset
 
-__all__ = ["FitControlMixin", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
+__all__ = ["FitControl", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
            "converged", "copy_into", "divergence", "progress_bar", "CONVERGED_NATS"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
@@ -99,67 +98,120 @@ class FitInterruptedWarning(UserWarning):
     """``InverseRFT.fit`` was stopped by Ctrl-C; the model keeps the steps taken."""
 
 
-class FitControlMixin:
-    """The fit's adaptation and guards (see the module); needs an ``InverseRFT``'s hypers, backend, data."""
+class FitControl:
+    """The fit's adaptation and guards for one model (see the module): an object ``InverseRFT`` holds as
+    ``fit_control``, each call given the model. Its own state: the step cost held with nearly noise-free data and
+    whether that was said, and the training contacts' distinct angle pairs (kept until ``forget_data``)."""
 
-    _held_cost: float | None  # the step cost "auto" holds with nearly noise-free data (_adapt)
-    _hold_said: bool  # the hold's warning was given
-    _leave_pairs: tuple  # (the training contacts, whether "auto" could ever leave the pairs space) (_may_leave_pairs)
-    _n_pairs: int | None  # the training contacts' distinct angle pairs (_pair_count)
+    def __init__(self) -> None:
+        self.held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (adapt)
+        self.hold_said = False  # the hold's warning was given
+        self._n_pairs: int | None = None  # the training contacts' distinct angle pairs (pair_count)
+        self._leave_pairs: tuple | None = None  # (the training contacts, whether "auto" could leave the pairs space)
 
-    if TYPE_CHECKING:  # what the front door provides (gp.model)
-        hypers: RFTHyperparameters
-        backend: RFTBackend
-        surface: SurfaceOffset | None
-        _statistics: FeatureStatistics | None
-        auto: bool
-        solver: str
-        tol: float
+    def forget_data(self) -> None:
+        """The training data changed (``add_data``, a moved surface): the pair count is counted again."""
+        self._n_pairs = None
 
-        @property
-        def method(self) -> str: ...
-        @property
-        def train_contacts(self) -> Contacts: ...
-        @property
-        def train_forces(self) -> Tensor: ...
-        def truncation_error(self) -> Tensor: ...
-        def _rebuild_backend(self) -> None: ...
+    def run(self, model, n_iter: int, lr: float, progress: bool) -> list[float]:
+        """``InverseRFT.fit``'s Adam loop (its docstring): the losses per step; the model left at the best iterate,
+        its backend adapted."""
+        model.train()
+        surface = [] if model.surface is None else [("surface.offset", model.surface.offset)]
+        named = [*model.hypers.named_parameters(), *surface]
+        params = [p for _, p in named]
+        opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
+        best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
+        bar = progress_bar(int(n_iter), f"I-RFT fit ({model.method})", progress)
+        polish_follows = model.hyper_method == "laplace" and model.surface is None
+        step = 0
+        model.backend.in_fit = True
+        try:
+            for step in bar:
+                opt.zero_grad(set_to_none=True)
+                # closed form where the backend has one (``backends.closed_form``), else autograd
+                value = model.backend.loss_and_grad() if model.surface is None else None
+                loss = None
+                if value is None:
+                    loss = model.backend.loss() if model.surface is None else surface_loss(model)
+                    value = loss.item()
+                if not math.isfinite(value):
+                    history.append(value)
+                    break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
+                if value < best[0]:
+                    copy_into(kept, params)
+                    best = (value, step)
+                if loss is not None:
+                    loss.backward()
+                opt.step()
+                history.append(value)
+                if model.surface is None and step % 10 == 9 and (model.backend.stale() or
+                                                                 (model.auto and step % 30 == 29)):
+                    self.adapt(model)  # with "auto", every 30 steps: a cheaper space may have opened up
+                if progress:
+                    bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
+                if polish_follows and converged(history, model.backend.n_samples):
+                    break  # the Laplace step polishes to the mode (L-BFGS, Newton) from here
+        except KeyboardInterrupt:
+            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
+                          FitInterruptedWarning, stacklevel=3)
+        except (NotPSDError, torch.linalg.LinAlgError) as e:
+            self.keep_best(model, self.kept_state(model, best, named, kept), history, lr, quiet=True)
+            raise NotPSDError(
+                f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
+                f"then: {model.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
+                f"the best step's hyperparameters)."
+            ) from e
+        finally:
+            model.backend.in_fit = False
+            if model.surface is not None:
+                model._rebuild_backend()
+            bar.close()
+            model.eval()
+        self.keep_best(model, self.kept_state(model, best, named, kept), history, lr)
+        if model.surface is None and model.backend.stale():
+            self.adapt(model)
+        return history
 
-    def _snapshot(self) -> dict:
+    @staticmethod
+    def snapshot(model) -> dict:
         """The fitted parameters' values (hyperparameters, the surface offset): a copy."""
-        out = {k: v.detach().clone() for k, v in self.hypers.state_dict().items()}
-        if self.surface is not None:
-            out["surface.offset"] = self.surface.offset.detach().clone()
+        out = {k: v.detach().clone() for k, v in model.hypers.state_dict().items()}
+        if model.surface is not None:
+            out["surface.offset"] = model.surface.offset.detach().clone()
         return out
 
-    def _kept_state(self, best: tuple[float, int], named: list, kept: list) -> tuple:
+    @staticmethod
+    def kept_state(model, best: tuple[float, int], named: list, kept: list) -> tuple:
         """(loss, step) of a fit loop that copied the best iterate's parameter values into ``kept`` (in the order
-        of ``named``: (name, parameter)) -> (loss, state, step) with the state in ``_snapshot``'s form (the
+        of ``named``: (name, parameter)) -> (loss, state, step) with the state in ``snapshot``'s form (the
         hyperparameters' full state dict, their parameters at the best iterate; None before any step)."""
         value, step = best
         if step < 0:
             return value, None, step
-        full = {k: v.detach().clone() for k, v in self.hypers.state_dict().items()}
+        full = {k: v.detach().clone() for k, v in model.hypers.state_dict().items()}
         full.update((name, v) for (name, _), v in zip(named, kept))
         return value, full, step
 
-    def _keep_best(self, best: tuple, history: list[float], lr: float, quiet: bool = False) -> None:
+    @staticmethod
+    def keep_best(model, best: tuple, history: list[float], lr: float, quiet: bool = False, stacklevel: int = 4
+                  ) -> None:
         """Restore the best iterate (loss, state, step) where the loss ended above it and warn where it diverged
-        (``divergence``)."""
+        (``divergence``; ``stacklevel``: the warning's, at the user's call by default from ``run``)."""
         value, state, step = best
         restore, message = divergence(value, step if state is not None else -1, history, lr)
         if not restore:
             return
         with torch.no_grad():
-            self.hypers.load_state_dict({k: v for k, v in state.items() if k != "surface.offset"})
+            model.hypers.load_state_dict({k: v for k, v in state.items() if k != "surface.offset"})
             if "surface.offset" in state:
-                self.surface.offset.copy_(state["surface.offset"])
-        if self.surface is not None:
-            self._rebuild_backend()
+                model.surface.offset.copy_(state["surface.offset"])
+        if model.surface is not None:
+            model._rebuild_backend()
         if message is not None and not quiet:
-            warnings.warn(message, FitDivergedWarning, stacklevel=3)
+            warnings.warn(message, FitDivergedWarning, stacklevel=stacklevel)
 
-    def _adapt(self) -> None:
+    def adapt(self, model) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or
         (``method="auto"``, every 30 steps) may have made another space cheaper: with "auto", first ask
         whether another backend is now cheaper (by more than 2x) and move there instead (the
@@ -173,65 +225,66 @@ class FitControlMixin:
         move to a costlier space, the spectral basis grown only that far and then held (``held``: the
         predictions after the fit keep it; its truncation error is reported and said once in a
         warning)."""
-        bound = self._step_bound()
-        if self.auto and (self.method != "pairs" or self._may_leave_pairs()):
-            costs = estimated_costs(self.train_contacts, self.hypers, self.tol, self._pair_count())
-            best = cheaper_space(costs, self.method)
+        bound = self.step_bound(model)
+        if model.auto and (model.method != "pairs" or self.may_leave_pairs(model)):
+            costs = estimated_costs(model.train_contacts, model.hypers, model.tol, self.pair_count(model))
+            best = cheaper_space(costs, model.method)
             if best is not None and (bound is None or costs[best] <= bound):
-                self.backend = make_backend(best, self.hypers, self.train_contacts, self.train_forces,
-                                            solver=self.solver, tol=self.tol, statistics=self._statistics)
-                self.backend.in_fit = True
+                model.backend = make_backend(best, model.hypers, model.train_contacts, model.train_forces,
+                                             solver=model.solver, tol=model.tol, statistics=model._statistics)
+                model.backend.in_fit = True
                 return
-        if bound is not None and self.method == "spectral":
-            need = FourierBasis.for_lengthscale(self.hypers.lengthscale, self.tol)
-            basis = cast("SpectralBackend", self.backend).basis
+        if bound is not None and model.method == "spectral":
+            need = FourierBasis.for_lengthscale(model.hypers.lengthscale, model.tol)
+            basis = cast("SpectralBackend", model.backend).basis
             grown = FourierBasis(max(need.n_beta, basis.n_beta), max(need.n_gamma, basis.n_gamma))
-            cost = spectral_step_cost(self.train_contacts, grown)
+            cost = spectral_step_cost(model.train_contacts, grown)
             if cost > bound:
-                cast("SpectralBackend", self.backend).held = True  # predictions after the fit keep it too
-                if not self._hold_said:
-                    self._hold_said = True
-                    noise = [f"{v:.2g}" for v in self.hypers.noise.detach().tolist()]
+                cast("SpectralBackend", model.backend).held = True  # predictions after the fit keep it too
+                if not self.hold_said:
+                    self.hold_said = True
+                    noise = [f"{v:.2g}" for v in model.hypers.noise.detach().tolist()]
                     warnings.warn(
                         f"the force noise fell to {noise} N^2, below {NOISE_FREE:g} of the force power (nearly "
                         "noise-free data), and the lengthscales shrink to fit what is left: engine 'auto' holds the "
                         f"spectral basis at {basis.size} features (kernel truncation error now "
-                        f"{self.truncation_error().max().item():.1e}; {grown.size} features would cost "
-                        f"{cost / self._held_cost:.0f}x a step). method='spectral' grows it anyway", stacklevel=3)
+                        f"{model.truncation_error().max().item():.1e}; {grown.size} features would cost "
+                        f"{cost / self.held_cost:.0f}x a step). method='spectral' grows it anyway", stacklevel=4)
                 return
-        self.backend.refresh()
+        model.backend.refresh()
 
-    def _step_bound(self) -> float | None:
-        """With "auto" and nearly noise-free data (see ``_adapt``), the most a step may cost (in
+    def step_bound(self, model) -> float | None:
+        """With "auto" and nearly noise-free data (see ``adapt``), the most a step may cost (in
         ``estimated_costs``' units): ``HOLD_FACTOR`` x the step when the noise first fell that low; else None."""
-        if not self.auto or self.surface is not None:
+        if not model.auto or model.surface is not None:
             return None
-        power = self.train_forces.pow(2).mean(0)
-        if not bool((self.hypers.noise.detach() < NOISE_FREE * power).any()):
-            self._held_cost = None
-            if getattr(self.backend, "held", False):
-                cast("SpectralBackend", self.backend).held = False  # the noise came back: the basis may grow again
+        power = model.train_forces.pow(2).mean(0)
+        if not bool((model.hypers.noise.detach() < NOISE_FREE * power).any()):
+            self.held_cost = None
+            if getattr(model.backend, "held", False):
+                cast("SpectralBackend", model.backend).held = False  # the noise came back: the basis may grow again
             return None
-        if self._held_cost is None:
-            if self.method == "spectral":
-                self._held_cost = spectral_step_cost(self.train_contacts, cast("SpectralBackend", self.backend).basis)
+        if self.held_cost is None:
+            if model.method == "spectral":
+                self.held_cost = spectral_step_cost(model.train_contacts,
+                                                    cast("SpectralBackend", model.backend).basis)
             else:
-                self._held_cost = estimated_costs(self.train_contacts, self.hypers, self.tol,
-                                                  self._pair_count())[self.method]
-        return HOLD_FACTOR * self._held_cost
+                self.held_cost = estimated_costs(model.train_contacts, model.hypers, model.tol,
+                                                 self.pair_count(model))[model.method]
+        return HOLD_FACTOR * self.held_cost
 
-    def _may_leave_pairs(self) -> bool:
+    def may_leave_pairs(self, model) -> bool:
         """``select.pairs_may_move`` for the training contacts, kept while they are the same object (``add_data``
         joins new ones)."""
-        c = self.train_contacts
-        hit = getattr(self, "_leave_pairs", None)
+        c = model.train_contacts
+        hit = self._leave_pairs
         if hit is None or hit[0] is not c:
-            hit = self._leave_pairs = (c, pairs_may_move(c, self.tol, self._pair_count()))
+            hit = self._leave_pairs = (c, pairs_may_move(c, model.tol, self.pair_count(model)))
         return hit[1]
 
-    def _pair_count(self) -> int:
+    def pair_count(self, model) -> int:
         """The training contacts' number of distinct angle pairs (``select.estimate_pairs``), kept until
-        ``add_data`` changes the data."""
-        if getattr(self, "_n_pairs", None) is None:
-            self._n_pairs = estimate_pairs(self.train_contacts)
+        ``forget_data``."""
+        if self._n_pairs is None:
+            self._n_pairs = estimate_pairs(model.train_contacts)
         return self._n_pairs

@@ -30,19 +30,20 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from .backends import RFTBackend
-from .hyper.posterior import HyperPosterior, _polish, hyper_spec, log_evidence
+from .hyper.posterior import _polish, hyper_spec, log_evidence
 from .options import grouped
 
 if TYPE_CHECKING:
-    from ..rft.contacts import Contacts
+    pass
 
-__all__ = ["MeanAverage", "MeanAverageMixin", "MEANS"]
+__all__ = ["MeanAverage", "MEANS", "new_companion", "fit_companion", "weigh_means", "averaged_backends",
+           "stream_into_average"]
 
 MEANS = ("zero", "physics")  # the models averaged, in this order
 
@@ -92,124 +93,88 @@ def _polish_to_mode(backend: RFTBackend, max_iter: int = 100) -> None:
         backend.train(was)
 
 
-class MeanAverageMixin:
-    """``InverseRFT``'s model average over the prior mean (module docstring): the companion, the
-    evidence, and the weighted backends predictions average over."""
+def new_companion(model, method: str | None = None):
+    """The physics-mean model on ``model``'s data, with its options (unfitted); ``method``: its backend (default:
+    the model's ``method`` argument)."""
+    contacts, forces = model._measured()
+    opts = model._options()
+    opts["prior_mean"] = "physics"
+    opts.update(dtype=model.dtype, method=method or model._method_arg)
+    return type(model)(contacts, forces, noise_scale=model.noise_scale, **grouped(opts))
 
-    mean_average: MeanAverage | None
-    companion_fit_seconds: float  # what the average adds to a fit (benchmarks)
 
-    if TYPE_CHECKING:  # what the front door provides (gp.model)
-        _companion: list  # the companion model (a list: not a submodule)
-        _device: torch.device
-        dtype: torch.dtype
-        prior_mean_kind: str
-        _method_arg: str
-        hyper_posterior: HyperPosterior | None
-        backend: RFTBackend
+def fit_companion(model, n_iter: int, lr: float, progress: bool) -> None:
+    """Fit the physics-mean companion as ``model`` was fitted (same steps and rate), on its current data (a new
+    companion if the data grew since it was built)."""
+    t0 = time.perf_counter()
+    if model.companion is None or len(model.companion.train_forces) != len(model.train_forces):
+        model._companion[:] = [new_companion(model)]
+    model.companion.fit(n_iter, lr, progress=progress)
+    model.companion_fit_seconds = time.perf_counter() - t0  # what the average adds to a fit (benchmarks)
 
-        @property
-        def noise_scale(self) -> Tensor: ...
-        @property
-        def train_forces(self) -> Tensor: ...
-        def _measured(self) -> tuple[Contacts, Tensor]: ...
-        def _options(self) -> dict: ...
-        def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
-        def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None: ...
-        def train(self, mode: bool = True) -> Any: ...  # nn.Module's
-        def eval(self) -> Any: ...
 
-    @property
-    def averages_means(self) -> bool:
-        return self.prior_mean_kind == "average"
+def weigh_means(model) -> None:
+    """``model.mean_average``: the evidence of the model and its companion per map (each at the mode of its
+    hyperparameter posterior) and the weights; None where the model does not average its prior mean. A model
+    without a Laplace posterior is polished to its mode first (the plug-in then predicts there)."""
+    if not model.averages_means:
+        model.mean_average = None
+        return
+    evidence = []
+    for m in (model, model.companion):
+        hp = m.hyper_posterior
+        if hp is None or hp.method != "laplace":  # laplace leaves them at the mode; a plug-in or NUTS does not
+            _polish_to_mode(m.backend)
+            if hp is None:
+                m._set_hyper_posterior(None)  # the plug-in at the polished hyperparameters
+        hessian = hp.extra.get("hessian") if hp is not None and hp.method == "laplace" else None
+        m.train()
+        try:
+            evidence.append(log_evidence(m.backend, hessian).detach().double().cpu())
+        finally:
+            m.eval()
+    model.mean_average = MeanAverage.from_evidence(torch.stack(evidence))
 
-    @property
-    def companion(self):
-        """The physics-mean model averaged with this one (``MapPrior(mean="average")``, after ``fit``), or None."""
-        return self._companion[0] if self._companion else None
 
-    def _set_companion(self, model) -> None:
-        """Keep ``model`` as the companion (in a list: an ``nn.Module`` attribute would register it as a
-        submodule, and its hyperparameters would enter this model's state and optimiser)."""
-        self._companion[:] = [] if model is None else [model]
+def averaged_backends(model) -> tuple[list[RFTBackend], Tensor | None]:
+    """The backends of both models' draws and their weights (S, 2): pi_mc times the draw's weight in its own
+    model."""
+    own, w_own = model._own_weighted_backends()
+    other, w_other = model.companion._own_weighted_backends()
+    pi = model.mean_average.weights.to(model._device, model.dtype)
+    parts = []
+    for w, n, m in ((w_own, len(own), 0), (w_other, len(other), 1)):
+        w = torch.ones(1, dtype=model.dtype, device=model._device) if w is None else w
+        parts.append(w[:n, None] * pi[m][None, :])
+    return own + other, torch.cat(parts)
 
-    def _new_companion(self, method: str | None = None):
-        """The physics-mean model on this model's data, with its options (unfitted); ``method``: its
-        backend (default: this model's ``method`` argument)."""
-        contacts, forces = self._measured()
-        opts = self._options()
-        opts["prior_mean"] = "physics"
-        opts.update(dtype=self.dtype, method=method or self._method_arg)
-        model: Any = type(self)  # the mixin's host: an InverseRFT (its constructor's arguments)
-        return model(contacts, forces, noise_scale=self.noise_scale, **grouped(opts))
 
-    def _fit_companion(self, n_iter: int, lr: float, progress: bool) -> None:
-        """Fit the physics-mean companion as this model was fitted (same steps and rate), on this model's
-        current data (a new companion if the data grew since it was built)."""
-        t0 = time.perf_counter()
-        if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
-            self._set_companion(self._new_companion())
-        self.companion.fit(n_iter, lr, progress=progress)
-        self.companion_fit_seconds = time.perf_counter() - t0  # what the average adds to a fit (benchmarks)
+def _axis_log_likelihoods(model) -> Tensor:
+    """(S, 2) log p(F_c | theta_s) per map of the model's own draws (or its plug-in)."""
+    backends, _ = model._own_weighted_backends()
+    with torch.no_grad():
+        return torch.stack([-b.negative_log_likelihood().detach() * b.n_samples for b in backends])
 
-    def _set_mean_average(self) -> None:
-        """Evidence of both models per map (each at the mode of its hyperparameter posterior) and the
-        weights. A model without a Laplace posterior is polished to its mode first (the plug-in then predicts
-        there)."""
-        if not self.averages_means:
-            self.mean_average = None
-            return
-        evidence = []
-        for m in (self, self.companion):
-            hp = m.hyper_posterior
-            if hp is None or hp.method != "laplace":  # laplace leaves them at the mode; a plug-in or NUTS does not
-                _polish_to_mode(m.backend)
-                if hp is None:
-                    m._set_hyper_posterior(None)  # the plug-in at the polished hyperparameters
-            hessian = hp.extra.get("hessian") if hp is not None and hp.method == "laplace" else None
-            m.train()
-            try:
-                evidence.append(log_evidence(m.backend, hessian).detach().double().cpu())
-            finally:
-                m.eval()
-        self.mean_average = MeanAverage.from_evidence(torch.stack(evidence))
 
-    def _model_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:
-        """The backends of both models' draws and their weights (S, 2): pi_mc times the draw's weight in
-        its own model."""
-        own, w_own = self._own_weighted_backends()
-        other, w_other = self.companion._own_weighted_backends()
-        pi = self.mean_average.weights.to(self._device, self.dtype)
-        parts = []
-        for w, n, m in ((w_own, len(own), 0), (w_other, len(other), 1)):
-            w = torch.ones(1, dtype=self.dtype, device=self._device) if w is None else w
-            parts.append(w[:n, None] * pi[m][None, :])
-        return own + other, torch.cat(parts)
+def _own_draw_weights(model) -> Tensor:
+    _, w = model._own_weighted_backends()
+    return torch.ones(1, dtype=model.dtype, device=model._device) if w is None else w
 
-    def _axis_log_likelihoods(self) -> Tensor:
-        """(S, 2) log p(F_c | theta_s) per map of this model's own draws (or its plug-in)."""
-        backends, _ = self._own_weighted_backends()
-        with torch.no_grad():
-            return torch.stack([-b.negative_log_likelihood().detach() * b.n_samples for b in backends])
 
-    def _own_draw_weights(self) -> Tensor:
-        _, w = self._own_weighted_backends()
-        return torch.ones(1, dtype=self.dtype, device=self._device) if w is None else w
-
-    def _stream_into_average(self, contacts, forces, noise_scale, add_own) -> None:
-        """``add_data`` of a model that averages its prior mean: stream into both models, and move each
-        model's weight per map by the new samples' predictive likelihood under it, log pi_mc += log
-        sum_s w_ms p(F_new,c | F_old,c, theta_s): the weights a fit on all the data would give these draws
-        (the models' hyperparameters stay). ``add_own``: this model's own ``add_data``."""
-        before = [(m._axis_log_likelihoods(), m._own_draw_weights()) for m in (self, self.companion)]
-        add_own()
-        self.companion.add_data(contacts, forces, noise_scale)
-        gains = []
-        for m, (ll0, w) in zip((self, self.companion), before):
-            ll1 = m._axis_log_likelihoods()
-            gains.append(torch.logsumexp(w.to(ll1).log()[:, None] + ll1 - ll0.to(ll1), 0))
-        le = self.mean_average.log_evidence + torch.stack(gains).detach().double().cpu()
-        self.mean_average = MeanAverage.from_evidence(le)
+def stream_into_average(model, contacts, forces, noise_scale, add_own) -> None:
+    """``add_data`` of a model that averages its prior mean: stream into both models, and move each model's weight
+    per map by the new samples' predictive likelihood under it, log pi_mc += log sum_s w_ms p(F_new,c | F_old,c,
+    theta_s): the weights a fit on all the data would give these draws (the models' hyperparameters stay).
+    ``add_own``: the model's own ``add_data``."""
+    before = [(_axis_log_likelihoods(m), _own_draw_weights(m)) for m in (model, model.companion)]
+    add_own()
+    model.companion.add_data(contacts, forces, noise_scale)
+    gains = []
+    for m, (ll0, w) in zip((model, model.companion), before):
+        ll1 = _axis_log_likelihoods(m)
+        gains.append(torch.logsumexp(w.to(ll1).log()[:, None] + ll1 - ll0.to(ll1), 0))
+    le = model.mean_average.log_evidence + torch.stack(gains).detach().double().cpu()
+    model.mean_average = MeanAverage.from_evidence(le)
 
 
 def check_average_options(priors, surface: bool, tied_noise: bool) -> None:

@@ -12,22 +12,13 @@ import warnings
 from dataclasses import replace
 
 import torch
-from linear_operator.utils.errors import NotPSDError
 from torch import Tensor, nn
 
 from ..rft.contacts import Contacts, check_locations
 from .backends import RFTBackend, make_backend
 from .backends.base import touching
 from .backends.spatial import SpatialBackend
-from .fit_control import (
-    FitControlMixin,
-    FitDivergedWarning,
-    FitInterruptedWarning,
-    adam,
-    converged,
-    copy_into,
-    progress_bar,
-)
+from .fit_control import FitControl, FitDivergedWarning, FitInterruptedWarning
 from .hyper.posterior import HyperPosterior, add_data_to_draws
 from .hyper.predictions import HyperMixtureMixin
 from .inputs import (
@@ -51,20 +42,17 @@ from .kernels.priors import (
     register_spatial_priors,
     spatial_lengthscale_centre,
 )
-from .mean_average import MeanAverageMixin
-from .model_file import PersistenceMixin
+from .mean_average import fit_companion, stream_into_average, weigh_means
+from .model_file import load_state, model_options, refresh_digest, save_model, without_backend
 from .options import Engine, MapPrior, planar_options
 from .posterior import Posterior, _force_posterior, _mixture_maps, _predict_chunk
 from .spatial import check_spatial_options, placed_contacts, placed_queries
-from .surface.offset import LearnedSurfaceMixin, SurfaceOffset
+from .surface.offset import SurfaceOffset, init_surface, surface_estimate, surface_loss
 
 __all__ = ["Posterior", "InverseRFT", "FitDivergedWarning", "FitInterruptedWarning"]  # the warnings: fit_control
 
 
-
-
-class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedSurfaceMixin, FitControlMixin,
-                 nn.Module):
+class InverseRFT(HyperMixtureMixin, nn.Module):
     r"""Inverse RFT (Liu, Xue et al.): GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma)
     from forces F_c[t] = sum_m w_c[t, m] alpha_c(theta[t, m]) + noise.
 
@@ -229,8 +217,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         self.register_buffer("data_digest", torch.zeros(32, dtype=torch.uint8, device=device), persistent=True)
         self._digest_stale = True  # computed when a state dict is taken or loaded (hashing is O(T M))
         self.loss_history: list[float] = []
-        self._held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (_adapt)
-        self._hold_said = False
+        self.fit_control = FitControl()  # the fit's adaptation and guards (gp.fit_control)
         self.eval()
 
     # ---- views -------------------------------------------------------------------------------
@@ -305,6 +292,66 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         """(T, 2) relative noise standard deviations of the training samples (ones by default)."""
         return self._join()[2]
 
+    def _measured(self) -> tuple[Contacts, Tensor]:
+        """The training data as measured (the whitening undone)."""
+        c, f, s = self._join()
+        return c.scale_weights(s[:, :1], s[:, 1:]), f * s
+
+    def _options(self) -> dict:
+        """The constructor options that shape this model beyond its data (``gp.model_file.model_options``)."""
+        return model_options(self)
+
+    @property
+    def averages_means(self) -> bool:
+        """Whether predictions average the zero and the physics prior mean (``MapPrior(mean="average")``)."""
+        return self.prior_mean_kind == "average"
+
+    @property
+    def companion(self):
+        """The physics-mean model averaged with this one (``MapPrior(mean="average")``, after ``fit``), or None."""
+        return self._companion[0] if self._companion else None
+
+    @property
+    def surface_offset(self):
+        """The learned surface offset(s) (``gp.surface.offset.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
+        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
+        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
+        if self.surface is None:
+            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
+        return surface_estimate(self)
+
+    def init_surface(self, offsets) -> Tensor:
+        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
+        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
+        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
+        ``stress_map`` and ``predict_forces`` are then at it."""
+        return init_surface(self, offsets)
+
+    def _rebuild_backend(self) -> None:
+        """The surface moved: the backend again, on the contacts at the current offset."""
+        self.backend = make_backend(self._method_arg, self.hypers, self.train_contacts, self.train_forces,
+                                    solver=self.solver, tol=self.tol)
+        self.fit_control.forget_data()
+
+    # ---- state and file ------------------------------------------------------------------------
+    def state_dict(self, *args, **kwargs):
+        """The hyperparameters and the training data's digest. The backend's own entries (the same
+        hyperparameters again, and gpytorch's) are left out: which backend ``auto`` ends on is not part
+        of a model's state."""
+        refresh_digest(self)
+        return without_backend(super().state_dict(*args, **kwargs))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
+        other data is refused (its ``data_digest`` differs). ``strict=False`` loads the
+        hyperparameters alone (a warm start on new data)."""
+        return load_state(self, state_dict, strict)
+
+    def save(self, path) -> None:
+        """Write training data, options, the hyperparameters and a checksum to one file (format 2,
+        ``gp.model_file``): ``load`` refuses files that are damaged, foreign or of another version."""
+        save_model(self, path)
+
     def hyperparameters(self) -> dict[str, list]:
         """Current hyperparameters, readable (lengthscales per embedding dim, variances). ``noise`` is
         the force noise variance per axis in N^2 (with ``noise_scale``, that of a sample of scale 1)."""
@@ -340,7 +387,7 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         hyperparameter prior / T where priors are registered)."""
         self.train()
         if self.surface is not None:
-            return self._surface_loss()
+            return surface_loss(self)
         return self.backend.loss()
 
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
@@ -359,65 +406,11 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         ~1e-6 of the predictive sd, measured)."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
-        self.train()
-        surface = [] if self.surface is None else [("surface.offset", self.surface.offset)]
-        named = [*self.hypers.named_parameters(), *surface]
-        params = [p for _, p in named]
-        opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
-        best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
-        bar = progress_bar(int(n_iter), f"I-RFT fit ({self.method})", progress)
-        polish_follows = self.hyper_method == "laplace" and self.surface is None
-        step = 0
-        self.backend.in_fit = True
-        try:
-            for step in bar:
-                opt.zero_grad(set_to_none=True)
-                # closed form where the backend has one (``backends.closed_form``), else autograd
-                value = self.backend.loss_and_grad() if self.surface is None else None
-                loss = None
-                if value is None:
-                    loss = self.backend.loss() if self.surface is None else self._surface_loss()
-                    value = loss.item()
-                if not math.isfinite(value):
-                    history.append(value)
-                    break  # NaN or inf: no step from here leads anywhere; the best iterate is restored below
-                if value < best[0]:
-                    copy_into(kept, params)
-                    best = (value, step)
-                if loss is not None:
-                    loss.backward()
-                opt.step()
-                history.append(value)
-                if self.surface is None and step % 10 == 9 and (self.backend.stale() or
-                                                                 (self.auto and step % 30 == 29)):
-                    self._adapt()  # with "auto", every 30 steps: a cheaper space may have opened up
-                if progress:
-                    bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
-                if polish_follows and converged(history, self.backend.n_samples):
-                    break  # the Laplace step polishes to the mode (L-BFGS, Newton) from here
-        except KeyboardInterrupt:
-            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
-                          FitInterruptedWarning, stacklevel=2)
-        except (NotPSDError, torch.linalg.LinAlgError) as e:
-            self._keep_best(self._kept_state(best, named, kept), history, lr, quiet=True)
-            raise NotPSDError(
-                f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
-                f"then: {self.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "
-                f"the best step's hyperparameters)."
-            ) from e
-        finally:
-            self.backend.in_fit = False
-            if self.surface is not None:
-                self._rebuild_backend()
-            bar.close()
-            self.eval()
-        self._keep_best(self._kept_state(best, named, kept), history, lr)
-        if self.surface is None and self.backend.stale():
-            self._adapt()
+        history = self.fit_control.run(self, int(n_iter), float(lr), progress)
         self.loss_history.extend(history)
         self._last_fit = (int(n_iter), float(lr))
         if self.averages_means:
-            self._fit_companion(int(n_iter), float(lr), progress)
+            fit_companion(self, int(n_iter), float(lr), progress)
         self._finish_fit()
         return history
 
@@ -432,8 +425,8 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
         if self.averages_means:
             if self.companion is None or len(self.companion.train_forces) != len(self.train_forces):
                 n_iter, lr = getattr(self, "_last_fit", (300, 0.05))
-                self._fit_companion(n_iter, lr, progress=False)
-            self._set_mean_average()
+                fit_companion(self, n_iter, lr, progress=False)
+            weigh_means(self)
 
     def add_data(self, contacts: Contacts, forces, noise_scale=None, locations=None) -> InverseRFT:
         """Streaming: add force samples with the hyperparameters fixed (no refit); the posterior is
@@ -463,13 +456,13 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
                 add_data_to_draws(self.hyper_posterior, self._draw_backends, c, f)
 
         if self.averages_means and self.mean_average is not None:
-            self._stream_into_average(contacts, forces, noise_scale, add_own)
+            stream_into_average(self, contacts, forces, noise_scale, add_own)
         else:
             add_own()
             if self.averages_means and self.companion is not None:  # not yet weighed (unfitted): keep in step
                 self.companion.add_data(contacts, forces, noise_scale)
         self._statistics = None  # no longer of all the data
-        self._n_pairs = None
+        self.fit_control.forget_data()
         self._parts.append((c, f, scale))
         self._joined = None
         self._digest_stale = True
@@ -603,6 +596,3 @@ class InverseRFT(PersistenceMixin, MeanAverageMixin, HyperMixtureMixin, LearnedS
     def extra_repr(self) -> str:
         return f"T={len(self.train_contacts)}, M={self.n_segments}, prior={self.prior}, " \
                f"hyper_posterior={self.hyper_method!r}, backend={self.backend.describe()!r}"
-
-
-# One concept: the front door, InverseRFT (its options, fit and queries); the machinery is in the modules it names.

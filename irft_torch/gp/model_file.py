@@ -7,22 +7,17 @@ from __future__ import annotations
 import hashlib
 import warnings
 from dataclasses import replace
-from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from .._files import atomic_write
 from ..rft.contacts import Contacts
 from .options import grouped
 
-if TYPE_CHECKING:
-    from .kernels.hyperparameters import RFTHyperparameters
-    from .surface.offset import SurfaceOffset
-
-__all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest",
-           "PersistenceMixin"]
+__all__ = ["FILE_FORMAT", "FILE_VERSION", "ModelFileError", "save_model", "load_model", "digest", "model_options",
+           "data_digest_of", "refresh_digest", "without_backend", "load_state"]
 
 FILE_FORMAT = "irft_torch.InverseRFT"
 FILE_VERSION = 2
@@ -65,7 +60,7 @@ def save_model(model, path) -> None:
         "contacts": {k: v.detach().cpu() for k, v in contacts.as_dict().items()},
         "forces": forces.detach().cpu(),
         "noise_scale": model.noise_scale.cpu(),
-        "options": {**model._options(), "method": "observations" if model.spatial else model.method,
+        "options": {**model_options(model), "method": "observations" if model.spatial else model.method,
                     "dtype": str(model.dtype).replace("torch.", ""),
                     "auto": bool(model.auto)},
         "hypers": {k: v.detach().cpu() for k, v in model.hypers.state_dict().items()},
@@ -145,12 +140,14 @@ def load_model(cls, path, map_location=None, others: dict | None = None):
         from .mean_average import MeanAverage
 
         saved = payload["companion"]
-        comp = model._new_companion(method=saved["method"])
+        from .mean_average import new_companion
+
+        comp = new_companion(model, method=saved["method"])
         comp.auto = bool(saved["auto"])
         comp.hypers.load_state_dict(saved["hypers"])
         comp._set_hyper_posterior(HyperPosterior.from_state(saved["hyper_posterior"]) if "hyper_posterior" in saved
                                   else None)
-        model._set_companion(comp)
+        model._companion[:] = [comp]
         model.mean_average = MeanAverage.from_state(payload["mean_average"])
     model.loss_history = list(payload.get("loss_history", []))
     if "data_digest" in payload:  # the saved model's fingerprint (files before it: recomputed from the data)
@@ -195,103 +192,64 @@ def _load_v1(cls, d: dict, path):
     return model
 
 
-_Model = TypeVar("_Model", bound="PersistenceMixin")
+def model_options(model) -> dict:
+    """The constructor options that shape an ``InverseRFT``, beyond its data, backend and surface: what a model like
+    it on other data needs (``save``, ``cross_validate(refit=True)``, the mean average's companion)."""
+    li = model.hypers.li
+    return {"prior_mean": model.prior_mean_kind, "tied_noise": model.hypers.tied,
+            "lengthscale": model.init_lengthscale, "tol": model.tol, "solver": model.solver, "dtype": model.dtype,
+            "priors": model.priors, "hyper_posterior": model.hyper_method, "li_basis": li is not None,
+            "generic_shape": li is not None and li.generic}
 
 
-class PersistenceMixin(nn.Module):
-    """An ``InverseRFT``'s state and file: its options, its training data as measured and their digest,
-    ``state_dict`` / ``load_state_dict`` (hyperparameters and the data's digest, never the backend's
-    entries), ``save`` / ``load`` (``save_model``, ``load_model``). A mixin of ``InverseRFT``."""
+def data_digest_of(model) -> Tensor:
+    """(32,) uint8: the sha256 of an ``InverseRFT``'s training data as measured (``digest``): the weights (what the
+    maps see), the signed depths and areas only where the surface is learned, the places, the noise scales."""
+    c, f = model._measured()
+    data = c.as_dict() if model.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
+    if c.locations is not None:
+        data = {**data, "locations": c.locations}
+    d = digest({"contacts": data, "forces": f, "noise_scale": model.noise_scale})
+    return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=model._device)
 
-    if TYPE_CHECKING:  # what the front door provides (gp.model)
-        hypers: RFTHyperparameters
-        surface: SurfaceOffset | None
-        data_digest: Tensor
-        _digest_stale: bool
-        _device: torch.device
-        dtype: torch.dtype
-        prior_mean_kind: str
-        init_lengthscale: float
-        tol: float
-        solver: str
-        priors: str | None
-        hyper_method: str
 
-        @property
-        def noise_scale(self) -> Tensor: ...
-        def _join(self) -> tuple[Contacts, Tensor, Tensor]: ...
-        def _rebuild_backend(self) -> None: ...
+def refresh_digest(model) -> None:
+    """The model's ``data_digest`` buffer recomputed where its data changed since (hashing is O(T M))."""
+    if model._digest_stale:
+        model.data_digest.copy_(data_digest_of(model))
+        model._digest_stale = False
 
-    def _options(self) -> dict:
-        """The constructor options that shape the model, beyond its data, backend and surface: what a
-        model like this one on other data needs (``save``, ``cross_validate(refit=True)``)."""
-        return {"prior_mean": self.prior_mean_kind, "tied_noise": self.hypers.tied,
-                "lengthscale": self.init_lengthscale, "tol": self.tol, "solver": self.solver, "dtype": self.dtype,
-                "priors": self.priors, "hyper_posterior": self.hyper_method, "li_basis": self.hypers.li is not None,
-                "generic_shape": self.hypers.li is not None and self.hypers.li.generic}
 
-    def _measured(self) -> tuple[Contacts, Tensor]:
-        """The training data as measured (the whitening undone)."""
-        c, f, s = self._join()
-        return c.scale_weights(s[:, :1], s[:, 1:]), f * s
+def without_backend(state: dict) -> dict:
+    """An ``InverseRFT``'s ``nn.Module`` state dict less the backend's entries (the same hyperparameters again, and
+    gpytorch's): which backend ``auto`` ends on is not part of a model's state."""
+    for k in [k for k in state if k.split(".", 1)[0] == "backend" or ".backend." in k]:
+        del state[k]
+    return state
 
-    def _data_digest_tensor(self) -> Tensor:
-        c, f = self._measured()
-        # the weights (what the maps see); the signed depths and areas only where the surface is learned
-        data = c.as_dict() if self.surface is not None else {k: c.as_dict()[k] for k in list(c.as_dict())[:4]}
-        if c.locations is not None:
-            data = {**data, "locations": c.locations}
-        d = digest({"contacts": data, "forces": f, "noise_scale": self.noise_scale})
-        return torch.tensor(list(bytes.fromhex(d)), dtype=torch.uint8, device=self._device)
 
-    def _fresh_digest(self) -> None:
-        if self._digest_stale:
-            self.data_digest.copy_(self._data_digest_tensor())
-            self._digest_stale = False
-
-    def state_dict(self, *args, **kwargs):
-        """The hyperparameters and the training data's digest. The backend's own entries (the same
-        hyperparameters again, and gpytorch's) are left out: which backend ``auto`` ends on is not part
-        of a model's state."""
-        self._fresh_digest()
-        out = super().state_dict(*args, **kwargs)
-        for k in [k for k in out if k.split(".", 1)[0] == "backend" or ".backend." in k]:
-            del out[k]
-        return out
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """As ``nn.Module.load_state_dict``; with ``strict`` (default) a state from a model fitted on
-        other data is refused (its ``data_digest`` differs). ``strict=False`` loads the
-        hyperparameters alone (a warm start on new data)."""
-        self._fresh_digest()
-        theirs = state_dict.get("data_digest")
-        if theirs is not None and not torch.equal(theirs.to(self.data_digest.device), self.data_digest):
-            if strict:
-                raise ModelFileError("this state was fitted on other training data (data_digest differs); pass "
-                                     "strict=False to load only its hyperparameters")
-            state_dict = {k: v for k, v in state_dict.items() if k != "data_digest"}
-        state_dict = {k: v for k, v in state_dict.items() if not k.startswith("backend.")}
-        result = self.hypers.load_state_dict({k[len("hypers."):]: v for k, v in state_dict.items()
-                                              if k.startswith("hypers.")}, strict=strict)
-        if "data_digest" in state_dict:
-            self.data_digest.copy_(state_dict["data_digest"].to(self.data_digest))
-        if self.surface is not None and "surface.offset" in state_dict:
-            with torch.no_grad():
-                self.surface.offset.copy_(state_dict["surface.offset"].to(self.surface.offset))
-            self._rebuild_backend()
-        unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest"
-                                                    or (self.surface is not None and k == "surface.offset"))]
-        if strict and unexpected:
-            raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
-        return result
-
-    def save(self, path) -> None:
-        """Write training data, options, the hyperparameters and a checksum to one file (format 2,
-        ``gp.model_file``): ``load`` refuses files that are damaged, foreign or of another version."""
-        save_model(self, path)
-
-    @classmethod
-    def load(cls: type[_Model], path, map_location=None) -> _Model:
-        """Rebuild a model written by ``save`` (format 2, or 0.1.0's format, whose hyperparameters are
-        translated). Raises ``ModelFileError`` naming what is wrong for anything else."""
-        return load_model(cls, path, map_location)
+def load_state(model, state_dict, strict: bool = True):
+    """``InverseRFT.load_state_dict``: the hyperparameters (and a learned surface's offsets) from a state dict; with
+    ``strict`` a state from a model fitted on other data is refused (its ``data_digest`` differs), ``strict=False``
+    loads the hyperparameters alone (a warm start on new data)."""
+    refresh_digest(model)
+    theirs = state_dict.get("data_digest")
+    if theirs is not None and not torch.equal(theirs.to(model.data_digest.device), model.data_digest):
+        if strict:
+            raise ModelFileError("this state was fitted on other training data (data_digest differs); pass "
+                                 "strict=False to load only its hyperparameters")
+        state_dict = {k: v for k, v in state_dict.items() if k != "data_digest"}
+    state_dict = {k: v for k, v in state_dict.items() if not k.startswith("backend.")}
+    result = model.hypers.load_state_dict({k[len("hypers."):]: v for k, v in state_dict.items()
+                                           if k.startswith("hypers.")}, strict=strict)
+    if "data_digest" in state_dict:
+        model.data_digest.copy_(state_dict["data_digest"].to(model.data_digest))
+    if model.surface is not None and "surface.offset" in state_dict:
+        with torch.no_grad():
+            model.surface.offset.copy_(state_dict["surface.offset"].to(model.surface.offset))
+        model._rebuild_backend()
+    unexpected = [k for k in state_dict if not (k.startswith("hypers.") or k == "data_digest"
+                                                or (model.surface is not None and k == "surface.offset"))]
+    if strict and unexpected:
+        raise RuntimeError(f"unexpected key(s) in state_dict: {unexpected}")
+    return result

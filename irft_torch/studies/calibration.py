@@ -49,6 +49,7 @@ from .. import metrics
 from ..gp import InverseRFT
 from ..gp.kernels.fourier import FourierBasis
 from ..gp.kernels.priors import GENERIC_RMS
+from ..gp.mean_average import weigh_means
 from ..gp.options import grouped
 from ..rft import CToe, IToe, contacts, forces
 from ..rft.contacts import Contacts
@@ -435,7 +436,7 @@ def run_case(case: Case, posteriors=("map", "laplace"), n_iter: int = 300, n_gri
             if model.hyper_posterior is None or model.hyper_posterior.method != "laplace":
                 model.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
             model.companion.fit_hyper_posterior("laplace", generator=torch.Generator().manual_seed(case.seed))
-            model._set_mean_average()
+            weigh_means(model)
             info = model.hyper_posterior
             extra_s = time.perf_counter() - t1 + companion_s
         else:

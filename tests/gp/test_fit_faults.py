@@ -80,18 +80,18 @@ def test_auto_holds_its_step_cost_when_the_noise_collapses(gait2):
         m.hypers.lengthscale = torch.full((2, 1, 4), 0.12)
     m.backend.in_fit = True
     with pytest.warns(UserWarning, match="nearly noise-free data.*holds the spectral basis at"):
-        m._adapt()
+        m.fit_control.adapt(m)
     assert m.method == "spectral" and m.backend.basis == basis
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # said once
-        m._adapt()
+        m.fit_control.adapt(m)
     m.backend.in_fit = False
     m.predict_forces(c[:10])  # predictions keep the held basis (growing it would cost a pass over the data)
     assert m.backend.basis == basis
     m.backend.in_fit = True
     with torch.no_grad():
         m.hypers.noise = 1e-2 * f.pow(2).mean(0)
-    m._adapt()
+    m.fit_control.adapt(m)
     assert m.method != "spectral" or m.backend.basis.size > basis.size
 
 

@@ -11,6 +11,7 @@ from irft_torch import InverseRFT
 from irft_torch.gp.backends.closed_form import autograd_only
 from irft_torch.gp.batch_fit import fit_together, shares_fit
 from irft_torch.gp.kernels.li_basis import li_features
+from irft_torch.gp.surface.offset import surface_loss
 from irft_torch.rft import CToe, IToe, contacts, forces
 from irft_torch.rft.paths import pose_path
 from irft_torch.rft.stress_maps import FourierStressMap
@@ -295,7 +296,7 @@ def check_learned_surface(options: dict, set_hypers, dense) -> None:
     for delta in (-0.6, 0.2):  # cm
         with torch.no_grad():
             m.surface.offset.fill_(delta)
-        loss = m._surface_loss()
+        loss = surface_loss(m)
         cd = c.with_surface_offset(torch.tensor(delta / 100))
         ref = sum(dense(cd, f, a, m.hypers.noise[a].detach())[0] for a in range(2))
         assert abs(float(loss.detach()) - float(ref)) < 1e-9

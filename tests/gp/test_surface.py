@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import irft_torch as irft
+from irft_torch.gp.surface.offset import surface_loss
 from irft_torch.rft import FourierStressMap, IToe, contacts, rectangle_path
 
 from .dense_reference import axis_reference
@@ -48,7 +49,7 @@ def test_surface_likelihood_matches_dense_reference_and_its_gradient():
     for delta in (-0.7, -0.2, 0.3):  # cm, the unit the offset is learned in
         with torch.no_grad():
             m.surface.offset.fill_(delta)
-        loss = m._surface_loss()
+        loss = surface_loss(m)
         cd = c.with_surface_offset(torch.tensor(delta / 100))
         hp = m.hypers
         ls, os, nz = hp.lengthscale.detach(), hp.outputscale.detach(), hp.noise.detach()
@@ -59,13 +60,13 @@ def test_surface_likelihood_matches_dense_reference_and_its_gradient():
 
 
 def assert_offset_gradient_is_central_differences(m, loss, delta: float, h: float = 1e-5) -> None:
-    """d loss / d offset by autograd (``loss``: ``m._surface_loss()`` at ``delta`` cm) against central differences."""
+    """d loss / d offset by autograd (``loss``: ``surface_loss(m)`` at ``delta`` cm) against central differences."""
     (g,) = torch.autograd.grad(loss, m.surface.offset)
     with torch.no_grad():
         m.surface.offset.fill_(delta + h)
-        up = m._surface_loss()
+        up = surface_loss(m)
         m.surface.offset.fill_(delta - h)
-        down = m._surface_loss()
+        down = surface_loss(m)
     torch.testing.assert_close(g[0], (up - down) / (2 * h), rtol=1e-5, atol=1e-8)
 
 

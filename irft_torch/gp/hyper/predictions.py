@@ -78,8 +78,6 @@ class HyperMixtureMixin(nn.Module):
         def train_contacts(self) -> Contacts: ...
         @property
         def train_forces(self) -> Tensor: ...
-        def _set_mean_average(self) -> None: ...  # gp.mean_average
-        def _model_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]: ...
 
     def fit_hyper_posterior(self, method: str | None = None, n_proposals: int = 128, n_draws: int | None = 16,
                             generator: torch.Generator | None = None, **options) -> HyperPosterior | None:
@@ -126,8 +124,10 @@ class HyperMixtureMixin(nn.Module):
                 hp.extra["truncated"] = f"{len(truncated)} of the draws' kernels are truncated ({truncated[0]})"
         companion = getattr(self, "companion", None)
         if companion is not None and getattr(self, "mean_average", None) is not None:  # both means, weighed again
+            from ..mean_average import weigh_means
+
             companion.fit_hyper_posterior(method, n_proposals, n_draws, generator, **options)
-            self._set_mean_average()
+            weigh_means(self)
         return self.hyper_posterior
 
     def _set_hyper_posterior(self, hp: HyperPosterior | None) -> None:
@@ -152,7 +152,9 @@ class HyperMixtureMixin(nn.Module):
         """The backends predictions average over and their weights: None (the one plug-in backend), (S,)
         (hyperparameter draws) or (S, 2) per map (prior means averaged, ``gp.mean_average``)."""
         if getattr(self, "mean_average", None) is not None:
-            return self._model_weighted_backends()
+            from ..mean_average import averaged_backends
+
+            return averaged_backends(self)
         return self._own_weighted_backends()
 
     def _own_weighted_backends(self) -> tuple[list[RFTBackend], Tensor | None]:

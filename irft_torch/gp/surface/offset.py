@@ -26,9 +26,9 @@ hyperparameters, the hyperparameters marginalized (Schur complement; directions 
 inform, zero curvature, are dropped), and the conditional one (hyperparameters fixed). See
 docs/surface.md for the sign convention and what is and is not identified.
 
-The front door composes it: ``InverseRFT`` holds a ``SurfaceOffset`` and takes its methods from
-``LearnedSurfaceMixin``; this module never imports the front door (the profile likelihood, which
-builds models, is ``gp.surface.profile``).
+The front door composes it: ``InverseRFT`` holds a ``SurfaceOffset`` and calls ``surface_estimate``,
+``init_surface`` and ``surface_loss`` with itself; this module never imports the front door (the profile
+likelihood, which builds models, is ``gp.surface.profile``).
 """
 
 from __future__ import annotations
@@ -42,17 +42,15 @@ import torch
 from torch import Tensor, nn
 
 from ...rft.contacts import M_TO_CM, Contacts
-from ..backends import make_backend
 from ..backends.pairs import distinct_pairs
 from ..kernels.angle import angle_covariance
 from ..kernels.li_basis import li_features
 
 if TYPE_CHECKING:
-    from ..backends import RFTBackend
-    from ..kernels.hyperparameters import RFTHyperparameters
+    pass
 
 __all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate",
-           "LearnedSurfaceMixin"]
+           "init_surface", "surface_loss"]
 
 
 @dataclass
@@ -246,66 +244,29 @@ def surface_estimate(model) -> SurfaceEstimate:
                            cov.detach() * k**2, corr)
 
 
-class LearnedSurfaceMixin(nn.Module):
-    """What the front door needs to learn the surface with the maps (its ``surface``: a
-    ``SurfaceOffset`` or None): the offsets with their Laplace uncertainty (``surface_offset``), a start
-    by grid search (``init_surface``), the loss while the offsets move (``_surface_loss``) and the
-    backend rebuilt at the fitted offsets (``_rebuild_backend``). A mixin of ``InverseRFT``."""
+def init_surface(model, offsets) -> Tensor:
+    """``InverseRFT.init_surface``: start the model's surface offset(s) at the best of ``offsets`` (m, a grid) by the
+    loss at the current hyperparameters, one group at a time (the others held). Returns the start (G,) in m."""
+    surface = model.surface
+    if surface is None:
+        raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
+    grid = torch.as_tensor(offsets, dtype=model.dtype, device=model._device).reshape(-1) * M_TO_CM  # learned in cm
+    with torch.no_grad():
+        for g in range(surface.n_groups):
+            losses = []
+            for v in grid:
+                surface.offset[g] = v
+                losses.append(float(surface_loss(model)))
+            surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
+    model._rebuild_backend()  # predictions at the chosen offset, as after fit and load
+    model.eval()
+    return surface.offset.detach().clone() / M_TO_CM
 
-    if TYPE_CHECKING:  # what the front door provides (gp.model)
-        surface: SurfaceOffset | None
-        hypers: RFTHyperparameters
-        backend: RFTBackend
-        _n_pairs: int | None
-        _method_arg: str
-        _device: torch.device
-        dtype: torch.dtype
-        solver: str
-        tol: float
 
-        @property
-        def train_contacts(self) -> Contacts: ...
-        @property
-        def train_forces(self) -> Tensor: ...
-        def _join(self) -> tuple[Contacts, Tensor, Tensor]: ...
-
-    @property
-    def surface_offset(self):
-        """The learned surface offset(s) (``gp.surface.offset.SurfaceEstimate``): ``.mean``, ``.std`` (G,) in m
-        (``.in_cm()`` for cm), positive when the surface is higher than stated; ``.interval(0.95)``.
-        Laplace, from the loss's curvature in the offsets and the hyperparameters (computed on each access)."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
-        return surface_estimate(self)
-
-    def init_surface(self, offsets) -> Tensor:
-        """Start the surface offset(s) at the best of ``offsets`` (m, a grid) by the loss at the current
-        hyperparameters, one group at a time (the others held): the likelihood in the offset can have
-        several local optima (docs/surface.md), and Adam from 0 stops at the nearest. Returns the start (G,) in m;
-        ``stress_map`` and ``predict_forces`` are then at it."""
-        if self.surface is None:
-            raise AttributeError("this model has no learned surface offset (InverseRFT(..., surface=True))")
-        grid = torch.as_tensor(offsets, dtype=self.dtype, device=self._device).reshape(-1) * M_TO_CM  # learned in cm
-        with torch.no_grad():
-            for g in range(self.surface.n_groups):
-                losses = []
-                for v in grid:
-                    self.surface.offset[g] = v
-                    losses.append(float(self._surface_loss()))
-                self.surface.offset[g] = grid[int(torch.tensor(losses).argmin())]
-        self._rebuild_backend()  # predictions at the chosen offset, as after fit and load
-        self.eval()
-        return self.surface.offset.detach().clone() / M_TO_CM
-
-    def _surface_loss(self) -> Tensor:
-        c, f, _ = self._join()
-        nll = surface_negative_log_likelihood(self.hypers, self.surface.shifted(c), f, self.surface.table,
-                                              self.surface.index)
-        return nll.sum() - self.backend.log_prior() / max(len(f), 1)
-
-    def _rebuild_backend(self) -> None:
-        """The surface moved: the backend again, on the contacts at the current offset."""
-        method = self._method_arg if self._method_arg != "auto" else "auto"
-        self.backend = make_backend(method, self.hypers, self.train_contacts, self.train_forces, solver=self.solver,
-                                    tol=self.tol)
-        self._n_pairs = None
+def surface_loss(model) -> Tensor:
+    """The loss of a model that learns the surface while its offsets move: the negative log likelihood per sample
+    of its data at the current offsets, minus the log hyperparameter prior / T."""
+    c, f, _ = model._join()
+    surface = model.surface
+    nll = surface_negative_log_likelihood(model.hypers, surface.shifted(c), f, surface.table, surface.index)
+    return nll.sum() - model.backend.log_prior() / max(len(f), 1)
