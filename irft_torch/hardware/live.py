@@ -34,16 +34,12 @@ mid-line is read up to there by ``read_log``) and the last complete snapshot (wr
 
 from __future__ import annotations
 
-import copy
-import json
 import math
 import queue
-import struct
 import threading
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -56,137 +52,16 @@ from ..rft.force_checks import force_faults
 from ..rft.paths import pose_path
 from ..rft.stress_maps import FourierStressMap
 from ..rft.toes import Toe
+from .can_intake import CanIntake
 from .causal_filter import CausalMovingAverage
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
+from .live_estimate import MAP_POINTS, NO_AIR, SCALE_DRAWS, UNNAMED, LiveEstimate
 from .live_resample import LiveResampler
 from .motor import MotorModel
 from .odrive_can import FrameError, decode
 from .stance import Stance, StanceDetector
 
 __all__ = ["LiveEstimator", "LiveEstimate", "MAP_POINTS"]
-
-# where the map is summarised: a 9 x 9 grid over the canonical square (beta, gamma), rad
-_B, _G = np.meshgrid(np.linspace(-np.pi / 2, np.pi / 2, 9, endpoint=False) + np.pi / 18,
-                     np.linspace(-np.pi / 2, np.pi / 2, 9), indexing="ij")
-MAP_POINTS = np.stack([_B.ravel(), _G.ravel()], -1)  # (81, 2)
-
-
-@dataclass
-class LiveEstimate:
-    """What is published after each stance (and on each status change).
-
-    Attributes:
-        event: "stance" (a stance was processed), "status" (a fault or a recovery; ``message`` says
-            what), "end" (the estimator stopped).
-        stance: stances seen so far (1-based number of this one). used: whether it updated the model;
-            why_unused: the reason when not.
-        t_start, t_end: the stance's first and last sample, s (the bus's clock). samples: its samples.
-        latency: wall-clock s from the arrival of the frames that closed the stance to this estimate.
-        residual_rms: (2,) RMS of the stance's forces minus the model's prediction before the update, N.
-        residual_z: RMS of those residuals over the predicted std (measurement noise included): ~1 when
-            the model's intervals are right.
-        scale, scale_std: (2,) the map as a multiple of Li et al.'s generic map (alpha_x, alpha_z): the
-            average of map / generic map over ``MAP_POINTS``, each point weighted by its posterior precision,
-            and that average's posterior std (exact for a plug-in model; a model averaging over hyperparameters:
-            from ``SCALE_DRAWS`` maps drawn jointly, a fixed stream).
-        map_mean, map_std: (81, 2) posterior mean and std at ``MAP_POINTS``, N/cm^3 (in the callback;
-            the JSON line carries the summary).
-        stale: True while a motor has sent nothing for ``stale_after`` s; staleness: the longest silence
-            of the two motors now, s.
-        frames, dropped: frames received, and frames the queue could not take (still logged).
-        counts: what was dropped or masked, reason -> count. message: status text.
-    """
-
-    event: str
-    stance: int = 0
-    used: bool = False
-    why_unused: str | None = None
-    t_start: float = math.nan
-    t_end: float = math.nan
-    samples: int = 0
-    latency: float = math.nan
-    residual_rms: list = field(default_factory=lambda: [math.nan, math.nan])
-    residual_z: float = math.nan
-    scale: list = field(default_factory=lambda: [math.nan, math.nan])
-    scale_std: list = field(default_factory=lambda: [math.nan, math.nan])
-    map_mean: np.ndarray | None = None
-    map_std: np.ndarray | None = None
-    stale: bool = False
-    staleness: float = 0.0
-    frames: int = 0
-    dropped: int = 0
-    updates: int = 0
-    counts: dict = field(default_factory=dict)
-    message: str = ""
-
-    def as_json(self) -> str:
-        """One JSON object on one line (the map arrays left out; NaN written as null)."""
-        d = {k: v for k, v in asdict(self).items() if k not in ("map_mean", "map_std")}
-        return json.dumps(_finite(d), separators=(",", ":"))
-
-
-def _finite(x):
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    return x
-
-
-SCALE_DRAWS = 200  # joint map draws behind a mixture model's ``LiveEstimate.scale_std`` (Monte Carlo error ~5 %)
-UNNAMED = "frames logged without their channel (the log format cannot hold it)"  # ``LiveEstimate.counts``
-NO_AIR = "samples with no air-run force near the toe"  # the count's name in ``LiveEstimate.counts``
-
-
-class _Intake(can.Listener):
-    """The Notifier's one listener: every frame to the log first (nothing the bus delivered is lost
-    from it), then into the bounded queue for the worker; bus errors flagged for the worker."""
-
-    def __init__(self, logger, max_queue: int) -> None:
-        self.logger = logger
-        self.queue: queue.Queue = queue.Queue(maxsize=max_queue)
-        self.received = self.logged = self.dropped = self.error_frames = 0
-        self.unnamed_channel = 0  # frames logged without their channel (the log's format cannot hold it)
-        self.high_water = 0
-        self.error: BaseException | None = None
-        self.lock = threading.Lock()
-        # wall-clock arrival of the last data frame per CANSimple node (id >> 5): staleness is judged here, as
-        # frames arrive, not by the worker (which may be busy with an update)
-        self.last_seen: dict[int, float] = {}
-
-    def on_message_received(self, msg: can.Message) -> None:
-        now = time.monotonic()
-        if self.logger is not None:
-            try:
-                self.logger.on_message_received(msg)
-            except (struct.error, OverflowError):  # a channel the format cannot hold (BLF: a number below 2^16;
-                # python-can reads one from a name's trailing digits, "vcan-123456"): logged without it
-                unnamed = copy.copy(msg)
-                unnamed.channel = None
-                self.logger.on_message_received(unnamed)
-                self.unnamed_channel += 1
-            self.logged += 1
-        self.received += 1
-        if msg.is_error_frame:
-            self.error_frames += 1
-        elif not msg.is_remote_frame and not msg.is_extended_id:
-            self.last_seen[msg.arbitration_id >> 5] = now
-        try:
-            self.queue.put_nowait((now, msg))
-        except queue.Full:
-            self.dropped += 1
-        self.high_water = max(self.high_water, self.queue.qsize())
-
-    def on_error(self, exc: Exception) -> None:
-        with self.lock:
-            if self.error is None:
-                self.error = exc
-        time.sleep(0.02)  # the Notifier calls recv again at once: do not spin while the worker reconnects
-
-    def stop(self) -> None:  # the Notifier stops its listeners; the log outlives a reconnection
-        pass
 
 
 class LiveEstimator:
@@ -287,7 +162,7 @@ class LiveEstimator:
             self.snapshot_path = self.out_dir / "model.pt"
             self._jsonl = open(self.out_dir / "live.jsonl", "a", encoding="utf-8")  # noqa: SIM115 - closed in stop
         self._logger = logger
-        self.intake = _Intake(logger, int(max_queue))
+        self.intake = CanIntake(logger, int(max_queue))
         self.bus = bus
         self._notifier: can.Notifier | None = None
         self._worker: threading.Thread | None = None
@@ -711,5 +586,6 @@ class LiveEstimator:
                 + (f"; unused: {unused}" if unused else ""))
 
 
-# Its pieces are modules of their own (causal_filter, stance, live_resample, walking_leg).
+# Its pieces are modules of their own (can_intake, live_estimate, causal_filter, stance, live_resample,
+# walking_leg).
 # One concept: the live loop (frames in, each stance out, the estimate published, every frame recorded).
