@@ -24,7 +24,9 @@ from .test_backends_vs_dense import data, set_hypers
 # (backend, contacts): which closed form each case exercises
 CASES = [("observations", "translating"),  # RowSeparable
          ("observations", True),  # few distinct pairs: PairsRBF with R = W_U
-         ("pairs", True),  # PairsRBF on the weight-space factor
+         ("observations", False),  # every pair distinct: the same, more pairs than samples
+         ("pairs", True),  # PairsRBF on the weight-space factor (from P's eigenvectors or from the rows)
+         ("pairs", False),  # fewer samples than pairs: the factor from the rows (a thin SVD)
          ("spectral", False)]  # KroneckerFourier
 
 
@@ -60,6 +62,20 @@ def test_loss_and_every_gradient_equal_autograd_of_the_backends_loss(method, rep
     model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, tied_noise=tied, hyper_posterior="map",
                             li_basis=False)
     set_hypers(model, seed=3)
+    names = [n for n, _ in model.hypers.named_parameters()]
+    want_loss, want = autograd_grads(model)
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(want_loss, rel=1e-12)
+    assert_grads_close(got, want, 1e-9, names)
+
+
+@pytest.mark.parametrize("method, repeated", [c for c in CASES if c[0] != "spectral"])
+def test_li_basis_terms_equal_autograd(method, repeated):
+    """Li et al.'s term (kernel="li") in each exact closed form: loss and gradients against autograd through the
+    backend's own loss."""
+    c, f = data(T=30, M=4, seed=7, repeated=repeated)
+    model = irft.InverseRFT(c, f, method=method, prior_mean="physics", hyper_posterior="map")
+    set_hypers(model, seed=8)
     names = [n for n, _ in model.hypers.named_parameters()]
     want_loss, want = autograd_grads(model)
     got_loss, got = closed_form_grads(model)
