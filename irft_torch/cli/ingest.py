@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from .arguments import UsageError, _out_file, add_protocol_args, add_toe_args, make_toe, warn
 
 if TYPE_CHECKING:
-    from ..hardware.log_data import ResampledLog
+    from ..hardware.bus.log_data import ResampledLog
     from ..hardware.pipeline import ForceTrace
 
 

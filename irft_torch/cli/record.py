@@ -84,7 +84,7 @@ def cmd_record(a) -> int:
         print("MIT mode: listening only (a poll would be a command); the motors' replies to your controller "
               "are logged")
     else:
-        from ..hardware.odrive_can import COMMANDS
+        from ..hardware.bus.odrive_can import COMMANDS
 
         unknown = [c for c in a.poll if c not in COMMANDS[a.firmware] or not c.startswith("get_")]
         if unknown:

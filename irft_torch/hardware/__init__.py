@@ -1,18 +1,18 @@
-"""Sensing only: motor model, five-bar leg statics, ODrive CANSimple and CubeMars/T-Motor AK
-MIT-mode CAN frames, logs, the paper's signal
-pipeline, a simulated leg on a virtual bus, and the live path (``live``: frames in, an updated terrain
-estimate out after every stance). Imports neither ``gp`` nor plotting."""
+"""Sensing only: motor model, five-bar leg statics, the CAN bus's frames and logs (``bus``: ODrive CANSimple and
+CubeMars/T-Motor AK MIT mode), the paper's signal pipeline, a simulated leg on a virtual bus, and the live path
+(``live``: frames in, an updated terrain estimate out after every stance). Imports neither ``gp`` nor plotting."""
 
 from .air_baseline import AirBaseline
-from .can_log import SUPPORTED_SUFFIXES, read_log, record
-from .causal_filter import CausalMovingAverage
+from .bus.can_log import SUPPORTED_SUFFIXES, read_log, record
+from .bus.log_data import LogData, LogReadError, MotorSeries, ResampledLog
+from .bus.mit_can import MIT_ERRORS, MIT_MODELS, MitModel, decode_mit, encode_mit_reply, mit_model
+from .bus.odrive_can import COMMANDS, Frame, FrameError, arbitration_id, decode, encode, request, split_id
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
 from .live import LiveEstimate, LiveEstimator
-from .live_resample import LiveResampler
-from .log_data import LogData, LogReadError, MotorSeries, ResampledLog
-from .mit_can import MIT_ERRORS, MIT_MODELS, MitModel, decode_mit, encode_mit_reply, mit_model
+from .live.causal_filter import CausalMovingAverage
+from .live.resample import LiveResampler
+from .live.stance import Stance, StanceDetector
 from .motor import MotorModel, kt_from_kv
-from .odrive_can import COMMANDS, Frame, FrameError, arbitration_id, decode, encode, request, split_id
 from .pipeline import (
                        Dataset,
                        ForceTrace,
@@ -26,7 +26,6 @@ from .pipeline import (
                        zero_phase_filter,
 )
 from .simulated_leg import FakeODrive, SimulatedLeg, SimulationTruth
-from .stance import Stance, StanceDetector
 from .walking_leg import WalkingLeg, stride_path
 
 __all__ = [

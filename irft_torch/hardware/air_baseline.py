@@ -59,7 +59,7 @@ class AirBaseline:
         """From an air run's CAN log (``irft record``'s air run, or any log of the same stride in air): read,
         resampled at ``rate`` Hz, forces from the leg's statics, zero-phase filtered with ``filter_window``
         samples (the whole run is known: no lag)."""
-        from .can_log import read_log
+        from .bus.can_log import read_log
 
         if not Path(path).is_file():
             raise FileNotFoundError(f"no air-run log at {path}")

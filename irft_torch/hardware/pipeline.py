@@ -19,8 +19,8 @@ from scipy.ndimage import uniform_filter1d
 from ..data.dataset import Dataset, dataset_summary, load_dataset, save_dataset
 from ..rft.contacts import contacts
 from ..rft.toes import Toe
+from .bus.log_data import ResampledLog
 from .five_bar import FiveBarLeg, SingularConfigurationWarning
-from .log_data import ResampledLog
 from .motor import MotorModel
 
 # Dataset, dataset_summary, save_dataset and load_dataset: the dataset format (data.dataset), built here

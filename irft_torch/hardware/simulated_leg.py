@@ -27,9 +27,9 @@ from ..rft.contacts import contacts
 from ..rft.forces import forces
 from ..rft.paths import Path, pose_path
 from ..rft.toes import Toe
+from .bus.odrive_can import COMMANDS, decode, encode
 from .five_bar import FiveBarLeg
 from .motor import MotorModel
-from .odrive_can import COMMANDS, decode, encode
 
 __all__ = ["FakeODrive", "SimulatedLeg", "SimulationTruth"]
 

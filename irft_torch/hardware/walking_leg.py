@@ -29,9 +29,9 @@ import torch
 
 from ..rft.paths import pose_path
 from ..rft.toes import Toe
+from .bus.odrive_can import encode
 from .five_bar import FiveBarLeg
 from .motor import MotorModel
-from .odrive_can import encode
 from .simulated_leg import SimulatedLeg, SimulationTruth
 
 __all__ = ["WalkingLeg", "stride_path"]

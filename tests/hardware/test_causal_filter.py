@@ -4,7 +4,7 @@ uniform_filter1d): the same values, each published ``(window - 1) / 2`` samples 
 import numpy as np
 import pytest
 
-from irft_torch.hardware.causal_filter import CausalMovingAverage
+from irft_torch.hardware.live.causal_filter import CausalMovingAverage
 from irft_torch.hardware.pipeline import ForceTrace, zero_phase_filter
 
 

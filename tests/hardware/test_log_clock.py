@@ -1,4 +1,4 @@
-"""The logger's clock read in file order (hardware.log_clock): restarts split a log into recordings,
+"""The logger's clock read in file order (hardware.bus.log_clock): restarts split a log into recordings,
 steps and jumps are undone; every dataset is checked against the oracle (RFT of its own contacts in
 the simulated leg's known sand: clean logs are 6e-5 N off)."""
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from irft_torch.hardware import read_log
-from irft_torch.hardware.log_clock import clock_breaks
+from irft_torch.hardware.bus.log_clock import clock_breaks
 
 from .fault_logs import dump, ingest, shifted
 

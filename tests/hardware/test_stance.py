@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from irft_torch.hardware.stance import StanceDetector
+from irft_torch.hardware.live.stance import StanceDetector
 
 
 def feed(det, z, fz=None, valid=None):

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .log_data import CLOSED_LOOP_CONTROL
+from ..bus.log_data import CLOSED_LOOP_CONTROL
 
 __all__ = ["LiveResampler", "GridSamples"]
 

@@ -6,8 +6,8 @@ data silently: malformed frames (wrong length, non-finite payload, unknown ids) 
 counted in ``LogData.issues``; out-of-order timestamps are sorted and reported; gaps are reported
 and masked when resampling; a truncated or corrupted file raises ``LogReadError`` naming the
 frame, with everything read before it in ``.partial`` (or, with ``on_error="warn"``, returns it).
-What a log holds once read is in ``hardware.log_data``; the structural checks of a file in
-``hardware.log_checks``.
+What a log holds once read is in ``hardware.bus.log_data``; the structural checks of a file in
+``hardware.bus.log_checks``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from .._files import checked_target, temp_name
+from ..._files import checked_target, temp_name
 from .log_checks import _blf_intact, _Fault, _text_checks
 from .log_clock import clock_breaks
 from .log_data import LogData, LogReadError, MotorSeries, ResampledLog

@@ -47,18 +47,18 @@ import can
 import numpy as np
 import torch
 
-from ..rft.contacts import Contacts, contacts
-from ..rft.force_checks import force_faults
-from ..rft.paths import pose_path
-from ..rft.stress_maps import FourierStressMap
-from ..rft.toes import Toe
-from .can_intake import CanIntake
+from ...rft.contacts import Contacts, contacts
+from ...rft.force_checks import force_faults
+from ...rft.paths import pose_path
+from ...rft.stress_maps import FourierStressMap
+from ...rft.toes import Toe
+from ..bus.odrive_can import FrameError, decode
+from ..five_bar import FiveBarLeg, SingularConfigurationWarning
+from ..motor import MotorModel
 from .causal_filter import CausalMovingAverage
-from .five_bar import FiveBarLeg, SingularConfigurationWarning
-from .live_estimate import MAP_POINTS, NO_AIR, SCALE_DRAWS, UNNAMED, LiveEstimate
-from .live_resample import LiveResampler
-from .motor import MotorModel
-from .odrive_can import FrameError, decode
+from .estimate import MAP_POINTS, NO_AIR, SCALE_DRAWS, UNNAMED, LiveEstimate
+from .intake import CanIntake
+from .resample import LiveResampler
 from .stance import Stance, StanceDetector
 
 __all__ = ["LiveEstimator", "LiveEstimate", "MAP_POINTS"]
