@@ -3,7 +3,7 @@ logged.
 
     bus --Notifier--> intake: every frame to the log (python-can's writers, rotated by size), then
                       into a bounded queue
-    worker thread:    frames -> per-motor series on one time base (``live_resample``) -> q, tau
+    worker thread:    frames -> per-motor series on one time base (``resample``) -> q, tau
                       -> F = -J^-T tau (``five_bar``) [- the air run's force] -> the offline moving
                       average, causally (``causal_filter``) -> stance onset and end (``stance``)
                       -> that stance's contacts (``rft.contacts``) and forces -> checked
@@ -20,7 +20,7 @@ Faults, each with a defined behaviour (docs/real_leg.md, "Live"), never silent:
 
 - a motor that stops sending: after ``stale_after`` s the estimate is marked stale (every estimate and
   status says so) and the stance in progress is dropped; it recovers when both motors speak again;
-- frames out of order or repeated: dropped and counted (``live_resample``); a clock step: undone;
+- frames out of order or repeated: dropped and counted (``resample``); a clock step: undone;
 - a stance with no segment in contact at the stated surface, or with forces no granular medium gives
   (``force_faults``: the offline ingest check, per stance): not used, reported with the reason;
 - the queue between the bus and the worker falling behind: bounded (``max_queue`` frames); beyond it
@@ -586,6 +586,6 @@ class LiveEstimator:
                 + (f"; unused: {unused}" if unused else ""))
 
 
-# Its pieces are modules of their own (can_intake, live_estimate, causal_filter, stance, live_resample,
-# walking_leg).
+# Its pieces are modules of their own (intake, estimate, causal_filter, stance, resample; the simulated walk:
+# hardware.walking_leg).
 # One concept: the live loop (frames in, each stance out, the estimate published, every frame recorded).
