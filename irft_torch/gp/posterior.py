@@ -12,23 +12,26 @@ from torch import Tensor
 
 from ..rft.contacts import Contacts
 from .backends import RFTBackend
-from .hyper.mixture import mixture_moments, mixture_quantile
+from .hyper.mixture import mixture_covariance, mixture_moments, mixture_quantile
 
 __all__ = ["Posterior"]
 
 
 @dataclass
 class Posterior:
-    """Posterior marginals: ``mean`` and ``variance`` of the same shape (..., 2), axis order (x, z).
+    """Posterior marginals of K maps or force axes: ``mean`` and ``variance`` of the same shape (..., K), axis order
+    (x, z) for the planar model (K = 2), (x, y, z) for the 3-D one (K = 3, ``gp.inverse3d``); there also
+    ``covariance`` (..., K, K), each point's axes jointly (None where the axes are independent: the planar model).
 
     Averaged over hyperparameter draws (``InverseRFT(..., hyper_posterior="laplace")``) each marginal is a
-    Gaussian mixture: ``mean`` and ``variance`` are its mean and total variance, ``components`` holds the
-    draws' own means and variances (S, ..., 2) and their weights (S,), and ``interval`` inverts the mixture's
+    Gaussian mixture: ``mean``, ``variance`` (and ``covariance``) are its moments, ``components`` holds the
+    draws' own means and variances (S, ..., K) and their weights (S,), and ``interval`` inverts the mixture's
     CDF (``gp.hyper.mixture``)."""
 
     mean: Tensor
     variance: Tensor
     components: tuple[Tensor, Tensor, Tensor] | None = None
+    covariance: Tensor | None = None
 
     @property
     def stddev(self) -> Tensor:
@@ -45,7 +48,18 @@ class Posterior:
         if self.components is not None:
             means, variances, weights = self.components
             comp = (means.to(*args, **kwargs), variances.to(*args, **kwargs), weights.to(*args, **kwargs))
-        return Posterior(self.mean.to(*args, **kwargs), self.variance.to(*args, **kwargs), comp)
+        cov = None if self.covariance is None else self.covariance.to(*args, **kwargs)
+        return Posterior(self.mean.to(*args, **kwargs), self.variance.to(*args, **kwargs), comp, cov)
+
+    def reshape(self, *shape: int) -> Posterior:
+        """The points reshaped to ``shape`` (the axis dimension kept)."""
+        K = self.mean.shape[-1]
+        comp = None
+        if self.components is not None:
+            m, v, w = self.components
+            comp = (m.reshape(m.shape[0], *shape, K), v.reshape(v.shape[0], *shape, K), w)
+        cov = None if self.covariance is None else self.covariance.reshape(*shape, K, K)
+        return Posterior(self.mean.reshape(*shape, K), self.variance.reshape(*shape, K), comp, cov)
 
     @classmethod
     def mixture(cls, means: Tensor, variances: Tensor, weights: Tensor) -> Posterior:
@@ -55,6 +69,17 @@ class Posterior:
             return cls(means[0], variances[0])
         mean, var = mixture_moments(means, variances, weights)
         return cls(mean, var, (means, variances, weights))
+
+    @classmethod
+    def of_covariances(cls, means: Tensor, covariances: Tensor, weights: Tensor | None) -> Posterior:
+        """The mixture over draws of ``means`` (S, ..., K) and each point's axes' ``covariances`` (S, ..., K, K) with
+        ``weights`` (S,) (None: one plug-in draw, a plain Gaussian): ``covariance`` kept (the 3-D model's)."""
+        if weights is None or means.shape[0] == 1:
+            cov = covariances[0]
+            return cls(means[0], torch.diagonal(cov, dim1=-2, dim2=-1).clone(), None, cov)
+        mean, cov = mixture_covariance(means, covariances, weights)
+        variances = torch.diagonal(covariances, dim1=-2, dim2=-1)
+        return cls(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), (means, variances, weights), cov)
 
 
 def _psd_root(cov: Tensor) -> Tensor:

@@ -22,7 +22,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["mixture_moments", "mixture_quantile", "broadcast_weights"]
+__all__ = ["mixture_moments", "mixture_quantile", "broadcast_weights", "mixture_covariance"]
 
 
 def broadcast_weights(weights: Tensor, means: Tensor) -> Tensor:
@@ -76,3 +76,13 @@ def mixture_quantile(q: float, means: Tensor, variances: Tensor, weights: Tensor
         lo = torch.where(below, mid, lo)
         hi = torch.where(below, hi, mid)
     return 0.5 * (lo + hi)
+
+
+def mixture_covariance(means: Tensor, covariances: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean (..., K) and covariance (..., K, K) of the mixture over draws: ``means`` (S, ..., K), ``covariances``
+    (S, ..., K, K), ``weights`` (S,) summing to 1."""
+    w = weights.to(means).reshape(-1, *([1] * (means.ndim - 1)))
+    mean = (w * means).sum(0)
+    d = means - mean
+    cov = (w[..., None] * (covariances + d[..., :, None] * d[..., None, :])).sum(0)
+    return mean, cov

@@ -23,17 +23,7 @@ from ..hyper.predictions import backends_at_draws, posterior_over_hypers
 from .backends import Backend3D
 from .hyperparameters import RFT3DHyperparameters
 
-__all__ = ["HyperMixture3DMixin", "mixture_covariance"]
-
-
-def mixture_covariance(means: Tensor, covariances: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Mean (..., 3) and covariance (..., 3, 3) of the mixture over draws: ``means`` (S, ..., 3), ``covariances``
-    (S, ..., 3, 3), ``weights`` (S,) summing to 1."""
-    w = weights.to(means).reshape(-1, *([1] * (means.ndim - 1)))
-    mean = (w * means).sum(0)
-    d = means - mean
-    cov = (w[..., None] * (covariances + d[..., :, None] * d[..., None, :])).sum(0)
-    return mean, cov
+__all__ = ["HyperMixture3DMixin"]
 
 
 class HyperMixture3DMixin:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
@@ -20,9 +19,9 @@ from ..fit_control import FitDivergedWarning, adam, converged, copy_into, diverg
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..options import Engine, MapPrior, grouped_3d, options_3d
-from ..posterior import marginal_interval
+from ..posterior import Posterior
 from .backends import METHODS_3D, Backend3D, make_backend_3d
-from .hyper_mixture import HyperMixture3DMixin, mixture_covariance
+from .hyper_mixture import HyperMixture3DMixin
 from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
@@ -32,48 +31,7 @@ __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
 FORMAT_3D = "irft_torch.InverseRFT3D/1"
 
 
-@dataclass
-class Posterior3D:
-    """Posterior marginals, axis order (x, y, z): ``mean`` and ``variance`` (..., 3) and the full ``covariance``
-    (..., 3, 3) of each point's three axes.
-
-    Averaged over hyperparameter draws (``hyper_posterior="laplace"``) each marginal is a Gaussian mixture:
-    ``mean``, ``variance`` and ``covariance`` are its moments (``hyper_mixture.mixture_covariance``),
-    ``components`` the draws' own means and variances (S, ..., 3) and their weights (S,), and ``interval``
-    inverts the mixture's CDF."""
-
-    mean: Tensor
-    variance: Tensor
-    covariance: Tensor | None = None
-    components: tuple[Tensor, Tensor, Tensor] | None = None
-
-    @property
-    def stddev(self) -> Tensor:
-        return self.variance.clamp_min(0).sqrt()
-
-    def interval(self, level: float = 0.95) -> tuple[Tensor, Tensor]:
-        """Central credible interval (lower, upper) of the marginals at ``level`` in (0, 1)."""
-        return marginal_interval(self.mean, self.stddev, self.components, level)
-
-    @classmethod
-    def mixture(cls, means: Tensor, covariances: Tensor, weights: Tensor | None) -> Posterior3D:
-        """The mixture over draws of ``means`` (S, ..., 3) and ``covariances`` (S, ..., 3, 3) with ``weights`` (S,)
-        (None: one plug-in draw, a plain Gaussian)."""
-        if weights is None or means.shape[0] == 1:
-            cov = covariances[0]
-            return cls(means[0], torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov)
-        mean, cov = mixture_covariance(means, covariances, weights)
-        variances = torch.diagonal(covariances, dim1=-2, dim2=-1)
-        return cls(mean, torch.diagonal(cov, dim1=-2, dim2=-1).clone(), cov, (means, variances, weights))
-
-    def reshape(self, *shape: int) -> Posterior3D:
-        """The points reshaped to ``shape`` (the axis dimension kept)."""
-        comp = None
-        if self.components is not None:
-            m, v, w = self.components
-            comp = (m.reshape(m.shape[0], *shape, 3), v.reshape(v.shape[0], *shape, 3), w)
-        cov = None if self.covariance is None else self.covariance.reshape(*shape, 3, 3)
-        return Posterior3D(self.mean.reshape(*shape, 3), self.variance.reshape(*shape, 3), cov, comp)
+Posterior3D = Posterior  # one posterior type for every model (``gp.posterior.Posterior``, K = 3 axes here)
 
 
 def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
@@ -318,10 +276,10 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         return self
 
     # ---- prediction ----------------------------------------------------------------------------------------------
-    def predict_forces(self, contacts: Contacts3D, include_noise: bool = False) -> Posterior3D:
+    def predict_forces(self, contacts: Contacts3D, include_noise: bool = False) -> Posterior:
         """Posterior of (F_x, F_y, F_z) for contacts (T, K): mean, variance (T, 3) in N, N^2 and each sample's
         3 x 3 ``covariance`` (F_x and F_y correlate through alpha_x and alpha_y; F_z is independent of both). With
-        a hyperparameter posterior, the mixture over its draws (``Posterior3D.mixture``)."""
+        a hyperparameter posterior, the mixture over its draws (``Posterior.of_covariances``)."""
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
         c = contacts.to(dtype=self.dtype, device=self._device)
@@ -337,7 +295,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                     cov = cov + torch.diag_embed(backend.hypers.noise.detach()).expand_as(cov)
                 means.append(mean)
                 covs.append(cov)
-        return Posterior3D.mixture(torch.stack(means), torch.stack(covs), weights)
+        return Posterior.of_covariances(torch.stack(means), torch.stack(covs), weights)
 
     def _angles(self, beta, gamma) -> tuple[Tensor, Tensor, torch.Size]:
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
@@ -346,7 +304,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         beta, gamma = torch.broadcast_tensors(beta, gamma)
         return beta, gamma, S
 
-    def stress_map(self, beta, gamma) -> Posterior3D:
+    def stress_map(self, beta, gamma) -> Posterior:
         """Posterior of (alpha_x, alpha_y, alpha_z) at angles of any broadcast shape S (rad): mean, variance
         S + (3,) in N/cm^3 (angles outside the canonical square mapped in by the mirror identity)."""
         beta, gamma, S = self._angles(beta, gamma)
@@ -396,10 +354,10 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         return draws.reshape(int(n), *S, 3)
 
     def cross_validate(self, groups, refit: bool = False, n_iter: int = 300, lr: float = 0.05,
-                       include_noise: bool = False) -> Posterior3D:
+                       include_noise: bool = False) -> Posterior:
         """Each group of training samples predicted from the other groups: at this model's fitted
         hyperparameters (default; with a hyperparameter posterior, the mixture over its draws) or by a model like
-        this one fitted on the others (``refit``). Returns the held-out ``Posterior3D`` (T, 3) in the training
+        this one fitted on the others (``refit``). Returns the held-out ``Posterior`` (T, 3) in the training
         order."""
         g = torch.as_tensor(groups, device=self._device)
         T = len(self.train_contacts)
@@ -429,7 +387,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 if include_noise:
                     cs = cs + torch.diag_embed(backend.hypers.noise.detach())
                 mean[s, test], cov[s, test] = ms, 0.5 * (cs + cs.mT)
-        return Posterior3D.mixture(mean, cov, None if refit else weights)
+        return Posterior.of_covariances(mean, cov, None if refit else weights)
 
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
