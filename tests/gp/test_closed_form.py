@@ -53,6 +53,15 @@ def assert_grads_close(got, want, tol, names):
         torch.testing.assert_close(a, b, rtol=tol, atol=tol * b.abs().max().item() + 1e-300, msg=f"gradient of {name}")
 
 
+def assert_closed_form_is_autograd(model):
+    """The closed form's loss and every raw gradient against autograd through the backend's own loss."""
+    names = [n for n, _ in model.hypers.named_parameters()]
+    want_loss, want = autograd_grads(model)
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(want_loss, rel=1e-12)
+    assert_grads_close(got, want, 1e-9, names)
+
+
 @pytest.mark.parametrize("tied", [False, True])
 @pytest.mark.parametrize("prior_mean", ["zero", "physics"])
 @pytest.mark.parametrize("method, repeated", CASES)
@@ -62,11 +71,7 @@ def test_loss_and_every_gradient_equal_autograd_of_the_backends_loss(method, rep
     model = irft.InverseRFT(c, f, method=method, prior_mean=prior_mean, tied_noise=tied, hyper_posterior="map",
                             li_basis=False)
     set_hypers(model, seed=3)
-    names = [n for n, _ in model.hypers.named_parameters()]
-    want_loss, want = autograd_grads(model)
-    got_loss, got = closed_form_grads(model)
-    assert got_loss == pytest.approx(want_loss, rel=1e-12)
-    assert_grads_close(got, want, 1e-9, names)
+    assert_closed_form_is_autograd(model)
 
 
 @pytest.mark.parametrize("method, repeated", [c for c in CASES if c[0] != "spectral"])
@@ -76,11 +81,7 @@ def test_li_basis_terms_equal_autograd(method, repeated):
     c, f = data(T=30, M=4, seed=7, repeated=repeated)
     model = irft.InverseRFT(c, f, method=method, prior_mean="physics", hyper_posterior="map")
     set_hypers(model, seed=8)
-    names = [n for n, _ in model.hypers.named_parameters()]
-    want_loss, want = autograd_grads(model)
-    got_loss, got = closed_form_grads(model)
-    assert got_loss == pytest.approx(want_loss, rel=1e-12)
-    assert_grads_close(got, want, 1e-9, names)
+    assert_closed_form_is_autograd(model)
 
 
 @pytest.mark.parametrize("prior_mean", ["zero", "physics"])
