@@ -42,7 +42,7 @@ from .kernels.priors import (
     register_spatial_priors,
     spatial_lengthscale_centre,
 )
-from .mean_average import fit_companion, stream_into_average, weigh_means
+from .mean_average import MeanAverage, fit_companion, stream_into_average, weigh_means
 from .model_file import load_state, model_options, refresh_digest, save_model, without_backend
 from .options import Engine, MapPrior, planar_options
 from .posterior import Posterior, _force_posterior, _mixture_maps, _predict_chunk
@@ -190,7 +190,7 @@ class InverseRFT(HyperMixtureMixin, nn.Module):
         self.hyper_posterior: HyperPosterior | None = None  # set by fit (hyper_posterior != "map")
         self._draw_backends: list[RFTBackend] | None = None
         self._companion: list = []  # prior_mean="average": the physics-mean model (a list: not a submodule)
-        self.mean_average = None
+        self.mean_average: MeanAverage | None = None  # MapPrior(mean="average"): the weights (gp.mean_average)
         self.init_lengthscale = float(lengthscale)
         self._parts: list[tuple[Contacts, Tensor, Tensor]] = [(c, f, scale)]
         self._device = device
