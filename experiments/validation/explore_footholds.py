@@ -3,15 +3,16 @@
 Data: simulated (``rft.TerrainField.random_patches`` of media from the calibration study's families). Run time:
 about 15 s per seed here (2 cores); the default run about 1.5 minutes.
 
-    python experiments/validation/explore_footholds.py [--seeds 0 1 2 3 4] [--steps 12] [--out experiments/results]
+    python experiments/validation/explore_footholds.py [--seeds 0 1 2 3 4] [--steps 12] [--reach 0.45]
+        [--out experiments/results]
 
 A C-toe first walks a line of 8 footholds (x = 0 to 1.4 m, y = 0) over a 2 m x 1 m patch of ground; the spatial
 model (``InverseRFT(..., locations=)``, defaults) is fitted there. Then each strategy takes ``--steps`` more
 stances, one scoop each, 2 % noise, the model updated with the forces measured (``add_data``, hyperparameters
 fixed):
 
-- greedy: ``design.plan_footholds`` one step at a time, within 0.45 m of the last foothold, from candidates on a
-  0.1 m grid, scoring the maps over a 5 x 3 grid of places covering the patch;
+- greedy: ``design.plan_footholds`` one step at a time, within ``--reach`` (0.45 m) of the last foothold, from
+  candidates on a 0.1 m grid, scoring the maps over a 5 x 3 grid of places covering the patch;
 - lawnmower: three rows (y = -0.35, 0, 0.35 m) walked back and forth, spaced to fit the steps;
 - random: footholds drawn uniformly over the patch.
 
@@ -75,7 +76,7 @@ def rmse(model, field, places, b, g) -> float:
     return float((model.stress_map(b, g, locations=places).mean - truth).pow(2).mean().sqrt())
 
 
-def run(seed: int, steps: int) -> dict[str, list[float]]:
+def run(seed: int, steps: int, reach: float = 0.45) -> dict[str, list[float]]:
     import irft_torch as irft
     from irft_torch.design import plan_footholds
 
@@ -107,7 +108,7 @@ def run(seed: int, steps: int) -> dict[str, list[float]]:
         g_meas = torch.Generator().manual_seed(40_000 + seed)
         for k in range(steps):
             if name == "greedy":
-                p = plan_footholds(m, stance, here, 1, 0.45, candidates, roi)[0]
+                p = plan_footholds(m, stance, here, 1, reach, candidates, roi)[0]
             else:
                 p = feet[k]
             c, F = measure(field, stance, p[None], g_meas)
@@ -127,6 +128,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="explore_footholds.py", description=__doc__, formatter_class=_HelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--steps", type=int, default=12, help="stances each strategy takes after the first line")
+    ap.add_argument("--reach", type=float, default=0.45, help="the greedy planner's longest step, m (the lawnmower's "
+                    "steps along a row are 0.6 m at 12 steps, its first step from the line 1.35 m)")
     ap.add_argument("--out", type=Path, default=Path("experiments/results"), help="where the CSV goes")
     args = ap.parse_args(argv)
     torch.set_default_dtype(F64)
@@ -135,7 +138,7 @@ def main(argv=None) -> None:
     for seed in args.seeds:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the unit checks on simulated media far from the generic
-            res = run(seed, args.steps)
+            res = run(seed, args.steps, args.reach)
         for name, errs in res.items():
             rows.append([seed, name, *[f"{e:.5f}" for e in errs]])
             print(f"seed {seed} {name:9s}: map RMSE after 0, 4, 8, ... steps: " + ", ".join(f"{e:.4f}" for e in errs),
