@@ -22,9 +22,11 @@ against the truth there. Methods:
   at a place = its predicted scale times the generic map.
 
 Per terrain and seed: map RMSE (N/cm^3, both maps) at the held-out places, and the 95 % coverage of the spatial
-model's intervals there (the homogeneous model's beside it). Seeds ``--seeds`` are our own; ``--held-out`` were
-written down before any run and are reported apart. Writes ``walk_and_map.csv`` and, with ``--plot``,
-``walk_and_map.png``.
+model's intervals there (the homogeneous model's beside it), over the whole square and split into the angles the
+walk's segments came within 15 degrees of ("seen") and the others, with the spread of the errors in units of the
+model's sd there (1 for honest intervals, below 1 for intervals wider than needed). Seeds ``--seeds`` are our own;
+``--held-out`` were written down before any run and are reported apart. Writes ``walk_and_map.csv`` and, with
+``--plot``, ``walk_and_map.png``.
 """
 
 from __future__ import annotations
@@ -225,7 +227,12 @@ def run_one(kind: str, seed: int, n_stances: int, held_out: bool = False, prior_
         out[f"rmse_seen_{name}"] = float((m - truth)[:, seen].pow(2).mean().sqrt())
     for name, p in (("spatial", post), ("homogeneous", hp)):
         z = (truth - p.mean) / p.variance.clamp_min(1e-30).sqrt()
-        out[f"coverage_{name}"] = float((z.abs() < 1.96).double().mean())
+        inside = (z.abs() < 1.96).double()
+        out[f"coverage_{name}"] = float(inside.mean())
+        out[f"coverage_seen_{name}"] = float(inside[:, seen].mean())  # where the walk's segments have been
+        out[f"coverage_unseen_{name}"] = float(inside[:, ~seen].mean()) if bool((~seen).any()) else float("nan")
+    z = (truth - post.mean) / post.variance.clamp_min(1e-30).sqrt()  # the spread of z says how wide the intervals are
+    out["z_sd_seen"], out["z_sd_unseen"] = float(z[:, seen].std()), float(z[:, ~seen].std())
     sp = spatial.hypers.as_dict()
     out["spatial_variance"] = sp["spatial_variance"]
     out["spatial_lengthscale_m"] = sp["spatial_lengthscale_m"]
@@ -312,10 +319,13 @@ def main(argv=None) -> None:
                     continue
                 m = {k: np.mean([r[pre + k] for r in sel]) for k in ("spatial", "homogeneous", "filter", "scalar_gp")}
                 cov = np.mean([r["coverage_spatial"] for r in sel])
+                cs, cu = (np.mean([r[f"coverage_{w}_spatial"] for r in sel]) for w in ("seen", "unseen"))
+                zs, zu = (np.mean([r[f"z_sd_{w}"] for r in sel]) for w in ("seen", "unseen"))
                 best = min(("homogeneous", "filter", "scalar_gp"), key=lambda n: m[n])
                 print(f"  {group:8s} {kind:11s}: spatial {m['spatial']:.4f} | homogeneous {m['homogeneous']:.4f} | "
                       f"filter {m['filter']:.4f} | scalar GP {m['scalar_gp']:.4f} | best baseline {best}; "
-                      f"spatial / best {m['spatial'] / m[best]:.2f}; coverage {cov:.2f}")
+                      f"spatial / best {m['spatial'] / m[best]:.2f}; coverage {cov:.2f} (seen angles {cs:.2f}, "
+                      f"unseen {cu:.2f}; sd of z {zs:.2f} / {zu:.2f})")
     keys = [k for k in rows[0] if not k.startswith("_")]
     with open(args.out / "walk_and_map.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
