@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -38,9 +37,6 @@ from torch import Tensor
 from .backends import RFTBackend
 from .hyper.posterior import _polish, hyper_spec, log_evidence
 from .options import grouped
-
-if TYPE_CHECKING:
-    pass
 
 __all__ = ["MeanAverage", "MEANS", "new_companion", "fit_companion", "weigh_means", "averaged_backends",
            "stream_into_average"]

@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -45,9 +44,6 @@ from ...rft.contacts import M_TO_CM, Contacts
 from ..backends.pairs import distinct_pairs
 from ..kernels.angle import angle_covariance
 from ..kernels.li_basis import li_features
-
-if TYPE_CHECKING:
-    pass
 
 __all__ = ["SurfaceOffset", "SurfaceEstimate", "surface_negative_log_likelihood", "surface_estimate",
            "init_surface", "surface_loss"]
