@@ -340,7 +340,9 @@ def test_an_additive_term_plugs_in():
 def test_laplace_is_the_same_posterior_as_before():
     """The Laplace posterior (polish, Hessian, 128 weighted proposals in one call) with the same generator
     equals the one computed through autograd, proposal by proposal (to the Hessian's accuracy: here central
-    differences of the closed-form gradient, 2e-8 relative, against autograd's second derivatives)."""
+    differences of the closed-form gradient, 2e-8 relative, against autograd's second derivatives; the split
+    proposal's sides are read from log-posterior differences along the Hessian's Cholesky factor, which carry
+    that error a few times over into the draws: 4e-8 here)."""
     c, f = data(T=40, M=4, seed=17, repeated=True)
     posts = []
     for ctx in (autograd_only, None):
@@ -354,7 +356,7 @@ def test_laplace_is_the_same_posterior_as_before():
                 posts.append(model.fit_hyper_posterior("laplace", generator=g))
     a, b = posts
     torch.testing.assert_close(a.mode, b.mode, rtol=1e-9, atol=1e-10)
-    torch.testing.assert_close(a.theta, b.theta, rtol=1e-7, atol=1e-8)
+    torch.testing.assert_close(a.theta, b.theta, rtol=1e-7, atol=1e-7)
     torch.testing.assert_close(a.weights, b.weights, rtol=1e-7, atol=1e-9)
     assert a.ess == pytest.approx(b.ess, rel=1e-7)
 

@@ -33,8 +33,9 @@ from torch import Tensor
 
 from .pareto import pareto_khat
 
-__all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "positive_definite",
-           "proposal_covariance", "possible", "lower_bounds", "unreliable", "reliability_message", "said_once"]
+__all__ = ["HyperPosteriorWarning", "MAX_LOG_SD", "KHAT_RELIABLE", "MIN_ESS", "walls", "effective_size",
+           "positive_definite", "proposal_covariance", "possible", "lower_bounds", "unreliable", "reliability_message",
+           "said_once"]
 
 MAX_LOG_SD = 5.0  # the Laplace Gaussian's widest standard deviation in theta = log(value)
 KHAT_RELIABLE = 0.7  # PSIS (Vehtari et al.): above it the importance weights' estimates are unreliable
@@ -120,15 +121,22 @@ def possible(theta: Tensor, lower: Tensor) -> Tensor:
     return (torch.isfinite(v) & (v > lower.to(v))).all(-1)
 
 
+def effective_size(log_weights: Tensor) -> float:
+    """The effective sample size (sum w)^2 / sum w^2 of importance weights (unnormalised logs (n,), -inf where
+    impossible); 0 where none is possible."""
+    ok = torch.isfinite(log_weights)
+    if not ok.any():
+        return 0.0
+    w = (log_weights[ok] - log_weights[ok].max()).exp()
+    return float(w.sum() ** 2 / w.pow(2).sum())
+
+
 def unreliable(log_weights: Tensor) -> bool:
     """Whether importance weights (unnormalised logs (n,), -inf where impossible) are unreliable: Pareto k-hat
     above ``KHAT_RELIABLE`` or an effective sample size below ``MIN_ESS``."""
-    ok = torch.isfinite(log_weights)
-    if not ok.any():
+    if not torch.isfinite(log_weights).any():
         return True
-    w = (log_weights[ok] - log_weights[ok].max()).exp()
-    ess = float(w.sum() ** 2 / w.pow(2).sum())
-    return ess < MIN_ESS or pareto_khat(log_weights) > KHAT_RELIABLE
+    return effective_size(log_weights) < MIN_ESS or pareto_khat(log_weights) > KHAT_RELIABLE
 
 
 def reliability_message(ess: float, khat: float, n_proposals: int, held: list[str]) -> str | None:

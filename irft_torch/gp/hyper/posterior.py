@@ -16,10 +16,12 @@ value itself would add sum(theta)). Without priors (``MapPrior(hyperpriors=None)
 - ``laplace``: the mode theta_hat (the fitted hyperparameters, polished by a few Newton steps on the
   exact Hessian), the Gaussian N(theta_hat, H^-1) with H the Hessian of -log p(theta | F) by autograd,
   then importance sampling: proposals from a multivariate Student-t (30 degrees of freedom) on that
-  Gaussian, weights p(theta | F) / q(theta), self-normalised. Reported: the effective sample size
-  (sum w)^2 / sum w^2 and Pareto k-hat of the largest weights (Vehtari et al., PSIS: k-hat < 0.7
-  means the weights are reliable). A second stage of proposals, moved to the first stage's weighted draws, is
-  always drawn and both are weighed together. The draws kept for prediction are a small equally weighted point
+  Gaussian, split along its axes where the log posterior falls more slowly on one side than the curvature says
+  (Geweke's split-t, ``gp.hyper.importance.split_axes``), weights p(theta | F) / q(theta), self-normalised.
+  Reported: the effective sample size (sum w)^2 / sum w^2 and Pareto k-hat of the largest weights (Vehtari et al.,
+  PSIS: k-hat < 0.7 means the weights are reliable). A second stage of proposals, moved to the first stage's
+  weighted draws, is always drawn, and more while the weights stay unreliable (up to four stages); all are weighed
+  together. The draws kept for prediction are a small equally weighted point
   set with the weighted proposals' mean and covariance (``points="moments"``): it carries no resampling noise.
   Where the approximation does not hold (a hyperparameter at a wall, a flat direction, unreliable weights)
   ``gp.hyper.guard`` holds, caps or warns (``HyperPosteriorWarning``) instead of a silently wrong mixture.
@@ -44,7 +46,7 @@ from torch import Tensor
 
 from . import guard
 from .density import closed_form_log_posterior, log_posterior_and_grad, log_posterior_batch
-from .importance import _always, _merge, _moment_points, _systematic, first_stage, importance_sample
+from .importance import _always, _merge, _moment_points, _systematic, first_stage, importance_sample, split_axes
 from .pareto import pareto_khat, psis_smooth
 
 __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "log_posterior", "laplace",
@@ -336,7 +338,7 @@ def _finite(*tensors: Tensor) -> bool:
 def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None, max_iter: int = 100,
             df: float = 30.0, inflate: float = 1.5, qmc: bool = True,
             generator: torch.Generator | None = None, adapt: bool | str = "always", smooth: bool = True,
-            points: str = "moments") -> HyperPosterior:
+            points: str = "moments", split: bool = True, max_stages: int = 4) -> HyperPosterior:
     """The Laplace approximation at the mode, importance-reweighted (module docstring).
 
     Args:
@@ -348,30 +350,30 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
         free: labels (or a bool mask (P,)) of the hyperparameters to marginalise; the others stay at the
             mode (default: all).
         max_iter: L-BFGS iterations polishing the mode before the Hessian is taken.
-        df: the proposal is a Student-t with ``df`` degrees of freedom and covariance ``inflate``
-            x H^-1: wider than the Laplace Gaussian, so the weights stay bounded where the posterior's
-            tails are heavier (a lengthscale the data bound on one side only). On a turning C-toe
-            (12 hyperparameters) this gave Pareto k-hat 0.16 and ESS 50 of 256, against 0.88 and 26 for the
-            Laplace Gaussian itself.
+        df: the proposal is a Student-t with ``df`` degrees of freedom and scale ``inflate`` x H^-1: wider than
+            the Laplace Gaussian, so the weights stay bounded where the posterior's tails are heavier.
         qmc: proposals from a scrambled Sobol sequence (``_student_t``) rather than pseudo-random.
         generator: a ``torch.Generator`` for the proposals' scrambling and the resample; None (default): one seeded
             with ``DRAW_SEED``, so that the same data give the same draws and predictions in any process.
         adapt: "always" (default): a second stage of ``n_proposals`` / 2 proposals, from a Student-t moved to the
             first stage's weighted draws, both weighed together (``gp.hyper.importance.importance_sample``);
             "unreliable" (or True): a second stage of ``n_proposals`` only where the first stage's weights are
-            unreliable (Pareto k-hat above 0.7 or ESS below 2); False: one stage. On the planar wheels' held-out
-            runs the second stage about doubles the effective sample size (smooth wheel, fold 5: ESS 18-42 of 128
-            -> 29-67 of 192).
+            unreliable (Pareto k-hat above 0.7 or ESS below 2); False: one stage.
         smooth: Pareto-smoothed weights (``gp.hyper.pareto.psis_smooth``): the few largest weights, which set
-            most of the Monte Carlo error, replaced by a fitted tail. On the planar wheels' held-out runs (16
-            draws of 128, three streams, ``experiments/calibration/mixture_spread.py``) the largest spread of a
-            prediction's centre between streams fell from 0.35 / 0.24 to 0.24 / 0.15 of its sd (F_x / F_z,
-            smooth wheel) and from 0.63 / 0.21 to 0.16 / 0.16 (grousered); False: the raw weights.
+            most of the Monte Carlo error, replaced by a fitted tail; False: the raw weights.
         points: the draws kept. "moments" (default): P + 1 equally weighted points (2 P where ``n_draws``
             allows) with the weighted proposals' mean and covariance over the P free coordinates
             (``_moment_points``): no resampling noise, and the mixture's mean exact where a prediction is
             quadratic in theta. "resample": a systematic resample of ``n_draws`` proposals (identical ones
             merged), the fallback where ``n_draws`` < P + 1 or a point is an impossible setting.
+        split: the first stage's Student-t is split along the Laplace covariance's Cholesky axes
+            (``gp.hyper.importance.split_axes``, Geweke 1989): each side as wide as the log posterior's fall there
+            says (4 P + 1 more evaluations), so a direction the data bound on one side only is covered. False: the
+            symmetric Student-t.
+        max_stages: with ``adapt``, stages of the second's size, each moved to all the weighted draws so far, are
+            added while the weights stay unreliable (``guard.unreliable``), up to this many stages in all (2: never
+            more than the second). With ``split``, on the planar wheels' 54 held-out runs, a prediction's centre
+            moves by under 0.1 of its sd between point sets (docs/calibration.md).
     """
     spec = hyper_spec(backend.hypers)
     P = spec.size
@@ -396,7 +398,8 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
             lp = _log_posterior_many(backend, sub_spec, x)
             return torch.where(guard.possible(sub_spec.full(x), lower), lp, torch.full_like(lp, -math.inf))
 
-        first = first_stage(log_p_many, mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc)
+        axes = split_axes(log_p_many, mode_sub, cov, float(inflate)) if split else None
+        first = first_stage(log_p_many, mode_sub, float(inflate) * cov, df, int(n_proposals), generator, qmc, axes)
         if bool(torch.isfinite(first[2]).all()):
             break
         if attempt == 2:  # the proposals drawn stand (impossible ones weigh nothing)
@@ -417,8 +420,9 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     if points not in ("moments", "resample"):
         raise ValueError(f"points must be 'moments' or 'resample', got {points!r}")
     when = {"always": _always, "unreliable": guard.unreliable, True: guard.unreliable, False: None}[adapt]
-    x, logp, logw, _ = importance_sample(log_p_many, first, mode_sub, float(inflate) * cov, df, generator, qmc,
-                                         when, max(1, int(n_proposals) // 2) if adapt == "always" else None)
+    x, logp, logw, n_stages = importance_sample(log_p_many, first, mode_sub, float(inflate) * cov, df, generator, qmc,
+                                         when, max(1, int(n_proposals) // 2) if adapt == "always" else None, axes,
+                                         guard.unreliable, int(max_stages))
     spec.load(backend.hypers, mode)  # functional_call restores, but be explicit about where we leave them
     khat = pareto_khat(logw)  # of the raw weights: how far they could be trusted before smoothing
     if smooth:
@@ -448,7 +452,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     full_cov[idx[:, None], idx[None, :]] = cov
     return HyperPosterior("laplace", spec.labels, thetas.detach(), w.detach(), mode.detach(), full_cov, ess, khat,
                           x.shape[0], {"log_posterior_mode": float(lp_mode), "held": held,
-                                             "stages": 1 + int(x.shape[0] > int(n_proposals)),
+                                             "stages": n_stages,
                                              "points": "moments" if kept is not None else "resample",
                                              "hessian": H.detach() if bool(mask.all()) else None})
 
