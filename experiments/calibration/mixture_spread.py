@@ -2,7 +2,7 @@
 mixture's Monte Carlo spread at every held-out planar wheel run.
 
 Data: the measured rover-wheel runs (--data DIR, e.g. ../shared/data/rover_wheel; not shipped). Run time: about
-7 minutes per wheel and setting at five streams here (2 cores).
+3-4 minutes per wheel and setting at five streams here (2 cores, 2026-12-01).
 
     python experiments/calibration/mixture_spread.py --data ../shared/data/rover_wheel [--streams 5]
         [--wheels smooth grouser] [--draws 16 64] [--weights psis raw] [--points moments resample]
