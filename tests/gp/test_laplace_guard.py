@@ -128,6 +128,24 @@ def test_every_proposal_impossible_keeps_the_plug_in_and_says_so(monkeypatch):
 
 
 # ---- the adaptive second stage, on a target known in closed form -----------------------------------------
+def misplaced_gaussian():
+    """A 3-D Gaussian target N(m, S) and a start 2 target sds off in its first coordinate: m, S, the target, start."""
+    m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
+    A = torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.2, 0.5]], dtype=F64)
+    S = A @ A.T
+    target = torch.distributions.MultivariateNormal(m, S)
+    return m, S, target, m + torch.tensor([2.0, 0.0, 0.0], dtype=F64) * S.diagonal().sqrt()
+
+
+def moments(x, lw):
+    """Weighted mean (P,), covariance (P, P) and effective sample size of draws x (N, P) with log weights lw (N,)."""
+    w = (lw - lw.max()).exp()
+    w = w / w.sum()
+    mu = (w[:, None] * x).sum(0)
+    d = x - mu
+    return mu, (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), float(1 / w.pow(2).sum())
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
     """Target N(m, S) in 3-D; the first proposal is centred 2 target sds off in one coordinate: its weights are
@@ -137,18 +155,7 @@ def test_a_misplaced_proposal_is_corrected_by_the_second_stage(seed):
     from irft_torch.gp.hyper.importance import first_stage, importance_sample
     from irft_torch.gp.hyper.pareto import pareto_khat
 
-    m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
-    A = torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.2, 0.5]], dtype=F64)
-    S = A @ A.T
-    target = torch.distributions.MultivariateNormal(m, S)
-    start = m + torch.tensor([2.0, 0.0, 0.0], dtype=F64) * S.diagonal().sqrt()
-
-    def moments(x, lw):
-        w = (lw - lw.max()).exp()
-        w = w / w.sum()
-        mu = (w[:, None] * x).sum(0)
-        d = x - mu
-        return mu, (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), float(1 / w.pow(2).sum())
+    m, S, target, start = misplaced_gaussian()
 
     g = torch.Generator().manual_seed(seed)
     first = first_stage(target.log_prob, start, S, 30.0, 256, g)

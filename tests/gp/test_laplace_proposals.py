@@ -18,6 +18,8 @@ from irft_torch.gp.hyper.importance import (
 )
 from irft_torch.gp.hyper.pareto import pareto_khat
 
+from .test_laplace_guard import misplaced_gaussian, moments
+
 F64 = torch.float64
 
 
@@ -115,18 +117,7 @@ def test_stages_are_added_while_asked_and_weighed_together():
     stages while the effective sample size is below 400 adds them up to ``max_stages``, each of the second's size;
     every draw's log posterior is returned, and the weighted mean and covariance of all four stages are nearer the
     target's than those of two."""
-    m = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
-    A = torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.2, 0.5]], dtype=F64)
-    S = A @ A.T
-    target = torch.distributions.MultivariateNormal(m, S)
-    start = m + torch.tensor([2.0, 0.0, 0.0], dtype=F64) * S.diagonal().sqrt()
-
-    def moments(x, lw):
-        w = (lw - lw.max()).exp()
-        w = w / w.sum()
-        mu = (w[:, None] * x).sum(0)
-        d = x - mu
-        return mu, (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), float(1 / w.pow(2).sum())
+    m, S, target, start = misplaced_gaussian()
 
     def run(max_stages):
         g = torch.Generator().manual_seed(5)
