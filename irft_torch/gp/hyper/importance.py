@@ -28,7 +28,7 @@ class SplitAxes:
     """The axes of a split Student-t proposal (Geweke 1989, "Bayesian inference in econometric models using Monte
     Carlo integration", Econometrica 57: the split-t importance function): x = mean + L y, L (P, P) lower
     triangular (the Cholesky factor of the proposal's scale), and each y_j a side of a Student-t: scaled by ``hi``
-    [j] above 0 and by ``lo`` [j] below (P,, dimensionless), with mass in the sides' proportions, so the density
+    [j] above 0 and by ``lo`` [j] below (each (P,), dimensionless), with mass in the sides' proportions, so the density
     is continuous. Equal sides of 1 give the symmetric Student-t with scale L L^T. The columns of a Cholesky factor,
     not the covariance's eigenvectors, so the proposal moves continuously with the Hessian (eigenvectors of nearly
     equal eigenvalues turn at a rounding error's push)."""

@@ -434,7 +434,7 @@ def laplace(backend, n_proposals: int = 128, n_draws: int | None = 16, free=None
     lw = torch.where(ok, logw - logw[ok].max(), torch.full_like(logw, -math.inf))
     w = lw.exp()
     w = w / w.sum()
-    ess = float(1 / w.pow(2).sum())
+    ess = guard.effective_size(lw)
     message = guard.reliability_message(ess, khat, x.shape[0], held)
     if message:
         warnings.warn(message, guard.HyperPosteriorWarning, stacklevel=3)
