@@ -229,8 +229,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
         d = wheel_data_3d(data, wheel)
         results = {s: evaluate(d, s, args) for s in SCHEMES}
         plot_forces(d, results, wheel, out)
-        default = InverseRFT3D.__init__.__kwdefaults__["alpha_y"], InverseRFT3D.__init__.__kwdefaults__["prior_mean"]
-        models[wheel] = fit(d, np.arange(len(d["runs"])), default[0], args, default[1])
+        alpha_y, mean = VARIANTS[IRFT]  # the default row's
+        models[wheel] = fit(d, np.arange(len(d["runs"])), alpha_y, args, mean)
         lines += [f"### {wheel} wheel ({len(d['runs'])} runs, {d['c'].n_elements} contact elements at most per run)",
                   ""]
         for scheme in SCHEMES:
@@ -252,7 +252,8 @@ def run(data: Path, out: Path, args, wheels=("smooth", "grouser")) -> str:
               f"{next(iter(models.values())).tol:.0e}): " + "; ".join(
                   f"{w}: {', '.join(f'{v:.1e}' for v in m.truncation_error().tolist())}"
                   for w, m in models.items()), ""]
-    lines += [f"Fitted hyperparameters (all runs, alpha_y={default[0]!r}, prior_mean={default[1]!r}): " + "; ".join(
+    lines += [f"Fitted hyperparameters (all runs, alpha_y={VARIANTS[IRFT][0]!r}, prior_mean={VARIANTS[IRFT][1]!r}): "
+              + "; ".join(
         f"{w}: {m.hyperparameters()}" for w, m in models.items()), "",
         "Prior mean scales of the generic maps (s_x, s_y, s_z), all runs: " + "; ".join(
             f"{w}: {', '.join(f'{v:.3f}' for v in m.mean_scales.tolist())}" for w, m in models.items()

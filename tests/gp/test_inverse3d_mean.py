@@ -4,6 +4,7 @@ residual forces plus the mean, the fallback to the scaled generic medium away fr
 
 import pytest
 import torch
+from gpytorch.constraints import GreaterThan
 
 import irft_torch as irft
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
@@ -88,6 +89,8 @@ def test_away_from_the_data_the_maps_fall_back_on_the_scaled_generic_medium():
     out = {}
     for mean in ("zero", "physics"):
         m = InverseRFT3D(c, f, prior_mean=mean, priors=None)
+        # below the 3-D floor (0.21), so that the data's reach vanishes at the corner: the former floor, 0.05
+        m.hypers.kernel.base_kernel.register_constraint("raw_lengthscale", GreaterThan(0.05))
         with torch.no_grad():
             m.hypers.lengthscale = torch.full((3, 1, 4), 0.08, dtype=F64)
         m.backend.refresh()

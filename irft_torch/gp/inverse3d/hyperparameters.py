@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 from gpytorch import Module
+from gpytorch.constraints import GreaterThan
 from gpytorch.likelihoods import GaussianLikelihood
 from torch import Tensor
 
@@ -27,11 +28,19 @@ from ..kernels.angle import AngleKernel
 from ..kernels.constraints import ScaledGreaterThan
 from ..kernels.li_basis import LiBasisVariance
 
-__all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "RFT3DHyperparameters"]
+__all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "LENGTHSCALE_FLOOR_3D", "RFT3DHyperparameters"]
 
 MAPS = ("alpha_x", "alpha_y", "alpha_z")
 AXES = ("F_x", "F_y", "F_z")
 ALPHA_Y = ("map", "constant")
+# The shortest lengthscale a 3-D map may take (embedding units; the planar model's floor is 0.05). Two reasons,
+# neither from the wheels: an ARD RBF fitted to the DEM plate intrusion's 54 measured stresses (an independent
+# granular simulation) takes 0.23-2.9, Li et al.'s generic map 2.2-5.4, so no medium measured has finer features;
+# and above 0.21 the spectral basis's 30 harmonics per angle hold the RBF within tol 1e-7 whatever the other
+# lengthscales (the bound, ``kernels.fourier``: 9.3e-8 at the worst), so the default fit is never truncated by the
+# cap. Without it, the wheels' aggregate forces drive alpha_x's sin 2beta lengthscale onto 0.05
+# (experiments/notes/wheel3d_lengthscales.md).
+LENGTHSCALE_FLOOR_3D = 0.21
 
 
 @dataclass(frozen=True)
@@ -54,17 +63,19 @@ class RFT3DHyperparameters(Module):
     With ``alpha_y="constant"`` only the alpha_y outputscale is used for that map (the prior variance of the
     constant); its lengthscale has no gradient and stays where it is. ``li_basis``: ``li``, a
     ``LiBasisVariance`` (3,) (N/cm^3)^2 of Li et al.'s term per map (alpha_y's unused when it is a constant).
+    ``lengthscale_floor``: every lengthscale is above it (``LENGTHSCALE_FLOOR_3D``; the constraint's buffer, so a model
+    file from before it was raised loads with its own, 0.05).
     """
 
     def __init__(self, alpha_y: str = "map", noise_floor: float = 1e-6, force_scale=1.0, map_scale=1.0,
-                 li_basis: bool = False) -> None:
+                 li_basis: bool = False, lengthscale_floor: float = LENGTHSCALE_FLOOR_3D) -> None:
         super().__init__()
         if alpha_y not in ALPHA_Y:
             raise ValueError(f"alpha_y must be one of {ALPHA_Y}, got {alpha_y!r}")
         self.alpha_y = alpha_y
         fs = torch.as_tensor(force_scale, dtype=torch.get_default_dtype()).expand(3)
         ms = torch.as_tensor(map_scale, dtype=torch.get_default_dtype()).expand(3)
-        self.kernel = AngleKernel(batch_shape=torch.Size([3]),
+        self.kernel = AngleKernel(batch_shape=torch.Size([3]), lengthscale_constraint=GreaterThan(lengthscale_floor),
                                   outputscale_constraint=ScaledGreaterThan(0.0, ms.pow(2)))
         self.likelihood = GaussianLikelihood(batch_shape=torch.Size([3]),
                                              noise_constraint=ScaledGreaterThan(noise_floor, fs.pow(2).reshape(3, 1)))
@@ -78,6 +89,11 @@ class RFT3DHyperparameters(Module):
     @lengthscale.setter
     def lengthscale(self, value) -> None:
         self.kernel.lengthscale = value
+
+    @property
+    def lengthscale_floor(self) -> float:
+        """The lengthscales' lower bound (the constraint's buffer: a state dict, hence a model file, carries it)."""
+        return float(self.kernel.base_kernel.raw_lengthscale_constraint.lower_bound)
 
     @property
     def outputscale(self) -> Tensor:

@@ -22,7 +22,7 @@ from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import METHODS_3D, Backend3D, make_backend_3d
 from .hyper_mixture import HyperMixture3DMixin
-from .hyperparameters import ALPHA_Y, MAPS, RFT3DHyperparameters
+from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
 
@@ -121,8 +121,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         if not isinstance(li_basis, bool):
             raise TypeError(f"li_basis must be True or False, got {li_basis!r}")
         _check_dtype(dtype)
-        if not (math.isfinite(lengthscale) and lengthscale > 0.05):
-            raise ValueError(f"lengthscale must be a finite value > 0.05, got {lengthscale}")
+        if not (math.isfinite(lengthscale) and lengthscale > LENGTHSCALE_FLOOR_3D):
+            raise ValueError(f"lengthscale must be a finite value > {LENGTHSCALE_FLOOR_3D} (the 3-D lengthscale floor, "
+                             f"gp.inverse3d.hyperparameters), got {lengthscale}")
         T = len(contacts)
         if T < 2:
             raise ValueError(f"need at least 2 force observations, got {T}")
@@ -448,6 +449,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
     def _from_file(cls, d: dict, path=None) -> InverseRFT3D:
         """The model of a loaded 3-D file's dict (``load``; ``InverseRFT.load`` of a 3-D file)."""
         opts = {"prior_mean": "zero", **d["options"]}  # files from before prior_mean: a zero mean
+        if opts.get("lengthscale", 1.0) <= LENGTHSCALE_FLOOR_3D:  # a file from before the 3-D floor was raised: the
+            opts["lengthscale"] = 1.0  # initial value only (its state, the constraint's floor included, follows)
         model = cls(Contacts3D(**d["contacts"]), d["forces"], **grouped_3d(opts))
         if "mean_scales" in d:  # the scales it was built with (after add_data, not those of all its data)
             model.mean_scales = d["mean_scales"].to(device=model._device, dtype=model.dtype)
