@@ -73,7 +73,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             back on the scaled generic medium instead of zero; "physics_alpha_y": alpha_y too (its shape the
             generic alpha_x(0, 0)); "zero": every map zero-mean. Why "physics": the rover wheels' held-out forces
             (docs/inverse3d.md). ``hyperpriors``: "physical" (default, ``gp.inverse3d.priors``) or None;
-            ``lengthscale``: the initial lengthscale.
+            ``lengthscale``: the initial lengthscale. Every lengthscale stays above ``LENGTHSCALE_FLOOR_3D`` = 0.21
+            (``gp.inverse3d.hyperparameters``: the finest features measured media show; the default spectral basis is
+            exact to ``tol`` above it).
         hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
             then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
             ``gp.hyper.posterior`` machinery) and every prediction is a mixture over its draws.
