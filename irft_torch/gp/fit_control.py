@@ -25,7 +25,8 @@ if TYPE_CHECKING:
     from .backends.spectral import SpectralBackend
 
 __all__ = ["FitControl", "FitDivergedWarning", "FitInterruptedWarning", "NOISE_FREE", "HOLD_FACTOR", "adam",
-           "converged", "copy_into", "divergence", "progress_bar", "CONVERGED_NATS"]
+           "converged", "copy_into", "divergence", "progress_bar", "CONVERGED_NATS", "lbfgs_polish", "POLISH_EVALS",
+           "POLISH_NATS"]
 
 NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly noise-free (std < 0.1 % of rms)
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
@@ -54,6 +55,55 @@ def converged(history: list[float], n_samples: int, window: int = 25) -> bool:
         return False
     before, last = min(history[-2 * window:-window]), min(history[-window:])
     return n_samples * (before - last) < CONVERGED_NATS
+
+
+POLISH_EVALS = 100  # loss evaluations L-BFGS may take per round of ``lbfgs_polish``
+POLISH_NATS = 0.01  # ``lbfgs_polish`` stops where a step changes the log posterior by less than this
+
+
+def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, max_evals: int = POLISH_EVALS,
+                 rounds: int = 3) -> tuple[float, int]:
+    """From Adam's converged iterate to the mode of ``loss_fn`` (a per-sample loss of ``params`` over
+    ``n_samples``): torch's L-BFGS with a strong Wolfe line search, stopped where a step changes the log posterior
+    by less than ``POLISH_NATS`` or its gradient is below 1e-3 nats per unit (or after ``max_evals``
+    evaluations); then ``refresh()`` (the backend following the new values, True where that changed the
+    objective, e.g. a grown basis) and on with the same curvature history, at most ``rounds`` times. A probe
+    that fails (a Cholesky, NaN) or a round that ends higher restores the values before that round. Returns (the
+    final loss, the evaluations taken)."""
+    evals, n = 0, max(int(n_samples), 1)
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(max_evals), max_eval=int(max_evals),
+                            tolerance_grad=1e-3 / n, tolerance_change=POLISH_NATS / n, history_size=20,
+                            line_search_fn="strong_wolfe")
+
+    def closure():
+        nonlocal evals
+        evals += 1
+        opt.zero_grad(set_to_none=True)
+        loss = loss_fn()
+        if not torch.isfinite(loss):
+            raise FloatingPointError("the loss is not finite")
+        loss.backward()
+        return loss
+
+    with torch.no_grad():
+        value = float(loss_fn())
+    for _ in range(rounds):
+        start = [p.detach().clone() for p in params]
+        try:
+            opt.step(closure)
+            with torch.no_grad():
+                new = float(loss_fn())
+        except (torch.linalg.LinAlgError, NotPSDError, FloatingPointError):
+            new = math.inf
+        if not new <= value:  # a failed probe, or higher (NaN included): this round's start
+            copy_into(params, start)
+            break
+        value = new
+        if refresh is None or not refresh():
+            break
+        with torch.no_grad():
+            value = float(loss_fn())
+    return value, evals
 
 
 def adam(params: list[Tensor], lr: float) -> torch.optim.Adam:

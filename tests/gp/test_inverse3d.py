@@ -273,3 +273,26 @@ def test_a_diverging_3d_fit_keeps_its_best_iterate_and_says_so():
     m.backend.loss = real
     torch.testing.assert_close(m.loss().detach(), torch.tensor(min(hist[:5]), dtype=torch.float64), rtol=1e-9,
                                atol=1e-12)
+
+
+def test_a_converged_3d_fit_ends_at_the_mode():
+    """Adam stops where it has converged and L-BFGS finishes: the fit ends where central finite differences of the
+    log posterior (T x the loss) vanish along every raw hyperparameter, below the last Adam step's loss."""
+    c, f = turning_toe(T=24)
+    m = InverseRFT3D(c, f, method="pairs")
+    hist = m.fit(n_iter=300, progress=False)
+    assert len(hist) < 300  # stopped on convergence (then the polished loss appended)
+    assert hist[-1] <= min(hist[:-1])
+    T, h = len(c), 1e-4
+    with torch.no_grad():
+        torch.testing.assert_close(m.loss(), torch.tensor(hist[-1], dtype=torch.float64), rtol=1e-12, atol=0)
+        for p in m.hypers.parameters():
+            for i in range(p.numel()):
+                flat = p.view(-1)
+                x = float(flat[i])
+                flat[i] = x + h
+                up = float(m.loss())
+                flat[i] = x - h
+                down = float(m.loss())
+                flat[i] = x
+                assert abs(T * (up - down) / (2 * h)) < 0.05, (i, T * (up - down) / (2 * h))

@@ -4,7 +4,7 @@ sum_k w_k psi(2 beta_k) x psi(gamma_k) element by element, with repeated angle p
 
 import torch
 
-from irft_torch.gp.inverse3d.features import SpectralFeatureBank, _distinct_pairs, spectral_features
+from irft_torch.gp.inverse3d.features import SpectralFeatureBank, _distinct_pairs, merged_rows, spectral_features
 from irft_torch.gp.inverse3d.hyperparameters import BLOCKS
 from irft_torch.gp.inverse3d.rows import block_rows
 from irft_torch.gp.kernels.fourier import FourierBasis, fourier_features
@@ -53,6 +53,20 @@ def test_features_with_repeated_pairs_equal_the_plain_sums():
     _, _, ws = block_rows(c, BLOCKS[0])
     beta, _, _ = _distinct_pairs(c.beta, c.gamma, [w.reshape(2, len(c), -1) for w in ws])
     assert beta.shape[1] < c.shape[1]  # the sums above ran over the merged pairs
+    assert merged_rows(c).groups is not None  # ... and in two stages over each sample's few betas
+
+
+def test_features_with_every_beta_distinct_equal_the_plain_sums():
+    c = _contacts(seed=2)
+    g = torch.Generator().manual_seed(3)
+    c = Contacts3D(torch.rand(c.beta.shape, generator=g, dtype=torch.float64) * 3 - 1.5, c.gamma, c.weight_x,
+                   c.weight_y, c.weight_z)
+    assert merged_rows(c).groups is None  # no beta repeats: one product per chunk
+    basis = FourierBasis(2, 3)
+    for b in range(len(BLOCKS)):
+        ref = _plain(c, b, basis)
+        torch.testing.assert_close(spectral_features(c, b, basis, constant_y=False), ref, rtol=0,
+                                   atol=1e-12 * float(ref.abs().max()))
 
 
 def test_a_bank_computing_ahead_cuts_what_is_asked():

@@ -313,10 +313,12 @@ class WeightSpace3D(Backend3D):
     def _system(self, b: int, detach: bool):
         block, groups = BLOCKS[b], self._factors[b]
         noise = self.hypers.noise.detach() if detach else self.hypers.noise
-        inv = [noise[a].rsqrt() for a in block.axes]
-        Rt = torch.cat([R * s for (R, _, _), s in zip(groups, inv)])
-        ct = torch.cat([cy * s for (_, cy, _), s in zip(groups, inv)])
-        A = self._sigma(b, Rt, detach) @ Rt.mT
+        # R~ = diag(scale) R: A = scale scale^T * (R Sigma R^T), so that the noise's gradient skips the big product
+        R = torch.cat([R for (R, _, _) in groups])
+        scale = torch.cat([noise[a].rsqrt().expand(len(cy)) for (_, cy, _), a in zip(groups, block.axes)])
+        Rt = R * scale[:, None]
+        ct = torch.cat([cy for (_, cy, _) in groups]) * scale
+        A = (self._sigma(b, R, detach) @ R.mT) * (scale[:, None] * scale[None, :])
         eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
         L = torch.linalg.cholesky(0.5 * (A + A.mT) + eye)
         quad0 = sum(rho / noise[a] for (_, _, rho), a in zip(groups, block.axes))

@@ -3,6 +3,8 @@ of them for fits on subsets of one data set's samples (cross-validation folds)."
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
@@ -12,24 +14,49 @@ from ..kernels.operators import unique_pairs
 from .hyperparameters import BLOCKS
 from .rows import block_rows
 
-__all__ = ["spectral_features", "SpectralFeatureBank", "BankRows"]
+__all__ = ["spectral_features", "merged_rows", "MergedRows", "SpectralFeatureBank", "BankRows"]
 
 
-def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool) -> Tensor:
+def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool,
+                      merged: MergedRows | None = None) -> Tensor:
     """Phi (n, F_b) of the block's rows: per map of the block, sum_k w psi_beta(beta_k) x psi_gamma(gamma_k) (a
-    constant alpha_y: sum_k w), side by side."""
+    constant alpha_y: sum_k w), side by side. ``merged``: ``merged_rows(c)`` where already at hand."""
     block = BLOCKS[b]
-    _, _, ws = block_rows(c, block)
     T, A = len(c), len(block.axes)
-    ws = [w.reshape(A, T, -1) for w in ws]
-    beta, gamma, merged = _distinct_pairs(c.beta, c.gamma, ws)
+    m_rows = merged_rows(c) if merged is None else merged
     out = []
     for i, m in enumerate(block.maps):
+        w = m_rows.weights[b][i]  # (A, T, K')
         if m == 1 and constant_y:
-            out.append(ws[i].sum(-1).reshape(A * T, 1))
+            out.append(w.sum(-1).reshape(A * T, 1))
             continue
-        out.append(_fourier_rows(beta, gamma, merged[i], basis).reshape(A * T, -1))
+        out.append(_fourier_rows(m_rows.beta, m_rows.gamma, w, basis, groups=m_rows.groups).reshape(A * T, -1))
     return torch.cat(out, -1)
+
+
+@dataclass(frozen=True)
+class MergedRows:
+    """Every block's rows with each sample's equal angle pairs merged (``_distinct_pairs``), hyperparameter- and
+    basis-free: beta, gamma (T, K'); ``weights[b][i]`` (A, T, K') of block b's i-th map; ``groups``: each
+    sample's distinct betas (``_beta_groups``) or None."""
+
+    beta: Tensor
+    gamma: Tensor
+    weights: list[list[Tensor]]
+    groups: tuple[Tensor, Tensor] | None
+
+
+def merged_rows(c: Contacts3D) -> MergedRows:
+    """``MergedRows`` of contacts (T, K): one pass over the elements for all blocks."""
+    T = len(c)
+    per_block = [[w.reshape(len(block.axes), T, -1) for w in block_rows(c, block)[2]] for block in BLOCKS]
+    flat = [w for ws in per_block for w in ws]
+    beta, gamma, merged = _distinct_pairs(c.beta, c.gamma, flat)
+    weights, start = [], 0
+    for ws in per_block:
+        weights.append(merged[start:start + len(ws)])
+        start += len(ws)
+    return MergedRows(beta, gamma, weights, _beta_groups(beta))
 
 
 def _distinct_pairs(beta: Tensor, gamma: Tensor, ws: list[Tensor]) -> tuple[Tensor, Tensor, list[Tensor]]:
@@ -77,6 +104,7 @@ class SpectralFeatureBank:
         self.contacts = contacts
         self.ahead = ahead
         self._held: dict = {}
+        self._merged: MergedRows | None = None  # ``merged_rows`` of the contacts, once asked for
 
     def _full(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
         key = (b, constant_y)
@@ -86,7 +114,9 @@ class SpectralFeatureBank:
         big = basis if self.ahead is None else FourierBasis(_rounded_up(basis.n_beta, self.ahead),
                                                             _rounded_up(basis.n_gamma, self.ahead))
         with torch.no_grad():
-            phi = spectral_features(self.contacts, b, big, constant_y)
+            if self._merged is None:
+                self._merged = merged_rows(self.contacts)
+            phi = spectral_features(self.contacts, b, big, constant_y, self._merged)
         self._held.setdefault((big.n_beta, big.n_gamma), {})[key] = phi
         return _restrict(phi, big, basis, b, constant_y)
 
@@ -134,17 +164,48 @@ def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, const
     return torch.cat(out, -1)
 
 
-def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22) -> Tensor:
+def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22,
+                  groups: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Features of weighted sums: beta, gamma (T, K), weights (A, T, K) -> (A, T, F) = sum_k w psi_beta x psi_gamma,
-    one batched product per chunk of samples."""
+    per chunk of samples. Where a sample's elements share few beta values (``groups``, from ``_beta_groups``; a
+    wheel's rim: some 300 among 3,000 pairs), the sum is taken in two stages, sum_beta psi_beta(beta) x
+    (sum_{k: beta_k = beta} w_k psi_gamma(gamma_k)): the same sum reordered, with K / U fewer products."""
     A, T, K = w.shape
     Fb, Fg = basis.sizes
     out = w.new_zeros(A, T, Fb * Fg)
     step = max(1, chunk // max(1, K * (Fb + Fg + A * Fb)))
     for t0 in range(0, T, step):
         sl = slice(t0, min(T, t0 + step))
-        pb, pg = basis.features(beta[sl], gamma[sl])  # (t, K, Fb), (t, K, Fg)
-        left = (w[:, sl, :, None] * pb[None]).permute(1, 0, 3, 2).reshape(sl.stop - sl.start, A * Fb, K)
-        prod = (left @ pg).reshape(-1, A, Fb * Fg)  # (t, A, F)
-        out[:, sl] = prod.transpose(0, 1)
+        t = sl.stop - sl.start
+        if groups is None:  # one batched product
+            pb, pg = basis.features(beta[sl], gamma[sl])  # (t, K, Fb), (t, K, Fg)
+            left = (w[:, sl, :, None] * pb[None]).permute(1, 0, 3, 2).reshape(t, A * Fb, K)
+            out[:, sl] = (left @ pg).reshape(t, A, Fb * Fg).transpose(0, 1)
+            continue
+        slot, b_pad = groups  # (T K,) slot of each element in the (T, U) layout, (T, U) the distinct betas
+        U = b_pad.shape[1]
+        pb, pg = basis.features(b_pad[sl], gamma[sl])  # (t, U, Fb), (t, K, Fg)
+        wpg = (w[:, sl].permute(1, 2, 0)[..., None] * pg[:, :, None, :]).reshape(t * K, A * Fg)  # (t K, A Fg)
+        G = wpg.new_zeros(t * U, A * Fg).index_add_(0, slot[t0 * K:sl.stop * K] - t0 * U, wpg)
+        prod = pb.mT @ G.reshape(t, U, A * Fg)  # (t, Fb, A Fg)
+        out[:, sl] = prod.reshape(t, Fb, A, Fg).permute(2, 0, 1, 3).reshape(A, t, Fb * Fg)
     return out
+
+
+def _beta_groups(beta: Tensor) -> tuple[Tensor, Tensor] | None:
+    """Each sample's distinct beta values: (the slot of each element in a (T, U) layout, flat (T K,); the
+    values (T, U), padded with a value of the sample's own), or None where U is more than half of K."""
+    T, K = beta.shape
+    if T == 0 or K == 0:
+        return None
+    values, inv = torch.unique(beta, return_inverse=True)
+    key = torch.arange(T, device=beta.device)[:, None] * len(values) + inv  # (T, K)
+    keys, ginv = torch.unique(key.reshape(-1), return_inverse=True)
+    row = keys // len(values)
+    slot = torch.arange(len(keys), device=beta.device) - torch.searchsorted(keys, row * len(values))
+    U = int(slot.max()) + 1
+    if 2 * U > K:
+        return None
+    b_pad = beta[:, :1].expand(T, U).clone()  # padding: never weighted
+    b_pad[row, slot] = values[keys % len(values)]
+    return row[ginv] * U + slot[ginv], b_pad

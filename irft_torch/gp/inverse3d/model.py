@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
-from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, progress_bar
+from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
 from ..options import Engine, MapPrior, grouped_3d, options_3d
@@ -202,16 +202,19 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         return self.backend.loss()
 
     def fit(self, n_iter: int = 300, lr: float = 0.05, progress: bool = True) -> list[float]:
-        """Adam on the exact marginal likelihood (MAP with the priors). Ctrl-C keeps what was learned. As the planar
-        fit: the model ends at the best iterate the loss saw (the loss rose above it, or turned NaN or inf: the
-        fit stops there), and a rise of more than 0.1 (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller
-        lr."""
+        """The exact marginal likelihood's mode (MAP with the priors): at most ``n_iter`` Adam steps, stopped where 25
+        steps gain less than ``CONVERGED_NATS`` of log posterior; from there L-BFGS to the mode (``lbfgs_polish``;
+        with "laplace", its own polish). A fit that uses its ``n_iter`` steps before that ends
+        at Adam's iterate. Ctrl-C keeps what was learned. As the planar fit: the model ends at the best iterate the
+        loss saw (the loss rose above it, or turned NaN or inf: the fit stops there), and a rise of more than 0.1
+        (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller lr. Returns Adam's losses per step (per
+        sample), then the polished loss where L-BFGS ran."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         params = [p for p in self.hypers.parameters() if p.requires_grad]
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]
         best = (math.inf, -1)  # loss, step of the values in ``kept``
-        polish_follows = self.hyper_method == "laplace"
+        stopped = False  # Adam converged: the mode is near (L-BFGS or the Laplace step from here)
         bar = progress_bar(int(n_iter), f"I-RFT 3-D fit ({self.method})", progress)
         try:
             for step in bar:
@@ -228,9 +231,11 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 opt.step()
                 if step % 10 == 9 and self.backend.stale():
                     self.backend.refresh()
-                if polish_follows and converged(history, self.backend.n_samples):
-                    break  # the Laplace step polishes to the mode (L-BFGS, Newton) from here
+                if converged(history, self.backend.n_samples):
+                    stopped = True
+                    break
         except KeyboardInterrupt:
+            stopped = False
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
         finally:
             bar.close()
@@ -242,6 +247,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             warnings.warn(message, FitDivergedWarning, stacklevel=2)
         if self.backend.stale():
             self.backend.refresh()
+        if stopped and self.hyper_method != "laplace":  # (Laplace polishes to the mode itself)
+            value, _ = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
+            history.append(value)
         if self.hyper_method != "map":
             self.fit_hyper_posterior()
             self.backend.refresh()  # the polished mode may need a larger basis
