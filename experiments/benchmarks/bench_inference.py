@@ -36,6 +36,9 @@ forces, prior=MapPrior(kernel="rbf"), hyper_posterior="map")``, the former defau
  12. varied recordings (issue 52): default fits of 1,000 and 10,000 samples of short plate strokes, each its own
      tilt sweep (nearly every angle pair distinct; the harness' held-out "sharp" medium): first and last Adam
      step, whole fit, the basis it ended in and its kernel error.
+ 13. the 3-D wheel fold (issue 52): ``InverseRFT(contacts_3d, forces).fit()`` on the measured smooth wheel, one slip
+     angle held out, against the engine before e2da7f5 in the same run (``bench_wheel3d.py``; needs
+     ``--wheel-data ../shared/data/rover_wheel``, skipped without it; about 40 s).
 "Today's engine" (the reference in cases 2, 8, 10, 11) is the autograd path, run in the same process
 (``gp.backends.closed_form.autograd_only``).
 Case 6 also reduces the 4 datasets on a local Dask cluster (2 worker processes, start-up included), beside
@@ -584,6 +587,10 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu", help="cpu (default) or cuda: data, model and references there")
     ap.add_argument("--only", default="", help="comma-separated case numbers to run (default: all), e.g. 1,2,8,10")
+    ap.add_argument("--wheel-data", type=Path, default=None,
+                    help="the rover-wheel data folder, for case 13 (the 3-D wheel fold; skipped without it)")
+    ap.add_argument("--before-tree", default=None,
+                    help="case 13: a checkout of the commit before e2da7f5 to time as the reference (else emulated)")
     ap.add_argument("--_child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--_iters", type=int, default=100, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -742,6 +749,11 @@ def main(argv=None) -> None:
                     (11, nuts_case), (12, varied_case)):
         if want(k):
             case(q, row)
+    if want(13) and not q:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_wheel3d import wheel_fold_case
+
+        wheel_fold_case(a.wheel_data, row, a.before_tree)
     report.write_text("\n".join(lines) + "\n")
     print(f"wrote {report}")
 

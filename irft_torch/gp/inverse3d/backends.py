@@ -365,8 +365,9 @@ class WeightSpace3D(Backend3D):
 
 
 class Spectral3D(WeightSpace3D):
-    """3-D I-RFT in a Fourier basis on the (beta, gamma) torus (``gp.kernels.fourier``), sized for the kernel's
-    relative truncation error <= ``tol`` at the current lengthscales; grows (``refresh``) when they shrink."""
+    """3-D I-RFT in a Fourier basis on the (beta, gamma) torus (``gp.kernels.fourier``), one per map, each sized for
+    its kernel's relative truncation error <= ``tol`` at its own lengthscales (a map with long lengthscales keeps
+    few features while another's shorten); each grows (``refresh``) when its lengthscales shrink."""
 
     name = "spectral"
 
@@ -385,7 +386,7 @@ class Spectral3D(WeightSpace3D):
         # larger pass over the data instead of a pass per size
         self._bank = features if features is not None else self._own_bank()
         self._queried: list[SpectralFeatureBank | None] = [None]  # the last contacts predicted at, their features
-        self.basis = self._basis_for(hypers.lengthscale)
+        self.bases = self._bases_for(hypers.lengthscale)
         self._set_features()
 
     def _data_changed(self, contacts, forces) -> None:
@@ -400,19 +401,34 @@ class Spectral3D(WeightSpace3D):
     def _maps_rbf(self) -> list[int]:
         return [c for c in range(3) if not self.hypers.constant_map(c)]
 
-    def _basis_for(self, lengthscale: Tensor, shrink: float = 1.0) -> FourierBasis:
-        ls = lengthscale.detach()[self._maps_rbf()] * shrink
-        basis = FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
-        return basis if self.hypers.li is None else with_li_functions(basis)
+    @property
+    def basis(self) -> FourierBasis:
+        """The smallest basis holding every map's (what a single basis for all maps would be)."""
+        held = [x for x in self.bases if x is not None]
+        return FourierBasis(max(x.n_beta for x in held), max(x.n_gamma for x in held))
+
+    def _bases_for(self, lengthscale: Tensor, shrink: float = 1.0) -> tuple[FourierBasis | None, ...]:
+        """Per map (3): the smallest basis for ``tol`` at its lengthscales (times ``shrink``), None for a constant."""
+        out: list[FourierBasis | None] = [None] * 3
+        for m in self._maps_rbf():
+            ls = lengthscale.detach()[m:m + 1] * shrink
+            basis = FourierBasis.for_lengthscale(ls, self.tol, self.max_harmonics)
+            out[m] = basis if self.hypers.li is None else with_li_functions(basis)
+        return tuple(out)
+
+    def _block_bases(self, b: int) -> list[FourierBasis | None]:
+        return [self.bases[m] for m in BLOCKS[b].maps]
 
     def describe(self) -> str:
-        return (f"spectral: T={self.n_samples}, {self.basis.size} Fourier features per map, kernel truncation "
-                f"error <= {self.truncation_error().max().item():.1e}")
+        sizes = " / ".join("1" if x is None else str(x.size) for x in self.bases)
+        return (f"spectral: T={self.n_samples}, {sizes} Fourier features (alpha_x / alpha_y / alpha_z), kernel "
+                f"truncation error <= {self.truncation_error().max().item():.1e}")
 
     def truncation_error(self) -> Tensor:
         out = self.hypers.kernel.outputscale.detach().new_zeros(3)
-        maps = self._maps_rbf()
-        out[maps] = self.basis.truncation_error(self.hypers.lengthscale.detach()[maps])
+        ls = self.hypers.lengthscale.detach()
+        for m in self._maps_rbf():
+            out[m] = self.bases[m].truncation_error(ls[m:m + 1])[0]
         return out
 
     def stale(self) -> bool:
@@ -421,22 +437,28 @@ class Spectral3D(WeightSpace3D):
     def refresh(self) -> bool:
         if not self.stale():
             return False
-        need = self._basis_for(self.hypers.lengthscale, 0.85)
-        grown = FourierBasis(min(max(need.n_beta, self.basis.n_beta), self.max_harmonics),
-                             min(max(need.n_gamma, self.basis.n_gamma), self.max_harmonics))
-        if grown == self.basis:
+        need = self._bases_for(self.hypers.lengthscale, 0.85)
+        stale = self.truncation_error() > self.tol
+        grown = list(self.bases)
+        for m in self._maps_rbf():
+            if stale[m]:  # only the maps whose lengthscales left their basis behind
+                old, new = self.bases[m], need[m]
+                grown[m] = FourierBasis(min(max(new.n_beta, old.n_beta), self.max_harmonics),
+                                        min(max(new.n_gamma, old.n_gamma), self.max_harmonics))
+        if tuple(grown) == self.bases:
             return False
-        self.basis = grown
+        self.bases = tuple(grown)
         self._set_features()
         return True
 
     def _features(self, c: Contacts3D, b: int) -> Tensor:
+        bases = self._block_bases(b)
         if self._bank is not None and c is self.train_contacts:
-            return self._bank.features(self.basis, b, self.hypers.constant_map(1))
+            return self._bank.features(bases, b, self.hypers.constant_map(1))
         held = self._queried[0]  # shared with this backend's draws (``with_hypers``): asked of each in turn
         if held is None or held.contacts is not c:
             held = self._queried[0] = SpectralFeatureBank(c, ahead=self.max_harmonics)
-        return held._full(self.basis, b, self.hypers.constant_map(1))
+        return held._full(bases, b, self.hypers.constant_map(1))
 
     def _sigma(self, b: int, X: Tensor, detach: bool) -> Tensor:
         block = BLOCKS[b]
@@ -448,14 +470,15 @@ class Spectral3D(WeightSpace3D):
                 out.append(X[:, start:start + 1] * s)
                 start += 1
                 continue
+            basis = self.bases[m]
             ls = self.hypers.lengthscale[m:m + 1]
-            Sb, Sg = self.basis.coefficients(ls.detach() if detach else ls)
-            Fb, Fg = self.basis.sizes
+            Sb, Sg = basis.coefficients(ls.detach() if detach else ls)
+            Fb, Fg = basis.sizes
             Y = X[:, start:start + Fb * Fg].reshape(-1, Fb, Fg)
             out.append(s * (Sb[0].mT @ Y @ Sg[0]).reshape(-1, Fb * Fg))
             v = self.hypers.li_of(m, detach)
             if v is not None:  # Li et al.'s term: v / 4 on its 9 weights
-                idx = li_index(self.basis, X.device)
+                idx = li_index(basis, X.device)
                 out[-1] = out[-1].index_add(-1, idx, X[:, start + idx] * (v / 4))
             start += Fb * Fg
         return torch.cat(out, -1)

@@ -3,6 +3,7 @@ of them for fits on subsets of one data set's samples (cross-validation folds)."
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -106,13 +107,15 @@ class SpectralFeatureBank:
         self._held: dict = {}
         self._merged: MergedRows | None = None  # ``merged_rows`` of the contacts, once asked for
 
-    def _full(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+    def _full(self, basis: FourierBasis | Sequence[FourierBasis | None], b: int, constant_y: bool) -> Tensor:
+        """Block b's features in ``basis``: one for every map, or one per map of the block (None: a constant)."""
         key = (b, constant_y)
+        union = _union(basis)
         for (nb, ng), store in self._held.items():
-            if nb >= basis.n_beta and ng >= basis.n_gamma and key in store:
+            if nb >= union.n_beta and ng >= union.n_gamma and key in store:
                 return _restrict(store[key], FourierBasis(nb, ng), basis, b, constant_y)
-        big = basis if self.ahead is None else FourierBasis(_rounded_up(basis.n_beta, self.ahead),
-                                                            _rounded_up(basis.n_gamma, self.ahead))
+        big = union if self.ahead is None else FourierBasis(_rounded_up(union.n_beta, self.ahead),
+                                                            _rounded_up(union.n_gamma, self.ahead))
         with torch.no_grad():
             if self._merged is None:
                 self._merged = merged_rows(self.contacts)
@@ -131,7 +134,8 @@ class BankRows:
     def __init__(self, bank: SpectralFeatureBank, index: Tensor | None) -> None:
         self.bank, self.index = bank, index
 
-    def features(self, basis: FourierBasis, b: int, constant_y: bool) -> Tensor:
+    def features(self, basis: FourierBasis | Sequence[FourierBasis | None], b: int, constant_y: bool) -> Tensor:
+        """Block b's features of these samples in ``basis`` (one, or one per map of the block)."""
         phi = self.bank._full(basis, b, constant_y)
         if self.index is None:
             return phi
@@ -146,22 +150,36 @@ def _rounded_up(n: int, cap: int) -> int:
     return max(n, min(cap, max(8, 1 << max(0, n - 1).bit_length())))
 
 
-def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis, b: int, constant_y: bool) -> Tensor:
-    """Features in a nested smaller basis: the leading harmonics' columns of each map's block."""
-    if big == small:
-        return phi
+def _union(basis: FourierBasis | Sequence[FourierBasis | None]) -> FourierBasis:
+    """The smallest basis holding every one given (None entries: constant maps, no basis)."""
+    if isinstance(basis, FourierBasis):
+        return basis
+    held = [x for x in basis if x is not None]
+    return FourierBasis(max((x.n_beta for x in held), default=0), max((x.n_gamma for x in held), default=0))
+
+
+def _restrict(phi: Tensor, big: FourierBasis, small: FourierBasis | Sequence[FourierBasis | None], b: int,
+              constant_y: bool) -> Tensor:
+    """Features in nested smaller bases (one, or one per map of the block): the leading harmonics' columns of each
+    map's block."""
+    maps = BLOCKS[b].maps
+    smalls = [small] * len(maps) if isinstance(small, FourierBasis) else list(small)
     Fb, Fg = big.sizes
-    fb, fg = small.sizes
-    sel = (torch.arange(fb, device=phi.device)[:, None] * Fg + torch.arange(fg, device=phi.device)[None, :]).reshape(-1)
     out, start = [], 0
-    for m in BLOCKS[b].maps:
+    for m, sm in zip(maps, smalls):
         if m == 1 and constant_y:
             out.append(phi[:, start:start + 1])
             start += 1
+            continue
+        if sm is None or sm == big:
+            out.append(phi[:, start:start + Fb * Fg])
         else:
+            fb, fg = sm.sizes
+            sel = (torch.arange(fb, device=phi.device)[:, None] * Fg
+                   + torch.arange(fg, device=phi.device)[None, :]).reshape(-1)
             out.append(phi[:, start + sel])
-            start += Fb * Fg
-    return torch.cat(out, -1)
+        start += Fb * Fg
+    return out[0] if len(out) == 1 else torch.cat(out, -1)
 
 
 def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, chunk: int = 2**22,
