@@ -298,3 +298,23 @@ def test_a_converged_3d_fit_ends_at_the_mode():
                 down = float(m.loss())
                 flat[i] = x
                 assert abs(T * (up - down) / (2 * h)) < 0.05, (i, T * (up - down) / (2 * h))
+
+
+def test_a_map_whose_lengthscales_shorten_grows_its_own_basis_only():
+    """The spectral backend keeps a basis per map: shortening alpha_z's lengthscales grows alpha_z's basis (to the
+    size its tolerance needs, read off the factor kernels' truncation errors) and leaves the others' as they were."""
+    from irft_torch.gp.kernels.fourier import FourierBasis
+
+    c, f = turning_toe()
+    model = InverseRFT3D(c, f, method="spectral", tol=1e-7)
+    before = model.backend.bases
+    with torch.no_grad():
+        ls = model.hypers.lengthscale.clone()
+        ls[2] = torch.tensor([[0.3, 0.4, 0.5, 0.6]], dtype=ls.dtype)
+        model.hypers.lengthscale = ls
+    assert model.backend.stale() and model.backend.refresh()
+    after = model.backend.bases
+    assert after[0] == before[0] and after[1] == before[1] and after[2] != before[2]
+    need = FourierBasis.for_lengthscale(model.hypers.lengthscale.detach()[2:3] * 0.85, 1e-7)
+    assert (after[2].n_beta, after[2].n_gamma) == (need.n_beta, need.n_gamma)
+    assert float(model.backend.truncation_error().max()) <= 1e-7
