@@ -62,7 +62,7 @@ _p2 = planar.predict_forces(c2t).mean
 _e2 = _torch.stack([_p2[:, 0] - leg_t[:, 0], -leg_t[:, 1], _p2[:, 1] - leg_t[:, 2]], -1)
 print("KEY" + _json.dumps({"planar": _e2.pow(2).mean(0).sqrt().tolist(),
                            "three_d": (_l3 - leg_t).pow(2).mean(0).sqrt().tolist()}))
-""", lambda k: all(t < 0.5 * p for t, p in zip(k["three_d"], k["planar"]))),  # 0.09/0.06/0.22 vs 0.86/1.75/0.82 (x 0.06 before the fit went to the mode)
+""", lambda k: all(t < 0.5 * p for t, p in zip(k["three_d"], k["planar"]))),  # 0.09/0.06/0.22 vs 0.86/1.75/0.82
     "05_honest_intervals": (1, RMSE_CODE + """
 _t = truth(_B, _G)
 def _cover(m):
