@@ -35,9 +35,9 @@ HERE = Path(__file__).resolve().parent
 def engine_before():
     """The 3-D engine as it was before e2da7f5: Adam runs its 300 steps (no converged stop, so no L-BFGS), every map
     in the one basis the shortest lengthscale needs, and the features in one product per chunk of samples."""
-    import irft_torch.gp.inverse3d.backends as backends
     import irft_torch.gp.inverse3d.features as features
     import irft_torch.gp.inverse3d.model as model
+    import irft_torch.gp.inverse3d.spectral as backends
 
     per_map = backends.Spectral3D._bases_for
 

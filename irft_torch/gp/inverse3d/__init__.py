@@ -1,13 +1,15 @@
 """3-D I-RFT (issue 31): alpha_x, alpha_y and alpha_z learned from (F_x, F_y, F_z) through ``rft.contacts_3d``.
 
 ``InverseRFT3D`` (built by ``irft.InverseRFT`` when given a ``Contacts3D``), its hyperparameters and block
-structure (``hyperparameters``), the backends (``backends``: observations, pairs, spectral) and the physical
-priors (``priors``). docs/inverse3d.md.
+structure (``hyperparameters``), the backends (``backends``: observations, pairs; ``spectral``; chosen by
+``select``) and the physical priors (``priors``). docs/inverse3d.md.
 """
 
-from .backends import Backend3D, Observations3D, Pairs3D, Spectral3D, make_backend_3d
+from .backends import Backend3D, Observations3D, Pairs3D
 from .hyperparameters import BLOCKS, RFT3DHyperparameters
 from .model import InverseRFT3D, Posterior3D, point_contacts
+from .select import make_backend_3d
+from .spectral import Spectral3D
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "RFT3DHyperparameters", "BLOCKS", "Backend3D",
            "Observations3D", "Pairs3D", "Spectral3D", "make_backend_3d"]

@@ -20,11 +20,12 @@ from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draw
 from ..inputs import _check_dtype
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
-from .backends import METHODS_3D, Backend3D, make_backend_3d
+from .backends import Backend3D
 from .hyper_mixture import HyperMixture3DMixin
 from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
+from .select import METHODS_3D, make_backend_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
 
