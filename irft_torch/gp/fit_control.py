@@ -68,8 +68,8 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
     by less than ``POLISH_NATS`` or its gradient is below 1e-3 nats per unit (or after ``max_evals``
     evaluations); then ``refresh()`` (the backend following the new values, True where that changed the
     objective, e.g. a grown basis) and on with the same curvature history, at most ``rounds`` times. A probe
-    that fails (a Cholesky, NaN) or a round that ends higher restores the values before that round. Returns (the
-    final loss, the evaluations taken)."""
+    that fails (a Cholesky, NaN), a round that ends higher, or Ctrl-C (then re-raised) restores the values before
+    that round. Returns (the final loss, the evaluations taken)."""
     evals, n = 0, max(int(n_samples), 1)
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(max_evals), max_eval=int(max_evals),
                             tolerance_grad=1e-3 / n, tolerance_change=POLISH_NATS / n, history_size=20,
@@ -95,6 +95,9 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
                 new = float(loss_fn())
         except (torch.linalg.LinAlgError, NotPSDError, FloatingPointError):
             new = math.inf
+        except KeyboardInterrupt:  # Ctrl-C in a line search: the round's start, not a probe's values
+            copy_into(params, start)
+            raise
         if not new <= value:  # a failed probe, or higher (NaN included): this round's start
             copy_into(params, start)
             break

@@ -318,3 +318,43 @@ def test_a_map_whose_lengthscales_shorten_grows_its_own_basis_only():
     need = FourierBasis.for_lengthscale(model.hypers.lengthscale.detach()[2:3] * 0.85, 1e-7)
     assert (after[2].n_beta, after[2].n_gamma) == (need.n_beta, need.n_gamma)
     assert float(model.backend.truncation_error().max()) <= 1e-7
+
+
+def test_ctrl_c_in_the_polish_keeps_the_values_before_it_and_says_so():
+    """Ctrl-C while L-BFGS probes: the model keeps the values the polish started from (not a line-search probe's),
+    with a warning: its loss is the one the polish evaluated first."""
+    c, f = turning_toe(T=24)
+    m = InverseRFT3D(c, f, method="pairs")
+    real, calls = m.backend.loss, []
+    adam_steps = []
+
+    start = []
+
+    def interrupted():
+        calls.append(1)
+        if adam_steps and len(calls) == adam_steps[0] + 4:  # the polish's third evaluation
+            raise KeyboardInterrupt
+        out = real()
+        if adam_steps and len(calls) == adam_steps[0] + 1:  # the polish's first: where it starts
+            start.append(float(out))
+        return out
+
+    import irft_torch.gp.inverse3d.model as model_module
+
+    converged = model_module.converged
+
+    def seen(history, n):
+        done = converged(history, n)
+        if done:
+            adam_steps.append(len(history))
+        return done
+
+    m.backend.loss = interrupted
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(model_module, "converged", seen)
+        with pytest.warns(UserWarning, match="interrupted in its L-BFGS polish"):
+            hist = m.fit(n_iter=300, progress=False)
+    m.backend.loss = real
+    assert adam_steps and len(hist) == adam_steps[0]  # no polished loss appended
+    assert len(calls) == adam_steps[0] + 4  # the interrupt came inside the polish
+    torch.testing.assert_close(m.loss().detach(), torch.tensor(start[0], dtype=torch.float64), rtol=1e-12, atol=0)

@@ -249,8 +249,12 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         if self.backend.stale():
             self.backend.refresh()
         if stopped and self.hyper_method != "laplace":  # (Laplace polishes to the mode itself)
-            value, _ = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
-            history.append(value)
+            try:
+                value, _ = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
+                history.append(value)
+            except KeyboardInterrupt:
+                warnings.warn("fit interrupted in its L-BFGS polish; the model keeps the values before that round",
+                              stacklevel=2)
         if self.hyper_method != "map":
             self.fit_hyper_posterior()
             self.backend.refresh()  # the polished mode may need a larger basis
