@@ -130,8 +130,9 @@ def wheel_fold_case(data: Path | None, row, before: str | None = None) -> None:
     name = "emulated" if before is None else f"the tree at {before}"
     row(f"13. 3-D wheel fold, smooth wheel, slip angle 2 held out (T = {ours['T']}), "
         f"`InverseRFT3D(contacts, forces).fit()` ({ours['describe']})",
-        f"{ours['total']:.1f} s (build {ours['build']:.1f}, fit {ours['fit']:.1f}; {ours['steps'] - 1} Adam steps + "
-        f"L-BFGS; step {ours['first'] * 1e3:.0f} ms first, {ours['last'] * 1e3:.0f} ms last); loss "
+        f"{ours['total']:.1f} s (build {ours['build']:.1f}, fit {ours['fit']:.1f}; {ours['steps']} losses in the "
+        f"history, Adam's then L-BFGS's last; step {ours['first'] * 1e3:.0f} ms first, {ours['last'] * 1e3:.0f} ms "
+        f"last); loss "
         f"{ours['loss']:.4f}; kernel error {ours['error']:.1e} (tol {ours['tol']:.0e}); {len(ours['warnings'])} "
         f"warnings",
         f"the engine before e2da7f5 ({name}): {ref['total']:.1f} s ({ref['steps']} Adam steps; step "

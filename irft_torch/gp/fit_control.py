@@ -32,7 +32,8 @@ NOISE_FREE = 1e-6  # noise variance / force power below which data are nearly no
 HOLD_FACTOR = 4.0  # with nearly noise-free data, "auto" holds a step within this factor of the step then
 
 
-CONVERGED_NATS = 2.0  # a fit followed by the Laplace polish stops when 25 Adam steps gain less log posterior than this
+# a fit followed by a polish (Laplace's; a 3-D fit's L-BFGS) stops when 25 Adam steps gain less log posterior than this
+CONVERGED_NATS = 2.0
 PIPED_INTERVAL = 15.0  # s between progress lines where stderr is a pipe or a file (a live bar on a terminal)
 
 
@@ -50,7 +51,8 @@ def progress_bar(total: int, desc: str, enabled: bool = True) -> tqdm:
 def converged(history: list[float], n_samples: int, window: int = 25) -> bool:
     """Whether the last ``window`` steps of a fit (losses per sample) raised the log posterior by less than
     ``CONVERGED_NATS`` over the best of the ``window`` before them: Adam is then near the mode, and L-BFGS
-    (``gp.hyper.posterior._polish``) gets there in a few iterations where Adam would take hundreds."""
+    (``gp.hyper.posterior._polish``, ``lbfgs_polish``) gets there in a few iterations where Adam would take
+    hundreds."""
     if len(history) < 2 * window or len(history) % window:
         return False
     before, last = min(history[-2 * window:-window]), min(history[-window:])
@@ -62,14 +64,15 @@ POLISH_NATS = 0.01  # ``lbfgs_polish`` stops where a step changes the log poster
 
 
 def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, max_evals: int = POLISH_EVALS,
-                 rounds: int = 3) -> tuple[float, int]:
+                 rounds: int = 5) -> tuple[float, int]:
     """From Adam's converged iterate to the mode of ``loss_fn`` (a per-sample loss of ``params`` over
     ``n_samples``): torch's L-BFGS with a strong Wolfe line search, stopped where a step changes the log posterior
     by less than ``POLISH_NATS`` or its gradient is below 1e-3 nats per unit (or after ``max_evals``
     evaluations); then ``refresh()`` (the backend following the new values, True where that changed the
-    objective, e.g. a grown basis) and on with the same curvature history, at most ``rounds`` times. A probe
-    that fails (a Cholesky, NaN), a round that ends higher, or Ctrl-C (then re-raised) restores the values before
-    that round. Returns (the final loss, the evaluations taken)."""
+    objective, e.g. a grown basis) and on with the same curvature history while it does, at most ``rounds``
+    rounds. A probe that fails (a Cholesky, NaN), a round that ends higher, or Ctrl-C in a round (then re-raised)
+    restores the values before that round. Returns (the loss at the values it ends at, the evaluations taken);
+    where the start itself has no finite loss, (that value, 0) with nothing changed."""
     evals, n = 0, max(int(n_samples), 1)
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(max_evals), max_eval=int(max_evals),
                             tolerance_grad=1e-3 / n, tolerance_change=POLISH_NATS / n, history_size=20,
@@ -85,14 +88,21 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
         loss.backward()
         return loss
 
-    with torch.no_grad():
-        value = float(loss_fn())
+    def value_now() -> float:
+        try:
+            with torch.no_grad():
+                return float(loss_fn())
+        except (torch.linalg.LinAlgError, NotPSDError):
+            return math.nan
+
+    value = value_now()
+    if not math.isfinite(value):
+        return value, 0
     for _ in range(rounds):
         start = [p.detach().clone() for p in params]
         try:
             opt.step(closure)
-            with torch.no_grad():
-                new = float(loss_fn())
+            new = value_now()
         except (torch.linalg.LinAlgError, NotPSDError, FloatingPointError):
             new = math.inf
         except KeyboardInterrupt:  # Ctrl-C in a line search: the round's start, not a probe's values
@@ -104,8 +114,12 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
         value = new
         if refresh is None or not refresh():
             break
-        with torch.no_grad():
-            value = float(loss_fn())
+        value = value_now()
+        if not math.isfinite(value):  # (cannot happen with a basis that grew, but never hand back a NaN)
+            copy_into(params, start)
+            refresh()
+            value = value_now()
+            break
     return value, evals
 
 

@@ -358,3 +358,31 @@ def test_ctrl_c_in_the_polish_keeps_the_values_before_it_and_says_so():
     assert adam_steps and len(hist) == adam_steps[0]  # no polished loss appended
     assert len(calls) == adam_steps[0] + 4  # the interrupt came inside the polish
     torch.testing.assert_close(m.loss().detach(), torch.tensor(start[0], dtype=torch.float64), rtol=1e-12, atol=0)
+
+
+def test_an_interrupted_basis_growth_leaves_the_backend_as_it_was():
+    """Ctrl-C while the spectral backend recomputes its features for a grown basis: the bases and the data factors
+    stay those before it, so the loss is what it was (the grown basis is asked for again by the next refresh)."""
+    c, f = turning_toe()
+    model = InverseRFT3D(c, f, method="spectral")
+    before, loss = model.backend.bases, float(model.loss())
+    with torch.no_grad():
+        ls = model.hypers.lengthscale.clone()
+        ls[2] = torch.tensor([[0.3, 0.4, 0.5, 0.6]], dtype=ls.dtype)
+        model.hypers.lengthscale = ls
+    stale_loss = float(model.loss())
+    real, calls = model.backend._features, []
+
+    def interrupted(contacts, b):
+        calls.append(b)
+        if b == 1:  # the second block, after the first block's factor was made
+            raise KeyboardInterrupt
+        return real(contacts, b)
+
+    model.backend._features = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        model.backend.refresh()
+    model.backend._features = real
+    assert calls == [0, 1] and model.backend.bases == before
+    assert float(model.loss()) == stale_loss and stale_loss != loss
+    assert model.backend.refresh() and model.backend.bases[2] != before[2]

@@ -294,9 +294,9 @@ class WeightSpace3D(Backend3D):
         self._factors = merged
 
     def _set_features(self) -> None:
-        """(Re)compute the training rows' data factors, hyperparameter-free."""
+        """(Re)compute the training rows' data factors, hyperparameter-free (kept only once all are computed: an
+        interrupt part way leaves the old ones)."""
         factors: list[list[tuple[Tensor, Tensor, Tensor]]] = []
-        self._factors, self._post_cache = factors, None
         T = self.n_samples
         with torch.no_grad():
             for b, block in enumerate(BLOCKS):
@@ -307,7 +307,8 @@ class WeightSpace3D(Backend3D):
                     f = data_factor_from_rows(Phi[None, g * T:(g + 1) * T], y[None, g * T:(g + 1) * T], None,
                                               Phi.dtype)
                     groups.append((f.R[0], f.c_y[0], f.rho[0, 0]))
-                self._factors.append(groups)
+                factors.append(groups)
+        self._factors, self._post_cache = factors, None
 
     def _system(self, b: int, detach: bool):
         block, groups = BLOCKS[b], self._factors[b]

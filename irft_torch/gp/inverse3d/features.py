@@ -191,7 +191,11 @@ def _fourier_rows(beta: Tensor, gamma: Tensor, w: Tensor, basis: FourierBasis, c
     A, T, K = w.shape
     Fb, Fg = basis.sizes
     out = w.new_zeros(A, T, Fb * Fg)
-    step = max(1, chunk // max(1, K * (Fb + Fg + A * Fb)))
+    if groups is None:  # per sample: the features of K elements and their weighted products
+        step = max(1, chunk // max(1, K * (Fb + Fg + A * Fb)))
+    else:  # per sample: K elements' gamma features and weighted products, U betas' features and sums
+        U = groups[1].shape[1]
+        step = max(1, chunk // max(1, K * Fg * (A + 1) + U * (Fb + A * Fg)))
     for t0 in range(0, T, step):
         sl = slice(t0, min(T, t0 + step))
         t = sl.stop - sl.start

@@ -2,7 +2,7 @@
 
 ``irft.InverseRFT(contacts_3d, forces)`` with a ``Contacts3D`` and (T, 3) forces builds this model. It is
 the planar front door's 3-D counterpart: it checks the data, sets data-scaled initial hyperparameters and
-physical priors, picks a backend (``gp.inverse3d.backends``) and delegates every computation to it.
+physical priors, picks a backend (``gp.inverse3d.select``) and delegates every computation to it.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         alpha_y: "map" (default: a GP over (beta, gamma) like the other two) or "constant" (one value with a
             zero-mean normal prior: a rank-one kernel term).
         engine: an ``Engine`` (``gp.options``) or a method name: "auto" (default), "observations", "pairs" or
-            "spectral" (``gp.inverse3d.backends``); its ``tol`` bounds the spectral truncation and
+            "spectral" (``gp.inverse3d.backends``, ``spectral``); its ``tol`` bounds the spectral truncation and
             ``max_harmonics`` caps the spectral basis per angle (default 30; below the lengthscales ``tol`` needs,
             the kernel is the RBF truncated there: ``truncation_error`` says by how much, a ``UserWarning`` after
             ``fit``).
@@ -208,8 +208,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         with "laplace", its own polish). A fit that uses its ``n_iter`` steps before that ends
         at Adam's iterate. Ctrl-C keeps what was learned. As the planar fit: the model ends at the best iterate the
         loss saw (the loss rose above it, or turned NaN or inf: the fit stops there), and a rise of more than 0.1
-        (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller lr. Returns Adam's losses per step (per
-        sample), then the polished loss where L-BFGS ran."""
+        (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller lr (and no polish follows). Returns Adam's
+        losses per step (per sample), then the loss L-BFGS ended at where it ran."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
         params = [p for p in self.hypers.parameters() if p.requires_grad]
@@ -248,12 +248,16 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             warnings.warn(message, FitDivergedWarning, stacklevel=2)
         if self.backend.stale():
             self.backend.refresh()
-        if stopped and self.hyper_method != "laplace":  # (Laplace polishes to the mode itself)
+        if stopped and message is None and self.hyper_method != "laplace":  # (Laplace polishes to the mode itself)
             try:
-                value, _ = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
-                history.append(value)
+                value, evals = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
+                if not math.isfinite(value):  # Adam's last step left no finite loss: its best iterate
+                    copy_into(params, kept)
+                    self.backend.refresh()
+                elif evals:
+                    history.append(value)
             except KeyboardInterrupt:
-                warnings.warn("fit interrupted in its L-BFGS polish; the model keeps the values before that round",
+                warnings.warn("fit interrupted in its L-BFGS polish; the model keeps the last values it accepted",
                               stacklevel=2)
         if self.hyper_method != "map":
             self.fit_hyper_posterior()

@@ -101,8 +101,12 @@ class Spectral3D(WeightSpace3D):
                                         min(max(new.n_gamma, old.n_gamma), self.max_harmonics))
         if tuple(grown) == self.bases:
             return False
-        self.bases = tuple(grown)
-        self._set_features()
+        old_bases, self.bases = self.bases, tuple(grown)
+        try:
+            self._set_features()
+        except BaseException:  # (Ctrl-C included) the bases the factors are still of
+            self.bases = old_bases
+            raise
         return True
 
     def _features(self, c: Contacts3D, b: int) -> Tensor:
