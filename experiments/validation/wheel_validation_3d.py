@@ -208,7 +208,7 @@ def plot_maps(models: dict, out: Path) -> None:
     means = "; ".join(f"{w}: generic x ({', '.join(f'{v:.2f}' for v in m.mean_scales.tolist())})"
                       for w, m in models.items() if m.mean_scales is not None)
     fig.suptitle("Posterior of the maps from all runs (the GP plus its prior mean" +
-                 (f", (s_x, s_y, s_z) = {means})" if means else ")"))
+                 (f";\nscales of the generic maps (s_x, s_y, s_z) = {means})" if means else ")"))
     fig.savefig(out / "wheel3d_maps.png", dpi=100)
     plt.close(fig)
 
