@@ -43,8 +43,7 @@ def engine_before():
 
     def one_basis(self, lengthscale, shrink=1.0):
         bases = per_map(self, lengthscale, shrink)
-        held = [b for b in bases if b is not None]
-        union = backends.FourierBasis(max(b.n_beta for b in held), max(b.n_gamma for b in held))
+        union = features.union_basis(bases)
         return tuple(None if b is None else union for b in bases)
 
     def refresh(self):  # the one basis grows for the map that needs it most

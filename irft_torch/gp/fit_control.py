@@ -72,7 +72,8 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
     objective, e.g. a grown basis) and on with the same curvature history while it does, at most ``rounds``
     rounds. A probe that fails (a Cholesky, NaN), a round that ends higher, or Ctrl-C in a round (then re-raised)
     restores the values before that round. Returns (the loss at the values it ends at, the evaluations taken);
-    where the start itself has no finite loss, (that value, 0) with nothing changed."""
+    where the start itself has no finite loss, (that value, 0) with nothing changed. A loss that is not finite is
+    the caller's to act on (``InverseRFT3D.fit`` goes back to Adam's best iterate)."""
     evals, n = 0, max(int(n_samples), 1)
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(max_evals), max_eval=int(max_evals),
                             tolerance_grad=1e-3 / n, tolerance_change=POLISH_NATS / n, history_size=20,
@@ -115,11 +116,6 @@ def lbfgs_polish(params: list[Tensor], loss_fn, n_samples: int, refresh=None, ma
         if refresh is None or not refresh():
             break
         value = value_now()
-        if not math.isfinite(value):  # (cannot happen with a basis that grew, but never hand back a NaN)
-            copy_into(params, start)
-            refresh()
-            value = value_now()
-            break
     return value, evals
 
 

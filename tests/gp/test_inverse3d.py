@@ -301,9 +301,10 @@ def test_a_converged_3d_fit_ends_at_the_mode():
 
 
 def test_a_map_whose_lengthscales_shorten_grows_its_own_basis_only():
-    """The spectral backend keeps a basis per map: shortening alpha_z's lengthscales grows alpha_z's basis (to the
-    size its tolerance needs, read off the factor kernels' truncation errors) and leaves the others' as they were."""
-    from irft_torch.gp.kernels.fourier import FourierBasis
+    """The spectral backend keeps a basis per map: shortening alpha_z's lengthscales grows alpha_z's basis (to one
+    that holds the exact RBF, written out, within tol there, where the old one did not) and leaves the others' as
+    they were."""
+    from .dense_reference import truncation_gaps
 
     c, f = turning_toe()
     model = InverseRFT3D(c, f, method="spectral", tol=1e-7)
@@ -315,8 +316,8 @@ def test_a_map_whose_lengthscales_shorten_grows_its_own_basis_only():
     assert model.backend.stale() and model.backend.refresh()
     after = model.backend.bases
     assert after[0] == before[0] and after[1] == before[1] and after[2] != before[2]
-    need = FourierBasis.for_lengthscale(model.hypers.lengthscale.detach()[2:3] * 0.85, 1e-7)
-    assert (after[2].n_beta, after[2].n_gamma) == (need.n_beta, need.n_gamma)
+    ls_z = model.hypers.lengthscale.detach()[2:3]
+    assert float(truncation_gaps(after[2], ls_z)[0]) <= 1e-7 < float(truncation_gaps(before[2], ls_z)[0])
     assert float(model.backend.truncation_error().max()) <= 1e-7
 
 

@@ -15,7 +15,7 @@ from ..kernels.operators import unique_pairs
 from .hyperparameters import BLOCKS
 from .rows import block_rows
 
-__all__ = ["spectral_features", "merged_rows", "MergedRows", "SpectralFeatureBank", "BankRows"]
+__all__ = ["spectral_features", "merged_rows", "MergedRows", "SpectralFeatureBank", "BankRows", "union_basis"]
 
 
 def spectral_features(c: Contacts3D, b: int, basis: FourierBasis, constant_y: bool,
@@ -60,6 +60,16 @@ def merged_rows(c: Contacts3D) -> MergedRows:
     return MergedRows(beta, gamma, weights, _beta_groups(beta))
 
 
+def _per_sample_slots(sample: Tensor, value: Tensor, n_values: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each sample's distinct values side by side: for entries (sample (n,), value id (n,) < ``n_values``), the
+    distinct (sample, value) keys (sorted), each entry's key, and each key's sample (row) and place among its
+    sample's (slot)."""
+    keys, inv = torch.unique(sample * n_values + value, return_inverse=True)
+    row = keys // n_values
+    slot = torch.arange(len(keys), device=keys.device) - torch.searchsorted(keys, row * n_values)
+    return keys, inv, row, slot
+
+
 def _distinct_pairs(beta: Tensor, gamma: Tensor, ws: list[Tensor]) -> tuple[Tensor, Tensor, list[Tensor]]:
     """Each sample's segments merged where their angle pairs are equal (their weights summed) and those with no
     weight dropped: beta, gamma (T, K'), the weights (A, T, K'), K' the most distinct pairs of a sample, padded
@@ -70,9 +80,7 @@ def _distinct_pairs(beta: Tensor, gamma: Tensor, ws: list[Tensor]) -> tuple[Tens
     t_of, k_of = active.nonzero(as_tuple=True)
     pair = unique_pairs(torch.stack([beta[t_of, k_of], gamma[t_of, k_of]], -1))[1]  # (n,) id of each angle pair
     n_pairs = int(pair.max()) + 1 if len(pair) else 1
-    keys, inv = torch.unique(t_of * n_pairs + pair, return_inverse=True)  # sorted: a sample's pairs side by side
-    row = keys // n_pairs
-    slot = torch.arange(len(keys), device=keys.device) - torch.searchsorted(keys, row * n_pairs)
+    keys, inv, row, slot = _per_sample_slots(t_of, pair, n_pairs)
     k = max(1, int(slot.max()) + 1 if len(slot) else 1)
     if k >= beta.shape[1]:
         return beta, gamma, ws
@@ -110,7 +118,7 @@ class SpectralFeatureBank:
     def _full(self, basis: FourierBasis | Sequence[FourierBasis | None], b: int, constant_y: bool) -> Tensor:
         """Block b's features in ``basis``: one for every map, or one per map of the block (None: a constant)."""
         key = (b, constant_y)
-        union = _union(basis)
+        union = union_basis(basis)
         for (nb, ng), store in self._held.items():
             if nb >= union.n_beta and ng >= union.n_gamma and key in store:
                 return _restrict(store[key], FourierBasis(nb, ng), basis, b, constant_y)
@@ -150,7 +158,7 @@ def _rounded_up(n: int, cap: int) -> int:
     return max(n, min(cap, max(8, 1 << max(0, n - 1).bit_length())))
 
 
-def _union(basis: FourierBasis | Sequence[FourierBasis | None]) -> FourierBasis:
+def union_basis(basis: FourierBasis | Sequence[FourierBasis | None]) -> FourierBasis:
     """The smallest basis holding every one given (None entries: constant maps, no basis)."""
     if isinstance(basis, FourierBasis):
         return basis
@@ -221,10 +229,8 @@ def _beta_groups(beta: Tensor) -> tuple[Tensor, Tensor] | None:
     if T == 0 or K == 0:
         return None
     values, inv = torch.unique(beta, return_inverse=True)
-    key = torch.arange(T, device=beta.device)[:, None] * len(values) + inv  # (T, K)
-    keys, ginv = torch.unique(key.reshape(-1), return_inverse=True)
-    row = keys // len(values)
-    slot = torch.arange(len(keys), device=beta.device) - torch.searchsorted(keys, row * len(values))
+    sample = torch.arange(T, device=beta.device)[:, None].expand(T, K)
+    keys, ginv, row, slot = _per_sample_slots(sample.reshape(-1), inv.reshape(-1), len(values))
     U = int(slot.max()) + 1
     if 2 * U > K:
         return None

@@ -12,7 +12,7 @@ from ...rft.contacts3d import Contacts3D
 from ..kernels.fourier import MAX_HARMONICS, FourierBasis
 from ..kernels.li_basis import li_index, with_li_functions
 from .backends import WeightSpace3D
-from .features import BankRows, SpectralFeatureBank
+from .features import BankRows, SpectralFeatureBank, union_basis
 from .hyperparameters import BLOCKS
 
 __all__ = ["Spectral3D"]
@@ -58,8 +58,7 @@ class Spectral3D(WeightSpace3D):
     @property
     def basis(self) -> FourierBasis:
         """The smallest basis holding every map's (what a single basis for all maps would be)."""
-        held = [x for x in self.bases if x is not None]
-        return FourierBasis(max(x.n_beta for x in held), max(x.n_gamma for x in held))
+        return union_basis(self.bases)
 
     def _bases_for(self, lengthscale: Tensor, shrink: float = 1.0) -> tuple[FourierBasis | None, ...]:
         """Per map (3): the smallest basis for ``tol`` at its lengthscales (times ``shrink``), None for a constant."""
