@@ -40,6 +40,7 @@ from .kernels.priors import (
     prior_centres,
     register_physical_priors,
     register_spatial_priors,
+    residual_terms,
     spatial_lengthscale_centre,
 )
 from .mean_average import MeanAverage, fit_companion, stream_into_average, weigh_means
@@ -263,7 +264,7 @@ class InverseRFT(HyperMixtureMixin, nn.Module):
         physics = self.prior_mean_kind == "physics"
         sums = CentreSums.of(c, f)
         self._centre_sums: CentreSums = self._centre_sums + sums if more else sums
-        centres = centres_of_sums(self._centre_sums, None, physics)
+        centres = centres_of_sums(self._centre_sums, None, physics, residual=residual_terms(self.hypers))
         register_physical_priors(self.hypers, centres, physics, self.surface is not None)
         return centres
 

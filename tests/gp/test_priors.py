@@ -138,3 +138,42 @@ def test_centre_sums_of_two_parts_give_the_direct_formulas_on_all_the_data():
     torch.testing.assert_close(sums.map_scale(), f.pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt(), rtol=1e-12, atol=0)
     cen = centres_of_sums(sums)
     torch.testing.assert_close(cen["noise"], 1e-2 * f.pow(2).mean(0), rtol=1e-12, atol=0)
+
+
+def test_a_spatial_model_with_the_generic_shape_centres_its_residual_terms_on_what_the_shape_leaves():
+    """kernel="li+generic" with places: the generic shape's variance carries the medium (centre zeta^2, log-sd ln 2),
+    so the RBF and Li et al.'s term are centred, as the physics mean's residual GP, on max(0.3 zeta rms, r,
+    0.5 max(r / rms) rms)^2 with r the forces' rms residual after the generic shape at its least-squares scale per
+    axis over the rms summed weight (written out here), log-sd ln 10; the model starts there. A planar model with
+    the shape, and one without ("li"), keep the centre at the map's own size, log-sd ln 2."""
+    from irft_torch.gp.kernels.priors import _generic_forces
+
+    toe = irft.rft.CToe(0.02, 0.008, opening="left")
+    c = irft.rft.contacts(toe, irft.rft.spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=70))
+    truth = irft.rft.FourierStressMap.generic(0.45, 0.42)
+    f = irft.rft.forces(truth, c) * torch.tensor([1.3, 0.8], dtype=torch.float64)  # off the shape: a residual
+    places = torch.stack([torch.linspace(0.0, 1.0, 70, dtype=torch.float64), torch.zeros(70, dtype=torch.float64)], -1)
+    g = _generic_forces(c)
+    w = torch.stack([c.weight_x.abs().sum(-1), c.weight_z.abs().sum(-1)], -1)
+    zeta = float((f * g).sum() / g.pow(2).sum())
+    s = (f * g).sum(0) / g.pow(2).sum(0)
+    r = (f - s * g).pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt()
+    rms = torch.tensor(GENERIC_RMS, dtype=torch.float64)
+    sigma = torch.maximum(torch.maximum(0.3 * zeta * rms, r), 0.5 * float((r / rms).max()) * rms)
+    own = f.pow(2).mean(0).sqrt() / w.pow(2).mean(0).sqrt()
+    big = torch.maximum(torch.maximum(zeta * rms, own), 0.5 * float((own / rms).max()) * rms)
+    assert float((sigma / big).max()) < 0.5  # the two rules differ here
+    spatial = irft.InverseRFT(c, f, locations=places, hyper_posterior="map")
+    planar = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel="li+generic"), hyper_posterior="map")
+    li = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel="li"), hyper_posterior="map")
+    for model, centre, sd in ((spatial, sigma, math.log(10.0)), (planar, big, math.log(2.0)), (li, big, math.log(2.0))):
+        h = model.hypers
+        torch.testing.assert_close(h.outputscale.detach(), centre.pow(2), rtol=1e-9, atol=0)
+        torch.testing.assert_close(h.li.variance.detach(), centre.pow(2), rtol=1e-9, atol=0)
+        assert float(h.kernel.outputscale_prior.scale) == pytest.approx(sd)
+        assert float(h.li.variance_prior.scale) == pytest.approx(sd)
+    for model in (spatial, planar):
+        h = model.hypers
+        assert float(h.li.generic_variance_prior.scale) == pytest.approx(math.log(2.0))
+        torch.testing.assert_close(h.li.generic_variance.detach(), torch.full((2,), zeta**2, dtype=torch.float64),
+                                   rtol=1e-9, atol=0)

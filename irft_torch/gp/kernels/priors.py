@@ -43,6 +43,14 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
   to the prior's variance beyond, and that is what the posterior std then says.
 - **Li et al.'s term** (``kernel="li"``, ``gp.kernels.li_basis``): its variance per map has the outputscale's
   centre and width: the 9 functions are given as much prior variance as the RBF part.
+- **with the generic shape as a term in a spatial model** (``kernel="li+generic"`` with places, the spatial
+  default; ``residual_terms``): the shape's variance u (below) carries the medium, so the RBF and Li et al.'s 9
+  functions model what the shape leaves, as the GP does with the physics mean: their centre is the physics mean's
+  residual centre (the larger of 0.3 of the generic map at zeta and what the forces leave after the generic shape
+  at its least-squares scale per axis), their width a factor 10. Each of the three terms at the whole map's size
+  made the spatial model's intervals wider than needed (95 % coverage 0.98-1.00 at new places on walks over
+  generic-like media, the errors' sd 0.2-0.6 of the posterior sd; with this rule 0.95-0.96 and 0.7-0.9,
+  ``experiments/validation/walk_and_map.py``). Planar models keep the rule above (``residual_terms`` says why).
 - **the generic shape's variance** u (``kernel="li+generic"``, ``gp.kernels.li_basis``): the variance of the shape's
   scale per map, centre the medium's zeta squared (the scale real media have, as above), log-sd ln 2. As for
   the outputscale: with the physics mean (which already carries the shape at a fitted scale) the centre is
@@ -77,7 +85,7 @@ from ...rft.stress_maps import FourierStressMap
 
 __all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale", "prior_centres",
            "centres_of_sums",
-           "register_physical_priors", "register_spatial_priors", "spatial_lengthscale_centre"]
+           "register_physical_priors", "register_spatial_priors", "residual_terms", "spatial_lengthscale_centre"]
 
 PRIORS = ("physical", None)
 GENERIC_RMS = (0.2088, 0.3805)  # rms of the generic Li et al. map over the square, (x, z), per unit zeta
@@ -159,14 +167,17 @@ def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics
     return centres_of_sums(CentreSums.of(contacts, forces), map_scale, physics_mean)
 
 
-def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_mean: bool = False) -> dict:
-    """``prior_centres`` from the data's ``CentreSums`` (``map_scale`` None: the sums' own)."""
+def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_mean: bool = False,
+                    residual: bool = False) -> dict:
+    """``prior_centres`` from the data's ``CentreSums`` (``map_scale`` None: the sums' own). ``residual``: the
+    outputscale's centre is the residual's, as with ``physics_mean`` (the generic shape is a term of the kernel,
+    ``kernel="li+generic"``, and the other terms model what it leaves)."""
     rms = torch.tensor(GENERIC_RMS, dtype=sums.ff.dtype, device=sums.ff.device)
     ms = (sums.map_scale() if map_scale is None else map_scale).to(rms)
     # a fallback where the forces do not project on the generic shape: the data's own map scale
     fallback = float((ms / rms).max())
     zeta = max(sums.medium_scale(), 0.1 * fallback)
-    if physics_mean:
+    if physics_mean or residual:
         # the residual's size: a fraction of the medium's map (generic-like media), or what the forces
         # leave after the generic shape at its least-squares scale per axis (media of other shapes)
         resid = sums.residual_scale()
@@ -183,6 +194,18 @@ def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_m
             "noise": NOISE_RELATIVE * sums.ff / max(sums.n, 1)}
 
 
+def residual_terms(hypers) -> bool:
+    """Whether the RBF and Li et al.'s term model what the generic shape leaves (centre and width of the physics
+    mean's residual, ``centres_of_sums(..., residual=True)``): in a spatial model with the generic shape as a term
+    (``kernel="li+generic"`` with places, the spatial default). There every term's variance is also the scale of
+    its variation over the ground, and three terms each at the whole map's size made the intervals at new places
+    wider than needed (module docstring). Planar models keep each term at the map's size: there the rule left
+    the generic-shaped media as wide (scaled alpha_x 0.98 -> 1.00 on the harness, seed 0) and made one fit of six
+    overconfident (perturbed alpha_z 0.95 -> 0.89)."""
+    li = getattr(hypers, "li", None)
+    return li is not None and li.generic and getattr(hypers, "spatial", None) is not None
+
+
 def _stateless(prior):
     """A prior's buffers out of state dicts: a model's state is its hyperparameters, whatever its priors."""
     prior._non_persistent_buffers_set.update(prior._buffers.keys())
@@ -196,13 +219,16 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     ``learned_surface``: the surface height is fitted too, so the medium's scale zeta estimated at the
     stated surface is not trusted (a surface 2 cm off changes the depths, and zeta, by a factor of
     2-3 on a shallow stroke): the outputscale prior then has the physics mean's width (a factor 10
-    per standard deviation), and the forces decide."""
+    per standard deviation), and the forces decide. Where ``residual_terms(hypers)`` (a spatial model with the
+    generic shape as a term) the RBF and Li et al.'s term model what the shape leaves: ``centres`` are then the
+    residual's (``centres_of_sums(..., residual=True)``) and the width is the physics mean's too."""
     dtype = hypers.kernel.raw_outputscale.dtype
     log_os = centres["outputscale"].to(dtype).log().detach().clone()
     log_ls = math.log(centres["lengthscale"])
     noise = centres["noise"].to(dtype)
     log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
-    os_sd = NOISE_LOG_SD if (physics_mean or learned_surface) else OUTPUTSCALE_LOG_SD
+    generic = residual_terms(hypers)
+    os_sd = NOISE_LOG_SD if (physics_mean or learned_surface or generic) else OUTPUTSCALE_LOG_SD
     zero = torch.zeros((), dtype=dtype, device=hypers.kernel.raw_outputscale.device)
     # closures as partials of module-level functions, so that a model pickles (process pools, copies)
     hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
