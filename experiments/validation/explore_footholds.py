@@ -1,18 +1,19 @@
 """Where to step next: greedy footholds (``design.plan_footholds``) against a lawnmower path and random footholds.
 
 Data: simulated (``rft.TerrainField.random_patches`` of media from the calibration study's families). Run time:
-about 15 s per seed here (2 cores); the default run about 1.5 minutes.
+about 18 s per seed here (2 cores; 42 s with ``--refit-every 4``); the default run about 1.5 minutes.
 
     python experiments/validation/explore_footholds.py [--seeds 0 1 2 3 4] [--steps 12] [--reach 0.45]
-        [--out experiments/results]
+        [--roi 9 5] [--refit-every 0] [--out experiments/results]
 
 A C-toe first walks a line of 8 footholds (x = 0 to 1.4 m, y = 0) over a 2 m x 1 m patch of ground; the spatial
 model (``InverseRFT(..., locations=)``, defaults) is fitted there. Then each strategy takes ``--steps`` more
 stances, one scoop each, 2 % noise, the model updated with the forces measured (``add_data``, hyperparameters
-fixed):
+fixed; ``--refit-every K``: refitted after every K stances, every strategy alike):
 
 - greedy: ``design.plan_footholds`` one step at a time, within ``--reach`` (0.45 m) of the last foothold, from
-  candidates on a 0.1 m grid, scoring the maps over a 5 x 3 grid of places covering the patch;
+  candidates on a 0.1 m grid, scoring the maps over a ``--roi`` grid of places (9 x 5, edges included) spanning
+  the patch the error is measured over (before 2026-12-01: 5 x 3, 0.2 m inside the edges);
 - lawnmower: three rows (y = -0.35, 0, 0.35 m) walked back and forth, spaced to fit the steps;
 - random: footholds drawn uniformly over the patch.
 
@@ -76,7 +77,8 @@ def rmse(model, field, places, b, g) -> float:
     return float((model.stress_map(b, g, locations=places).mean - truth).pow(2).mean().sqrt())
 
 
-def run(seed: int, steps: int, reach: float = 0.45) -> dict[str, list[float]]:
+def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = (9, 5),
+        refit_every: int = 0) -> dict[str, list[float]]:
     import irft_torch as irft
     from irft_torch.design import plan_footholds
 
@@ -93,8 +95,9 @@ def run(seed: int, steps: int, reach: float = 0.45) -> dict[str, list[float]]:
     gx, gy = torch.meshgrid(torch.arange(X0, X1 + 1e-9, 0.1, dtype=F64), torch.arange(Y0, Y1 + 1e-9, 0.1, dtype=F64),
                             indexing="ij")
     candidates = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
-    px, py = torch.meshgrid(torch.linspace(X0 + 0.2, X1 - 0.2, 5, dtype=F64),
-                            torch.linspace(Y0 + 0.2, Y1 - 0.2, 3, dtype=F64), indexing="ij")
+    nx, ny = roi_grid
+    px, py = torch.meshgrid(torch.linspace(X0, X1, nx, dtype=F64), torch.linspace(Y0, Y1, ny, dtype=F64),
+                            indexing="ij")  # the greedy planner's region: the patch the error is measured over
     roi = torch.stack([px.reshape(-1), py.reshape(-1)], -1)
     plans = {"greedy": None, "lawnmower": lawnmower(steps),
              "random": torch.tensor(np.stack([rng.uniform(X0, X1, steps), rng.uniform(Y0, Y1, steps)], -1), dtype=F64)}
@@ -114,6 +117,8 @@ def run(seed: int, steps: int, reach: float = 0.45) -> dict[str, list[float]]:
             c, F = measure(field, stance, p[None], g_meas)
             m.add_data(c, F)
             here = p
+            if refit_every and (k + 1) % refit_every == 0 and k + 1 < steps:
+                m.fit(progress=False)  # the hyperparameters follow the data, as a walking robot's would
             if (k + 1) % 4 == 0:
                 errs.append(rmse(m, field, held, b, g))
         out[name] = errs
@@ -130,6 +135,10 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=12, help="stances each strategy takes after the first line")
     ap.add_argument("--reach", type=float, default=0.45, help="the greedy planner's longest step, m (the lawnmower's "
                     "steps along a row are 0.6 m at 12 steps, its first step from the line 1.35 m)")
+    ap.add_argument("--roi", type=int, nargs=2, default=[9, 5], metavar=("NX", "NY"),
+                    help="the greedy planner's places: an NX x NY grid over the whole patch, edges included")
+    ap.add_argument("--refit-every", type=int, default=0, metavar="K",
+                    help="refit the hyperparameters after every K stances, every strategy alike (0: fixed)")
     ap.add_argument("--out", type=Path, default=Path("experiments/results"), help="where the CSV goes")
     args = ap.parse_args(argv)
     torch.set_default_dtype(F64)
@@ -138,7 +147,7 @@ def main(argv=None) -> None:
     for seed in args.seeds:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the unit checks on simulated media far from the generic
-            res = run(seed, args.steps, args.reach)
+            res = run(seed, args.steps, args.reach, tuple(args.roi), args.refit_every)
         for name, errs in res.items():
             rows.append([seed, name, *[f"{e:.5f}" for e in errs]])
             print(f"seed {seed} {name:9s}: map RMSE after 0, 4, 8, ... steps: " + ", ".join(f"{e:.4f}" for e in errs),
