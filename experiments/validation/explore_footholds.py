@@ -13,7 +13,7 @@ fixed; ``--refit-every K``: refitted after every K stances, every strategy alike
 
 - greedy: ``design.plan_footholds`` one step at a time, within ``--reach`` (0.45 m) of the last foothold, from
   candidates on a 0.1 m grid, scoring the maps over a ``--roi`` grid of places (9 x 5, edges included) spanning
-  the patch the error is measured over (before 2026-12-01: 5 x 3, 0.2 m inside the edges);
+  the patch the error is measured over (before 2026-12-01's change: 5 x 3, 0.2 m inside the edges);
 - lawnmower: three rows (y = -0.35, 0, 0.35 m) walked back and forth, spaced to fit the steps;
 - random: footholds drawn uniformly over the patch.
 

@@ -164,14 +164,24 @@ def test_a_spatial_model_with_the_generic_shape_centres_its_residual_terms_on_wh
     big = torch.maximum(torch.maximum(zeta * rms, own), 0.5 * float((own / rms).max()) * rms)
     assert float((sigma / big).max()) < 0.5  # the two rules differ here
     spatial = irft.InverseRFT(c, f, locations=places, hyper_posterior="map")
+    spatial_li = irft.InverseRFT(c, f, locations=places, prior=irft.MapPrior(kernel="li"), hyper_posterior="map")
     planar = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel="li+generic"), hyper_posterior="map")
     li = irft.InverseRFT(c, f, prior=irft.MapPrior(kernel="li"), hyper_posterior="map")
-    for model, centre, sd in ((spatial, sigma, math.log(10.0)), (planar, big, math.log(2.0)), (li, big, math.log(2.0))):
+    for model, centre, sd in ((spatial, sigma, math.log(10.0)), (spatial_li, big, math.log(2.0)),
+                              (planar, big, math.log(2.0)), (li, big, math.log(2.0))):
         h = model.hypers
         torch.testing.assert_close(h.outputscale.detach(), centre.pow(2), rtol=1e-9, atol=0)
         torch.testing.assert_close(h.li.variance.detach(), centre.pow(2), rtol=1e-9, atol=0)
         assert float(h.kernel.outputscale_prior.scale) == pytest.approx(sd)
         assert float(h.li.variance_prior.scale) == pytest.approx(sd)
+        with torch.no_grad():  # the registered density: log(value / centre) ~ N(0, sd), here at value = 2 centre
+            h.outputscale = 2 * centre.pow(2)
+            h.li.variance = 2 * centre.pow(2)
+            for module, name in ((h.kernel, "outputscale_prior"), (h.li, "variance_prior")):
+                prior, closure = module._priors[name][0], module._priors[name][1]
+                torch.testing.assert_close(closure(module), torch.full((2,), math.log(2.0), dtype=torch.float64),
+                                           rtol=1e-9, atol=0)
+                assert float(prior.loc) == 0.0
     for model in (spatial, planar):
         h = model.hypers
         assert float(h.li.generic_variance_prior.scale) == pytest.approx(math.log(2.0))

@@ -161,10 +161,12 @@ def residual_scale(contacts: Contacts, forces: Tensor) -> Tensor:
     return CentreSums.of(contacts, forces).residual_scale()
 
 
-def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics_mean: bool = False) -> dict:
+def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics_mean: bool = False,
+                  residual: bool = False) -> dict:
     """The centres (physical units) of the three priors for these (whitened) data: outputscale (2,)
-    in (N/cm^3)^2, lengthscale (dimensionless), noise (2,) in N^2."""
-    return centres_of_sums(CentreSums.of(contacts, forces), map_scale, physics_mean)
+    in (N/cm^3)^2, lengthscale (dimensionless), noise (2,) in N^2. ``residual``: as ``centres_of_sums``'
+    (``residual_terms(hypers)`` says where a model uses it)."""
+    return centres_of_sums(CentreSums.of(contacts, forces), map_scale, physics_mean, residual)
 
 
 def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_mean: bool = False,
