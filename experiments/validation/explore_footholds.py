@@ -18,7 +18,8 @@ fixed; ``--refit-every K``: refitted after every K stances, every strategy alike
 - random: footholds drawn uniformly over the patch.
 
 Reported: map RMSE (N/cm^3, both maps, a 9 x 9 grid of the canonical square) at 16 held-out random places in
-the patch after every 4 steps, mean over seeds. Writes ``explore_footholds.csv``.
+the patch after every 4 steps, mean over seeds; and the same over the grid angles within 15 deg of the stroke's
+segments (the angles a foothold can teach directly). Writes ``explore_footholds.csv``.
 """
 
 from __future__ import annotations
@@ -72,13 +73,15 @@ def lawnmower(n: int) -> torch.Tensor:
     return torch.tensor(out[:n], dtype=F64)
 
 
-def rmse(model, field, places, b, g) -> float:
+def rmse(model, field, places, b, g, seen) -> tuple[float, float]:
+    """Map RMSE (N/cm^3) at ``places`` over the angle grid (b, g), and over its angles ``seen`` by the stroke."""
     truth = torch.stack([field.at(p)(b, g) for p in places])
-    return float((model.stress_map(b, g, locations=places).mean - truth).pow(2).mean().sqrt())
+    err = (model.stress_map(b, g, locations=places).mean - truth).pow(2)  # (L, 9, 9, 2)
+    return float(err.mean().sqrt()), float(err[:, seen].mean().sqrt())
 
 
 def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = (9, 5),
-        refit_every: int = 0) -> dict[str, list[float]]:
+        refit_every: int = 0) -> dict[str, list[tuple[float, float]]]:
     import irft_torch as irft
     from irft_torch.design import plan_footholds
 
@@ -92,6 +95,9 @@ def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = 
     held = torch.tensor(np.stack([rng.uniform(X0, X1, 16), rng.uniform(Y0, Y1, 16)], -1), dtype=F64)
     b, g = torch.meshgrid(torch.linspace(-math.pi / 2, math.pi / 2, 9, dtype=F64),
                           torch.linspace(-math.pi / 2, math.pi / 2, 9, dtype=F64), indexing="ij")
+    from walk_and_map import seen_angles
+
+    seen = seen_angles(c0, b, g)  # the grid angles within 15 deg of a segment of the stroke (every foothold's)
     gx, gy = torch.meshgrid(torch.arange(X0, X1 + 1e-9, 0.1, dtype=F64), torch.arange(Y0, Y1 + 1e-9, 0.1, dtype=F64),
                             indexing="ij")
     candidates = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
@@ -101,12 +107,12 @@ def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = 
     roi = torch.stack([px.reshape(-1), py.reshape(-1)], -1)
     plans = {"greedy": None, "lawnmower": lawnmower(steps),
              "random": torch.tensor(np.stack([rng.uniform(X0, X1, steps), rng.uniform(Y0, Y1, steps)], -1), dtype=F64)}
-    out: dict[str, list[float]] = {}
+    out: dict[str, list[tuple[float, float]]] = {}
     for name, feet in plans.items():
         import copy
 
         m = copy.deepcopy(base)
-        errs = [rmse(m, field, held, b, g)]
+        errs = [rmse(m, field, held, b, g, seen)]
         here = line[-1]
         g_meas = torch.Generator().manual_seed(40_000 + seed)
         for k in range(steps):
@@ -120,9 +126,20 @@ def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = 
             if refit_every and (k + 1) % refit_every == 0 and k + 1 < steps:
                 m.fit(progress=False)  # the hyperparameters follow the data, as a walking robot's would
             if (k + 1) % 4 == 0:
-                errs.append(rmse(m, field, held, b, g))
+                errs.append(rmse(m, field, held, b, g, seen))
         out[name] = errs
     return out
+
+
+def seen_share(seed: int) -> float:
+    """The share of the 9 x 9 angle grid within 15 deg of the stroke's segments."""
+    from walk_and_map import seen_angles
+
+    stance, _ = stroke_and_field(seed)
+    c = stance.at(torch.zeros(2, dtype=F64))
+    b, g = torch.meshgrid(torch.linspace(-math.pi / 2, math.pi / 2, 9, dtype=F64),
+                          torch.linspace(-math.pi / 2, math.pi / 2, 9, dtype=F64), indexing="ij")
+    return float(seen_angles(c, b, g).double().mean())
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -149,16 +166,20 @@ def main(argv=None) -> None:
             warnings.simplefilter("ignore")  # the unit checks on simulated media far from the generic
             res = run(seed, args.steps, args.reach, tuple(args.roi), args.refit_every)
         for name, errs in res.items():
-            rows.append([seed, name, *[f"{e:.5f}" for e in errs]])
-            print(f"seed {seed} {name:9s}: map RMSE after 0, 4, 8, ... steps: " + ", ".join(f"{e:.4f}" for e in errs),
-                  flush=True)
-    print(f"\nmean over {len(args.seeds)} seeds ({time.perf_counter() - t0:.0f} s):")
+            rows.append([seed, name, *[f"{e[0]:.5f}" for e in errs], *[f"{e[1]:.5f}" for e in errs]])
+            print(f"seed {seed} {name:9s}: map RMSE after 0, 4, 8, ... steps: " + ", ".join(f"{e[0]:.4f}" for e in errs)
+                  + "; at the stroke's angles " + ", ".join(f"{e[1]:.4f}" for e in errs), flush=True)
+    n = (len(rows[0]) - 2) // 2
+    print(f"\nmean over {len(args.seeds)} seeds ({time.perf_counter() - t0:.0f} s), over the square | at the angles "
+          f"the stroke reaches ({int(seen_share(args.seeds[0]) * 100)} % of the grid):")
     for name in ("greedy", "lawnmower", "random"):
         errs = np.mean([[float(v) for v in r[2:]] for r in rows if r[1] == name], 0)
-        print(f"  {name:9s}: " + ", ".join(f"{e:.4f}" for e in errs))
+        print(f"  {name:9s}: " + ", ".join(f"{e:.4f}" for e in errs[:n]) + " | "
+              + ", ".join(f"{e:.4f}" for e in errs[n:]))
     with open(args.out / "explore_footholds.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["seed", "strategy", *[f"rmse_after_{4 * i}" for i in range(len(rows[0]) - 2)]])
+        w.writerow(["seed", "strategy", *[f"rmse_after_{4 * i}" for i in range(n)],
+                    *[f"rmse_seen_after_{4 * i}" for i in range(n)]])
         w.writerows(rows)
     print(f"wrote {args.out / 'explore_footholds.csv'}")
 
