@@ -3,7 +3,7 @@
 Data: simulated (``rft.TerrainField``: a boundary between two media, a compaction gradient, random patches; and a
 homogeneous bed), media from the calibration study's families (``irft_torch.studies.calibration.medium``:
 generic-like, sharp and preset media for our seeds; blends, sloped beds and GP draws for the held-out ones).
-Run time: about 20 s per terrain and seed here (2 cores); the default run about 6 minutes.
+Run time: about 6 s per terrain and seed here (2 cores, 2026-12-01); the default run about 2 minutes.
 
     python experiments/validation/walk_and_map.py [--seeds 0 1 2] [--held-out 100 101] [--stances 16]
         [--prior-mean zero|physics] [--kernel li|li+generic|rbf] [--out experiments/results] [--plot]
