@@ -172,8 +172,8 @@ def prior_centres(contacts: Contacts, forces: Tensor, map_scale: Tensor, physics
 def centres_of_sums(sums: CentreSums, map_scale: Tensor | None = None, physics_mean: bool = False,
                     residual: bool = False) -> dict:
     """``prior_centres`` from the data's ``CentreSums`` (``map_scale`` None: the sums' own). ``residual``: the
-    outputscale's centre is the residual's, as with ``physics_mean`` (the generic shape is a term of the kernel,
-    ``kernel="li+generic"``, and the other terms model what it leaves)."""
+    outputscale's centre is the residual's, as with ``physics_mean`` (where ``residual_terms(hypers)``: a spatial
+    model with the generic shape as a kernel term, whose other terms model what it leaves)."""
     rms = torch.tensor(GENERIC_RMS, dtype=sums.ff.dtype, device=sums.ff.device)
     ms = (sums.map_scale() if map_scale is None else map_scale).to(rms)
     # a fallback where the forces do not project on the generic shape: the data's own map scale
@@ -229,8 +229,7 @@ def register_physical_priors(hypers, centres: dict, physics_mean: bool = False, 
     log_ls = math.log(centres["lengthscale"])
     noise = centres["noise"].to(dtype)
     log_noise = (noise.mean().reshape(1) if hypers.tied else noise).log().detach().clone()
-    generic = residual_terms(hypers)
-    os_sd = NOISE_LOG_SD if (physics_mean or learned_surface or generic) else OUTPUTSCALE_LOG_SD
+    os_sd = NOISE_LOG_SD if (physics_mean or learned_surface or residual_terms(hypers)) else OUTPUTSCALE_LOG_SD
     zero = torch.zeros((), dtype=dtype, device=hypers.kernel.raw_outputscale.device)
     # closures as partials of module-level functions, so that a model pickles (process pools, copies)
     hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), os_sd)),
