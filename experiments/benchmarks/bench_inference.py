@@ -58,6 +58,7 @@ import resource
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -349,23 +350,32 @@ def hyper_posterior_case(q: bool, row, repeats: int = 3) -> None:
                          ("turning scoop, T = 150 x M = 12", (scoop, scoop_forces))):
         c, f = on_device(c, f)
         irft.InverseRFT(c, f).fit(n_iter=5, progress=False)  # warm: a process' first fit pays one-time costs
-        times: dict[str, float] = {"default": math.inf, "plug-in": math.inf, "one basis": math.inf}
+        times: dict[str, float] = {"default": math.inf, "plug-in": math.inf, "mode": math.inf, "one basis": math.inf}
+        said = 0
         for _ in range(repeats):
-            for label, opts in (("default", {}), ("plug-in", PLUG_IN), ("one basis", {})):
+            for label, opts in (("default", {}), ("plug-in", PLUG_IN), ("mode", {"hyper_posterior": "map"}),
+                                ("one basis", {})):
                 model = irft.InverseRFT(c, f, **opts)
                 sync()
                 t0 = time.perf_counter()
-                with draws_in_one_basis() if label == "one basis" else contextlib.nullcontext():
+                with warnings.catch_warnings(record=True) as caught, (
+                        draws_in_one_basis() if label == "one basis" else contextlib.nullcontext()):
+                    warnings.simplefilter("always")
                     steps = len(model.fit(n_iter=n_iter, progress=False))
                 sync()
                 times[label] = min(times[label], time.perf_counter() - t0)
                 if label == "default":
                     hpost, default_steps, kernel = model.hyper_posterior, steps, model.backend.describe()
+                    said = max(said, len(caught))
         row(f"8. default fit, {name} ({kernel}): {default_steps} Adam steps + Laplace (ESS {hpost.ess:.0f} of "
             f"{hpost.n_proposals}, k-hat {hpost.khat:.2f}, {hpost.n_draws} draws)",
             f"{times['default']:.2f} s", f"the former default's plug-in fit {times['plug-in']:.2f} s",
             f"{times['default'] / times['plug-in']:.2f}x", "<= 1.5x")
-        row("8. the same, the draws each in the basis they need (beyond 30 harmonics: the exact pairs space)",
+        row(f"8. the same, the default against the mode's fit (Li et al.'s term, hyper_posterior='map'; {said} "
+            f"warnings from the default)", f"{times['default']:.2f} s", f"the mode's fit {times['mode']:.2f} s",
+            f"{times['default'] / times['mode']:.2f}x", "<= 2x, no warning" if "scoop" in name else "-")
+        row("8. the same, the draws each in the basis they need (beyond 30 harmonics, or where cheaper: the exact "
+            "pairs space)",
             f"{times['default']:.2f} s", f"every draw in one basis grown for all (truncated at 30 harmonics) "
             f"{times['one basis']:.2f} s", f"{times['one basis'] / times['default']:.2f}x", "-")
 

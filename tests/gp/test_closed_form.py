@@ -108,6 +108,62 @@ def test_loss_and_every_gradient_equal_the_dense_reference(method, repeated, pri
     assert_grads_close(got, want, tol * 10, list(params))
 
 
+def _segments_model(T: int, seed: int, **options):
+    """A pairs model on a turning toe with more distinct pairs than samples, evaluated through the segments (the
+    spectral backend's exact twin's form, ``PairsBackend.segments``)."""
+    from irft_torch.gp.backends.covariance_terms import SegmentPairsRBF
+
+    c, f = data(T=T, M=4, seed=seed, repeated=False)
+    model = irft.InverseRFT(c, f, method="pairs", hyper_posterior="map", **options)
+    set_hypers(model, seed=seed + 1)
+    model.backend.segments = True
+    assert model.backend.n_pairs > T and isinstance(model.backend.closed_form().terms[0], SegmentPairsRBF)
+    return c, f, model
+
+
+@pytest.mark.parametrize("prior_mean", ["zero", "physics"])
+def test_the_segment_form_equals_the_dense_reference(prior_mean):
+    """W_U K_UU W_U^T through sparse products and the Gram of the scaled embedding, its gradient without W^T G W:
+    the loss and every raw gradient against autograd through the dense reference (explicit W and K); a batch of
+    draws in one call against the dense reference at each."""
+    c, f, model = _segments_model(25, 20, prior_mean=prior_mean, priors=None, li_basis=False)
+    params = dict(model.hypers.named_parameters())
+    ls, os, noise = model.hypers.lengthscale, model.hypers.outputscale, model.hypers.noise
+
+    def reference(ls, os, noise, scales):
+        total = 0.0
+        for a, w in enumerate((c.weight_x, c.weight_z)):
+            shape = (w * FourierStressMap.generic()(c.beta, c.gamma)[..., a]).sum(-1)
+            mean = None if scales is None else scales[a] * shape
+            total = total - axis_reference(c, f[:, a], w, ls[a, 0], os[a], noise[a], mean)[0]
+        return total
+
+    total = reference(ls, os, noise, model.hypers.mean_scales)
+    want = torch.autograd.grad(total, list(params.values()))
+    got_loss, got = closed_form_grads(model)
+    assert got_loss == pytest.approx(total.item(), rel=1e-10)
+    assert_grads_close(got, want, 1e-8, list(params))
+    base = current_values(model.hypers)
+    g = torch.Generator().manual_seed(22)
+    values = {n: v * torch.exp(0.3 * torch.randn(4, *v.shape, generator=g)) for n, v in base.items()}
+    values[LENGTHSCALE] = values[LENGTHSCALE] * torch.tensor([1.0, 0.5, 0.2, 0.1])[:, None, None, None]  # short too
+    nll, grads, ok = model.backend.closed_form().evaluate(values)
+    assert ok.all()
+    for s in range(4):
+        one = {n: v[s] for n, v in values.items()}
+        noise_s = one["likelihood.noise_covar.raw_noise"][..., 0] if "likelihood.noise_covar.raw_noise" in one else None
+        scales = one.get("mean.raw_scales") if prior_mean == "physics" else None
+        ref = reference(one[LENGTHSCALE], one[OUTPUTSCALE], noise_s.expand(2), scales)
+        assert nll[s].sum().item() == pytest.approx(ref.item(), rel=1e-10)
+
+
+def test_the_segment_form_with_li_basis_equals_autograd():
+    """Li et al.'s term and the generic shape's, summed per sample, in the segments' closed form (physics mean,
+    priors): the loss and every raw gradient against autograd through the backend's own weight-space loss."""
+    _, _, model = _segments_model(30, 23, prior=irft.MapPrior(mean="physics", kernel="li+generic"))
+    assert_closed_form_is_autograd(model)
+
+
 @pytest.mark.parametrize("method, repeated", CASES)
 def test_a_batch_of_draws_equals_each_draw_alone_and_the_dense_reference(method, repeated):
     """ClosedForm.evaluate over S draws in one call: each draw's nll and gradients equal a call with that
@@ -163,13 +219,19 @@ def test_log_posterior_in_closed_form_equals_autograd_one_by_one(method, repeate
 
 
 @pytest.mark.parametrize("kernel", ["rbf", "li"])
-def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
+def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel, monkeypatch):
     """A batch of draws, some with lengthscales far shorter than the fit's: the spectral backend evaluates them in
-    groups, each in the basis its draws need (more than one group here), its own basis unchanged; every value
-    against the exact pairs space (the RBF itself at the distinct angle pairs) within what the kernel's tolerance
-    allows, and against one basis grown for all of them."""
+    groups, each in the basis its draws need (more than one group here, with the exact pairs space made to look dear),
+    its own basis unchanged; every value against the exact pairs space (the RBF itself at the distinct angle pairs)
+    within what the kernel's tolerance allows, and against one basis grown for all of them. With the pairs space at
+    its own cost (120 pairs: cheaper than any larger basis), it takes every draw the fit's basis does not hold."""
+    import math
+
     from irft_torch.gp.backends import make_backend
     from irft_torch.gp.backends.covariance_terms import LENGTHSCALE as LS
+    from irft_torch.gp.backends.pairs import PairsBackend
+
+    monkeypatch.setattr(PairsBackend, "draw_cost", lambda self: math.inf)
 
     c, f = data(T=30, M=4, seed=7)
     model = irft.InverseRFT(c, f, engine="spectral", hyper_posterior="map", prior=irft.MapPrior(kernel=kernel))
@@ -216,6 +278,11 @@ def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
     torch.testing.assert_close(got.loss(), fresh.loss(), rtol=1e-12, atol=0)
     backend.forget_draws()
     assert backend.with_hypers(mid) is None  # the model builds it from its own statistics
+    monkeypatch.undo()
+    groups = backend.draw_groups(values[LS])
+    own = [m for m, b in groups if b is backend]
+    assert [b.name for _, b in groups] == ["spectral", "pairs"] and own[0].nonzero()[:, 0].tolist() == list(range(6))
+    torch.testing.assert_close(log_posterior_batch(backend, spec, x), want, rtol=1e-8, atol=1e-7)
     with pytest.warns(UserWarning, match="need more than 30 harmonics"):  # one basis for all: truncated, and said
         one = log_posterior_batch(backend, spec, x, grouped=False)
     torch.testing.assert_close(grouped[:10], one[:10], rtol=1e-8, atol=1e-7)
@@ -223,15 +290,17 @@ def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel):
 
 
 def test_draw_groups_partition_by_hand():
-    """The grouping's partition of (n_beta, n_gamma) keys by hand: [(8, 24) x 10, (12, 16) x 10, (30, 30) x 1] in
-    two groups: the first two share (12, 24) (20 x 25 x 49 + 61 x 61 = 28,221 features evaluated) rather than
-    (8, 24) alone and the rest in (30, 30) (10 x 17 x 49 + 11 x 61^2 = 49,261) or one group (21 x 61^2); (4, 28)
-    and (28, 4) stay apart (their union would be (28, 28)); one key, one group."""
-    from irft_torch.gp.backends.spectral import _split_keys
+    """The grouping's partition of (n_beta, n_gamma) keys by hand, T = 100 samples (fewer than any basis' features,
+    so a draw costs 2 T F (T + F_beta + F_gamma)): [(8, 24) x 10, (12, 16) x 10, (30, 30) x 1] in two groups: the
+    first two share (12, 24) (20 x 42.6M + 165.2M = 1.02G) rather than (8, 24) alone and the rest in (30, 30)
+    (10 x 27.7M + 11 x 165.2M = 2.09G) or one group (21 x 165.2M); (4, 28) and (28, 4) stay apart (10 x 17.0M;
+    their union would be (28, 28), 10 x 139M); one key, one group."""
+    from irft_torch.gp.backends.draw_spaces import _split_keys, basis_cost
 
-    assert _split_keys([(8, 24), (12, 16), (30, 30)], [10, 10, 1], 2) == [2, 1]
-    assert _split_keys([(4, 28), (28, 4)], [5, 5], 2) == [1, 1]
-    assert _split_keys([(8, 8)], [3], 4) == [1]
+    assert float(basis_cost(torch.tensor(12), torch.tensor(24), 100)) == 2 * 100 * 1225 * (100 + 25 + 49)
+    assert _split_keys([(8, 24), (12, 16), (30, 30)], [10, 10, 1], 2, 100) == [2, 1]
+    assert _split_keys([(4, 28), (28, 4)], [5, 5], 2, 100) == [1, 1]
+    assert _split_keys([(8, 8)], [3], 4, 100) == [1]
 
 
 def test_impossible_draws_get_minus_infinity_and_no_gradient():

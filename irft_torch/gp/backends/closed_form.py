@@ -112,6 +112,9 @@ class ClosedForm:
         self.names = {NOISE} | {name for t in self.terms for name in t.names} | ({MEAN} if c_g is not None else set())
         r = c_y.shape[-1]
         self.eye = torch.eye(r, dtype=c_y.dtype, device=c_y.device)
+        #: numbers in a draw's largest intermediate: 2 r F (2 r^2 without R), or a term's own where larger
+        self.elements = max([2 * r * (R.shape[-1] if R is not None else r)]
+                            + [int(getattr(t, "elements", 0)) for t in self.terms])
 
     def evaluate(self, values: dict[str, Tensor], grad: bool = True) -> tuple[Tensor, dict[str, Tensor] | None, Tensor]:
         """nll (*S, 2) (-log p(F_a | values) / n per axis), the gradients of nll.sum(-1) in the values

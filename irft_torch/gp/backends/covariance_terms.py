@@ -16,11 +16,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..kernels.embedding import embed_angles
+from ..kernels.embedding import embed_angles, rbf
 from ..kernels.fourier import GRID, _analysis, _grid
 from ..kernels.li_basis import LI_GENERIC, LI_VARIANCE, generic_features
 
-__all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF",
+__all__ = ["LENGTHSCALE", "OUTPUTSCALE", "NOISE", "MEAN", "Adjoint", "CovarianceTerm", "PairsRBF", "SegmentPairsRBF",
            "KroneckerFourier", "RowSeparable", "LiBasisTerm", "li_terms"]
 
 LENGTHSCALE = "kernel.base_kernel.raw_lengthscale"  # value (*S, 2, 1, 4)
@@ -183,6 +183,95 @@ class PairsRBF(CovarianceTerm):
         GK = adj.sigma * K
         return {OUTPUTSCALE: GK.sum((-1, -2)) / values[OUTPUTSCALE],
                 LENGTHSCALE: lengthscale_gradient(GK, self.D, values[LENGTHSCALE][..., 0, :])[..., None, :]}
+
+
+class SegmentPairsRBF(CovarianceTerm):
+    """The angle kernel in the observations' space (R None) from each sample's segments: A = W_U K_UU W_U^T (*S, 2,
+    T, T), with W_U (2, T, U) the weights summed per distinct pair held as sparse matrices (at most M non-zeros a
+    row), so A costs two sparse products (T M U) instead of T U^2 + T^2 U, and K_UU is formed from the Gram of the
+    lengthscale-scaled embedding (``embedding.rbf``: two passes over U^2 numbers).
+    The gradient never forms W_U^T G W_U (U x U): with z_d the embedding's coordinate d and W_z = W_U diag(z_d),
+
+        d nll / d s   = <G, A> / s,
+        d nll / d l_d = <G, W_U (K o Delta_d^2) W_U^T> / l_d^3 = 2 (<G, W_zz K W_U^T> - <G, W_z K W_z^T>) / l_d^3,
+
+    (Delta_d^2 = z_d,i^2 + z_d,j^2 - 2 z_d,i z_d,j, G symmetric): four more sparse products. The exact form for many
+    distinct pairs and few samples (a turning toe's short-lengthscale hyperparameter draws,
+    ``pairs.PairsBackend.closed_form``).
+
+    Args:
+        table: the distinct pairs (U, 2), rad.
+        index: each segment's row in ``table`` (T, M).
+        weight: the segments' weights (2, T, M) (0 where out of contact).
+    """
+
+    names = (LENGTHSCALE, OUTPUTSCALE)
+    KEEP_KERNELS = 2**24  # numbers of K_UU kept from forward for backward (above: recomputed there)
+
+    def __init__(self, table: Tensor, index: Tensor, weight: Tensor) -> None:
+        import warnings
+
+        self.z = embed_angles(table[:, 0], table[:, 1])  # (U, 4)
+        T, M = weight.shape[-2:]
+        self.T, self.U = T, table.shape[0]
+        rows = torch.arange(T, device=weight.device).repeat_interleave(M)
+        cols = index.reshape(-1).to(weight.device)
+
+        def sparse(values: Tensor) -> Tensor:  # (T, U) CSR, duplicates summed
+            coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (T, self.U), check_invariants=False)
+            with warnings.catch_warnings():  # torch calls its CSR support beta; what is used here is its matmul
+                warnings.simplefilter("ignore", UserWarning)
+                return coo.coalesce().to_sparse_csr()
+
+        w = weight.reshape(2, -1)
+        self.W = [sparse(w[a]) for a in range(2)]
+        zc = self.z[cols]  # (T M, 4): each segment's embedding
+        self.Wz = [[sparse(w[a] * zc[:, d]) for d in range(4)] for a in range(2)]
+        self.Wzz = [[sparse(w[a] * zc[:, d].pow(2)) for d in range(4)] for a in range(2)]
+        # a draw's numbers held at once (``density._in_chunks``): A and K W_U^T per map; each K_UU is transient unless
+        # the batch's fit in ``KEEP_KERNELS``
+        self.elements = 2 * T * (T + self.U)
+
+    def _kernel(self, ls: Tensor, s: Tensor) -> Tensor:
+        """s exp(-1/2 |(z_i - z_j) / l|^2) (U, U) for one map's ls (4,) and s ()."""
+        u = self.z / ls
+        return rbf(u, u, s)  # one product of augmented coordinates, then one exp
+
+    @staticmethod
+    def _flat(values):
+        ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
+        return ls.reshape(-1, 4), s.reshape(-1), s.shape
+
+    def forward(self, values, R):
+        ls, s, batch = self._flat(values)
+        N = s.shape[0]
+        keep = N * self.U * self.U <= self.KEEP_KERNELS
+        A = s.new_empty(N, self.T, self.T)
+        Ks, KWs = [], []
+        for i in range(N):
+            a = i % 2  # the map: the batch's last dimension
+            K = self._kernel(ls[i], s[i])
+            KW = (self.W[a] @ K).mT.contiguous()  # K W_U^T (U, T) (K symmetric)
+            A[i] = self.W[a] @ KW
+            Ks.append(K if keep else None)
+            KWs.append(KW)
+        return A.reshape(*batch, self.T, self.T), (A, Ks, KWs)
+
+    def backward(self, values, adj, state):
+        A, Ks, KWs = state
+        ls, s, batch = self._flat(values)
+        G = adj.G.reshape(-1, self.T, self.T)
+        d_s = (G * A).sum((-1, -2)) / s
+        d_l = ls.new_empty(ls.shape)
+        for i in range(s.shape[0]):
+            a = i % 2
+            K = Ks[i] if Ks[i] is not None else self._kernel(ls[i], s[i])
+            for d in range(4):
+                Wz = self.Wz[a][d]
+                one = (G[i] * (self.Wzz[a][d] @ KWs[i])).sum()
+                two = (G[i] * (Wz @ (Wz @ K).mT.contiguous())).sum()
+                d_l[i, d] = 2 * (one - two) / ls[i, d].pow(3)
+        return {OUTPUTSCALE: d_s.reshape(batch), LENGTHSCALE: d_l.reshape(*batch, 4)[..., None, :]}
 
 
 class LiBasisTerm(CovarianceTerm):

@@ -17,7 +17,9 @@ from ..kernels.li_basis import li_features
 from ..kernels.operators import unique_pairs
 from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
 
-__all__ = ["PairsBackend", "distinct_pairs"]
+__all__ = ["PairsBackend", "distinct_pairs", "KERNEL_COST"]
+
+KERNEL_COST = 20.0  # one kernel value against one multiply-add (``PairsBackend.draw_cost``)
 
 
 def distinct_pairs(c: Contacts) -> tuple[Tensor, Tensor]:
@@ -41,6 +43,10 @@ class PairsBackend(WeightSpaceBackend):
     """
 
     name = "pairs"
+    #: evaluate the likelihood through the segments where cheaper (``closed_form``): set on the spectral backend's
+    #: exact twin (``SpectralBackend.exact_twin``), whose hyperparameter draws are many and short; a fit's own pairs
+    #: backend keeps the weight space (its terms, ``_closed_form_terms``, are where a new kernel term plugs in)
+    segments = False
 
     def __init__(self, hypers, contacts: Contacts, forces: Tensor) -> None:
         super().__init__(hypers, contacts, forces)
@@ -113,6 +119,51 @@ class PairsBackend(WeightSpaceBackend):
 
         t = self.table.to(f.R)
         return [PairsRBF(t)] + li_terms(self.hypers, li_features(t[:, 0], t[:, 1]))
+
+    def _segment_form(self) -> bool:
+        """Whether the likelihood is evaluated in the observations' space through the segments (``closed_form``):
+        where ``segments`` is set and that is the cheaper form."""
+        kept = self.__dict__.get("_kept")
+        T, U = self.n_samples, self.n_pairs
+        return (self.segments and kept is not None and len(kept[0]) == T
+                and T ** 3 / 3 + 4 * T * kept[0].n_segments * U < 2 * min(T, U) * U * U)
+
+    def draw_cost(self) -> float:
+        """About the multiply-adds of one hyperparameter draw's likelihood (both maps), in the units of
+        ``spectral.basis_cost``: a kernel value costs about ``KERNEL_COST`` (an exponential and three passes over
+        memory, measured here), then the products of the closed form's space."""
+        T, U = self.n_samples, self.n_pairs
+        if self._segment_form():
+            return 2 * (KERNEL_COST * U * U + 6 * T * self._kept[0].n_segments * U + T ** 3 / 3)
+        r = min(T, U)
+        return 2 * (KERNEL_COST * U * U + 2 * r * U * U + r ** 3 / 3)
+
+    def closed_form(self):
+        """``closed_form.ClosedForm`` in the observations' space (A = W_U K_UU W_U^T through each sample's segments,
+        ``SegmentPairsRBF``) with ``segments`` set where that is the cheaper exact form, T^3 / 3 + 4 T M U against the
+        weight space's 2 r U^2 (many distinct pairs, few samples: a turning toe's short-lengthscale draws, 6x faster at
+        T = 150, U = 1,514); else the weight space's (``WeightSpaceBackend.closed_form``). The same likelihood."""
+        from .closed_form import ClosedForm, closed_form_enabled
+        from .covariance_terms import SegmentPairsRBF, li_terms
+
+        if not (closed_form_enabled() and self._segment_form()):
+            return super().closed_form()
+        kept, T, U = self._kept, self.n_samples, self.n_pairs
+        hit = self.__dict__.get("_segments_closed_form")
+        if hit is not None and hit[0] is self.stats:
+            return hit[1]
+        c, f = kept
+        with torch.no_grad():
+            idx = self._index(c, self.table)
+            w = torch.stack([c.weight_x, c.weight_z]).to(f)
+            g = self.hypers.mean.shape_forces(c) if self.hypers.mean is not None else None
+            t = self.table.to(f)
+            terms = [SegmentPairsRBF(t, idx, w)]
+            if self.hypers.li is not None:  # Li et al.'s 9 features summed with each sample's weights: (2, T, 9)
+                terms += li_terms(self.hypers, self._phi(c, idx, U).to(f) @ li_features(t[:, 0], t[:, 1]))
+        cf = ClosedForm(None, f.T, g, f.new_zeros(2, 3), T, terms, symmetrize=False)
+        self._segments_closed_form = (self.stats, cf)
+        return cf
 
     def _cross(self, c: Contacts) -> Tensor:
         """W_q K(theta_q, pairs): (2, N, U), differentiable in the contacts (not the hyperparameters)."""

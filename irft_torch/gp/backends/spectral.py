@@ -12,126 +12,23 @@ keeps).
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 
 import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..kernels.fourier import MAX_HARMONICS, FourierBasis, truncation_errors
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis
 from ..kernels.li_basis import li_index, with_li_functions
+from . import draw_spaces
 from .base import FunctionalPosterior, RFTBackend, split_blocks
-from .weight_space import FeatureStatistics, WeightSpaceBackend, chunk_rows
+from .draw_spaces import DRAW_GROUPS, DRAW_HARMONICS, EXACT_PAIRS, draws_in_one_basis
+from .fourier_statistics import _meta, features, restrict_statistics, spectral_statistics
+from .pairs import PairsBackend
+from .weight_space import FeatureStatistics, WeightSpaceBackend
 
 __all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features", "DRAW_HARMONICS", "DRAW_GROUPS",
            "EXACT_PAIRS", "draws_in_one_basis"]
-
-DRAW_HARMONICS = 4  # a batch of hyperparameter draws is grouped by the basis each needs, rounded up to this step
-DRAW_GROUPS = 4  # and those this backend's basis does not hold into at most this many groups
-EXACT_PAIRS = 4096  # draws beyond every basis go to the exact pairs space up to this many distinct angle pairs
-_GROUPED = [True]  # False inside ``draws_in_one_basis``
-
-
-@contextlib.contextmanager
-def draws_in_one_basis():
-    """Within this context a batch of hyperparameter draws is evaluated as before draws were grouped: one spectral
-    basis grown to hold every draw (truncated beyond ``MAX_HARMONICS``), each kept draw's backend built from the fit's
-    statistics in the basis it needs (``draw_groups`` and ``with_hypers`` stand aside). The reference of
-    ``experiments/benchmarks/bench_inference.py``."""
-    _GROUPED.append(False)
-    try:
-        yield
-    finally:
-        _GROUPED.pop()
-
-
-def _axis_features(w: Tensor, pb: Tensor, pg: Tensor) -> Tensor:
-    """sum_m w_nm psi_beta(beta_nm) kron psi_gamma(gamma_nm): w (N, M) -> (N, Fb Fg), one batched matmul."""
-    return torch.bmm((w[..., None] * pb).mT, pg).reshape(w.shape[0], pb.shape[-1] * pg.shape[-1])
-
-
-def features(c: Contacts, basis: FourierBasis, axes: tuple[int, ...] = (0, 1)) -> Tensor:
-    """Phi (len(axes), N, F): the features of the weighted sums of contacts (N, M), x and z axes."""
-    pb, pg = basis.features(c.beta, c.gamma)  # (N, M, Fb), (N, M, Fg)
-    w = (c.weight_x, c.weight_z)
-    return torch.stack([_axis_features(w[a], pb, pg) for a in axes])
-
-
-def _meta(basis: FourierBasis) -> dict:
-    return {"space": "spectral", "n_beta": basis.n_beta, "n_gamma": basis.n_gamma}
-
-
-def spectral_statistics(c: Contacts, f: Tensor, basis: FourierBasis, mean=None, chunk: int | None = None
-                        ) -> FeatureStatistics:
-    """Sufficient statistics of one recording (contacts (T, M) and forces (T, 2), whitened if a
-    noise scale applies) in ``basis``, one chunked pass, no model needed: what a worker computes in
-    a map-reduce over a fleet's recordings. Statistics add up (``a + b``) to those of the union.
-
-    Args:
-        mean: the physics prior mean (``GenericShapeMean``) if the model will use one, else None.
-    """
-    F = basis.size
-    stats = FeatureStatistics.zeros(F, dtype=f.dtype, device=f.device, meta=_meta(basis))
-    shape = mean.shape_forces(c) if mean is not None else None
-    chunk = chunk or chunk_rows(F, c.n_segments)
-    with torch.no_grad():
-        for i in range(0, len(c), chunk):
-            part = c[i:i + chunk]
-            y, g = f[i:i + chunk].T, None if shape is None else shape[:, i:i + chunk]
-            sign = WeightSpaceBackend._row_sign(part)
-            if sign is None:
-                stats.accumulate(features(part, basis), y, g)
-            else:
-                stats.accumulate_shared(features(part, basis, axes=(1,))[0], sign, y, g)
-    return stats
-
-
-def restrict_statistics(stats: FeatureStatistics, basis: FourierBasis) -> FeatureStatistics:
-    """The statistics in a smaller (nested) basis: the leading harmonics' blocks, exactly the
-    statistics a pass over the data in ``basis`` gives. ValueError if ``basis`` is not inside the
-    statistics' own."""
-    meta = stats.meta
-    if meta.get("space") != "spectral":
-        raise ValueError(f"statistics of space {meta.get('space')!r} cannot serve a spectral basis")
-    nb, ng = int(meta["n_beta"]), int(meta["n_gamma"])
-    if basis.n_beta > nb or basis.n_gamma > ng:
-        raise ValueError(f"statistics in FourierBasis({nb}, {ng}) cannot give the larger {basis}")
-    if (basis.n_beta, basis.n_gamma) == (nb, ng):
-        return stats
-    Fb, Fg = basis.sizes
-    full = (2 * nb + 1, 2 * ng + 1)
-    out_meta = {**meta, **_meta(basis)}
-
-    def cut(v: Tensor) -> Tensor:  # the leading Fb x Fg block of each (beta, gamma) feature axis: one strided copy
-        lead = v.shape[:1]
-        k = (v.ndim - 1)
-        v = v.reshape(*lead, *(full * k))
-        v = v[(slice(None), *([slice(0, Fb), slice(0, Fg)] * k))]
-        return v.reshape(*lead, *([Fb * Fg] * k))
-
-    return FeatureStatistics(cut(stats.P), cut(stats.b), stats.yy, cut(stats.bg), stats.yg, stats.gg, stats.n,
-                             out_meta)
-
-
-def _split_keys(keys: list[tuple[int, int]], counts: list[int], groups: int) -> list[int]:
-    """Contiguous groups (their lengths) of (n_beta, n_gamma) keys sorted by size, at most ``groups`` of them,
-    minimizing the sum over groups of (draws x the features of the group's basis: its largest n_beta by its largest
-    n_gamma), what evaluating each group in one basis that holds all its draws costs. ``counts``: draws per key."""
-    n = len(keys)
-
-    def cost(i: int, j: int) -> float:  # keys i..j-1 in one basis
-        nb, ng = max(k[0] for k in keys[i:j]), max(k[1] for k in keys[i:j])
-        return sum(counts[i:j]) * (2 * nb + 1) * (2 * ng + 1)
-
-    best: dict[tuple[int, int], tuple[float, list[int]]] = {(0, 0): (0.0, [])}  # (placed, groups) -> (cost, lengths)
-    for g in range(1, groups + 1):
-        for j in range(1, n + 1):
-            options = [(best[i, g - 1][0] + cost(i, j), best[i, g - 1][1] + [j - i])
-                       for i in range(j) if (i, g - 1) in best]
-            if options:
-                best[j, g] = min(options, key=lambda o: o[0])
-    return min((best[n, g] for g in range(1, groups + 1) if (n, g) in best), key=lambda o: o[0])[1]
 
 
 class SpectralBackend(WeightSpaceBackend):
@@ -277,102 +174,17 @@ class SpectralBackend(WeightSpaceBackend):
         return Contacts.cat([d[0] for d in self._data]), torch.cat([d[1] for d in self._data])
 
     def draw_groups(self, lengthscale: Tensor) -> list[tuple[Tensor, RFTBackend]] | None:
-        """A batch of hyperparameter settings (lengthscales (S, 2, 1, 4)) grouped by the basis each needs for
-        ``tol``: [(mask (S,), a backend on these data in that basis)], this backend itself for those it holds, and
-        for the others the basis their own lengthscales need (each angle's harmonics rounded up to a multiple of
-        ``DRAW_HARMONICS``, at most ``MAX_HARMONICS``), cut from one pass over the data in the largest of them. So a
-        batch costs what each setting needs, not what its shortest lengthscale needs, and this backend's basis
-        stays the fit's. Settings that no basis up to ``MAX_HARMONICS`` holds within ``tol`` go to the exact space
-        of the data's distinct angle pairs (``exact_twin``) where it is affordable, else stay in the largest basis
-        with a warning (their kernel truncated). None where this backend does not keep all of its data (built from
-        statistics, or statistics merged in) or its basis is held (``method="auto"`` on nearly noise-free data): the
-        caller then grows this basis for the batch (``prepare``). Inside ``draws_in_one_basis()``: None."""
-        data = self._whole_data()
-        if self.held or not _GROUPED[-1] or data is None:
-            return None
-        c, f = data
-        ls = lengthscale.detach().reshape(-1, 2, 4).double()
-        eb, eg = truncation_errors(ls[..., 0:2]), truncation_errors(ls[..., 2:4])  # (S, 2, MAX_HARMONICS + 1)
-        own = (eb[..., self.basis.n_beta] + eg[..., self.basis.n_gamma] <= self.tol).all(-1)  # (S,)
-
-        def need(e: Tensor) -> Tensor:  # the fewest harmonics with e_n <= tol / 2 in every map (the cap if none)
-            ok = e <= self.tol / 2
-            n = torch.where(ok.any(-1), ok.int().argmax(-1), MAX_HARMONICS)
-            step = DRAW_HARMONICS
-            return ((n.amax(-1).clamp_min(1) + step - 1) // step * step).clamp_max(MAX_HARMONICS)
-
-        nb, ng = need(eb), need(eg)
-        capped = (eb[..., MAX_HARMONICS] + eg[..., MAX_HARMONICS] > self.tol).any(-1)  # beyond any basis for tol
-        exact = self.exact_twin() if bool((capped & ~own).any()) else None
-        if exact is None:  # they stay in the largest basis, truncated there: said (a draw's kernel is not exact)
-            own = own | ((nb <= self.basis.n_beta) & (ng <= self.basis.n_gamma))  # a larger basis would not help
-            if bool(capped.any()):
-                warnings.warn(f"the shortest lengthscale {float(ls[capped].min()):.3g} of a batch of {len(ls)} "
-                              f"settings need more than {MAX_HARMONICS} harmonics per angle; the truncation error may "
-                              f"exceed tol={self.tol:.0e}", stacklevel=3)
-        groups: list[tuple[Tensor, RFTBackend]] = [(own, self)] if bool(own.any()) else []
-        if exact is not None:
-            capped = capped & ~own
-            if bool(capped.any()):
-                groups.append((capped, exact))  # the exact space: no truncation, whatever the lengthscale
-            own = own | capped
-        rest = ~own
-        if not bool(rest.any()):
-            return groups
-        # at most DRAW_GROUPS groups of the others, by the bases they need (each group's basis holds all of its
-        # draws): fewer backends to build, each draw in a basis near its own
-        need_keys = sorted({(int(a), int(b)) for a, b in zip(nb[rest].tolist(), ng[rest].tolist())},
-                           key=lambda k: ((2 * k[0] + 1) * (2 * k[1] + 1), k))
-        counts = [int((rest & (nb == a) & (ng == b)).sum()) for a, b in need_keys]
-        start = 0
-        for length in _split_keys(need_keys, counts, DRAW_GROUPS):
-            part = need_keys[start:start + length]
-            top = (max(k[0] for k in part), max(k[1] for k in part))
-            for a, b in part:
-                at = rest & (nb == a) & (ng == b)
-                nb[at], ng[at] = top
-            start += length
-        keys = sorted({(int(a), int(b)) for a, b in zip(nb[rest].tolist(), ng[rest].tolist())})
-        bases = [with_li_functions(FourierBasis(a, b)) if self.hypers.li is not None else FourierBasis(a, b)
-                 for a, b in keys]
-        big = FourierBasis(max(b.n_beta for b in bases), max(b.n_gamma for b in bases))
-        # kept while the data are: the statistics in the largest basis asked for so far and a backend per basis
-        hit = self.__dict__.get("_draw_cache")
-        if hit is None or hit[0] is not self.stats:
-            hit = self._draw_cache = [self.stats, self.stats, {}]
-        if not self._covers(hit[1], big):
-            held = hit[1].meta
-            grown = FourierBasis(max(big.n_beta, int(held["n_beta"])), max(big.n_gamma, int(held["n_gamma"])))
-            stored = self._stored
-            hit[1] = (restrict_statistics(stored, grown) if stored is not None and self._covers(stored, grown)
-                      else spectral_statistics(c, f, grown, self.hypers.mean))
-        for (a, b), basis in zip(keys, bases):
-            if basis not in hit[2]:
-                hit[2][basis] = SpectralBackend(self.hypers, c, f, tol=self.tol, basis=basis, statistics=hit[1])
-            groups.append((rest & (nb == a) & (ng == b), hit[2][basis]))
-        return groups
+        """A batch of hyperparameter settings (lengthscales (S, 2, 1, 4)) grouped by the space each is evaluated in:
+        [(mask (S,), a backend on these data)], this backend itself for those its basis holds within ``tol``, a basis
+        near each one's own for the others, the exact pairs space beyond every basis or where it is cheaper
+        (``draw_spaces.group_draws``); None where this backend cannot choose (built from statistics, its basis held,
+        or inside ``draws_in_one_basis()``): the caller then grows this basis for the batch (``prepare``)."""
+        return draw_spaces.group_draws(self, lengthscale)
 
     def with_hypers(self, hypers) -> RFTBackend | None:
-        """A draw's backend: for a draw whose lengthscales no basis up to ``MAX_HARMONICS`` holds within ``tol``, the
-        exact pairs space (``exact_twin``, its statistics shared) where that is affordable; for another, a spectral
-        backend in the basis it needs, cut from the statistics its batch was evaluated in (``draw_groups``) where
-        they cover it; else None (the model builds one from its own statistics). Inside ``draws_in_one_basis()``:
-        None."""
-        if not _GROUPED[-1] or self.held:
-            return None
-        ls = hypers.lengthscale.detach().reshape(-1, 2, 4).double()
-        top = truncation_errors(ls[..., 0:2])[..., MAX_HARMONICS] + truncation_errors(ls[..., 2:4])[..., MAX_HARMONICS]
-        twin = self.exact_twin() if bool((top > self.tol).any()) else None
-        if twin is not None:
-            return twin.with_hypers(hypers)
-        hit, data = self.__dict__.get("_draw_cache"), self._whole_data()
-        if hit is None or hit[0] is not self.stats or data is None:
-            return None
-        basis = FourierBasis.for_lengthscale(hypers.lengthscale, self.tol)
-        basis = with_li_functions(basis) if hypers.li is not None else basis
-        if not self._covers(hit[1], basis):
-            return None
-        return SpectralBackend(hypers, *data, tol=self.tol, basis=basis, statistics=hit[1])
+        """A kept draw's backend (``draw_spaces.draw_backend``): the exact pairs space beyond every basis, else the
+        basis it needs cut from its batch's statistics; None where the model builds one from its own statistics."""
+        return draw_spaces.draw_backend(self, hypers)
 
     def space_for(self, lengthscale: Tensor) -> RFTBackend:
         """The backend one hyperparameter setting (lengthscales (2, 1, 4)) is evaluated in: this one where its basis
@@ -388,19 +200,10 @@ class SpectralBackend(WeightSpaceBackend):
         up to 2 x 3721^2 numbers, and a backend per group): called once the draws' own backends are built."""
         self.__dict__.pop("_draw_cache", None)
 
-    def exact_twin(self) -> RFTBackend | None:
-        """The pairs backend on this backend's data and hyperparameters (exact at any lengthscale), built once, where
-        the data have at most ``EXACT_PAIRS`` distinct angle pairs (the pairs space's step is O(U^2 T)); else None."""
-        hit = self.__dict__.get("_exact_twin")
-        if hit is not None and hit[0] is self.stats:
-            return hit[1]
-        from .pairs import PairsBackend, distinct_pairs
-
-        twin, data = None, self._whole_data()
-        if data is not None and distinct_pairs(data[0])[0].shape[0] <= EXACT_PAIRS:
-            twin = PairsBackend(self.hypers, *data)
-        self._exact_twin = (self.stats, twin)
-        return twin
+    def exact_twin(self) -> PairsBackend | None:
+        """The pairs backend on these data and hyperparameters, exact at any lengthscale, built once
+        (``draw_spaces.exact_twin``; None beyond ``EXACT_PAIRS`` distinct pairs)."""
+        return draw_spaces.exact_twin(self)
 
     def prepare(self, values: dict) -> None:
         """Outside a fit loop, grow the basis so that its truncation error is below ``tol`` for every

@@ -124,9 +124,7 @@ def _in_chunks(backend, spec, theta: Tensor, prepare: bool) -> Tensor | None:
     cf = closed_form_of(backend)
     if cf is None:
         return None
-    R = cf.R
-    per = 2 * (R.shape[-2] * R.shape[-1] if R is not None else cf.c_y.shape[-1] ** 2)
-    chunk = max(1, BATCH_ELEMENTS // max(per, 1))
+    chunk = max(1, BATCH_ELEMENTS // max(cf.elements, 1))
     out = []
     with torch.no_grad():
         for i in range(0, theta.shape[0], chunk):

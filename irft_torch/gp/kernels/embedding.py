@@ -35,4 +35,4 @@ def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
     one_b = torch.ones_like(b[..., :1])
     a_aug = torch.cat([a, log_s - 0.5 * a.pow(2).sum(-1, keepdim=True), one_a], dim=-1)
     b_aug = torch.cat([b, one_b, -0.5 * b.pow(2).sum(-1, keepdim=True)], dim=-1)
-    return torch.exp(a_aug @ b_aug.mT)
+    return (a_aug @ b_aug.mT).exp_()  # in place: no second (n, m) buffer (autograd keeps exp's result either way)

@@ -19,6 +19,7 @@ of a cosine decay like modified Bessel functions I_n(1 / l^2): about 15 features
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -75,9 +76,36 @@ def factor_coefficients(ls: Tensor, n: int) -> Tensor:
     return 0.5 * (C + C.mT)
 
 
+_ERRORS: OrderedDict[tuple, Tensor] = OrderedDict()  # a factor's (l_sin, l_cos) -> its e_0..e_n (``truncation_errors``)
+_ERRORS_KEPT = 4096
+
+
 def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
     """e_n for n = 0..n_max at once (..., n_max + 1): max over the grid and the points between its
-    nodes of k(x, x) - psi_n(x)^T C_n psi_n(x) (>= 0 up to round-off; an orthogonal projection)."""
+    nodes of k(x, x) - psi_n(x)^T C_n psi_n(x) (>= 0 up to round-off; an orthogonal projection).
+    The errors of the last few thousand factors (each (l_sin, l_cos) pair, by value) are remembered: a fit's step, a
+    batch of hyperparameter draws' choice of bases and each kept draw's backend ask for the same lengthscales' errors
+    several times. e_n does not depend on n_max, so a smaller n_max is cut from a larger one remembered."""
+    flat = ls.detach().reshape(-1, 2)
+    if flat.shape[0] > _ERRORS_KEPT // 4:
+        return _truncation_errors(ls, n_max)
+    rows = flat.cpu().numpy()
+    keys = [(ls.dtype, ls.device, row.tobytes()) for row in rows]
+    missing = [i for i, k in enumerate(keys) if k not in _ERRORS or _ERRORS[k].shape[-1] <= n_max]
+    if missing:
+        got = _truncation_errors(flat[missing], n_max)
+        for i, e in zip(missing, got):
+            _ERRORS[keys[i]] = e
+        while len(_ERRORS) > _ERRORS_KEPT:
+            _ERRORS.popitem(last=False)
+    out = []
+    for k in keys:
+        _ERRORS.move_to_end(k)
+        out.append(_ERRORS[k][:n_max + 1])
+    return torch.stack(out).reshape(*ls.shape[:-1], n_max + 1)
+
+
+def _truncation_errors(ls: Tensor, n_max: int) -> Tensor:
     with torch.no_grad():
         C = factor_coefficients(ls, n_max)  # (..., F, F)
         x = _grid(GRID, ls.dtype, ls.device)
