@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..kernels.embedding import embed_angles, rbf
+from ..kernels.embedding import embed_angles
 from ..kernels.fourier import GRID, _analysis, _grid
 from ..kernels.li_basis import LI_GENERIC, LI_VARIANCE, generic_features
 
@@ -206,7 +206,6 @@ class SegmentPairsRBF(CovarianceTerm):
     """
 
     names = (LENGTHSCALE, OUTPUTSCALE)
-    KEEP_KERNELS = 2**24  # numbers of K_UU kept from forward for backward (above: recomputed there)
 
     def __init__(self, table: Tensor, index: Tensor, weight: Tensor) -> None:
         import warnings
@@ -228,14 +227,23 @@ class SegmentPairsRBF(CovarianceTerm):
         zc = self.z[cols]  # (T M, 4): each segment's embedding
         self.Wz = [[sparse(w[a] * zc[:, d]) for d in range(4)] for a in range(2)]
         self.Wzz = [[sparse(w[a] * zc[:, d].pow(2)) for d in range(4)] for a in range(2)]
-        # a draw's numbers held at once (``density._in_chunks``): A and K W_U^T per map; each K_UU is transient unless
-        # the batch's fit in ``KEEP_KERNELS``
+        # a draw's numbers held at once (``density._in_chunks``): A and K W_U^T per map; K_UU is one buffer, reused
         self.elements = 2 * T * (T + self.U)
+        self._buffer: Tensor | None = None
 
     def _kernel(self, ls: Tensor, s: Tensor) -> Tensor:
-        """s exp(-1/2 |(z_i - z_j) / l|^2) (U, U) for one map's ls (4,) and s ()."""
+        """s exp(-1/2 |(z_i - z_j) / l|^2) (U, U) for one map's ls (4,) and s (), written into one buffer kept by the
+        term (a fresh U x U block each time costs more in first-touch page faults than the kernel's arithmetic, here):
+        valid until the next call. One product of augmented coordinates, then one exp in place (``embedding.rbf``)."""
         u = self.z / ls
-        return rbf(u, u, s)  # one product of augmented coordinates, then one exp
+        h = 0.5 * u.pow(2).sum(-1, keepdim=True)
+        one = torch.ones_like(h)
+        a = torch.cat([u, torch.log(s) - h, one], -1)
+        b = torch.cat([u, one, -h], -1)
+        buf = self._buffer
+        if buf is None or buf.dtype != u.dtype or buf.device != u.device:
+            buf = self._buffer = u.new_empty(self.U, self.U)
+        return torch.matmul(a, b.mT, out=buf).exp_()
 
     @staticmethod
     def _flat(values):
@@ -245,27 +253,25 @@ class SegmentPairsRBF(CovarianceTerm):
     def forward(self, values, R):
         ls, s, batch = self._flat(values)
         N = s.shape[0]
-        keep = N * self.U * self.U <= self.KEEP_KERNELS
         A = s.new_empty(N, self.T, self.T)
-        Ks, KWs = [], []
+        KWs = []
         for i in range(N):
             a = i % 2  # the map: the batch's last dimension
             K = self._kernel(ls[i], s[i])
             KW = (self.W[a] @ K).mT.contiguous()  # K W_U^T (U, T) (K symmetric)
             A[i] = self.W[a] @ KW
-            Ks.append(K if keep else None)
             KWs.append(KW)
-        return A.reshape(*batch, self.T, self.T), (A, Ks, KWs)
+        return A.reshape(*batch, self.T, self.T), (A, KWs)
 
     def backward(self, values, adj, state):
-        A, Ks, KWs = state
+        A, KWs = state
         ls, s, batch = self._flat(values)
         G = adj.G.reshape(-1, self.T, self.T)
         d_s = (G * A).sum((-1, -2)) / s
         d_l = ls.new_empty(ls.shape)
         for i in range(s.shape[0]):
             a = i % 2
-            K = Ks[i] if Ks[i] is not None else self._kernel(ls[i], s[i])
+            K = self._kernel(ls[i], s[i])  # again: forward kept K W_U^T, not K
             for d in range(4):
                 Wz = self.Wz[a][d]
                 one = (G[i] * (self.Wzz[a][d] @ KWs[i])).sum()

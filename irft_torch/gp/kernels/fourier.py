@@ -105,16 +105,33 @@ def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
     return torch.stack(out).reshape(*ls.shape[:-1], n_max + 1)
 
 
+_ERROR_GRIDS: dict[tuple, tuple[Tensor, Tensor, Tensor, Tensor]] = {}  # (n_max, dtype, device) -> what ls leaves out
+
+
+def _error_grid(n_max: int, dtype, device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pieces of ``_truncation_errors`` that do not depend on the lengthscales, made once: the grid's embedding
+    (G, 2), the analysis matrix B (2 n_max + 1, G), the features at the grid and between its nodes psi (2G, F), and
+    the prefix sizes' last indices (n_max + 1,)."""
+    key = (n_max, dtype, device)
+    hit = _ERROR_GRIDS.get(key)
+    if hit is None:
+        x = _grid(GRID, dtype, device)
+        psi = fourier_features(torch.cat([x, x + math.pi / GRID]), n_max)
+        hit = _ERROR_GRIDS[key] = (torch.stack([torch.sin(x), torch.cos(x)], -1), _analysis(n_max, x), psi,
+                                   torch.arange(n_max + 1, device=device) * 2)
+    return hit
+
+
 def _truncation_errors(ls: Tensor, n_max: int) -> Tensor:
     with torch.no_grad():
-        C = factor_coefficients(ls, n_max)  # (..., F, F)
-        x = _grid(GRID, ls.dtype, ls.device)
-        psi = fourier_features(torch.cat([x, x + math.pi / GRID]), n_max)  # (P, F)
-        sizes = torch.arange(n_max + 1, device=ls.device) * 2 + 1
+        e, B, psi, last = _error_grid(n_max, ls.dtype, ls.device)
+        scaled = e / ls[..., None, :]
+        C = B @ rbf(scaled, scaled, torch.ones((), dtype=ls.dtype, device=ls.device)) @ B.mT
+        C = 0.5 * (C + C.mT)  # (..., F, F): factor_coefficients
         # the leading blocks' quadratic forms psi_:k^T C_:k,:k psi_:k are prefix sums over i of
         # r_i = psi_i (2 sum_{j<i} C_ij psi_j + C_ii psi_i): one product with the lower triangle
         Ct = 2 * torch.tril(C, -1) + torch.diag_embed(torch.diagonal(C, dim1=-2, dim2=-1))
-        kk = (psi * (psi @ Ct.mT)).cumsum(-1)[..., sizes - 1]  # (..., P, n_max + 1)
+        kk = (psi * (psi @ Ct.mT)).cumsum(-1)[..., last]  # (..., P, n_max + 1)
         return (1 - kk).abs().amax(-2)
 
 
