@@ -57,19 +57,31 @@ def basis_cost(n_beta: Tensor, n_gamma: Tensor, T: int) -> Tensor:
     return 2 * (r * r * F + r * F * (Fb + Fg))
 
 
+def _group_cost(nb: int, ng: int, draws: int, T: int, cap: float = math.inf) -> tuple[float, bool]:
+    """What evaluating ``draws`` draws in one basis (nb, ng) costs (``basis_cost`` units), and whether the exact space
+    (``cap`` per draw) is cheaper: with an exact space to choose, a basis of its own also costs its setting up (the
+    statistics in it, 2 T F^2, and its data factor, a thin SVD of about 8 T^2 F, or F^3 with more samples than
+    features), which a few draws do not repay."""
+    Fb, Fg = 2 * nb + 1, 2 * ng + 1
+    F = Fb * Fg
+    r = min(T, F)
+    own = draws * 2.0 * (r * r * F + r * F * (Fb + Fg))  # basis_cost
+    if math.isinf(cap):
+        return own, False
+    own += 8.0 * T * T * F + 2.0 * T * F * F if T <= F else 10.0 * F ** 3
+    return min(own, draws * cap), draws * cap < own
+
+
 def _split_keys(keys: list[tuple[int, int]], counts: list[int], groups: int, T: int,
                 cap: float = math.inf) -> list[int]:
     """Contiguous groups (their lengths) of (n_beta, n_gamma) keys sorted by size, at most ``groups`` of them,
-    minimizing the sum over groups of draws x the cost of a draw in the group's basis (its largest n_beta by its
-    largest n_gamma, ``basis_cost`` on T samples) or ``cap`` where less (the exact space's): what evaluating each group
-    in one basis that holds all its draws, or in the exact space, costs. ``counts``: draws per key."""
+    minimizing the sum over groups of what evaluating the group's draws in one basis that holds all of them (its
+    largest n_beta by its largest n_gamma) costs, or in the exact space (``cap`` per draw) where less
+    (``_group_cost``). ``counts``: draws per key."""
     n = len(keys)
 
     def cost(i: int, j: int) -> float:  # keys i..j-1 in one basis
-        nb, ng = max(k[0] for k in keys[i:j]), max(k[1] for k in keys[i:j])
-        Fb, Fg = 2 * nb + 1, 2 * ng + 1
-        r = min(T, Fb * Fg)
-        return sum(counts[i:j]) * min(2.0 * (r * r * Fb * Fg + r * Fb * Fg * (Fb + Fg)), cap)  # basis_cost
+        return _group_cost(max(k[0] for k in keys[i:j]), max(k[1] for k in keys[i:j]), sum(counts[i:j]), T, cap)[0]
 
     best: dict[tuple[int, int], tuple[float, list[int]]] = {(0, 0): (0.0, [])}  # (placed, groups) -> (cost, lengths)
     for g in range(1, groups + 1):
@@ -110,7 +122,9 @@ def group_draws(backend, lengthscale: Tensor) -> list[tuple[Tensor, RFTBackend]]
     capped = (eb[..., MAX_HARMONICS] + eg[..., MAX_HARMONICS] > backend.tol).any(-1)  # beyond any basis for tol
     dear = basis_cost(nb, ng, backend.n_samples) > EXACT_IF_CHEAPER * basis_cost(
         torch.tensor(backend.basis.n_beta), torch.tensor(backend.basis.n_gamma), backend.n_samples)
-    exact = exact_twin(backend) if bool(((capped | dear) & ~own).any()) else None
+    built = backend.__dict__.get("_exact_twin")  # once built (a batch wanted it), it is there for every later batch
+    ready = built is not None and built[0] is backend.stats and built[1] is not None
+    exact = exact_twin(backend) if bool(((capped | dear) & ~own).any()) or (ready and not bool(own.all())) else None
     if exact is None:  # they stay in the largest basis, truncated there: said (a draw's kernel is not exact)
         own = own | ((nb <= backend.basis.n_beta) & (ng <= backend.basis.n_gamma))  # a larger basis would not help
         if bool(capped.any()):
@@ -134,7 +148,7 @@ def group_draws(backend, lengthscale: Tensor) -> list[tuple[Tensor, RFTBackend]]
     for length in (_split_keys(need_keys, counts, DRAW_GROUPS, backend.n_samples, cap) if need_keys else []):
         part = need_keys[start:start + length]
         top = (max(k[0] for k in part), max(k[1] for k in part))
-        to_twin = float(basis_cost(torch.tensor(top[0]), torch.tensor(top[1]), backend.n_samples)) > cap
+        to_twin = _group_cost(*top, sum(counts[start:start + length]), backend.n_samples, cap)[1]
         for a, b in part:
             at = rest & (nb == a) & (ng == b)
             if to_twin:
