@@ -189,16 +189,25 @@ class SpectralBackend(WeightSpaceBackend):
     def space_for(self, lengthscale: Tensor) -> RFTBackend:
         """The backend one hyperparameter setting (lengthscales (2, 1, 4)) is evaluated in: this one where its basis
         holds them within ``tol`` (the cheap check a step makes anyway), else ``draw_groups``' choice (the basis they
-        need, or the exact pairs space beyond ``MAX_HARMONICS``); this one where it cannot choose."""
-        if bool((self.basis.truncation_error(lengthscale.detach()) <= self.tol).all()):
+        need, or the exact pairs space beyond ``MAX_HARMONICS``); this one where it cannot choose. The last space
+        chosen serves the next setting its basis holds too (L-BFGS' steps near the mode)."""
+        ls = lengthscale.detach()
+        if bool((self.basis.truncation_error(ls) <= self.tol).all()):
             return self
-        groups = self.draw_groups(lengthscale.detach()[None])
-        return self if not groups else groups[0][1]
+        last = self.__dict__.get("_last_space")
+        if (last is not None and last[0] is self.stats and isinstance(last[1], SpectralBackend)
+                and bool((last[1].basis.truncation_error(ls) <= self.tol).all())):
+            return last[1]
+        groups = self.draw_groups(ls[None])
+        space = self if not groups else groups[0][1]
+        self._last_space = (self.stats, space)
+        return space
 
     def forget_draws(self) -> None:
         """Drop what evaluating a batch of draws kept (``draw_groups``: statistics in the largest basis a draw needed,
         up to 2 x 3721^2 numbers, and a backend per group): called once the draws' own backends are built."""
         self.__dict__.pop("_draw_cache", None)
+        self.__dict__.pop("_last_space", None)
 
     def exact_twin(self) -> PairsBackend | None:
         """The pairs backend on these data and hyperparameters, exact at any lengthscale, built once

@@ -41,6 +41,8 @@ import warnings
 from dataclasses import dataclass, field
 
 import torch
+from gpytorch.constraints import Interval
+from gpytorch.priors import Prior
 from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
@@ -574,8 +576,9 @@ def log_evidence(backend, hessian: Tensor | None = None) -> Tensor:
 
 
 def draw_hypers(hypers, spec: HyperSpec, theta: Tensor):
-    """A copy of ``hypers`` (priors and constraints included) set to theta."""
-    h = copy.deepcopy(hypers)
+    """A copy of ``hypers`` set to theta, its priors and constraints shared with ``hypers`` (neither depends on theta;
+    copying them was two thirds of a copy's time)."""
+    h = copy.deepcopy(hypers, {id(m): m for m in hypers.modules() if isinstance(m, (Prior, Interval))})
     spec.load(h, theta)
     return h
 
