@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts import Contacts
-from ..kernels.fourier import MAX_HARMONICS, FourierBasis
+from ..kernels.fourier import MAX_HARMONICS, FourierBasis, truncation_errors
 from ..kernels.li_basis import li_index, with_li_functions
 from . import draw_spaces
 from .base import FunctionalPosterior, RFTBackend, split_blocks
@@ -192,11 +192,16 @@ class SpectralBackend(WeightSpaceBackend):
         need, or the exact pairs space beyond ``MAX_HARMONICS``); this one where it cannot choose. The last space
         chosen serves the next setting its basis holds too (L-BFGS' steps near the mode)."""
         ls = lengthscale.detach()
-        if bool((self.basis.truncation_error(ls) <= self.tol).all()):
+        flat = ls.reshape(-1, 2, 4).double()
+        eb, eg = truncation_errors(flat[..., 0:2]), truncation_errors(flat[..., 2:4])  # every n at once, remembered
+
+        def holds(basis: FourierBasis) -> bool:
+            return bool((eb[..., basis.n_beta] + eg[..., basis.n_gamma] <= self.tol).all())
+
+        if holds(self.basis):
             return self
         last = self.__dict__.get("_last_space")
-        if (last is not None and last[0] is self.stats and isinstance(last[1], SpectralBackend)
-                and bool((last[1].basis.truncation_error(ls) <= self.tol).all())):
+        if last is not None and last[0] is self.stats and isinstance(last[1], SpectralBackend) and holds(last[1].basis):
             return last[1]
         groups = self.draw_groups(ls[None])
         space = self if not groups else groups[0][1]
