@@ -227,8 +227,8 @@ class SegmentPairsRBF(CovarianceTerm):
         zc = self.z[cols]  # (T M, 4): each segment's embedding
         self.Wz = [[sparse(w[a] * zc[:, d]) for d in range(4)] for a in range(2)]
         self.Wzz = [[sparse(w[a] * zc[:, d].pow(2)) for d in range(4)] for a in range(2)]
-        # a draw's numbers held at once (``density._in_chunks``): A and K W_U^T per map; K_UU is one buffer, reused
-        self.elements = 2 * T * (T + self.U)
+        # a draw's numbers held at once (``density._in_chunks``): A per map; K_UU and K W_U^T are buffers, reused
+        self.elements = 2 * T * T
         self._buffer: Tensor | None = None
 
     def _kernel(self, ls: Tensor, s: Tensor) -> Tensor:
@@ -254,27 +254,32 @@ class SegmentPairsRBF(CovarianceTerm):
         ls, s, batch = self._flat(values)
         N = s.shape[0]
         A = s.new_empty(N, self.T, self.T)
-        KWs = []
         for i in range(N):
             a = i % 2  # the map: the batch's last dimension
-            K = self._kernel(ls[i], s[i])
-            KW = (self.W[a] @ K).mT.contiguous()  # K W_U^T (U, T) (K symmetric)
-            A[i] = self.W[a] @ KW
-            KWs.append(KW)
-        return A.reshape(*batch, self.T, self.T), (A, KWs)
+            A[i] = self.W[a] @ self._kw(a, self._kernel(ls[i], s[i]))
+        return A.reshape(*batch, self.T, self.T), A
 
-    def backward(self, values, adj, state):
-        A, KWs = state
+    def _kw(self, a: int, K: Tensor) -> Tensor:
+        """K W_U^T (U, T) for map a (K symmetric: (W_U K)^T), in a second buffer kept by the term (valid until the
+        next call)."""
+        X = self.W[a] @ K
+        buf = self.__dict__.get("_kw_buffer")
+        if buf is None or buf.dtype != X.dtype or buf.device != X.device:
+            buf = self._kw_buffer = X.new_empty(self.U, self.T)
+        return buf.copy_(X.mT)
+
+    def backward(self, values, adj, A):
         ls, s, batch = self._flat(values)
         G = adj.G.reshape(-1, self.T, self.T)
         d_s = (G * A).sum((-1, -2)) / s
         d_l = ls.new_empty(ls.shape)
         for i in range(s.shape[0]):
             a = i % 2
-            K = self._kernel(ls[i], s[i])  # again: forward kept K W_U^T, not K
+            K = self._kernel(ls[i], s[i])  # again: forward keeps only A (a batch's kernels would not fit)
+            KW = self._kw(a, K)
             for d in range(4):
                 Wz = self.Wz[a][d]
-                one = (G[i] * (self.Wzz[a][d] @ KWs[i])).sum()
+                one = (G[i] * (self.Wzz[a][d] @ KW)).sum()
                 two = (G[i] * (Wz @ (Wz @ K).mT.contiguous())).sum()
                 d_l[i, d] = 2 * (one - two) / ls[i, d].pow(3)
         return {OUTPUTSCALE: d_s.reshape(batch), LENGTHSCALE: d_l.reshape(*batch, 4)[..., None, :]}
