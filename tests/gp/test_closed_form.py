@@ -289,6 +289,20 @@ def test_draws_are_evaluated_in_the_bases_their_own_lengthscales_need(kernel, mo
     assert abs(float(one[11] - want[11])) > 1e-4  # the truncated kernel's value, 1.3e-3 off
 
 
+def test_a_basis_beyond_the_cap_places_one_setting_in_itself():
+    """A spectral backend in a basis of more harmonics than the draws' cap (32 of beta) holds a long-lengthscale setting
+    itself (``space_for`` reads the errors up to the basis' own harmonics, not only up to the cap)."""
+    from irft_torch.gp.backends.spectral import SpectralBackend
+    from irft_torch.gp.kernels.fourier import FourierBasis
+
+    c, f = data(T=30, M=4, seed=7)
+    model = irft.InverseRFT(c, f, engine="spectral", hyper_posterior="map", li_basis=False)
+    model.hypers.lengthscale = torch.full_like(model.hypers.lengthscale, 3.0)
+    wide = SpectralBackend(model.hypers, model.train_contacts, model.train_forces, basis=FourierBasis(32, 4))
+    assert bool((wide.basis.truncation_error(model.hypers.lengthscale) <= wide.tol).all())
+    assert wide.space_for(model.hypers.lengthscale) is wide
+
+
 def test_draw_groups_partition_by_hand():
     """The grouping's partition of (n_beta, n_gamma) keys by hand, T = 100 samples (fewer than any basis' features,
     so a draw costs 2 T F (T + F_beta + F_gamma)): [(8, 24) x 10, (12, 16) x 10, (30, 30) x 1] in two groups: the

@@ -174,6 +174,7 @@ class PairsRBF(CovarianceTerm):
 
     def __init__(self, table: Tensor) -> None:
         self.D = squared_differences(embed_angles(table[:, 0], table[:, 1]))  # (4, U^2)
+        self.elements = 2 * table.shape[0] ** 2  # a draw's K (``density._in_chunks``)
 
     def forward(self, values, R):
         K = rbf_from_differences(self.D, values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE])
@@ -227,23 +228,33 @@ class SegmentPairsRBF(CovarianceTerm):
         zc = self.z[cols]  # (T M, 4): each segment's embedding
         self.Wz = [[sparse(w[a] * zc[:, d]) for d in range(4)] for a in range(2)]
         self.Wzz = [[sparse(w[a] * zc[:, d].pow(2)) for d in range(4)] for a in range(2)]
-        # a draw's numbers held at once (``density._in_chunks``): A per map; K_UU and K W_U^T are buffers, reused
+        # a draw's numbers held at once (``density._in_chunks``): A per map; K_UU and K W_U^T are one buffer each
+        # per call, reused over its draws and dropped with it
         self.elements = 2 * T * T
-        self._buffer: Tensor | None = None
 
-    def _kernel(self, ls: Tensor, s: Tensor) -> Tensor:
-        """s exp(-1/2 |(z_i - z_j) / l|^2) (U, U) for one map's ls (4,) and s (), written into one buffer kept by the
-        term (a fresh U x U block each time costs more in first-touch page faults than the kernel's arithmetic, here):
-        valid until the next call. One product of augmented coordinates, then one exp in place (``embedding.rbf``)."""
-        u = self.z / ls
+    def _kernel(self, ls: Tensor, s: Tensor, buf: list) -> Tensor:
+        """s exp(-1/2 |(z_i - z_j) / l|^2) (U, U) for one map's ls (4,) and s (), written into ``buf``[0] (made on first
+        use; a fresh U x U block per draw costs more in first-touch page faults than the kernel's arithmetic, here):
+        valid until the next call. One product of augmented coordinates, then one exp in place (``embedding.rbf``);
+        the exponent in float64 whatever the model's dtype (|u|^2 reaches 800 at the lengthscale floor, where float32's
+        cancellation would cost 5e-5 of the kernel)."""
+        u = (self.z / ls).double()
         h = 0.5 * u.pow(2).sum(-1, keepdim=True)
         one = torch.ones_like(h)
-        a = torch.cat([u, torch.log(s) - h, one], -1)
+        a = torch.cat([u, torch.log(s.double()) - h, one], -1)
         b = torch.cat([u, one, -h], -1)
-        buf = self._buffer
-        if buf is None or buf.dtype != u.dtype or buf.device != u.device:
-            buf = self._buffer = u.new_empty(self.U, self.U)
-        return torch.matmul(a, b.mT, out=buf).exp_()
+        if u.dtype != ls.dtype:
+            return (a @ b.mT).exp_().to(ls.dtype)
+        if not buf:
+            buf.append(u.new_empty(self.U, self.U))
+        return torch.matmul(a, b.mT, out=buf[0]).exp_()
+
+    def _kw(self, a: int, K: Tensor, buf: list) -> Tensor:
+        """K W_U^T (U, T) for map a (K symmetric: (W_U K)^T), in ``buf``[0] (made on first use)."""
+        X = self.W[a] @ K
+        if not buf:
+            buf.append(X.new_empty(self.U, self.T))
+        return buf[0].copy_(X.mT)
 
     @staticmethod
     def _flat(values):
@@ -254,29 +265,24 @@ class SegmentPairsRBF(CovarianceTerm):
         ls, s, batch = self._flat(values)
         N = s.shape[0]
         A = s.new_empty(N, self.T, self.T)
+        kbuf: list = []
+        wbuf: list = []
         for i in range(N):
             a = i % 2  # the map: the batch's last dimension
-            A[i] = self.W[a] @ self._kw(a, self._kernel(ls[i], s[i]))
+            A[i] = self.W[a] @ self._kw(a, self._kernel(ls[i], s[i], kbuf), wbuf)
         return A.reshape(*batch, self.T, self.T), A
-
-    def _kw(self, a: int, K: Tensor) -> Tensor:
-        """K W_U^T (U, T) for map a (K symmetric: (W_U K)^T), in a second buffer kept by the term (valid until the
-        next call)."""
-        X = self.W[a] @ K
-        buf = self.__dict__.get("_kw_buffer")
-        if buf is None or buf.dtype != X.dtype or buf.device != X.device:
-            buf = self._kw_buffer = X.new_empty(self.U, self.T)
-        return buf.copy_(X.mT)
 
     def backward(self, values, adj, A):
         ls, s, batch = self._flat(values)
         G = adj.G.reshape(-1, self.T, self.T)
         d_s = (G * A).sum((-1, -2)) / s
         d_l = ls.new_empty(ls.shape)
+        kbuf: list = []
+        wbuf: list = []
         for i in range(s.shape[0]):
             a = i % 2
-            K = self._kernel(ls[i], s[i])  # again: forward keeps only A (a batch's kernels would not fit)
-            KW = self._kw(a, K)
+            K = self._kernel(ls[i], s[i], kbuf)  # again: forward keeps only A (a batch's kernels would not fit)
+            KW = self._kw(a, K, wbuf)
             for d in range(4):
                 Wz = self.Wz[a][d]
                 one = (G[i] * (self.Wzz[a][d] @ KW)).sum()

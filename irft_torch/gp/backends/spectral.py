@@ -193,14 +193,16 @@ class SpectralBackend(WeightSpaceBackend):
         chosen serves the next setting its basis holds too (L-BFGS' steps near the mode)."""
         ls = lengthscale.detach()
         flat = ls.reshape(-1, 2, 4).double()
-        eb, eg = truncation_errors(flat[..., 0:2]), truncation_errors(flat[..., 2:4])  # every n at once, remembered
+        last = self.__dict__.get("_last_space")
+        sizes = [self.basis] + ([last[1].basis] if last is not None and isinstance(last[1], SpectralBackend) else [])
+        top = max([MAX_HARMONICS] + [max(b.n_beta, b.n_gamma) for b in sizes])  # a basis may hold more than the cap
+        eb, eg = truncation_errors(flat[..., 0:2], top), truncation_errors(flat[..., 2:4], top)  # every n, remembered
 
         def holds(basis: FourierBasis) -> bool:
             return bool((eb[..., basis.n_beta] + eg[..., basis.n_gamma] <= self.tol).all())
 
         if holds(self.basis):
             return self
-        last = self.__dict__.get("_last_space")
         if last is not None and last[0] is self.stats and isinstance(last[1], SpectralBackend) and holds(last[1].basis):
             return last[1]
         groups = self.draw_groups(ls[None])

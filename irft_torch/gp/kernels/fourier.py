@@ -87,21 +87,21 @@ def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
     batch of hyperparameter draws' choice of bases and each kept draw's backend ask for the same lengthscales' errors
     several times. e_n does not depend on n_max, so a smaller n_max is cut from a larger one remembered."""
     flat = ls.detach().reshape(-1, 2)
-    if flat.shape[0] > _ERRORS_KEPT // 4:
+    if flat.shape[0] == 0 or flat.shape[0] > _ERRORS_KEPT // 4:
         return _truncation_errors(ls, n_max)
     rows = flat.cpu().numpy()
     keys = [(ls.dtype, ls.device, row.tobytes()) for row in rows]
-    missing = [i for i, k in enumerate(keys) if k not in _ERRORS or _ERRORS[k].shape[-1] <= n_max]
+    found = {i: _ERRORS.get(k) for i, k in enumerate(keys)}
+    missing = [i for i, e in found.items() if e is None or e.shape[-1] <= n_max]
     if missing:
-        got = _truncation_errors(flat[missing], n_max)
-        for i, e in zip(missing, got):
-            _ERRORS[keys[i]] = e
-        while len(_ERRORS) > _ERRORS_KEPT:
-            _ERRORS.popitem(last=False)
-    out = []
-    for k in keys:
+        for i, e in zip(missing, _truncation_errors(flat[missing], n_max)):
+            found[i] = e
+    out = [found[i][:n_max + 1] for i in range(len(keys))]  # assembled before any entry is evicted
+    for i, k in enumerate(keys):
+        _ERRORS[k] = found[i]
         _ERRORS.move_to_end(k)
-        out.append(_ERRORS[k][:n_max + 1])
+    while len(_ERRORS) > _ERRORS_KEPT:
+        _ERRORS.popitem(last=False)
     return torch.stack(out).reshape(*ls.shape[:-1], n_max + 1)
 
 
