@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..kernels.embedding import embed_angles
+from ..kernels.embedding import embed_angles, rbf
 from ..kernels.fourier import GRID, _analysis, _grid
 from ..kernels.li_basis import LI_GENERIC, LI_VARIANCE, generic_features
 
@@ -239,15 +239,11 @@ class SegmentPairsRBF(CovarianceTerm):
         the exponent in float64 whatever the model's dtype (|u|^2 reaches 800 at the lengthscale floor, where float32's
         cancellation would cost 5e-5 of the kernel)."""
         u = (self.z / ls).double()
-        h = 0.5 * u.pow(2).sum(-1, keepdim=True)
-        one = torch.ones_like(h)
-        a = torch.cat([u, torch.log(s.double()) - h, one], -1)
-        b = torch.cat([u, one, -h], -1)
         if u.dtype != ls.dtype:
-            return (a @ b.mT).exp_().to(ls.dtype)
+            return rbf(u, u, s.double()).to(ls.dtype)
         if not buf:
             buf.append(u.new_empty(self.U, self.U))
-        return torch.matmul(a, b.mT, out=buf[0]).exp_()
+        return rbf(u, u, s, out=buf[0])
 
     def _kw(self, a: int, K: Tensor, buf: list) -> Tensor:
         """K W_U^T (U, T) for map a (K symmetric: (W_U K)^T), in ``buf``[0] (made on first use)."""

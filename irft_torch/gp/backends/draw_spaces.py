@@ -20,8 +20,8 @@ from .base import RFTBackend
 from .fourier_statistics import cut_factor, restrict_statistics, spectral_statistics
 from .pairs import PairsBackend, distinct_pairs
 
-__all__ = ["DRAW_HARMONICS", "DRAW_GROUPS", "EXACT_PAIRS", "EXACT_IF_CHEAPER", "draws_in_one_basis", "grouped",
-           "basis_cost", "group_draws", "cut_backend", "draw_backend", "exact_twin"]
+__all__ = ["DRAW_HARMONICS", "DRAW_GROUPS", "EXACT_PAIRS", "EXACT_IF_CHEAPER", "draws_in_one_basis", "basis_cost",
+           "group_draws", "cut_backend", "draw_backend", "exact_twin"]
 
 DRAW_HARMONICS = 4  # a batch of hyperparameter draws is grouped by the basis each needs, rounded up to this step
 DRAW_GROUPS = 4  # and those this backend's basis does not hold into at most this many groups
@@ -43,17 +43,16 @@ def draws_in_one_basis():
         _GROUPED.pop()
 
 
-def grouped() -> bool:
-    """False inside ``draws_in_one_basis``."""
-    return _GROUPED[-1]
-
-
 def basis_cost(n_beta: Tensor, n_gamma: Tensor, T: int) -> Tensor:
     """About the multiply-adds of one draw's likelihood (both maps) in ``FourierBasis(n_beta, n_gamma)`` on T samples
     (r = min(T, F) rows of the data factor): 2 (r^2 F + r F (F_beta + F_gamma)), ``KroneckerFourier.forward``."""
     Fb, Fg = 2 * n_beta.double() + 1, 2 * n_gamma.double() + 1
+    return _per_draw(Fb, Fg, (Fb * Fg).clamp_max(T))
+
+
+def _per_draw(Fb, Fg, r):
+    """2 (r^2 F + r F (F_beta + F_gamma)), F = F_beta F_gamma: numbers or tensors (``basis_cost``)."""
     F = Fb * Fg
-    r = F.clamp_max(T)
     return 2 * (r * r * F + r * F * (Fb + Fg))
 
 
@@ -64,8 +63,7 @@ def _group_cost(nb: int, ng: int, draws: int, T: int, cap: float = math.inf) -> 
     features), which a few draws do not repay."""
     Fb, Fg = 2 * nb + 1, 2 * ng + 1
     F = Fb * Fg
-    r = min(T, F)
-    own = draws * 2.0 * (r * r * F + r * F * (Fb + Fg))  # basis_cost
+    own = draws * float(_per_draw(Fb, Fg, min(T, F)))
     if math.isinf(cap):
         return own, False
     own += 8.0 * T * T * F + 2.0 * T * F * F if T <= F else 10.0 * F ** 3

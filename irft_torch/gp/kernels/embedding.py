@@ -22,9 +22,10 @@ def embed_angles(beta: Tensor, gamma: Tensor) -> Tensor:
     return torch.stack([torch.sin(2 * beta), torch.cos(2 * beta), torch.sin(gamma), torch.cos(gamma)], dim=-1)
 
 
-def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
+def rbf(a: Tensor, b: Tensor, outputscale: Tensor, out: Tensor | None = None) -> Tensor:
     """outputscale * exp(-|a_i - b_j|^2 / 2) for inputs already divided by the lengthscales:
-    a (..., n, D), b (..., m, D), outputscale broadcastable to (..., 1, 1) -> (..., n, m).
+    a (..., n, D), b (..., m, D), outputscale broadcastable to (..., 1, 1) -> (..., n, m); written into ``out``
+    (n, m) where given (a buffer reused over many kernels: no fresh block each, no autograd).
 
     One matmul of augmented vectors gives the exponent: [a, log s - |a|^2/2, 1] . [b, 1, -|b|^2/2]
     = log s - |a - b|^2 / 2, then one exp: two passes over the (n, m) block instead of six.
@@ -35,4 +36,6 @@ def rbf(a: Tensor, b: Tensor, outputscale: Tensor) -> Tensor:
     one_b = torch.ones_like(b[..., :1])
     a_aug = torch.cat([a, log_s - 0.5 * a.pow(2).sum(-1, keepdim=True), one_a], dim=-1)
     b_aug = torch.cat([b, one_b, -0.5 * b.pow(2).sum(-1, keepdim=True)], dim=-1)
+    if out is not None:
+        return torch.matmul(a_aug, b_aug.mT, out=out).exp_()
     return (a_aug @ b_aug.mT).exp_()  # in place: no second (n, m) buffer (autograd keeps exp's result either way)

@@ -47,13 +47,6 @@ def _grid(G: int, dtype, device) -> Tensor:
     return torch.arange(G, dtype=dtype, device=device) * (2 * math.pi / G)
 
 
-def _factor_matrix(ls: Tensor, x: Tensor) -> Tensor:
-    """The unit-variance factor kernel on points x (G,) for lengthscales ls (..., 2): (..., G, G)."""
-    e = torch.stack([torch.sin(x), torch.cos(x)], -1)  # (G, 2)
-    scaled = e / ls[..., None, :]  # (..., G, 2)
-    return rbf(scaled, scaled, torch.ones((), dtype=x.dtype, device=x.device))
-
-
 def _analysis(n: int, x: Tensor) -> Tensor:
     """Real DFT B (2n+1, G): coefficients of psi_n from values on the G-point grid x."""
     G = x.shape[0]
@@ -66,13 +59,27 @@ def _analysis(n: int, x: Tensor) -> Tensor:
 GRID = 4 * MAX_HARMONICS + 9  # odd; every basis reads its coefficients off this one grid (nested bases)
 
 
+_GRID_PARTS: dict[tuple, tuple[Tensor, Tensor]] = {}  # (n, dtype, device) -> the grid's embedding and analysis
+
+
+def _grid_parts(n: int, dtype, device) -> tuple[Tensor, Tensor]:
+    """The GRID-point grid's embedding (sin x, cos x) (G, 2) and the real DFT B (2n+1, G), made once per (n, dtype,
+    device): they do not depend on the lengthscales."""
+    key = (n, dtype, device)
+    hit = _GRID_PARTS.get(key)
+    if hit is None:
+        x = _grid(GRID, dtype, device)
+        hit = _GRID_PARTS[key] = (torch.stack([torch.sin(x), torch.cos(x)], -1), _analysis(n, x))
+    return hit
+
+
 def factor_coefficients(ls: Tensor, n: int) -> Tensor:
     """C_n (..., 2n+1, 2n+1): Fourier coefficients of the factor kernel with lengthscales ls (..., 2)
-    = (l_sin, l_cos), from the GRID-point periodic grid; differentiable in ls. The C_n of smaller n
-    are leading blocks of larger ones."""
-    x = _grid(GRID, ls.dtype, ls.device)
-    B = _analysis(n, x)
-    C = B @ _factor_matrix(ls, x) @ B.mT
+    = (l_sin, l_cos), from the GRID-point periodic grid (the unit-variance kernel there, analysed by B);
+    differentiable in ls. The C_n of smaller n are leading blocks of larger ones."""
+    e, B = _grid_parts(n, ls.dtype, ls.device)
+    scaled = e / ls[..., None, :]  # (..., G, 2)
+    C = B @ rbf(scaled, scaled, torch.ones((), dtype=ls.dtype, device=ls.device)) @ B.mT
     return 0.5 * (C + C.mT)
 
 
@@ -105,29 +112,18 @@ def truncation_errors(ls: Tensor, n_max: int = MAX_HARMONICS) -> Tensor:
     return torch.stack(out).reshape(*ls.shape[:-1], n_max + 1)
 
 
-_ERROR_GRIDS: dict[tuple, tuple[Tensor, Tensor, Tensor, Tensor]] = {}  # (n_max, dtype, device) -> what ls leaves out
-
-
-def _error_grid(n_max: int, dtype, device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The pieces of ``_truncation_errors`` that do not depend on the lengthscales, made once: the grid's embedding
-    (G, 2), the analysis matrix B (2 n_max + 1, G), the features at the grid and between its nodes psi (2G, F), and
-    the prefix sizes' last indices (n_max + 1,)."""
-    key = (n_max, dtype, device)
-    hit = _ERROR_GRIDS.get(key)
-    if hit is None:
-        x = _grid(GRID, dtype, device)
-        psi = fourier_features(torch.cat([x, x + math.pi / GRID]), n_max)
-        hit = _ERROR_GRIDS[key] = (torch.stack([torch.sin(x), torch.cos(x)], -1), _analysis(n_max, x), psi,
-                                   torch.arange(n_max + 1, device=device) * 2)
-    return hit
+_ERROR_POINTS: dict[tuple, tuple[Tensor, Tensor]] = {}  # (n_max, dtype, device) -> the test points' features
 
 
 def _truncation_errors(ls: Tensor, n_max: int) -> Tensor:
     with torch.no_grad():
-        e, B, psi, last = _error_grid(n_max, ls.dtype, ls.device)
-        scaled = e / ls[..., None, :]
-        C = B @ rbf(scaled, scaled, torch.ones((), dtype=ls.dtype, device=ls.device)) @ B.mT
-        C = 0.5 * (C + C.mT)  # (..., F, F): factor_coefficients
+        key = (n_max, ls.dtype, ls.device)
+        if key not in _ERROR_POINTS:  # the features at the grid and between its nodes (2G, F), the prefixes' ends
+            x = _grid(GRID, ls.dtype, ls.device)
+            _ERROR_POINTS[key] = (fourier_features(torch.cat([x, x + math.pi / GRID]), n_max),
+                                  torch.arange(n_max + 1, device=ls.device) * 2)
+        psi, last = _ERROR_POINTS[key]
+        C = factor_coefficients(ls, n_max)  # (..., F, F)
         # the leading blocks' quadratic forms psi_:k^T C_:k,:k psi_:k are prefix sums over i of
         # r_i = psi_i (2 sum_{j<i} C_ij psi_j + C_ii psi_i): one product with the lower triangle
         Ct = 2 * torch.tril(C, -1) + torch.diag_embed(torch.diagonal(C, dim1=-2, dim2=-1))
