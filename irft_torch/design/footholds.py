@@ -1,6 +1,6 @@
 """Where to step next: footholds scored by what a stance there would teach about the maps over a region of the
-ground, and a greedy planner that picks the next footholds within a reach (a model fitted with places,
-``InverseRFT(..., locations=)``).
+ground, and a greedy planner that picks the next footholds (and strokes, from a gait library) within a reach (a
+model fitted with places, ``InverseRFT(..., locations=)``).
 
 A candidate stance is one stroke (contacts (T, M) and each sample's offset (T, 2) m from its foothold) placed at a
 candidate foothold p. Its score is the expected fall of the maps' posterior variance over the region of interest,
@@ -23,7 +23,7 @@ from torch import Tensor
 from ..rft.contacts import Contacts, check_locations
 from .region import Region
 
-__all__ = ["Stance", "force_field", "foothold_scores", "plan_footholds"]
+__all__ = ["Stance", "force_field", "foothold_scores", "plan_footholds", "plan_stances"]
 
 
 @dataclass(frozen=True)
@@ -104,27 +104,42 @@ def plan_footholds(model, stance: Stance, start, n_steps: int, reach: float, can
     """The next ``n_steps`` footholds (n_steps, 2) m, greedily: from ``start`` (2,) m, each step the candidate
     (K, 2) m within ``reach`` m of the last foothold with the highest score (``foothold_scores``) given the
     stances planned before it (conditioned on, with the model's hyperparameters fixed). A step with no
-    candidate in reach raises ``ValueError`` naming ``reach``."""
+    candidate in reach raises ``ValueError`` naming ``reach``. ``plan_stances`` also chooses among strokes."""
+    return plan_stances(model, [stance], start, n_steps, reach, candidates, places, region)[0]
+
+
+def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, places,
+                 region: Region | None = None) -> tuple[Tensor, Tensor]:
+    """``plan_footholds`` over a gait library: each step the (foothold, stroke) pair with the highest score, the
+    footholds (K, 2) m within ``reach`` of the last, the strokes ``stances`` (a sequence of ``Stance``; a stroke
+    that sees angles the maps are unsure of scores higher). Returns (footholds (n_steps, 2) m, the index of each
+    step's stroke in ``stances`` (n_steps,))."""
     if int(n_steps) != n_steps or n_steps < 1:
         raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
     if not (reach > 0):
         raise ValueError(f"reach must be a positive distance in m, got {reach}")
     if not getattr(model, "spatial", False):
         raise ValueError("model: planning footholds needs a model fitted with places (InverseRFT(..., locations=))")
+    stances = list(stances)
+    if not stances or not all(isinstance(s, Stance) for s in stances):
+        raise TypeError("stances: a non-empty sequence of design.Stance")
     cand = check_locations(candidates, name="candidates").to(model.dtype)
     where = check_locations(places, name="places").to(model.dtype)
     region = region or Region.square(8, dtype=model.dtype)
     queries = _region_queries(region, where)
     weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
     here = check_locations(start, name="start").to(model.dtype).reshape(2)
-    backend, plan = model.backend, []
+    backend, plan, chosen = model.backend, [], []
     with torch.no_grad():
         for _ in range(int(n_steps)):
             near = ((cand - here).norm(dim=-1) <= reach).nonzero()[:, 0]
             if len(near) == 0:
                 raise ValueError(f"reach: no candidate foothold within {reach} m of {here.tolist()}")
-            scores = torch.stack([_score(backend, queries, weights, stance, cand[i]) for i in near])
-            here = cand[near[int(scores.argmax())]]
+            scores = torch.stack([torch.stack([_score(backend, queries, weights, s, cand[i]) for i in near])
+                                  for s in stances])  # (n_stances, n_near)
+            best = int(scores.argmax())
+            k, here = best // len(near), cand[near[best % len(near)]]
             plan.append(here)
-            backend = backend.condition(stance.at(here).to(dtype=model.dtype))
-    return torch.stack(plan)
+            chosen.append(k)
+            backend = backend.condition(stances[k].at(here).to(dtype=model.dtype))
+    return torch.stack(plan), torch.tensor(chosen)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from irft_torch import InverseRFT, rft
-from irft_torch.design import Region, Stance, foothold_scores, force_field, plan_footholds
+from irft_torch.design import Region, Stance, foothold_scores, force_field, plan_footholds, plan_stances
 from irft_torch.rft import CToe, FourierStressMap, TerrainField, course_path
 from irft_torch.rft.contacts import Contacts
 
@@ -75,3 +75,28 @@ def test_planner_steps_within_reach_and_refuses_none_in_reach(setup):
                         hyper_posterior="map")
     with pytest.raises(ValueError, match="model"):
         foothold_scores(planar, stance, cands, roi)
+
+
+def test_a_gait_library_plan_takes_the_best_pair_of_foothold_and_stroke(setup):
+    """The first step of ``plan_stances`` is the argmax over every (stroke, candidate in reach) of the scores that
+    ``foothold_scores`` (checked above against conditioning the long way) gives each stroke; later steps condition
+    on the stroke chosen; one stroke gives ``plan_footholds``' plan."""
+    stance, model = setup
+    tilted = Stance.of_stroke(CToe(0.025, 0.02, n_segments=5),
+                              course_path([-1.2, -0.6, 0.0], 0.06, start=(0.0, 0.0), heading=0.6, n_steps=8))
+    cands = torch.tensor([[0.7, 0.0], [0.9, 0.2], [1.0, -0.2], [2.5, 0.0]], dtype=F64)
+    roi = torch.tensor([[1.0, 0.0], [0.4, 0.3]], dtype=F64)
+    region = Region.square(4)
+    start = torch.tensor([0.6, 0.0], dtype=F64)
+    feet, which = plan_stances(model, [stance, tilted], start, 2, 0.5, cands, roi, region)
+    near = cands[:3]  # within 0.5 m of the start
+    scores = torch.stack([foothold_scores(model, s, near, roi, region) for s in (stance, tilted)])
+    best = int(scores.argmax())
+    assert int(which[0]) == best // 3
+    torch.testing.assert_close(feet[0], near[best % 3])
+    assert which.shape == (2,) and feet.shape == (2, 2)
+    one = plan_stances(model, [stance], start, 2, 0.5, cands, roi, region)
+    torch.testing.assert_close(one[0], plan_footholds(model, stance, start, 2, 0.5, cands, roi, region))
+    assert one[1].tolist() == [0, 0]
+    with pytest.raises(TypeError, match="stances"):
+        plan_stances(model, [], start, 1, 0.5, cands, roi)
