@@ -123,13 +123,20 @@ class ClosedForm:
         noise_v = values[NOISE]
         noise = _noise_per_axis(noise_v)
         parts = [t.forward(values, self.R) for t in self.terms]
-        A = parts[0][0]
+        A, fresh = parts[0][0], False  # fresh: A is this call's own tensor (the terms' states may hold theirs)
         for p in parts[1:]:
-            A = A + p[0]
+            if fresh:
+                A.add_(p[0])
+            else:
+                A, fresh = A + p[0], True
         if self.symmetrize:
-            A = 0.5 * (A + A.mT)
+            A, fresh = 0.5 * (A + A.mT), True
         r = A.shape[-1]
-        L, info = torch.linalg.cholesky_ex(A + noise[..., None, None] * self.eye)
+        batch = torch.broadcast_shapes(A.shape[:-2], noise.shape)
+        if not fresh or A.shape[:-2] != batch:
+            A = A.expand(*batch, r, r).clone()
+        A.diagonal(dim1=-2, dim2=-1).add_(noise[..., None])  # sigma^2 I + A in place: no (*S, 2, r, r) noise block
+        L, info = torch.linalg.cholesky_ex(A)
         ok = (info == 0).all(-1)
         m = values.get(MEAN) if self.c_g is not None else None
         if m is None:
