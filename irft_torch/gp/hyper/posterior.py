@@ -56,8 +56,7 @@ __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "lo
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
 NEWTON_DONE = 1e-2  # Newton decrement g^T H^-1 g (nats x 2) below which the polish takes its last step
 HESSIAN_STEP = 1e-4  # central-difference step of the Laplace Hessian, in log(value)
-POLISH_CHANGE = 1e-9  # L-BFGS stops where a step changes log p by less (nats): the Newton steps on the exact Hessian
-# finish from there (a change of 1e-9 nats leaves theta within about 1e-4 of the mode, one Newton step within 1e-8)
+POLISH_CHANGE = 1e-9  # L-BFGS stops where a step changes log p by less (nats); Newton's steps finish
 DRAW_SEED = 0  # the Laplace proposals' seed where no generator is passed: a refit gives the same predictions
 
 
@@ -284,9 +283,9 @@ def _hessian_by_differences(backend, spec: HyperSpec, theta: Tensor) -> tuple[Te
 
 
 def _polish(backend, spec: HyperSpec, theta: Tensor, max_iter: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The mode of log p(theta | F) from theta: L-BFGS (strong Wolfe line search, torch.optim) to a
-    gradient below 1e-6, then Newton steps on the exact Hessian while the posterior still rises. Adam's last
-    iterate is near, not at, the mode, and the Laplace Gaussian belongs at the mode."""
+    """The mode of log p(theta | F) from theta: L-BFGS (strong Wolfe line search, torch.optim) to a gradient below
+    1e-6 or a step changing log p by under ``POLISH_CHANGE``, then Newton steps on the exact Hessian while the posterior
+    still rises. Adam's last iterate is near, not at, the mode, and the Laplace Gaussian belongs at the mode."""
     x = theta.detach().clone().requires_grad_(True)
     opt = torch.optim.LBFGS([x], lr=1.0, max_iter=int(max_iter), tolerance_grad=1e-6, tolerance_change=POLISH_CHANGE,
                             history_size=20, line_search_fn="strong_wolfe")
