@@ -1,4 +1,5 @@
-"""Where to step next: greedy footholds (``design.plan_footholds``) against a lawnmower path and random footholds.
+"""Where to step next: greedy footholds (``design.plan_footholds``; with ``--gaits``, ``plan_stances``) against a
+lawnmower path and random footholds.
 
 Data: simulated (``rft.TerrainField.random_patches`` of media from the calibration study's families). Run time:
 about 18 s per seed here (2 cores; 42 s with ``--refit-every 4``); the default run about 1.5 minutes.
@@ -8,8 +9,9 @@ about 18 s per seed here (2 cores; 42 s with ``--refit-every 4``); the default r
 
 A C-toe first walks a line of 8 footholds (x = 0 to 1.4 m, y = 0) over a 2 m x 1 m patch of ground; the spatial
 model (``InverseRFT(..., locations=)``, defaults) is fitted there. Then each strategy takes ``--steps`` more
-stances, one scoop each, 2 % noise, the model updated with the forces measured (``add_data``, hyperparameters
-fixed; ``--refit-every K``: refitted after every K stances, every strategy alike):
+stances, one scoop each (with ``--gaits``, one stroke of the library each), 2 % noise, the model updated with the
+forces measured (``add_data``, hyperparameters fixed; ``--refit-every K``: refitted after every K stances, every
+strategy alike):
 
 - greedy: ``design.plan_footholds`` one step at a time, within ``--reach`` (0.45 m) of the last foothold, from
   candidates on a 0.1 m grid, scoring the maps over a ``--roi`` grid of places (9 x 5, edges included) spanning
@@ -17,14 +19,15 @@ fixed; ``--refit-every K``: refitted after every K stances, every strategy alike
 - lawnmower: three rows (y = -0.35, 0, 0.35 m) walked back and forth, spaced to fit the steps;
 - random: footholds drawn uniformly over the patch.
 
-``--gaits K`` (2 or 3): a library of strokes (``GAITS``: the scoop, a steeper dive with the toe tilted forward, a
-skim with it tilted back); greedy chooses each stance's stroke with its foothold (``design.plan_stances``), the
-lawnmower walks the strokes in turn, the random footholds draw one each (about 55 s per seed with 3 gaits and
-``--refit-every 4``); writes ``explore_footholds_K_gaits.csv``.
+``--gaits K`` (1, the default: the scoop alone; 2 or 3): a library of strokes (``GAITS``: the scoop, a steeper dive
+with the toe tilted forward, a skim with it tilted back); greedy chooses each stance's stroke with its foothold
+(``design.plan_stances``), the lawnmower walks the strokes in turn, the random footholds draw one each (about 55 s
+per seed with 3 gaits and ``--refit-every 4``).
 
 Reported: map RMSE (N/cm^3, both maps, a 9 x 9 grid of the canonical square) at 16 held-out random places in
 the patch after every 4 steps, mean over seeds; and the same over the grid angles within 15 deg of the stroke's
-segments (the angles a foothold can teach directly). Writes ``explore_footholds.csv``.
+segments (the angles a foothold can teach directly). Writes ``explore_footholds.csv`` (with ``--gaits K`` > 1,
+``explore_footholds_K_gaits.csv``).
 """
 
 from __future__ import annotations
@@ -204,13 +207,13 @@ def main(argv=None) -> None:
         errs = np.mean([[float(v) for v in r[2:]] for r in rows if r[1] == name], 0)
         print(f"  {name:9s}: " + ", ".join(f"{e:.4f}" for e in errs[:n]) + " | "
               + ", ".join(f"{e:.4f}" for e in errs[n:]))
-    name = "explore_footholds.csv" if args.gaits == 1 else f"explore_footholds_{args.gaits}_gaits.csv"
-    with open(args.out / name, "w", newline="") as fh:
+    csv_name = "explore_footholds.csv" if args.gaits == 1 else f"explore_footholds_{args.gaits}_gaits.csv"
+    with open(args.out / csv_name, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["seed", "strategy", *[f"rmse_after_{4 * i}" for i in range(n)],
                     *[f"rmse_seen_after_{4 * i}" for i in range(n)]])
         w.writerows(rows)
-    print(f"wrote {args.out / name}")
+    print(f"wrote {args.out / csv_name}")
 
 
 if __name__ == "__main__":

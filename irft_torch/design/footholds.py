@@ -120,6 +120,8 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
         raise ValueError(f"reach must be a positive distance in m, got {reach}")
     if not getattr(model, "spatial", False):
         raise ValueError("model: planning footholds needs a model fitted with places (InverseRFT(..., locations=))")
+    if isinstance(stances, Stance):
+        raise TypeError("stances: a sequence of design.Stance (plan_footholds takes one)")
     stances = list(stances)
     if not stances or not all(isinstance(s, Stance) for s in stances):
         raise TypeError("stances: a non-empty sequence of design.Stance")
@@ -142,4 +144,4 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
             plan.append(here)
             chosen.append(k)
             backend = backend.condition(stances[k].at(here).to(dtype=model.dtype))
-    return torch.stack(plan), torch.tensor(chosen)
+    return torch.stack(plan), torch.tensor(chosen, device=plan[0].device)

@@ -79,8 +79,8 @@ def test_planner_steps_within_reach_and_refuses_none_in_reach(setup):
 
 def test_a_gait_library_plan_takes_the_best_pair_of_foothold_and_stroke(setup):
     """The first step of ``plan_stances`` is the argmax over every (stroke, candidate in reach) of the scores that
-    ``foothold_scores`` (checked above against conditioning the long way) gives each stroke; later steps condition
-    on the stroke chosen; one stroke gives ``plan_footholds``' plan."""
+    ``foothold_scores`` (checked above against conditioning the long way) gives each stroke; one stroke gives
+    ``plan_footholds``' plan; a single stance (not a sequence) is refused by name."""
     stance, model = setup
     tilted = Stance.of_stroke(CToe(0.025, 0.02, n_segments=5),
                               course_path([-1.2, -0.6, 0.0], 0.06, start=(0.0, 0.0), heading=0.6, n_steps=8))
@@ -100,3 +100,5 @@ def test_a_gait_library_plan_takes_the_best_pair_of_foothold_and_stroke(setup):
     assert one[1].tolist() == [0, 0]
     with pytest.raises(TypeError, match="stances"):
         plan_stances(model, [], start, 1, 0.5, cands, roi)
+    with pytest.raises(TypeError, match="stances"):
+        plan_stances(model, stance, start, 1, 0.5, cands, roi)

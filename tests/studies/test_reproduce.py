@@ -115,7 +115,7 @@ def test_experiment_help_prints_the_whole_description_and_defaults(capsys):
                        ("experimental_validation", "z = -5, 0, -3, -1 cm"),
                        ("mixture_spread", "how many runs are above 10 %."),
                        ("walk_and_map", "``walk_and_map.png``."),
-                       ("explore_footholds", "Writes ``explore_footholds.csv``.")):
+                       ("explore_footholds", "``explore_footholds_K_gaits.csv``).")):
         mod = _script(name)
         with pytest.raises(SystemExit):
             mod.main(["--help"])

@@ -125,7 +125,7 @@ class ClosedForm:
         parts = [t.forward(values, self.R) for t in self.terms]
         A, fresh = parts[0][0], False  # fresh: A is this call's own tensor (the terms' states may hold theirs)
         for p in parts[1:]:
-            if fresh:
+            if fresh and torch.broadcast_shapes(A.shape, p[0].shape) == A.shape:
                 A.add_(p[0])
             else:
                 A, fresh = A + p[0], True

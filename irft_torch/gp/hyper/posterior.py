@@ -56,7 +56,7 @@ __all__ = ["HyperPosterior", "HyperSpec", "add_data_to_draws", "hyper_spec", "lo
 HYPER_POSTERIORS = ("map", "laplace", "nuts")
 NEWTON_DONE = 1e-2  # Newton decrement g^T H^-1 g (nats x 2) below which the polish takes its last step
 HESSIAN_STEP = 1e-4  # central-difference step of the Laplace Hessian, in log(value)
-POLISH_CHANGE = 1e-9  # L-BFGS stops where a step changes log p by less (nats); Newton's steps finish
+POLISH_CHANGE = 1e-9  # L-BFGS' tolerance_change: log p (nats) and step size; Newton's steps finish
 DRAW_SEED = 0  # the Laplace proposals' seed where no generator is passed: a refit gives the same predictions
 
 
