@@ -208,9 +208,11 @@ class FitControl:
                     loss.backward()
                 opt.step()
                 history.append(value)
-                if model.surface is None and step % 10 == 9 and (model.backend.stale() or
-                                                                 (model.auto and step % 30 == 29)):
-                    self.adapt(model)  # with "auto", every 30 steps: a cheaper space may have opened up
+                if model.surface is None and step % 10 == 9:
+                    if model.backend.stale() or (model.auto and step % 30 == 29):
+                        self.adapt(model)  # with "auto", every 30 steps: a cheaper space may have opened up
+                    else:
+                        model.backend.shrink()  # lengthscales grown back: a smaller spectral basis holds them
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
                 if polish_follows and converged(history, model.backend.n_samples):

@@ -312,6 +312,57 @@ def test_spectral_basis_grows_when_a_lengthscale_shrinks():
     assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
 
 
+def test_spectral_basis_shrinks_when_the_lengthscales_grow_back():
+    """A fit whose lengthscales grew back after a short start moves to the smaller basis they need (``shrink``): the
+    likelihood and its gradient then match the observations space within the spectral tolerance, and growing back
+    cuts the statistics kept from the wider basis (no second pass over the data)."""
+    from unittest import mock
+
+    from irft_torch.gp.backends import spectral
+
+    c, f = data(T=40, M=3, seed=53)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=0.3, priors=None, hyper_posterior="map",
+                            li_basis=False)
+    wide = model.backend.basis
+    assert not model.backend.shrink()  # the basis is what these lengthscales need
+    model.hypers.lengthscale = torch.full((2, 1, 4), 2.0)
+    assert model.backend.shrink()
+    small = model.backend.basis
+    assert small.n_beta < wide.n_beta and small.n_gamma < wide.n_gamma
+    assert model.truncation_error().max() <= 1e-7
+    ref = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)
+    ref.hypers.load_state_dict(model.hypers.state_dict())
+    for m in (model, ref):
+        m.hypers.zero_grad()
+        m.loss().backward()
+    assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
+    for (name, p), q in zip(model.hypers.named_parameters(), ref.hypers.parameters()):
+        torch.testing.assert_close(p.grad, q.grad, rtol=1e-5, atol=1e-7, msg=name)
+    model.hypers.lengthscale = torch.full((2, 1, 4), 0.36)  # with refresh's margin, within the wide basis
+    with mock.patch.object(spectral.SpectralBackend, "statistics", side_effect=AssertionError("a pass")):
+        assert model.backend.refresh()
+    assert small.size < model.backend.basis.size <= wide.size
+    ref.hypers.load_state_dict(model.hypers.state_dict())
+    assert model.loss().item() == pytest.approx(ref.loss().item(), rel=1e-6)
+
+
+def test_a_fit_ends_in_the_basis_its_last_lengthscales_need():
+    """Adam from short lengthscales on a smooth medium: the basis the start needed is not kept to the end."""
+    c, f = data(T=60, M=3, seed=54)
+    model = irft.InverseRFT(c, f, method="spectral", lengthscale=0.25, hyper_posterior="map", li_basis=False)
+    start = model.backend.basis.size
+    model.fit(n_iter=120, progress=False)
+    from irft_torch.gp.kernels.fourier import FourierBasis
+
+    from irft_torch.gp.backends.spectral import SHRINK_FACTOR, step_flops
+
+    need = FourierBasis.for_lengthscale(model.hypers.lengthscale * 0.85, 1e-7)
+    assert model.hypers.lengthscale.min() > 0.4  # the case: the lengthscales grew
+    assert model.backend.basis.size < start
+    assert step_flops(60, model.backend.basis) < step_flops(60, need) / SHRINK_FACTOR  # within the rule's hysteresis
+    assert model.truncation_error().max() <= 1e-7
+
+
 def test_independent_segment_variance_is_the_papers_formula():
     c, f = data(T=20, M=4, seed=5)
     model = irft.InverseRFT(c, f, method="observations", priors=None, hyper_posterior="map", li_basis=False)

@@ -178,6 +178,11 @@ class RFTBackend(nn.Module):
         grows when a lengthscale shrinks). Returns whether anything changed."""
         return False
 
+    def shrink(self) -> bool:
+        """Called every few steps of a fit: move to a cheaper space the current hyperparameters allow (the spectral
+        basis, once the lengthscales grew back). Returns whether anything changed."""
+        return False
+
     def truncation_error(self) -> Tensor:
         """(2,) bound on |k - k_used| / outputscale, per map: 0 for the exact-arithmetic backends."""
         return self.hypers.kernel.outputscale.detach().new_zeros(2)

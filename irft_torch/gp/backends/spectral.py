@@ -30,6 +30,16 @@ from .weight_space import FeatureStatistics, WeightSpaceBackend
 __all__ = ["SpectralBackend", "spectral_statistics", "restrict_statistics", "features", "DRAW_HARMONICS", "DRAW_GROUPS",
            "EXACT_PAIRS", "draws_in_one_basis"]
 
+GROW_MARGIN = 0.85  # a basis grows (or shrinks) to hold lengthscales this much shorter than the current ones
+SHRINK_FACTOR = 0.7  # a fit moves to a smaller basis when its step would cost under this much of the current one's
+
+
+def step_flops(T: int, basis: FourierBasis) -> float:
+    """The closed form's arithmetic per step in ``basis`` (r = min(T, F)): r^3 / 3 + 2 r^2 F + 2 r F (F_beta + F_gamma)."""
+    F, (Fb, Fg) = basis.size, basis.sizes
+    r = min(T, F)
+    return r**3 / 3 + 2 * r * r * F + 2 * r * F * (Fb + Fg)
+
 
 class SpectralBackend(WeightSpaceBackend):
     """I-RFT in a Fourier basis on the (beta, gamma) torus; exact up to the reported truncation.
@@ -380,6 +390,26 @@ class SpectralBackend(WeightSpaceBackend):
             return False
         return not bool((self.truncation_error() <= self.tol).all())
 
+    def shrink(self) -> bool:
+        """Called every few steps of a fit: move to the smaller basis the current lengthscales need (with the margin
+        ``refresh`` grows by) where its step costs under ``SHRINK_FACTOR`` of this basis' (a fit whose lengthscales
+        grew back after a short start: without it the last steps pay for the widest basis any step needed). The
+        statistics are cut from this basis' (exact: ``restrict_statistics``), which are kept, so growing back
+        within them needs no pass over the data. Returns whether the basis changed; never for a held basis."""
+        if self.held:
+            return False
+        small = FourierBasis.for_lengthscale(self.hypers.lengthscale.detach() * GROW_MARGIN, self.tol)
+        if getattr(self.hypers, "li", None) is not None:
+            small = with_li_functions(small)
+        small = FourierBasis(min(small.n_beta, self.basis.n_beta), min(small.n_gamma, self.basis.n_gamma))
+        if step_flops(self.n_samples, small) >= SHRINK_FACTOR * step_flops(self.n_samples, self.basis):
+            return False
+        if self._stored is None or not self._covers(self._stored, self.basis):
+            self._stored = self.stats  # the widest statistics of exactly these data: the basis may grow back
+        self.basis = small
+        self._set_stats(restrict_statistics(self._stored, small))
+        return True
+
     def refresh(self, lengthscale: Tensor | None = None) -> bool:
         """Grow the basis if the current lengthscales (or ``lengthscale`` (*S, 2, 1, 4), every draw of a
         batch) need more harmonics than it has for ``tol`` (recomputing the statistics from the kept data).
@@ -390,7 +420,7 @@ class SpectralBackend(WeightSpaceBackend):
         need = FourierBasis.for_lengthscale(ls, self.tol)
         if need.n_beta <= self.basis.n_beta and need.n_gamma <= self.basis.n_gamma:
             return False
-        ahead = FourierBasis.for_lengthscale(ls.detach() * 0.85, self.tol)  # room to shrink
+        ahead = FourierBasis.for_lengthscale(ls.detach() * GROW_MARGIN, self.tol)  # room to shrink
         grown = FourierBasis(max(ahead.n_beta, self.basis.n_beta), max(ahead.n_gamma, self.basis.n_gamma))
         fixed = self._data is None and not (self._stored is not None and self._covers(self._stored, grown))
         if grown == self.basis or fixed:
