@@ -352,9 +352,8 @@ def test_a_fit_ends_in_the_basis_its_last_lengthscales_need():
     model = irft.InverseRFT(c, f, method="spectral", lengthscale=0.25, hyper_posterior="map", li_basis=False)
     start = model.backend.basis.size
     model.fit(n_iter=120, progress=False)
-    from irft_torch.gp.kernels.fourier import FourierBasis
-
     from irft_torch.gp.backends.spectral import SHRINK_FACTOR, step_flops
+    from irft_torch.gp.kernels.fourier import FourierBasis
 
     need = FourierBasis.for_lengthscale(model.hypers.lengthscale * 0.85, 1e-7)
     assert model.hypers.lengthscale.min() > 0.4  # the case: the lengthscales grew

@@ -35,7 +35,7 @@ SHRINK_FACTOR = 0.7  # a fit moves to a smaller basis when its step would cost u
 
 
 def step_flops(T: int, basis: FourierBasis) -> float:
-    """The closed form's arithmetic per step in ``basis`` (r = min(T, F)): r^3 / 3 + 2 r^2 F + 2 r F (F_beta + F_gamma)."""
+    """The closed form's arithmetic per step in ``basis`` (r = min(T, F)): r^3 / 3 + 2 r^2 F + 2 r F (F_b + F_g)."""
     F, (Fb, Fg) = basis.size, basis.sizes
     r = min(T, F)
     return r**3 / 3 + 2 * r * r * F + 2 * r * F * (Fb + Fg)
