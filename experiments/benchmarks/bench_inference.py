@@ -1,7 +1,8 @@
 """Inference speed: the issue-12 cases, each against a reference timed in the same run.
 
 Data: simulated (C-toe gaits, DEM-like plates, varied plate strokes). Run time: cases 1-5 about 1 min (2026-11-22);
-case 11 alone 52-76 s; case 12's fits 32.6 + 46.2 + 12.7 s (before the shrinking basis; one more fit since); all 12 together not measured here.
+case 11 alone 52-76 s; case 12 with --repeats 3 and 8 about 100 s together (2026-12-02); all 12 together not
+measured here.
 
     python experiments/benchmarks/bench_inference.py [--quick] [--device cuda] [--out experiments/results]
 
