@@ -76,14 +76,30 @@ def test_stopping_adam_early_before_the_polish_predicts_as_a_full_fit(monkeypatc
     assert ((a.stddev - r.stddev).abs() / r.stddev).max() < 1e-3
 
 
-def test_laplace_hessian_by_differences_is_autograd_s():
+@pytest.mark.parametrize("method,chunked", [("auto", False), ("spectral", True)])
+def test_laplace_hessian_by_differences_is_autograd_s(method, chunked, monkeypatch):
+    """In one batch, and one point at a time (``GRADIENT_ELEMENTS`` at 1) with the spectral basis prepared once for
+    every point (``backend.prepare`` called once, each chunk in that basis)."""
     c, f = _data(40)
-    m = irft.InverseRFT(c, f, hyper_posterior="map")
+    m = irft.InverseRFT(c, f, hyper_posterior="map", method=method)
     m.fit(n_iter=60, progress=False)
     m.train()
     spec = hp_mod.hyper_spec(m.hypers)
     theta = spec.theta(m.hypers)
+    calls = []
+    if chunked:
+        from irft_torch.gp.hyper import density
+
+        monkeypatch.setattr(density, "GRADIENT_ELEMENTS", 1)
+        for name in ("prepare", "space_for"):
+            real = getattr(m.backend, name)
+            monkeypatch.setattr(m.backend, name, lambda *a, real=real, name=name: calls.append(name) or real(*a))
+        evaluate = density.log_posterior_and_grad
+        monkeypatch.setattr(density, "log_posterior_and_grad",
+                            lambda *a, **k: calls.append(len(a[2])) or evaluate(*a, **k))
     lp, g, H = hp_mod._hessian_by_differences(m.backend, spec, theta)
+    if chunked:
+        assert calls == ["prepare"] + [1] * (2 * theta.numel() + 1), calls
     th = theta.clone().requires_grad_(True)
     ref = hp_mod.log_posterior(m.backend, spec, th, exact_graph=True)
     (g_ref,) = torch.autograd.grad(ref, th, create_graph=True)

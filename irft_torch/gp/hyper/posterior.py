@@ -46,7 +46,7 @@ from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
 from . import guard
-from .density import closed_form_log_posterior, log_posterior_and_grad, log_posterior_batch
+from .density import closed_form_log_posterior, log_posterior_and_grad_chunked, log_posterior_batch
 from .importance import _always, _merge, _moment_points, _systematic, first_stage, importance_sample, split_axes
 from .pareto import pareto_khat, psis_smooth
 
@@ -254,8 +254,8 @@ def point_mass(backend) -> HyperPosterior:
 
 def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """log p, its gradient (P,) and the Hessian (P, P) of -log p at theta: central differences of the closed-form
-    gradient (``gp.hyper.density``; all 2 P + 1 points in one batch, step ``HESSIAN_STEP`` in log(value), error
-    ~1e-8 relative) where the backend has one and every point is possible, else autograd's second derivatives."""
+    gradient (``gp.hyper.density``; 2 P + 1 points in one space, step ``HESSIAN_STEP`` in log(value), error ~1e-8
+    relative) where the backend has one and every point is possible, else autograd's second derivatives."""
     fd = _hessian_by_differences(backend, spec, theta)
     if fd is not None:
         return fd
@@ -268,13 +268,13 @@ def _hessian(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, T
 
 
 def _hessian_by_differences(backend, spec: HyperSpec, theta: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
-    """``_hessian`` from the closed-form gradient at theta and theta +- h e_i (one batch); None without a closed
+    """``_hessian`` from the closed-form gradient at theta and theta +- h e_i (one space); None without a closed
     form or where a point is impossible (then autograd's)."""
     P, h = theta.numel(), HESSIAN_STEP
     eye = torch.eye(P, dtype=theta.dtype, device=theta.device) * h
     points = torch.cat([theta.detach()[None], theta.detach() + eye, theta.detach() - eye])
     with torch.no_grad():
-        res = log_posterior_and_grad(backend, spec, points)
+        res = log_posterior_and_grad_chunked(backend, spec, points)
     if res is None or res[1] is None or not bool(torch.isfinite(res[0]).all()):
         return None
     lp, g = res
