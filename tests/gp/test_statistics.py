@@ -163,3 +163,33 @@ def test_fit_reduces_datasets_in_worker_processes(tmp_path):
         assert got.n == want.n
         for k in ("P", "b", "yy", "bg", "yg", "gg"):
             torch.testing.assert_close(getattr(got, k), getattr(want, k), rtol=1e-12, atol=1e-10)
+
+
+@pytest.mark.parametrize("trim", [True, False])
+def test_the_data_factor_from_rows_against_numpy(trim):
+    """``data_factor_from_rows`` on rank-deficient rows (T < F, rank 7 and 11 of T = 20): R^T R = Phi^T Phi and
+    R^T c = Phi^T y, c^T c = |proj y|^2 and the residuals outside the rows' range, checked against numpy's SVD
+    and least squares; the rank against ``numpy.linalg.matrix_rank``."""
+    import numpy as np
+
+    from irft_torch.gp.backends.weight_space import data_factor_from_rows
+
+    g = torch.Generator().manual_seed(5)
+    T, F = 20, 33
+    Phi = torch.stack([torch.randn(T, k, generator=g, dtype=torch.float64)
+                       @ torch.randn(k, F, generator=g, dtype=torch.float64) for k in (7, 11)])
+    y, m = torch.randn(2, T, generator=g, dtype=torch.float64), torch.randn(2, T, generator=g, dtype=torch.float64)
+    f = data_factor_from_rows(Phi, y, m, torch.float64, trim=trim)
+    for a in range(2):
+        P, Yv, Mv = Phi[a].numpy(), y[a].numpy(), m[a].numpy()
+        R, cy, cg = f.R[a].numpy(), f.c_y[a].numpy(), f.c_g[a].numpy()
+        assert int(f.rank[a]) == np.linalg.matrix_rank(P)
+        assert R.shape[0] == (11 if trim else T)
+        np.testing.assert_allclose(R.T @ R, P.T @ P, atol=1e-11 * np.abs(P.T @ P).max())
+        np.testing.assert_allclose(R.T @ cy, P.T @ Yv, atol=1e-11 * np.abs(P.T @ Yv).max())
+        proj_y = P @ np.linalg.lstsq(P, Yv, rcond=None)[0]  # y's part in the rows' range
+        proj_m = P @ np.linalg.lstsq(P, Mv, rcond=None)[0]
+        np.testing.assert_allclose(cy @ cy, proj_y @ proj_y, rtol=1e-10)
+        np.testing.assert_allclose(cy @ cg, proj_y @ proj_m, rtol=1e-10)
+        np.testing.assert_allclose(f.rho[a].numpy(), [Yv @ Yv - proj_y @ proj_y, Yv @ Mv - proj_y @ proj_m,
+                                                    Mv @ Mv - proj_m @ proj_m], rtol=1e-9)
