@@ -17,7 +17,7 @@ f)(W' f)^T in the observations' space, f_U diag(v_c) f_U^T on the pairs table, v
 
 The weight-space pair (pairs, spectral) share one algebra. Per block, the rows of each axis a (group g)
 are reduced once, hyperparameter-free, to R_g (r_g x F), c_g = Q_g^T y_g and rho_g = |y_g|^2 - |c_g|^2
-(a thin SVD of Phi_g, ``weight_space.data_factor_from_rows``). With R~ = [R_g / sigma_g], c~ = [c_g /
+(from Phi_g's rows, ``weight_space.data_factor_from_rows``). With R~ = [R_g / sigma_g], c~ = [c_g /
 sigma_g] stacked over the groups and A = R~ Sigma R~^T, exactly (Woodbury and Sylvester, D = diag(sigma_g^2)):
 
     y^T (D + Phi Sigma Phi^T)^{-1} y = sum_g rho_g / sigma_g^2 + c~^T (I + A)^{-1} c~
