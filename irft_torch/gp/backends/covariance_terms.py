@@ -37,7 +37,7 @@ class Adjoint:
     - ``H`` = L^{-1} R (*S, 2, r, F) and ``v`` = R^T alpha (*S, 2, F): R^T G R = (H^T H - v v^T) / (2n), so a
       term that contracts R^T G R with a structured d Sigma (a Kronecker product) needs one triangular
       solve, not G R (half the flops) nor R^T G R (F x F);
-    - ``GR`` = G R and ``sigma`` = R^T G R (= G where R is None);
+    - ``GR`` = G R and ``sigma`` = R^T G R (= G where R is None); ``dense_GR()`` the same from the inverse;
     - ``quadratic(X)``: <G, X X^T> for a few columns X (*S, 2, r, k): from G where it is formed, else by one
       triangular solve with k right-hand sides ((|L^{-1} X|^2 - |alpha^T X|^2) / (2n)), no r x r inverse;
     - ``trace_inverse()``: tr (sigma^2 I + A)^{-1}, from whichever inverse is at hand.
@@ -83,6 +83,13 @@ class Adjoint:
             else:
                 self._GR = self._G @ self.R
         return self._GR
+
+    def dense_GR(self) -> Tensor:
+        """``GR`` from the dense G (the inverse first: G R is then one product, and ``trace_inverse`` comes with it),
+        where a term needs G R whole and the inverse serves the noise's trace too."""
+        if self._GR is None and self.R is not None:
+            self._GR = self.G @ self.R
+        return self.GR
 
     @property
     def sigma(self) -> Tensor:
@@ -371,8 +378,7 @@ class KroneckerFourier(CovarianceTerm):
     def backward(self, values, adj, state):
         Sb, Kb, Kg, Sg, Y1 = state
         ls, s = values[LENGTHSCALE][..., 0, :], values[OUTPUTSCALE]
-        adj.G  # noqa: B018 -- the inverse first: G R is then one product, and the noise's trace comes with it
-        GR = adj.GR
+        GR = adj.dense_GR()
         Fb, Fg = self.basis.sizes
         r = GR.shape[-2]
         batch = GR.shape[:-3]
