@@ -166,16 +166,16 @@ def test_fit_reduces_datasets_in_worker_processes(tmp_path):
 
 
 @pytest.mark.parametrize("trim", [True, False])
-def test_the_data_factor_from_rows_against_numpy(trim):
-    """``data_factor_from_rows`` on rank-deficient rows (T < F, rank 7 and 11 of T = 20): R^T R = Phi^T Phi and
-    R^T c = Phi^T y, c^T c = |proj y|^2 and the residuals outside the rows' range, checked against numpy's SVD
-    and least squares; the rank against ``numpy.linalg.matrix_rank``."""
+@pytest.mark.parametrize("T,F", [(20, 33), (33, 20)])
+def test_the_data_factor_from_rows_against_numpy(trim, T, F):
+    """``data_factor_from_rows`` on rank-deficient rows (rank 7 and 11; fewer rows than features, the rows' Gram,
+    and more, the thin SVD): R^T R = Phi^T Phi and R^T c = Phi^T y, c^T c = |proj y|^2 and the residuals outside the
+    rows' range, checked against numpy's least squares; the rank against ``numpy.linalg.matrix_rank``."""
     import numpy as np
 
     from irft_torch.gp.backends.weight_space import data_factor_from_rows
 
     g = torch.Generator().manual_seed(5)
-    T, F = 20, 33
     Phi = torch.stack([torch.randn(T, k, generator=g, dtype=torch.float64)
                        @ torch.randn(k, F, generator=g, dtype=torch.float64) for k in (7, 11)])
     y, m = torch.randn(2, T, generator=g, dtype=torch.float64), torch.randn(2, T, generator=g, dtype=torch.float64)
@@ -184,7 +184,7 @@ def test_the_data_factor_from_rows_against_numpy(trim):
         P, Yv, Mv = Phi[a].numpy(), y[a].numpy(), m[a].numpy()
         R, cy, cg = f.R[a].numpy(), f.c_y[a].numpy(), f.c_g[a].numpy()
         assert int(f.rank[a]) == np.linalg.matrix_rank(P)
-        assert R.shape[0] == (11 if trim else T)
+        assert R.shape[0] == (11 if trim else min(T, F))
         np.testing.assert_allclose(R.T @ R, P.T @ P, atol=1e-11 * np.abs(P.T @ P).max())
         np.testing.assert_allclose(R.T @ cy, P.T @ Yv, atol=1e-11 * np.abs(P.T @ Yv).max())
         proj_y = P @ np.linalg.lstsq(P, Yv, rcond=None)[0]  # y's part in the rows' range

@@ -157,25 +157,34 @@ def data_factor(stats: FeatureStatistics, dtype) -> _DataFactor:
 
 
 def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype, trim: bool | None = None) -> _DataFactor:
-    """The same factor from the rows themselves, Phi (2, T, F): with Phi Phi^T = U S^2 U^T (the rows' Gram, T x T,
-    float64), R = U^T Phi (= S V^T of Phi's thin SVD) and c = U^T y. Cheaper than the eigendecomposition of P
-    when T < F, and 2-5x cheaper than the thin SVD (measured at T = 1,000, F = 1,037-1,525: 0.35-0.67 s for the
-    SVD). R^T R = Phi^T Phi to rounding whatever the accuracy of single eigenvectors (U is orthogonal).
-    Directions with S^2 below ``F eps`` of the largest are Phi's null space (zero in the model, as in
-    ``data_factor``), and the rows of R beyond the largest rank of the two axes are dropped (``trim``; default:
-    unless inside ``closed_form.autograd_only``, the engine as it was): zero rows of R only add sigma^2 to the
-    diagonal, which the (n - r) log sigma^2 term counts anyway. A turning toe's 200 x 289 rows have rank 64."""
+    """The same factor from the rows themselves, Phi (2, T, F) = U S V^T: R = S V^T, c = U^T y. With T <= F
+    (fewer rows than features: where the planar backends use it) from the rows' Gram Phi Phi^T = U S^2 U^T
+    (T x T, float64) and R = U^T Phi, 2-3x cheaper than the thin SVD (measured at T = 1,000, F = 1,037-1,525:
+    0.17-0.20 s against 0.35-0.67 s); R^T R = Phi^T Phi to rounding whatever the accuracy of single eigenvectors (U
+    is orthogonal). With more rows than features (a 3-D backend's long recordings) the thin SVD, whose cost grows
+    with T F^2, not T^3. Directions with S^2 below ``F eps`` of the largest are Phi's null space (zero in the
+    model, as in ``data_factor``), and the rows of R beyond the largest rank of the two axes are dropped
+    (``trim``; default: unless inside ``closed_form.autograd_only``, the engine as it was): zero rows of R only
+    add sigma^2 to the diagonal, which the (n - r) log sigma^2 term counts anyway. A turning toe's 200 x 289 rows
+    have rank 64."""
     from .closed_form import closed_form_enabled
 
     Phi, y = Phi.double(), y.double()
-    S2, U = torch.linalg.eigh(Phi @ Phi.mT)
-    S2, U = S2.flip(-1).clamp_min(0), U.flip(-1)  # descending
+    if Phi.shape[-2] <= Phi.shape[-1]:
+        S2, U = torch.linalg.eigh(Phi @ Phi.mT)
+        S2, U = S2.flip(-1).clamp_min(0), U.flip(-1)  # descending
+        Vh = None
+    else:  # on CUDA the default Jacobi driver can fail to converge on rank-deficient rows; QR-based gesvd does not
+        U, S, Vh = torch.linalg.svd(Phi, full_matrices=False, driver="gesvd" if Phi.is_cuda else None)
+        S2 = S.pow(2)
     tol = Phi.shape[-1] * torch.finfo(torch.float64).eps * 10 * S2[..., :1].clamp_min(1e-300)
     keep = S2 > tol
     if closed_form_enabled() if trim is None else trim:
         r = max(int(keep.sum(-1).max()), 1)  # S descends: the kept directions come first
         U, S2, keep = U[..., :r], S2[..., :r], keep[..., :r]
-    R = torch.where(keep[..., :, None], U.mT @ Phi, torch.zeros((), dtype=Phi.dtype, device=Phi.device))
+        Vh = None if Vh is None else Vh[..., :r, :]
+    R = U.mT @ Phi if Vh is None else S2.sqrt()[..., :, None] * Vh
+    R = torch.where(keep[..., :, None], R, torch.zeros((), dtype=Phi.dtype, device=Phi.device))
     S = S2.sqrt()
     c_y = torch.where(keep, (U.mT @ y[..., None])[..., 0], torch.zeros_like(S))
     g = torch.zeros_like(y) if g is None else g.double()
