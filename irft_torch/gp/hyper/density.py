@@ -27,12 +27,24 @@ from ..backends.spectral import draws_in_one_basis
 __all__ = ["log_posterior_and_grad", "log_posterior_and_grad_chunked", "log_posterior_batch",
            "closed_form_log_posterior", "draws_in_one_basis"]
 
-# a batch's largest intermediate (S x 2 x r x F numbers) is kept near this size, and near the second with gradients
-# (each chunk keeps several blocks of that size alive). Measured on the 1,000-sample varied recording (r = F = 539,
-# bench_inference case 12): its draws' likelihoods 3.3 s at 2**22 against 2.3 s at 2**20 and 2**19; the 29 points of
-# its Hessian 536 ms in one batch against 284 ms one at a time
+# On the CPU a batch's largest intermediate (S x 2 x r x F numbers) is kept near this size, and near the second with
+# gradients (each chunk keeps several blocks of that size alive). Measured on the 1,000-sample varied recording
+# (r = F = 539, bench_inference case 12): its draws' likelihoods 3.3 s at 2**22 against 2.3 s at 2**20 and 2**19; the
+# 29 points of its Hessian 536 ms in one batch against 284 ms one at a time. On a GPU, where a step is bound by
+# kernel launches, not memory (docs/backends.md), the batches stay as large as before (not measured smaller there).
 BATCH_ELEMENTS = 2**20
 GRADIENT_ELEMENTS = 2**19
+GPU_BATCH_ELEMENTS = 2**22
+
+
+def _chunk(theta: Tensor, elements: int, grad: bool) -> int:
+    """Draws per chunk for draws of ``elements`` numbers each: ``GRADIENT_ELEMENTS`` (``grad``) or ``BATCH_ELEMENTS``
+    of them on the CPU; on a GPU ``GPU_BATCH_ELEMENTS``, and with gradients the whole batch (as before)."""
+    if theta.device.type == "cpu":
+        budget = GRADIENT_ELEMENTS if grad else BATCH_ELEMENTS
+    else:
+        budget = 2**62 if grad else GPU_BATCH_ELEMENTS
+    return max(1, budget // max(elements, 1))
 
 
 def _values(backend, spec, theta: Tensor) -> tuple[dict[str, Tensor], Tensor]:
@@ -135,7 +147,7 @@ def log_posterior_and_grad_chunked(backend, spec, theta: Tensor) -> tuple[Tensor
     if bool(valid.any()):
         backend.prepare({n: v[valid] for n, v in values.items()})
     cf = closed_form_of(backend)
-    chunk = max(1, GRADIENT_ELEMENTS // max(cf.elements, 1)) if cf is not None else theta.shape[0]
+    chunk = _chunk(theta, cf.elements, True) if cf is not None else theta.shape[0]
     parts = [log_posterior_and_grad(backend, spec, theta[i:i + chunk], prepare=False)
              for i in range(0, theta.shape[0], chunk)]
     if any(p is None for p in parts):
@@ -149,7 +161,7 @@ def _in_chunks(backend, spec, theta: Tensor, prepare: bool) -> Tensor | None:
     cf = closed_form_of(backend)
     if cf is None:
         return None
-    chunk = max(1, BATCH_ELEMENTS // max(cf.elements, 1))
+    chunk = _chunk(theta, cf.elements, False)
     out = []
     with torch.no_grad():
         for i in range(0, theta.shape[0], chunk):
