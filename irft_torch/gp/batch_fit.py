@@ -45,6 +45,7 @@ class _StackedHyperparameters(RFTHyperparameters):
         Module.__init__(self)
         hs = [m.hypers for m in models]
         self.n_models = B = len(hs)
+        self.n_maps = 2 * B
         self._tied = hs[0].tied
         k0 = hs[0].kernel
         os_scale = torch.cat([h.kernel.raw_outputscale_constraint.scale.expand(2) for h in hs])

@@ -19,13 +19,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from gpytorch import Module
 from gpytorch.constraints import GreaterThan
 from gpytorch.likelihoods import GaussianLikelihood
 from torch import Tensor
 
 from ..kernels.angle import AngleKernel
 from ..kernels.constraints import ScaledGreaterThan
+from ..kernels.hyperparameters import MapHyperparameters
 from ..kernels.li_basis import LiBasisVariance
 
 __all__ = ["Block", "BLOCKS", "MAPS", "AXES", "ALPHA_Y", "LENGTHSCALE_FLOOR_3D", "RFT3DHyperparameters"]
@@ -56,7 +56,7 @@ class Block:
 BLOCKS = (Block("horizontal", (0, 1), (0, 1)), Block("vertical", (2,), (2,)))
 
 
-class RFT3DHyperparameters(Module):
+class RFT3DHyperparameters(MapHyperparameters):
     """Kernel of the three maps (``AngleKernel`` with batch (3,): lengthscale (3, 1, 4), outputscale (3,) in
     (N/cm^3)^2) and the noise of the three force axes (a batched gpytorch ``GaussianLikelihood``, (3,) N^2).
 
@@ -66,6 +66,8 @@ class RFT3DHyperparameters(Module):
     ``lengthscale_floor``: every lengthscale is above it (``LENGTHSCALE_FLOOR_3D``; the constraint's buffer, so a model
     file from before it was raised loads with its own, 0.05).
     """
+
+    n_maps = 3
 
     def __init__(self, alpha_y: str = "map", noise_floor: float = 1e-6, force_scale=1.0, map_scale=1.0,
                  li_basis: bool = False, lengthscale_floor: float = LENGTHSCALE_FLOOR_3D) -> None:
@@ -82,32 +84,9 @@ class RFT3DHyperparameters(Module):
         self.li = LiBasisVariance(scale=ms.pow(2), n_maps=3) if li_basis else None
 
     @property
-    def lengthscale(self) -> Tensor:
-        """(3, 1, 4), dimensionless."""
-        return self.kernel.lengthscale
-
-    @lengthscale.setter
-    def lengthscale(self, value) -> None:
-        self.kernel.lengthscale = value
-
-    @property
     def lengthscale_floor(self) -> float:
         """The lengthscales' lower bound (the constraint's buffer: a state dict, hence a model file, carries it)."""
         return float(self.kernel.base_kernel.raw_lengthscale_constraint.lower_bound)
-
-    @property
-    def outputscale(self) -> Tensor:
-        """(3,) prior variances of alpha_x, alpha_y (of the constant with ``alpha_y="constant"``), alpha_z."""
-        return self.kernel.outputscale
-
-    @outputscale.setter
-    def outputscale(self, value) -> None:
-        self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(3)
-
-    @property
-    def li_variance(self) -> Tensor | None:
-        """(3,) Li et al.'s term's variance per map, (N/cm^3)^2, or None without it."""
-        return None if self.li is None else self.li.variance
 
     def li_of(self, c: int, detach: bool) -> Tensor | None:
         """() map c's Li et al.'s variance, or None (no term, or a constant alpha_y)."""
@@ -125,18 +104,6 @@ class RFT3DHyperparameters(Module):
             return s
         keep = torch.tensor([not self.constant_map(c) for c in range(3)], device=s.device)
         return s + torch.where(keep, self.li.variance, torch.zeros_like(s))
-
-    @property
-    def noise(self) -> Tensor:
-        """(3,) force-noise variances of F_x, F_y, F_z, N^2."""
-        return self.likelihood.noise.reshape(3)
-
-    @noise.setter
-    def noise(self, value) -> None:
-        raw = self.likelihood.noise_covar.raw_noise
-        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1).expand(3)
-        lower = self.likelihood.noise_covar.raw_noise_constraint.lower_bound.to(value)
-        self.likelihood.noise = torch.maximum(value, lower.reshape(-1) * 1.0001).reshape(raw.shape)
 
     def constant_map(self, c: int) -> bool:
         """Whether map c is a constant (alpha_y with ``alpha_y="constant"``)."""

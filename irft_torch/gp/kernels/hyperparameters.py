@@ -18,7 +18,7 @@ from .li_basis import LiBasisVariance, generic_coefficients, li_features
 from .means import GenericShapeMean
 from .spatial import SpatialFactor
 
-__all__ = ["RFTHyperparameters", "force_likelihood"]
+__all__ = ["MapHyperparameters", "RFTHyperparameters", "force_likelihood"]
 
 
 def force_likelihood(tied: bool = False, noise_floor: float = 1e-6, scale=1.0) -> GaussianLikelihood:
@@ -31,7 +31,61 @@ def force_likelihood(tied: bool = False, noise_floor: float = 1e-6, scale=1.0) -
                               noise_constraint=ScaledGreaterThan(noise_floor, scale))
 
 
-class RFTHyperparameters(Module):
+class MapHyperparameters(Module):
+    """What the planar and the 3-D model's hyperparameters share, for K maps over (beta, gamma): ``kernel`` (an
+    ``AngleKernel`` with batch (K,): lengthscale (K, 1, 4), outputscale (K,) in (N/cm^3)^2), ``likelihood`` (a
+    batched gpytorch ``GaussianLikelihood``: one force-noise variance per axis, N^2, or one shared), ``li`` (Li et
+    al.'s term per map, ``gp.kernels.li_basis``, or None), and their readable views. ``RFTHyperparameters`` is K = 2
+    (alpha_x, alpha_z), ``gp.inverse3d.RFT3DHyperparameters`` K = 3 (alpha_x, alpha_y, alpha_z)."""
+
+    n_maps = 2
+    kernel: AngleKernel
+    likelihood: GaussianLikelihood
+    li: LiBasisVariance | None
+
+    @property
+    def tied(self) -> bool:
+        """Whether one noise variance serves every force axis (the I-RFT paper's)."""
+        return self.likelihood.noise.numel() == 1
+
+    @property
+    def lengthscale(self) -> Tensor:
+        """(K, 1, 4), dimensionless (the embedding's units)."""
+        return self.kernel.lengthscale
+
+    @lengthscale.setter
+    def lengthscale(self, value) -> None:
+        self.kernel.lengthscale = value
+
+    @property
+    def outputscale(self) -> Tensor:
+        """(K,) the RBF part's prior variance of each map, (N/cm^3)^2."""
+        return self.kernel.outputscale
+
+    @outputscale.setter
+    def outputscale(self, value) -> None:
+        self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(self.n_maps)
+
+    @property
+    def noise(self) -> Tensor:
+        """(K,) force noise variances, one per axis, N^2 (equal when tied)."""
+        return self.likelihood.noise.reshape(-1).expand(self.n_maps)
+
+    @noise.setter
+    def noise(self, value) -> None:
+        raw = self.likelihood.noise_covar.raw_noise
+        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1).expand(self.n_maps)
+        value = value.mean(0, keepdim=True) if self.tied else value
+        lower = self.likelihood.noise_covar.raw_noise_constraint.lower_bound.to(value).reshape(-1)
+        self.likelihood.noise = torch.maximum(value, lower * 1.0001).reshape(raw.shape)
+
+    @property
+    def li_variance(self) -> Tensor | None:
+        """(K,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
+        return None if self.li is None else self.li.variance
+
+
+class RFTHyperparameters(MapHyperparameters):
     """Kernel, likelihood and (optional) physics mean of the two maps, with readable views.
 
     Attributes:
@@ -62,47 +116,6 @@ class RFTHyperparameters(Module):
                              "al.'s 9-function term (gp.kernels.li_basis)")
         self.li = LiBasisVariance(scale=ms.pow(2), generic=generic_shape) if li_basis else None
         self.spatial = None if spatial_lengthscale is None else SpatialFactor(float(spatial_lengthscale))
-
-    @property
-    def tied(self) -> bool:
-        return self.likelihood.noise.numel() == 1
-
-    @property
-    def lengthscale(self) -> Tensor:
-        """(2, 1, 4), dimensionless (the embedding's units)."""
-        return self.kernel.lengthscale
-
-    @lengthscale.setter
-    def lengthscale(self, value) -> None:
-        self.kernel.lengthscale = value
-
-    @property
-    def outputscale(self) -> Tensor:
-        """(2,) prior variances of alpha_x, alpha_z, (N/cm^3)^2."""
-        return self.kernel.outputscale
-
-    @outputscale.setter
-    def outputscale(self, value) -> None:
-        self.kernel.outputscale = torch.as_tensor(value, dtype=self.kernel.raw_outputscale.dtype).expand(2)
-
-    @property
-    def noise(self) -> Tensor:
-        """(2,) force noise variances (sigma_x^2, sigma_z^2), N^2 (equal when tied)."""
-        return self.likelihood.noise.reshape(-1).expand(2)
-
-    @noise.setter
-    def noise(self, value) -> None:
-        raw = self.likelihood.noise_covar.raw_noise
-        value = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1).expand(2)
-        value = value.mean(0, keepdim=True) if self.tied else value
-        lower = self.likelihood.noise_covar.raw_noise_constraint.lower_bound.to(value)
-        value = torch.maximum(value, lower * 1.0001)
-        self.likelihood.noise = value.reshape(raw.shape)
-
-    @property
-    def li_variance(self) -> Tensor | None:
-        """(2,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
-        return None if self.li is None else self.li.variance
 
     def start_li(self, zeta: float) -> None:
         """Start Li et al.'s term at the RBF part's variance and the generic shape's at zeta^2 (the centres of their
