@@ -109,6 +109,17 @@ def test_laplace_hessian_by_differences_is_autograd_s(method, chunked, monkeypat
     assert float((H - H_ref).abs().max() / H_ref.abs().max()) < 1e-6
 
 
+def test_chunked_gradients_of_no_points_are_empty():
+    from irft_torch.gp.hyper import density
+
+    c, f = _data(40)
+    m = irft.InverseRFT(c, f, hyper_posterior="map")
+    m.fit(n_iter=5, progress=False)
+    spec = hp_mod.hyper_spec(m.hypers)
+    lp, g = density.log_posterior_and_grad_chunked(m.backend, spec, torch.zeros(0, spec.size, dtype=F64))
+    assert lp.shape == (0,) and g.shape == (0, spec.size)
+
+
 def test_many_draws_warnings_are_said_once():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -85,11 +85,12 @@ class Adjoint:
         return self._GR
 
     def dense_GR(self) -> Tensor:
-        """``GR`` from the dense G (the inverse first: G R is then one product, and ``trace_inverse`` comes with it),
-        where a term needs G R whole and the inverse serves the noise's trace too."""
-        if self._GR is None and self.R is not None:
-            self._GR = self.G @ self.R
-        return self.GR
+        """``GR`` with the dense G formed first (G R is then one product, and ``trace_inverse`` comes from the same
+        inverse), where a term needs G R whole and the noise's trace too."""
+        G = self.G
+        if self._GR is None:
+            self._GR = G if self.R is None else G @ self.R
+        return self._GR
 
     @property
     def sigma(self) -> Tensor:

@@ -161,8 +161,10 @@ def data_factor_from_rows(Phi: Tensor, y: Tensor, g: Tensor | None, dtype, trim:
     (fewer rows than features: where the planar backends use it) from the rows' Gram Phi Phi^T = U S^2 U^T
     (T x T, float64) and R = U^T Phi, 2-3x cheaper than the thin SVD (measured at T = 1,000, F = 1,037-1,525:
     0.17-0.20 s against 0.35-0.67 s); R^T R = Phi^T Phi to rounding whatever the accuracy of single eigenvectors (U
-    is orthogonal). With more rows than features (a 3-D backend's long recordings) the thin SVD, whose cost grows
-    with T F^2, not T^3. Directions with S^2 below ``F eps`` of the largest are Phi's null space (zero in the
+    is orthogonal), and the Gram's rounding (about T eps of the largest S^2) stays below the cut (10 F eps) since
+    T <= F: a very uneven Phi can keep a few more near-zero rows than the SVD, which costs time, not accuracy.
+    With more rows than features (a 3-D backend's long recordings) the thin SVD, whose cost grows with T F^2, not
+    T^3. Directions with S^2 below ``F eps`` of the largest are Phi's null space (zero in the
     model, as in ``data_factor``), and the rows of R beyond the largest rank of the two axes are dropped
     (``trim``; default: unless inside ``closed_form.autograd_only``, the engine as it was): zero rows of R only
     add sigma^2 to the diagonal, which the (n - r) log sigma^2 term counts anyway. A turning toe's 200 x 289 rows

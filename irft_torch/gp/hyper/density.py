@@ -137,12 +137,14 @@ def log_posterior_batch(backend, spec, theta: Tensor, grouped: bool = True) -> T
 
 
 def log_posterior_and_grad_chunked(backend, spec, theta: Tensor) -> tuple[Tensor, Tensor | None] | None:
-    """``log_posterior_and_grad`` over theta (S, P_free) in chunks whose largest intermediate is about
-    ``GRADIENT_ELEMENTS`` numbers, the backend prepared once for all of them (every point in the same space: the
-    differences between their gradients carry no change of basis); None without a closed form."""
+    """``log_posterior_and_grad`` over theta (S, P_free) in chunks (on the CPU, each's largest intermediate about
+    ``GRADIENT_ELEMENTS`` numbers; on a GPU one chunk), the backend prepared once for all of them (every point in the
+    same space: the differences between their gradients carry no change of basis); None without a closed form."""
     cf = closed_form_of(backend)
     if cf is None or any(name not in cf.names for name in spec.names):
         return None
+    if theta.shape[0] == 0:
+        return theta.new_zeros(0), theta.new_zeros(theta.shape)
     values, valid = _values(backend, spec, theta.detach())
     if bool(valid.any()):
         backend.prepare({n: v[valid] for n, v in values.items()})
