@@ -99,7 +99,8 @@ def rmse(model, field, places, b, g, seen) -> tuple[float, float]:
 
 
 def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = (9, 5),
-        refit_every: int = 0, n_gaits: int = 1) -> dict[str, list[tuple[float, float]]]:
+        refit_every: int = 0, n_gaits: int = 1, greedy: tuple[str, ...] = ("greedy",)
+        ) -> dict[str, list[tuple[float, float]]]:
     import irft_torch as irft
     from irft_torch.design import plan_stances
     from irft_torch.rft.contacts import Contacts
@@ -126,7 +127,7 @@ def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = 
     px, py = torch.meshgrid(torch.linspace(X0, X1, nx, dtype=F64), torch.linspace(Y0, Y1, ny, dtype=F64),
                             indexing="ij")  # the greedy planner's region: the patch the error is measured over
     roi = torch.stack([px.reshape(-1), py.reshape(-1)], -1)
-    plans = {"greedy": None, "lawnmower": lawnmower(steps),
+    plans = {**{g: None for g in greedy}, "lawnmower": lawnmower(steps),
              "random": torch.tensor(np.stack([rng.uniform(X0, X1, steps), rng.uniform(Y0, Y1, steps)], -1), dtype=F64)}
     # with a gait library, the lawnmower walks the strokes in turn and the random footholds draw one each
     gaits = {"lawnmower": [k % n_gaits for k in range(steps)],
@@ -141,8 +142,8 @@ def run(seed: int, steps: int, reach: float = 0.45, roi_grid: tuple[int, int] = 
         here = line[-1]
         g_meas = torch.Generator().manual_seed(40_000 + seed)
         for k in range(steps):
-            if name == "greedy":
-                where, which = plan_stances(m, stances, here, 1, reach, candidates, roi)
+            if name in greedy:  # "greedy": at the mode's hyperparameters (the default); "greedy-draws": averaged
+                where, which = plan_stances(m, stances, here, 1, reach, candidates, roi, draws=name == "greedy-draws")
                 p, s = where[0], stances[int(which[0])]
             else:
                 p, s = feet[k], stances[int(gaits[name][k])]
@@ -187,6 +188,9 @@ def main(argv=None) -> None:
     ap.add_argument("--gaits", type=int, default=1, metavar="K",
                     help=f"strokes to choose from (the first K of {len(GAITS)}): greedy picks the foothold and the "
                     "stroke (design.plan_stances), the lawnmower walks them in turn, random draws one per stance")
+    ap.add_argument("--greedy-draws", action="store_true",
+                    help="also a greedy planner whose scores are averaged over the hyperparameter draws (draws=True), "
+                    "beside the default one at the mode's hyperparameters")
     ap.add_argument("--out", type=Path, default=Path("experiments/results"), help="where the CSV goes")
     args = ap.parse_args(argv)
     torch.set_default_dtype(F64)
@@ -195,17 +199,19 @@ def main(argv=None) -> None:
     for seed in args.seeds:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the unit checks on simulated media far from the generic
-            res = run(seed, args.steps, args.reach, tuple(args.roi), args.refit_every, args.gaits)
+            res = run(seed, args.steps, args.reach, tuple(args.roi), args.refit_every, args.gaits,
+                      ("greedy", "greedy-draws") if args.greedy_draws else ("greedy",))
         for name, errs in res.items():
             rows.append([seed, name, *[f"{e[0]:.5f}" for e in errs], *[f"{e[1]:.5f}" for e in errs]])
-            print(f"seed {seed} {name:9s}: map RMSE after 0, 4, 8, ... steps: " + ", ".join(f"{e[0]:.4f}" for e in errs)
+            print(f"seed {seed} {name:11s}: map RMSE after 0, 4, 8, ... steps: "
+                  + ", ".join(f"{e[0]:.4f}" for e in errs)
                   + "; at the stroke's angles " + ", ".join(f"{e[1]:.4f}" for e in errs), flush=True)
     n = (len(rows[0]) - 2) // 2
     print(f"\nmean over {len(args.seeds)} seeds ({time.perf_counter() - t0:.0f} s), over the square | at the angles "
           f"the stroke reaches ({int(seen_share(args.seeds[0], args.gaits) * 100)} % of the grid):")
-    for name in ("greedy", "lawnmower", "random"):
+    for name in dict.fromkeys(r[1] for r in rows):
         errs = np.mean([[float(v) for v in r[2:]] for r in rows if r[1] == name], 0)
-        print(f"  {name:9s}: " + ", ".join(f"{e:.4f}" for e in errs[:n]) + " | "
+        print(f"  {name:11s}: " + ", ".join(f"{e:.4f}" for e in errs[:n]) + " | "
               + ", ".join(f"{e:.4f}" for e in errs[n:]))
     csv_name = "explore_footholds.csv" if args.gaits == 1 else f"explore_footholds_{args.gaits}_gaits.csv"
     with open(args.out / csv_name, "w", newline="") as fh:

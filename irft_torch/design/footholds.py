@@ -8,9 +8,17 @@ summed over the region's angles (a ``Region``) and places (L, 2) m, both maps, e
 
     score(p) = sum_a sum_q [S_qc (S_cc + noise)^-1 S_cq]_qq / prior_a / (N_angles L),
 
-exact for the model's plug-in hyperparameters (the backend's posterior covariances; a Gaussian's variance does not
-depend on the forces measured, so a planned stance is conditioned on without them). 0: nothing learned; 1: the
-region known exactly.
+exact at one set of hyperparameters (the backend's posterior covariances; a Gaussian's variance does not depend on
+the forces measured, so a planned stance is conditioned on without them). 0: nothing learned; 1: the region known
+exactly. A model with a hyperparameter posterior (``hyper_posterior="laplace"``, the default) is scored at its mode;
+``draws=True`` scores the weighted average of its draws' scores instead, the weights held (as ``design.MixtureScorer``
+and botorch's fully Bayesian acquisitions average), at about S times the cost for S draws. Measured
+(``explore_footholds.py --gaits 3 --refit-every 4 --greedy-draws``, seeds 0-4, 16 draws): held-out map RMSE 0.091 /
+0.076 / 0.073 N/cm^3 after 4 / 8 / 12 stances averaged over the draws, 0.090 / 0.075 / 0.074 at the mode, so the mode
+is the default (``experiments/benchmarks/bench_footholds.py``: 0.25 s a step against 5.9 s).
+
+One stroke's candidates are scored together (``SpatialBackend.placed_covariances``): a foothold moves the places
+only, so the angles' part of every covariance is formed once per stroke.
 """
 
 from __future__ import annotations
@@ -70,22 +78,50 @@ def _region_queries(region: Region, places: Tensor) -> Contacts:
                     locations=places.to(c.beta).repeat_interleave(N, 0))
 
 
-def _score(backend, queries: Contacts, weights: Tensor, stance: Stance, foothold: Tensor) -> Tensor:
-    c = stance.at(foothold).to(dtype=queries.beta.dtype, device=queries.beta.device)
-    S_qc = backend.cross_covariance(queries, c)  # (2, Q, T)
-    S_cc = backend.cross_covariance(c, c)
+#: foothold scores are formed this many numbers (footholds x 2 maps x (queries + training samples) x stroke samples)
+#: at a time: a planner's footholds in a few batches, its memory bounded whatever the number of candidates
+SCORE_ELEMENTS = 2**21
+
+
+def _belief(model, draws: bool = False) -> tuple[list, Tensor]:
+    """The backends a score averages over and their weights (S,) or (S, 2) per map: the model's hyperparameter
+    draws (``hyper_posterior="laplace"``, the default) where ``draws``, else its mode's backend with weight 1."""
+    backends, weights = model._weighted_backends() if draws else ([model.backend], None)
+    if weights is None:
+        return backends, torch.ones(1, dtype=model.dtype, device=model._device)
+    return backends, weights
+
+
+def _scores(backend, queries: Contacts, weights: Tensor, stance: Stance, footholds: Tensor) -> Tensor:
+    """(P, 2) each map's score of ``stance`` at each of ``footholds`` (P, 2) m, at one backend's hyperparameters."""
+    c = stance.contacts.to(dtype=queries.beta.dtype, device=queries.beta.device)
+    offsets = stance.offsets.to(queries.beta)
     noise = backend.hypers.noise.detach()
-    eye = torch.eye(S_cc.shape[-1], dtype=S_cc.dtype, device=S_cc.device)
-    L = torch.linalg.cholesky(0.5 * (S_cc + S_cc.mT) + noise[:, None, None] * eye)
-    fall = torch.linalg.solve_triangular(L, S_qc.mT, upper=False).pow(2).sum(-2)  # (2, Q)
     prior = backend.hypers.prior_variance.detach()
-    return ((fall * weights).sum(-1) / prior).mean()
+    per = 2 * (len(queries) + backend.n_samples) * max(len(c), 1)
+    out = []
+    for chunk in footholds.split(max(1, SCORE_ELEMENTS // per)):
+        S_qc, S_cc = backend.placed_covariances(queries, c, offsets, chunk)  # (P, 2, Q, T), (P, 2, T, T)
+        eye = torch.eye(S_cc.shape[-1], dtype=S_cc.dtype, device=S_cc.device)
+        L = torch.linalg.cholesky(0.5 * (S_cc + S_cc.mT) + noise[:, None, None] * eye)
+        fall = torch.linalg.solve_triangular(L, S_qc.mT, upper=False).pow(2).sum(-2)  # (P, 2, Q)
+        out.append((fall * weights).sum(-1) / prior)
+    return torch.cat(out)
 
 
-def foothold_scores(model, stance: Stance, candidates, places, region: Region | None = None) -> Tensor:
+def _averaged(backends, draw_weights: Tensor, queries, weights, stance, footholds) -> Tensor:
+    """(P,) the scores averaged over the backends (weights (S,) or (S, 2) per map), then over the two maps."""
+    per_map = torch.stack([_scores(b, queries, weights, stance, footholds) for b in backends])  # (S, P, 2)
+    w = draw_weights[:, None, None] if draw_weights.ndim == 1 else draw_weights[:, None, :]
+    return (w.to(per_map) * per_map).sum(0).mean(-1)
+
+
+def foothold_scores(model, stance: Stance, candidates, places, region: Region | None = None,
+                    draws: bool = False) -> Tensor:
     """Scores (K,) of a stance at each candidate foothold (K, 2) m for the maps over ``places`` (L, 2) m and the
     angles of ``region`` (default ``Region.square(8)``) (module docstring). ``model``: a fitted ``InverseRFT``
-    with places (its plug-in backend: the mode's hyperparameters)."""
+    with places, scored at its mode's hyperparameters; ``draws=True``: averaged over its hyperparameter draws
+    where it has them."""
     if not getattr(model, "spatial", False):
         raise ValueError("model: foothold scores need a model fitted with places (InverseRFT(..., locations=))")
     cand = check_locations(candidates, name="candidates").to(model.dtype)
@@ -95,21 +131,23 @@ def foothold_scores(model, stance: Stance, candidates, places, region: Region | 
     region = region or Region.square(8, dtype=model.dtype)
     queries = _region_queries(region, where)
     weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
+    backends, draw_weights = _belief(model, draws)
     with torch.no_grad():
-        return torch.stack([_score(model.backend, queries, weights, stance, p) for p in cand])
+        return _averaged(backends, draw_weights, queries, weights, stance, cand)
 
 
 def plan_footholds(model, stance: Stance, start, n_steps: int, reach: float, candidates, places,
-                   region: Region | None = None) -> Tensor:
+                   region: Region | None = None, draws: bool = False) -> Tensor:
     """The next ``n_steps`` footholds (n_steps, 2) m, greedily: from ``start`` (2,) m, each step the candidate
     (K, 2) m within ``reach`` m of the last foothold with the highest score (``foothold_scores``) given the
-    stances planned before it (conditioned on, with the model's hyperparameters fixed). A step with no
-    candidate in reach raises ``ValueError`` naming ``reach``. ``plan_stances`` also chooses among strokes."""
-    return plan_stances(model, [stance], start, n_steps, reach, candidates, places, region)[0]
+    stances planned before it (conditioned on, every draw's backend, with the hyperparameters fixed). A step with
+    no candidate in reach raises ``ValueError`` naming ``reach``. ``draws``: as ``foothold_scores``.
+    ``plan_stances`` also chooses among strokes."""
+    return plan_stances(model, [stance], start, n_steps, reach, candidates, places, region, draws)[0]
 
 
 def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, places,
-                 region: Region | None = None) -> tuple[Tensor, Tensor]:
+                 region: Region | None = None, draws: bool = False) -> tuple[Tensor, Tensor]:
     """``plan_footholds`` over a gait library: each step the (foothold, stroke) pair with the highest score, the
     footholds (K, 2) m within ``reach`` of the last, the strokes ``stances`` (a sequence of ``Stance``; a stroke
     that sees angles the maps are unsure of scores higher). Returns (footholds (n_steps, 2) m, the index of each
@@ -131,17 +169,18 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
     queries = _region_queries(region, where)
     weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
     here = check_locations(start, name="start").to(model.dtype).reshape(2)
-    backend, plan, chosen = model.backend, [], []
+    (backends, draw_weights), plan, chosen = _belief(model, draws), [], []
     with torch.no_grad():
         for _ in range(int(n_steps)):
             near = ((cand - here).norm(dim=-1) <= reach).nonzero()[:, 0]
             if len(near) == 0:
                 raise ValueError(f"reach: no candidate foothold within {reach} m of {here.tolist()}")
-            scores = torch.stack([torch.stack([_score(backend, queries, weights, s, cand[i]) for i in near])
+            scores = torch.stack([_averaged(backends, draw_weights, queries, weights, s, cand[near])
                                   for s in stances])  # (n_stances, n_near)
             best = int(scores.argmax())
             k, here = best // len(near), cand[near[best % len(near)]]
             plan.append(here)
             chosen.append(k)
-            backend = backend.condition(stances[k].at(here).to(dtype=model.dtype))
+            placed = stances[k].at(here).to(dtype=model.dtype)
+            backends = [b.condition(placed) for b in backends]
     return torch.stack(plan), torch.tensor(chosen, device=plan[0].device)

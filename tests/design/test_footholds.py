@@ -102,3 +102,36 @@ def test_a_gait_library_plan_takes_the_best_pair_of_foothold_and_stroke(setup):
         plan_stances(model, [], start, 1, 0.5, cands, roi)
     with pytest.raises(TypeError, match="stances"):
         plan_stances(model, stance, start, 1, 0.5, cands, roi)
+
+
+def test_a_model_with_draws_scores_the_weighted_average_of_its_draws_scores(setup):
+    """With a hyperparameter posterior (the default) and ``draws=True``, a foothold's score is the draws' scores,
+    each the long way (the draw's posterior variance before and after the stance), averaged with the posterior's
+    weights; by default it is scored at the mode alone."""
+    stance, plug = setup
+    c, F = plug.backend.train_contacts, plug.backend.train_forces
+    model = InverseRFT(c, F)  # the default: hyper_posterior="laplace"
+    model.fit(n_iter=60, progress=False)
+    backends, weights = model._weighted_backends()
+    assert weights is not None and len(backends) > 1
+    region = Region.square(3)
+    places = torch.tensor([[0.2, 0.3], [1.2, 0.0]], dtype=F64)
+    cands = torch.tensor([[0.3, 0.0], [1.1, 0.1]], dtype=F64)
+    b, g = region.beta, region.gamma
+    q = Contacts.points(b.repeat(2), g.repeat(2)).with_locations(places.repeat_interleave(len(b), 0))
+    want = torch.zeros(len(cands), dtype=F64)
+    for backend, w in zip(backends, weights):
+        before = backend.posterior(q).variance.T.reshape(2, len(b), 2)
+        prior = backend.hypers.prior_variance.detach()
+        for k, p in enumerate(cands):
+            after = backend.condition(stance.at(p)).posterior(q).variance.T.reshape(2, len(b), 2)
+            want[k] += w * (((before - after) * region.weight[None, :, None]).sum(1).mean(0) / prior).mean()
+    got = foothold_scores(model, stance, cands, places, region, draws=True)
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-10)
+    mode = foothold_scores(model, stance, cands, places, region)
+    before = model.backend.posterior(q).variance.T.reshape(2, len(b), 2)
+    for k, p in enumerate(cands):
+        after = model.backend.condition(stance.at(p)).posterior(q).variance.T.reshape(2, len(b), 2)
+        one = ((before - after) * region.weight[None, :, None]).sum(1).mean(0) / model.hypers.prior_variance.detach()
+        torch.testing.assert_close(mode[k], one.mean(), rtol=1e-6, atol=1e-10)
+    assert not torch.allclose(mode, want, rtol=1e-3)  # the draws move the scores: the test can tell them apart
