@@ -110,8 +110,8 @@ class SpatialBackend(ObservationsBackend):
         def placed(K: Tensor, s: Tensor | None) -> Tensor:  # K (2, N, T) times the factor to each placed sample
             if s is None:  # queries of the shared medium: factor 1
                 return K[:, :, None, :].expand(-1, -1, P, -1).reshape(2, K.shape[1], P * T)
-            return (K[:, :, None, :] * spatial.factor(s, at, True).reshape(2, s.shape[0], P, T)).reshape(
-                2, K.shape[1], P * T)
+            factor = torch.as_tensor(spatial.factor(s, at, True))  # (2, N, P T): both sides have places
+            return (K[:, :, None, :] * factor.reshape(2, s.shape[0], P, T)).reshape(2, K.shape[1], P * T)
 
         A_c = torch.linalg.solve_triangular(L, placed(K_tc, side_t["locations"]), upper=False)  # (2, n, P T)
         S_qc = (placed(K_qc, queries.locations) - A_q.mT @ A_c).reshape(2, -1, P, T).permute(2, 0, 1, 3)
