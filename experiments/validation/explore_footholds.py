@@ -5,7 +5,7 @@ Data: simulated (``rft.TerrainField.random_patches`` of media from the calibrati
 about 18 s per seed here (2 cores; 42 s with ``--refit-every 4``); the default run about 1.5 minutes.
 
     python experiments/validation/explore_footholds.py [--seeds 0 1 2 3 4] [--steps 12] [--reach 0.45]
-        [--roi 9 5] [--refit-every 0] [--gaits 1] [--out experiments/results]
+        [--roi 9 5] [--refit-every 0] [--gaits 1] [--greedy-draws] [--out experiments/results]
 
 A C-toe first walks a line of 8 footholds (x = 0 to 1.4 m, y = 0) over a 2 m x 1 m patch of ground; the spatial
 model (``InverseRFT(..., locations=)``, defaults) is fitted there. Then each strategy takes ``--steps`` more
@@ -17,7 +17,9 @@ strategy alike):
   candidates on a 0.1 m grid, scoring the maps over a ``--roi`` grid of places (9 x 5, edges included) spanning
   the patch the error is measured over (before 2026-12-01's change: 5 x 3, 0.2 m inside the edges);
 - lawnmower: three rows (y = -0.35, 0, 0.35 m) walked back and forth, spaced to fit the steps;
-- random: footholds drawn uniformly over the patch.
+- random: footholds drawn uniformly over the patch;
+- with ``--greedy-draws``, also greedy-draws: the greedy planner with its scores averaged over the hyperparameter
+  draws (``draws=True``; about 2.5 minutes a seed with 3 gaits and ``--refit-every 4``).
 
 ``--gaits K`` (1, the default: the scoop alone; 2 or 3): a library of strokes (``GAITS``: the scoop, a steeper dive
 with the toe tilted forward, a skim with it tilted back); greedy chooses each stance's stroke with its foothold

@@ -12,13 +12,14 @@ exact at one set of hyperparameters (the backend's posterior covariances; a Gaus
 the forces measured, so a planned stance is conditioned on without them). 0: nothing learned; 1: the region known
 exactly. A model with a hyperparameter posterior (``hyper_posterior="laplace"``, the default) is scored at its mode;
 ``draws=True`` scores the weighted average of its draws' scores instead, the weights held (as ``design.MixtureScorer``
-and botorch's fully Bayesian acquisitions average), at about S times the cost for S draws. Measured
+and botorch's fully Bayesian acquisitions average), at S times the cost for S draws or more. Measured
 (``explore_footholds.py --gaits 3 --refit-every 4 --greedy-draws``, seeds 0-4, 16 draws): held-out map RMSE 0.091 /
 0.076 / 0.073 N/cm^3 after 4 / 8 / 12 stances averaged over the draws, 0.090 / 0.075 / 0.074 at the mode, so the mode
-is the default (``experiments/benchmarks/bench_footholds.py``: 0.25 s a step against 5.9 s).
+is the default (``experiments/benchmarks/bench_footholds.py``: 0.24 s a step against 4.4 s).
 
 One stroke's candidates are scored together (``SpatialBackend.placed_covariances``): a foothold moves the places
-only, so the angles' part of every covariance is formed once per stroke.
+only, so the angles' part of every covariance is formed once per stroke (the candidates in chunks of
+``SCORE_ELEMENTS`` numbers, memory bounded whatever their number).
 """
 
 from __future__ import annotations
@@ -41,6 +42,11 @@ class Stance:
 
     contacts: Contacts
     offsets: Tensor
+
+    def __post_init__(self) -> None:
+        if tuple(self.offsets.shape) != (len(self.contacts), 2):
+            raise ValueError(f"offsets must be (T, 2) m, one place per sample of the stroke's {len(self.contacts)}, "
+                             f"got shape {tuple(self.offsets.shape)}")
 
     @classmethod
     def of_stroke(cls, toe, stroke, heading: float = 0.0) -> Stance:
@@ -95,13 +101,14 @@ def _belief(model, draws: bool = False) -> tuple[list, Tensor]:
 def _scores(backend, queries: Contacts, weights: Tensor, stance: Stance, footholds: Tensor) -> Tensor:
     """(P, 2) each map's score of ``stance`` at each of ``footholds`` (P, 2) m, at one backend's hyperparameters."""
     c = stance.contacts.to(dtype=queries.beta.dtype, device=queries.beta.device)
+    if len(c) == 0 or len(footholds) == 0:  # a stroke that never touches teaches nothing
+        return queries.beta.new_zeros(len(footholds), 2)
     offsets = stance.offsets.to(queries.beta)
     noise = backend.hypers.noise.detach()
     prior = backend.hypers.prior_variance.detach()
-    per = 2 * (len(queries) + backend.n_samples) * max(len(c), 1)
     out = []
-    for chunk in footholds.split(max(1, SCORE_ELEMENTS // per)):
-        S_qc, S_cc = backend.placed_covariances(queries, c, offsets, chunk)  # (P, 2, Q, T), (P, 2, T, T)
+    for S_qc, S_cc in backend.placed_covariances(queries, c, offsets, footholds,
+                                                 SCORE_ELEMENTS // (2 * (len(queries) + backend.n_samples) * len(c))):
         eye = torch.eye(S_cc.shape[-1], dtype=S_cc.dtype, device=S_cc.device)
         L = torch.linalg.cholesky(0.5 * (S_cc + S_cc.mT) + noise[:, None, None] * eye)
         fall = torch.linalg.solve_triangular(L, S_qc.mT, upper=False).pow(2).sum(-2)  # (P, 2, Q)
@@ -171,7 +178,7 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
     here = check_locations(start, name="start").to(model.dtype).reshape(2)
     (backends, draw_weights), plan, chosen = _belief(model, draws), [], []
     with torch.no_grad():
-        for _ in range(int(n_steps)):
+        for step in range(int(n_steps)):
             near = ((cand - here).norm(dim=-1) <= reach).nonzero()[:, 0]
             if len(near) == 0:
                 raise ValueError(f"reach: no candidate foothold within {reach} m of {here.tolist()}")
@@ -181,6 +188,7 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
             k, here = best // len(near), cand[near[best % len(near)]]
             plan.append(here)
             chosen.append(k)
-            placed = stances[k].at(here).to(dtype=model.dtype)
-            backends = [b.condition(placed) for b in backends]
+            if step + 1 < n_steps:  # the next step knows this stance (any forces: the variance does not see them)
+                placed = stances[k].at(here).to(dtype=model.dtype)
+                backends = [b.condition(placed, placed.beta.new_zeros(len(placed), 2)) for b in backends]
     return torch.stack(plan), torch.tensor(chosen, device=plan[0].device)

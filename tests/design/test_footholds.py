@@ -104,14 +104,20 @@ def test_a_gait_library_plan_takes_the_best_pair_of_foothold_and_stroke(setup):
         plan_stances(model, stance, start, 1, 0.5, cands, roi)
 
 
-def test_a_model_with_draws_scores_the_weighted_average_of_its_draws_scores(setup):
+@pytest.fixture(scope="module")
+def drawn(setup):
+    """The fixture's data fitted with the default hyperparameter posterior (draws)."""
+    _, plug = setup
+    model = InverseRFT(plug.backend.train_contacts, plug.backend.train_forces)  # hyper_posterior="laplace"
+    model.fit(n_iter=60, progress=False)
+    return model
+
+
+def test_a_model_with_draws_scores_the_weighted_average_of_its_draws_scores(setup, drawn):
     """With a hyperparameter posterior (the default) and ``draws=True``, a foothold's score is the draws' scores,
     each the long way (the draw's posterior variance before and after the stance), averaged with the posterior's
     weights; by default it is scored at the mode alone."""
-    stance, plug = setup
-    c, F = plug.backend.train_contacts, plug.backend.train_forces
-    model = InverseRFT(c, F)  # the default: hyper_posterior="laplace"
-    model.fit(n_iter=60, progress=False)
+    stance, model = setup[0], drawn
     backends, weights = model._weighted_backends()
     assert weights is not None and len(backends) > 1
     region = Region.square(3)
@@ -135,3 +141,34 @@ def test_a_model_with_draws_scores_the_weighted_average_of_its_draws_scores(setu
         one = ((before - after) * region.weight[None, :, None]).sum(1).mean(0) / model.hypers.prior_variance.detach()
         torch.testing.assert_close(mode[k], one.mean(), rtol=1e-6, atol=1e-10)
     assert not torch.allclose(mode, want, rtol=1e-3)  # the draws move the scores: the test can tell them apart
+
+
+def test_scores_in_chunks_and_the_edge_cases(setup, monkeypatch):
+    """Candidates scored a few at a time give the scores of one batch; a stroke that never touches scores 0, no
+    candidates give no scores, offsets of the wrong length are refused by name; ``plan_stances(draws=True)`` takes
+    the argmax of the draws' averaged scores."""
+    import irft_torch.design.footholds as fh
+
+    stance, model = setup
+    region = Region.square(3)
+    places = torch.tensor([[0.2, 0.3], [1.2, 0.0]], dtype=F64)
+    cands = torch.tensor([[0.3, 0.0], [1.1, 0.1], [0.7, -0.2], [1.6, 0.4], [2.5, 0.0]], dtype=F64)
+    whole = foothold_scores(model, stance, cands, places, region)
+    monkeypatch.setattr(fh, "SCORE_ELEMENTS", 1)  # one candidate a chunk
+    torch.testing.assert_close(foothold_scores(model, stance, cands, places, region), whole, rtol=1e-12, atol=0)
+    monkeypatch.undo()
+    none = Stance(stance.contacts[:0], stance.offsets[:0])
+    assert foothold_scores(model, none, cands, places, region).tolist() == [0.0] * len(cands)
+    assert foothold_scores(model, stance, cands[:0], places, region).shape == (0,)
+    with pytest.raises(ValueError, match="offsets"):
+        Stance(stance.contacts, stance.offsets[:-1])
+
+
+def test_a_plan_over_the_draws_takes_their_averaged_best(setup, drawn):
+    stance, model = setup[0], drawn
+    cands = torch.tensor([[0.7, 0.0], [0.9, 0.2], [1.0, -0.2], [2.5, 0.0]], dtype=F64)
+    roi, region, start = torch.tensor([[1.0, 0.0], [0.4, 0.3]], dtype=F64), Region.square(3), torch.tensor([0.6, 0.0])
+    feet = plan_footholds(model, stance, start.to(F64), 2, 0.5, cands, roi, region, draws=True)
+    scores = foothold_scores(model, stance, cands[:3], roi, region, draws=True)
+    torch.testing.assert_close(feet[0], cands[int(scores.argmax())])
+    assert float((feet[1] - feet[0]).norm()) <= 0.5 + 1e-12

@@ -7,6 +7,8 @@ Laplace proposals are weighed one marginal likelihood each)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import gpytorch
 import torch
 from torch import Tensor
@@ -88,36 +90,38 @@ class SpatialBackend(ObservationsBackend):
         K = super()._block(side1, side2)
         return K * self.hypers.spatial.factor(side1["locations"], side2["locations"], detach=True)
 
-    def placed_covariances(self, queries: Contacts, stroke: Contacts, offsets: Tensor,
-                           footholds: Tensor) -> tuple[Tensor, Tensor]:
-        """Posterior covariances of one stroke placed at each of P footholds, without its forces: (S_qc (P, 2, Q, T),
-        the queries' (Q weighted sums, with places) against the placed stroke's T samples, and S_cc (P, 2, T, T)),
-        N^2 (or (N/cm^3) N against point queries), each map's. ``stroke`` (T, M) its contacts, ``offsets`` (T, 2) m
-        each sample's place from the foothold, ``footholds`` (P, 2) m. The same numbers as ``cross_covariance`` of
-        ``stroke`` placed at each foothold, batched: the angles' part of every block is formed once (a foothold
-        moves the places only), the places' factor per foothold, and the stroke's own factor once (the Matern
-        kernel sees differences of places only)."""
+    def placed_covariances(self, queries: Contacts, stroke: Contacts, offsets: Tensor, footholds: Tensor,
+                           chunk: int | None = None) -> Iterator[tuple[Tensor, Tensor]]:
+        """Posterior covariances of one stroke placed at each of P footholds, without its forces, ``chunk``
+        footholds at a time (default all): per chunk (S_qc (P', 2, Q, T), the queries' (Q weighted sums, with
+        places) against the placed stroke's T samples, and S_cc (P', 2, T, T)), N^2 (or (N/cm^3) N against point
+        queries), each map's. ``stroke`` (T, M) its contacts, ``offsets`` (T, 2) m each sample's place from the
+        foothold, ``footholds`` (P, 2) m. The same numbers as ``cross_covariance`` of ``stroke`` placed at each
+        foothold, batched: the angles' part of every block is formed once for all footholds (a foothold moves the
+        places only), the places' factor per foothold, and the stroke's own factor once (the Matern kernel sees
+        differences of places only)."""
         side_t, L, _ = self._factor()
         side_q, _, A_q = self._query(queries)  # A_q (2, n, Q) = L^-1 K_tq, the places' factor included
         angles = super()._side(stroke)
         K_qc = super()._block(side_q, angles)  # (2, Q, T): the angles' part (the base block reads no places)
         K_tc = super()._block(side_t, angles)  # (2, n, T)
-        K_cc = super()._block(angles, angles)
-        P, T = footholds.shape[0], offsets.shape[0]
-        at = (footholds[:, None, :] + offsets[None]).reshape(P * T, 2)
-        spatial = self.hypers.spatial
+        K_cc = super()._block(angles, angles) * self.hypers.spatial.factor(offsets, offsets, True)
+        footholds = footholds.to(offsets)
+        n, Q, T = L.shape[-1], K_qc.shape[1], offsets.shape[0]
+        for feet in footholds.split(max(1, int(chunk or len(footholds)))):
+            P = feet.shape[0]
+            at = (feet[:, None, :] + offsets[None]).reshape(P * T, 2)
 
-        def placed(K: Tensor, s: Tensor | None) -> Tensor:  # K (2, N, T) times the factor to each placed sample
-            if s is None:  # queries of the shared medium: factor 1
-                return K[:, :, None, :].expand(-1, -1, P, -1).reshape(2, K.shape[1], P * T)
-            factor = torch.as_tensor(spatial.factor(s, at, True))  # (2, N, P T): both sides have places
-            return (K[:, :, None, :] * factor.reshape(2, s.shape[0], P, T)).reshape(2, K.shape[1], P * T)
+            def placed(K: Tensor, s: Tensor | None) -> Tensor:  # K (2, N, T) times the factor to each placed sample
+                if s is None:  # queries of the shared medium: factor 1
+                    return K[:, :, None, :].expand(-1, -1, P, -1).reshape(2, K.shape[1], P * T)
+                factor = torch.as_tensor(self.hypers.spatial.factor(s, at, True))  # (2, N, P T): both have places
+                return (K[:, :, None, :] * factor.reshape(2, s.shape[0], P, T)).reshape(2, K.shape[1], P * T)
 
-        A_c = torch.linalg.solve_triangular(L, placed(K_tc, side_t["locations"]), upper=False)  # (2, n, P T)
-        S_qc = (placed(K_qc, queries.locations) - A_q.mT @ A_c).reshape(2, -1, P, T).permute(2, 0, 1, 3)
-        A_c = A_c.reshape(2, -1, P, T)
-        S_cc = K_cc * spatial.factor(offsets, offsets, True) - torch.einsum("bnpt,bnps->pbts", A_c, A_c)
-        return S_qc, S_cc
+            A_c = torch.linalg.solve_triangular(L, placed(K_tc, side_t["locations"]), upper=False)  # (2, n, P T)
+            S_qc = (placed(K_qc, queries.locations) - A_q.mT @ A_c).reshape(2, Q, P, T).permute(2, 0, 1, 3)
+            A_c = A_c.reshape(2, n, P, T)
+            yield S_qc, K_cc - torch.einsum("bnpt,bnps->pbts", A_c, A_c)
 
     def posterior(self, contacts: Contacts, variance: bool = True, covariance: bool = False) -> FunctionalPosterior:
         out = super().posterior(contacts, variance=False, covariance=covariance)
