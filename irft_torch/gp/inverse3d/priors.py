@@ -12,29 +12,13 @@ reasons) with the third map added.
 
 from __future__ import annotations
 
-import functools
-
 import torch
-from gpytorch.priors import NormalPrior
 from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.forces3d import forces_3d
 from ...rft.stress_maps import FourierStressMap
-from ..kernels.priors import (
-    GENERIC_RMS,
-    JOINT_FRACTION,
-    LENGTHSCALE_CENTRE,
-    LENGTHSCALE_LOG_SD,
-    NOISE_LOG_SD,
-    NOISE_RELATIVE,
-    OUTPUTSCALE_LOG_SD,
-    _log_lengthscale_ratio,
-    _log_li_ratio,
-    _log_noise_ratio,
-    _log_outputscale_ratio,
-    _stateless,
-)
+from ..kernels.priors import GENERIC_RMS, JOINT_FRACTION, LENGTHSCALE_CENTRE, NOISE_RELATIVE, register_physical_priors
 
 __all__ = ["GENERIC_RMS_3D", "data_scales_3d", "prior_centres_3d", "register_priors_3d"]
 
@@ -77,19 +61,7 @@ def prior_centres_3d(c: Contacts3D, f: Tensor, map_scale: Tensor, noise_floor: f
 
 
 def register_priors_3d(hypers, centres: dict) -> None:
-    """Register the three priors on ``RFT3DHyperparameters`` (gpytorch ``register_prior``)."""
-    dtype, device = hypers.kernel.raw_outputscale.dtype, hypers.kernel.raw_outputscale.device
-    zero = torch.zeros((), dtype=dtype, device=device)
-    log_os = centres["outputscale"].to(dtype).log().detach().clone()
-    log_noise = centres["noise"].to(dtype).log().detach().clone()
-    hypers.kernel.register_prior("outputscale_prior", _stateless(NormalPrior(zero.clone(), OUTPUTSCALE_LOG_SD)),
-                                 functools.partial(_log_outputscale_ratio, c=log_os))
-    hypers.kernel.base_kernel.register_prior("lengthscale_prior",
-                                             _stateless(NormalPrior(zero.clone(), LENGTHSCALE_LOG_SD)),
-                                             functools.partial(_log_lengthscale_ratio,
-                                                               c=float(torch.tensor(centres["lengthscale"]).log())))
-    hypers.likelihood.noise_covar.register_prior("noise_prior", _stateless(NormalPrior(zero.clone(), NOISE_LOG_SD)),
-                                                 functools.partial(_log_noise_ratio, c=log_noise))
-    if getattr(hypers, "li", None) is not None:
-        hypers.li.register_prior("variance_prior", _stateless(NormalPrior(zero.clone(), OUTPUTSCALE_LOG_SD)),
-                                 functools.partial(_log_li_ratio, c=log_os))
+    """Register the priors on ``RFT3DHyperparameters``: the planar model's (``gp.kernels.priors.
+    register_physical_priors``, which takes K maps) with these centres, the widths of a model whose physics mean's
+    scales are fixed (not hyperparameters) and no learned surface."""
+    register_physical_priors(hypers, centres)
