@@ -15,7 +15,9 @@ exactly. A model with a hyperparameter posterior (``hyper_posterior="laplace"``,
 and botorch's fully Bayesian acquisitions average), at S times the cost for S draws or more. Measured
 (``explore_footholds.py --gaits 3 --refit-every 4 --greedy-draws``, seeds 0-4, 16 draws): held-out map RMSE 0.091 /
 0.076 / 0.073 N/cm^3 after 4 / 8 / 12 stances averaged over the draws, 0.090 / 0.075 / 0.074 at the mode, so the mode
-is the default (``experiments/benchmarks/bench_footholds.py``: 0.24 s a step against 4.4 s).
+is the default (``experiments/benchmarks/bench_footholds.py``: 0.24 s a step against 4.4 s). Choose ``draws=True``
+where the hyperparameters are not refitted as the walk goes on: held at the first fit (seeds 40-44, no refit)
+0.095 / 0.108 / 0.101 against 0.116 / 0.112 / 0.125 at the mode.
 
 One stroke's candidates are scored together (``SpatialBackend.placed_covariances``): a foothold moves the places
 only, so the angles' part of every covariance is formed once per stroke (the candidates in chunks of
