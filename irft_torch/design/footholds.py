@@ -133,13 +133,13 @@ def foothold_scores(model, stance: Stance, candidates, places, region: Region | 
     where it has them."""
     if not getattr(model, "spatial", False):
         raise ValueError("model: foothold scores need a model fitted with places (InverseRFT(..., locations=))")
-    cand = check_locations(candidates, name="candidates").to(model.dtype)
-    where = check_locations(places, name="places").to(model.dtype)
+    cand = check_locations(candidates, name="candidates").to(model._device, model.dtype)
+    where = check_locations(places, name="places").to(model._device, model.dtype)
     if cand.ndim != 2 or where.ndim != 2:
         raise ValueError("candidates and places must be (K, 2) and (L, 2) places in m")
     region = region or Region.square(8, dtype=model.dtype)
-    queries = _region_queries(region, where)
-    weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
+    queries = _region_queries(region, where).to(dtype=model.dtype, device=model._device)
+    weights = region.weight.to(model._device, model.dtype).repeat(where.shape[0]) / where.shape[0]
     backends, draw_weights = _belief(model, draws)
     with torch.no_grad():
         return _averaged(backends, draw_weights, queries, weights, stance, cand)
@@ -172,12 +172,12 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
     stances = list(stances)
     if not stances or not all(isinstance(s, Stance) for s in stances):
         raise TypeError("stances: a non-empty sequence of design.Stance")
-    cand = check_locations(candidates, name="candidates").to(model.dtype)
-    where = check_locations(places, name="places").to(model.dtype)
+    cand = check_locations(candidates, name="candidates").to(model._device, model.dtype)
+    where = check_locations(places, name="places").to(model._device, model.dtype)
     region = region or Region.square(8, dtype=model.dtype)
-    queries = _region_queries(region, where)
-    weights = region.weight.to(model.dtype).repeat(where.shape[0]) / where.shape[0]
-    here = check_locations(start, name="start").to(model.dtype).reshape(2)
+    queries = _region_queries(region, where).to(dtype=model.dtype, device=model._device)
+    weights = region.weight.to(model._device, model.dtype).repeat(where.shape[0]) / where.shape[0]
+    here = check_locations(start, name="start").to(model._device, model.dtype).reshape(2)
     (backends, draw_weights), plan, chosen = _belief(model, draws), [], []
     with torch.no_grad():
         for step in range(int(n_steps)):
