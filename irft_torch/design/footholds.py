@@ -79,6 +79,18 @@ def force_field(model, stance: Stance, places, include_noise: bool = False):
                                 locations=where[:, None, :] + stance.offsets.to(where)[None])
 
 
+def _region_setup(model, places, region: Region | None) -> tuple[Tensor, Contacts, Tensor]:
+    """(places (L, 2) m, the region's angles at each place as point queries, their weights (N L,)) on the model's
+    device and dtype; ``region`` default ``Region.square(8)``."""
+    where = check_locations(places, name="places").to(model._device, model.dtype)
+    if where.ndim != 2:
+        raise ValueError(f"places must be (L, 2) m, got shape {tuple(where.shape)}")
+    region = region or Region.square(8, dtype=model.dtype)
+    queries = _region_queries(region, where).to(dtype=model.dtype, device=model._device)
+    weights = region.weight.to(model._device, model.dtype).repeat(where.shape[0]) / where.shape[0]
+    return where, queries, weights
+
+
 def _region_queries(region: Region, places: Tensor) -> Contacts:
     c = region.contacts()
     N, L = len(c), places.shape[0]
@@ -134,12 +146,9 @@ def foothold_scores(model, stance: Stance, candidates, places, region: Region | 
     if not getattr(model, "spatial", False):
         raise ValueError("model: foothold scores need a model fitted with places (InverseRFT(..., locations=))")
     cand = check_locations(candidates, name="candidates").to(model._device, model.dtype)
-    where = check_locations(places, name="places").to(model._device, model.dtype)
-    if cand.ndim != 2 or where.ndim != 2:
-        raise ValueError("candidates and places must be (K, 2) and (L, 2) places in m")
-    region = region or Region.square(8, dtype=model.dtype)
-    queries = _region_queries(region, where).to(dtype=model.dtype, device=model._device)
-    weights = region.weight.to(model._device, model.dtype).repeat(where.shape[0]) / where.shape[0]
+    if cand.ndim != 2:
+        raise ValueError(f"candidates must be (K, 2) places in m, got shape {tuple(cand.shape)}")
+    _, queries, weights = _region_setup(model, places, region)
     backends, draw_weights = _belief(model, draws)
     with torch.no_grad():
         return _averaged(backends, draw_weights, queries, weights, stance, cand)
@@ -173,10 +182,7 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
     if not stances or not all(isinstance(s, Stance) for s in stances):
         raise TypeError("stances: a non-empty sequence of design.Stance")
     cand = check_locations(candidates, name="candidates").to(model._device, model.dtype)
-    where = check_locations(places, name="places").to(model._device, model.dtype)
-    region = region or Region.square(8, dtype=model.dtype)
-    queries = _region_queries(region, where).to(dtype=model.dtype, device=model._device)
-    weights = region.weight.to(model._device, model.dtype).repeat(where.shape[0]) / where.shape[0]
+    _, queries, weights = _region_setup(model, places, region)
     here = check_locations(start, name="start").to(model._device, model.dtype).reshape(2)
     (backends, draw_weights), plan, chosen = _belief(model, draws), [], []
     with torch.no_grad():
@@ -191,6 +197,6 @@ def plan_stances(model, stances, start, n_steps: int, reach: float, candidates, 
             plan.append(here)
             chosen.append(k)
             if step + 1 < n_steps:  # the next step knows this stance (any forces: the variance does not see them)
-                placed = stances[k].at(here).to(dtype=model.dtype)
+                placed = stances[k].at(here).to(dtype=model.dtype, device=model._device)
                 backends = [b.condition(placed, placed.beta.new_zeros(len(placed), 2)) for b in backends]
     return torch.stack(plan), torch.tensor(chosen, device=plan[0].device)

@@ -144,9 +144,9 @@ def test_a_model_with_draws_scores_the_weighted_average_of_its_draws_scores(setu
 
 
 def test_scores_in_chunks_and_the_edge_cases(setup, monkeypatch):
-    """Candidates scored a few at a time give the scores of one batch; a stroke that never touches scores 0, no
-    candidates give no scores, offsets of the wrong length are refused by name; ``plan_stances(draws=True)`` takes
-    the argmax of the draws' averaged scores."""
+    """Candidates scored a few at a time give the scores of one batch (checked against conditioning the long way
+    above); a stroke that never touches scores 0, no candidates give no scores, offsets of the wrong length are
+    refused by name."""
     import irft_torch.design.footholds as fh
 
     stance, model = setup
@@ -165,6 +165,8 @@ def test_scores_in_chunks_and_the_edge_cases(setup, monkeypatch):
 
 
 def test_a_plan_over_the_draws_takes_their_averaged_best(setup, drawn):
+    """``plan_footholds(draws=True)``'s first step is the argmax of the draws' averaged scores (checked against each
+    draw's conditioning above), its second within reach."""
     stance, model = setup[0], drawn
     cands = torch.tensor([[0.7, 0.0], [0.9, 0.2], [1.0, -0.2], [2.5, 0.0]], dtype=F64)
     roi, region, start = torch.tensor([[1.0, 0.0], [0.4, 0.3]], dtype=F64), Region.square(3), torch.tensor([0.6, 0.0])

@@ -18,13 +18,14 @@ from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..inputs import _check_dtype
+from ..kernels.priors import register_physical_priors  # K maps: the 3-D model's priors are the planar ones
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import Backend3D
 from .hyper_mixture import HyperMixture3DMixin
 from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
-from .priors import data_scales_3d, prior_centres_3d, register_priors_3d
+from .priors import data_scales_3d, prior_centres_3d
 from .select import METHODS_3D, make_backend_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
@@ -164,7 +165,7 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
             if li_basis:  # its prior's centre (``gp.inverse3d.priors``)
                 self.hypers.li.variance = self.hypers.outputscale
         if priors == "physical":
-            register_priors_3d(self.hypers, centres)
+            register_physical_priors(self.hypers, centres)
         from ..kernels.fourier import MAX_HARMONICS
 
         self.max_harmonics = MAX_HARMONICS if max_harmonics is None else int(max_harmonics)
@@ -291,8 +292,8 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         self.train_forces = torch.cat([self.train_forces, f])  # as measured (the backend holds the residuals)
         if self.priors == "physical":
             _, map_scale = data_scales_3d(self.train_contacts, self.train_forces)
-            register_priors_3d(self.hypers, prior_centres_3d(self.train_contacts, self.train_forces, map_scale,
-                                                             self._noise_floor))
+            register_physical_priors(self.hypers, prior_centres_3d(self.train_contacts, self.train_forces, map_scale,
+                                                                   self._noise_floor))
         return self
 
     # ---- prediction ----------------------------------------------------------------------------------------------

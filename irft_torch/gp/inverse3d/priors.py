@@ -8,6 +8,8 @@ reasons) with the third map added.
 - lengthscales: centre 1.5, log-sd 1.5 (as planar);
 - noise of each axis: centre 1e-2 of its mean squared force (floored), log-sd ln 10;
 - Li et al.'s term (``kernel="li"``): its variance per map has the outputscale's centre and width (as planar).
+
+Here: the centres; ``gp.kernels.priors.register_physical_priors`` (which takes K maps) registers them.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ from torch import Tensor
 from ...rft.contacts3d import Contacts3D
 from ...rft.forces3d import forces_3d
 from ...rft.stress_maps import FourierStressMap
-from ..kernels.priors import GENERIC_RMS, JOINT_FRACTION, LENGTHSCALE_CENTRE, NOISE_RELATIVE, register_physical_priors
+from ..kernels.priors import GENERIC_RMS, JOINT_FRACTION, LENGTHSCALE_CENTRE, NOISE_RELATIVE
 
-__all__ = ["GENERIC_RMS_3D", "data_scales_3d", "prior_centres_3d", "register_priors_3d"]
+__all__ = ["GENERIC_RMS_3D", "data_scales_3d", "prior_centres_3d"]
 
 GENERIC_RMS_3D = (GENERIC_RMS[0], 0.136, GENERIC_RMS[1])  # alpha_x, alpha_y (= alpha_x(0, 0)), alpha_z
 
@@ -58,10 +60,3 @@ def prior_centres_3d(c: Contacts3D, f: Tensor, map_scale: Tensor, noise_floor: f
     sigma = torch.maximum(torch.maximum(zeta * rms, ms), JOINT_FRACTION * fallback * rms)
     noise = (NOISE_RELATIVE * f.pow(2).mean(0)).clamp_min(noise_floor * 10)
     return {"zeta": zeta, "outputscale": sigma.pow(2), "lengthscale": LENGTHSCALE_CENTRE, "noise": noise}
-
-
-def register_priors_3d(hypers, centres: dict) -> None:
-    """Register the priors on ``RFT3DHyperparameters``: the planar model's (``gp.kernels.priors.
-    register_physical_priors``, which takes K maps) with these centres, the widths of a model whose physics mean's
-    scales are fixed (not hyperparameters) and no learned surface."""
-    register_physical_priors(hypers, centres)
