@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from ..rft.contacts import Contacts, check_locations
+from .belief import variance_fall
 from .region import Region
 
 __all__ = ["Stance", "force_field", "foothold_scores", "plan_footholds", "plan_stances"]
@@ -123,9 +124,7 @@ def _scores(backend, queries: Contacts, weights: Tensor, stance: Stance, foothol
     out = []
     for S_qc, S_cc in backend.placed_covariances(queries, c, offsets, footholds,
                                                  SCORE_ELEMENTS // (2 * (len(queries) + backend.n_samples) * len(c))):
-        eye = torch.eye(S_cc.shape[-1], dtype=S_cc.dtype, device=S_cc.device)
-        L = torch.linalg.cholesky(0.5 * (S_cc + S_cc.mT) + noise[:, None, None] * eye)
-        fall = torch.linalg.solve_triangular(L, S_qc.mT, upper=False).pow(2).sum(-2)  # (P, 2, Q)
+        fall = variance_fall(S_qc.mT, S_cc, noise[:, None])  # (P, 2, Q)
         out.append((fall * weights).sum(-1) / prior)
     return torch.cat(out)
 

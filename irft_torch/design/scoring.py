@@ -47,6 +47,7 @@ from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
 from ..gp.kernels.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
+from .belief import BeliefScorer, check_criterion, information_nats, variance_after
 from .force_noise import force_relative
 from .region import Region, _as_contacts
 
@@ -57,18 +58,13 @@ if TYPE_CHECKING:
 __all__ = ["Region", "ProbeScorer", "MixtureScorer", "force_relative", "SCORING_TOL"]
 
 
-def _plus_noise(S: Tensor, noise: Tensor) -> Tensor:
-    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-    return 0.5 * (S + S.mT) + noise[:, None, None] * eye
-
-
 NoiseScale = Callable[[Contacts], Tensor] | Tensor | None
 SCORING_TOL = 1e-4  # kernel truncation error a spectral model's scorer is sized for by default (ranking, not a fit)
 SCORE_ROWS = 2_000  # candidate force samples scored at once (best measured: 1,000-2,000; memory B T^2 + N T per axis)
 
 
 # ---- the scorer --------------------------------------------------------------------------------
-class ProbeScorer:
+class ProbeScorer(BeliefScorer):
     """The current belief over alpha_x, alpha_z (a backend with fixed hyperparameters), to score many
     candidate probes.
 
@@ -156,22 +152,6 @@ class ProbeScorer:
         # a spectral model's statistics serve any basis they cover (a coarser one: no pass over the data)
         stats = own.stats if own.name == "spectral" else None
         return make_backend(target, own.hypers, model.train_contacts, model.train_forces, tol=tol, statistics=stats)
-
-    @property
-    def method(self) -> str:
-        return self.backend.name
-
-    @property
-    def outputscale(self) -> Tensor:
-        return self.backend.hypers.outputscale.detach()
-
-    @property
-    def prior_variance(self) -> Tensor:
-        return self.backend.hypers.prior_variance.detach()
-
-    @property
-    def noise(self) -> Tensor:
-        return self.backend.hypers.noise.detach()
 
     # ---- construction ----------------------------------------------------------------------
     @classmethod
@@ -342,11 +322,7 @@ class ProbeScorer:
               per_axis: bool = False) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
         better) or its information gain ("eig", nats, higher is better); ``per_axis``: (n, 2), per map."""
-        if criterion not in ("variance", "eig"):
-            raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
-        if criterion == "eig" and region is not None:
-            raise ValueError("region applies to criterion 'variance' (the variance integrated over it); 'eig' is the "
-                             "information about the forces of the probe itself: pass region=None")
+        check_criterion(criterion, region)
         cands = [self._cast(c) for c in candidates]
         if not cands:
             return torch.zeros((0, 2) if per_axis else 0, dtype=self.noise.dtype, device=self.noise.device)
@@ -380,15 +356,11 @@ class ProbeScorer:
             return self._score_root_batch(self.backend.posterior_root(both), sizes, criterion, region)
         S = self.backend.block_covariance(both, sizes)  # (B, 2, T, T)
         if criterion == "eig":
-            eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-            L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) / self.noise[:, None, None])
-            return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+            return information_nats(S, self.noise[:, None])
         region, rc, var = self._region(region)
         w = region.weight.to(var)
         kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
-        L = psd_safe_cholesky(_plus_noise(S, self.noise))
-        B = torch.linalg.solve_triangular(L, kb.mT, upper=False)  # (B, 2, T, N)
-        return ((var - B.pow(2).sum(-2)) * w).sum(-1) / self._prior_over(region)  # (B, 2)
+        return (variance_after(var, kb.mT, S, self.noise[:, None]) * w).sum(-1) / self._prior_over(region)  # (B, 2)
 
     def _score_root_batch(self, Z: Tensor, sizes: list[int], criterion: str, region: Region | None) -> Tensor:
         """The same scores in the root's F dimensions (fewer than a candidate's samples): with Z_i (T_i, F)
@@ -426,14 +398,6 @@ class ProbeScorer:
             hit = cache[id(region)] = (region, Zr.mT @ (w[:, None] * Zr))
         return hit[1]
 
-    def rank(self, candidates: Sequence, criterion: str = "variance",
-             region: Region | None = None) -> list[tuple[int, float]]:
-        """(index, score) pairs, best first."""
-        with torch.no_grad():
-            s = self.score(candidates, criterion, region).tolist()
-        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
-        return [(i, s[i]) for i in order]
-
     def condition(self, contacts) -> ProbeScorer:
         """The belief after observing the candidate's forces (whatever their values): a new scorer;
         this one and the model are unchanged."""
@@ -450,7 +414,7 @@ class ProbeScorer:
 
 
 # ---- averaged over a hyperparameter posterior ------------------------------------------------
-class MixtureScorer:
+class MixtureScorer(BeliefScorer):
     """Probe scores averaged over a hyperparameter posterior: one ``ProbeScorer`` per draw theta_s of a model
     fitted with ``hyper_posterior="laplace"`` (or ``"nuts"``), weights w_s, and
 
@@ -567,14 +531,6 @@ class MixtureScorer:
         candidates = list(candidates)
         return self._average([s.score(candidates, criterion, region, per_axis=True) for s in self._current()],
                              per_axis)
-
-    def rank(self, candidates: Sequence, criterion: str = "variance",
-             region: Region | None = None) -> list[tuple[int, float]]:
-        """(index, score) pairs, best first."""
-        with torch.no_grad():
-            s = self.score(candidates, criterion, region).tolist()
-        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
-        return [(i, s[i]) for i in order]
 
     def condition(self, contacts) -> MixtureScorer:
         """The belief after the candidate's forces (whatever their values) under every draw, same weights

@@ -12,7 +12,8 @@ with c over the maps (alpha_x, alpha_y, alpha_z), b(c) the block that sees map c
 the region's points theta_j (weights r_j), k_cj the posterior covariance between map c there and the candidate's
 block rows, and s_c the prior variance (with Li et al.'s term: s_c + v_c): IV is 3 for the prior and 0 for maps
 known exactly (alpha_y a constant: its variance, the same at every point). Every posterior number comes from the
-3-D backend (``gp.inverse3d.joint.BlockRows``); the scorer factors only the candidate's own matrices.
+3-D backend (``gp.inverse3d.joint.BlockRows``); the scorer factors only the candidate's own matrices, with the
+planar scorer's algebra (``design.belief``).
 
 Example:
     >>> scorer = ProbeScorer3D.from_model(model_3d)
@@ -25,13 +26,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from linear_operator.utils.cholesky import psd_safe_cholesky
 from torch import Tensor
 
 from ..gp.inverse3d import Backend3D, InverseRFT3D, point_contacts
 from ..gp.inverse3d.hyperparameters import BLOCKS
 from ..gp.inverse3d.joint import BlockRows
 from ..rft.contacts3d import Contacts3D
+from .belief import BeliefScorer, check_criterion, information_nats, variance_after
 from .region import Region
 
 __all__ = ["ProbeScorer3D"]
@@ -43,7 +44,7 @@ def _as_contacts(c) -> Contacts3D:
     return c
 
 
-class ProbeScorer3D:
+class ProbeScorer3D(BeliefScorer):
     """The belief of a 3-D model over alpha_x, alpha_y, alpha_z (a ``Backend3D`` at fixed hyperparameters), to
     score candidate ``Contacts3D`` by information gain or expected integrated map variance (module doc).
 
@@ -75,22 +76,6 @@ class ProbeScorer3D:
     @property
     def backend(self) -> Backend3D:
         return self._model.backend if self._model is not None else self._own
-
-    @property
-    def method(self) -> str:
-        return self.backend.name
-
-    @property
-    def outputscale(self) -> Tensor:
-        return self.backend.hypers.outputscale.detach()
-
-    @property
-    def prior_variance(self) -> Tensor:
-        return self.backend.hypers.prior_variance.detach()
-
-    @property
-    def noise(self) -> Tensor:
-        return self.backend.hypers.noise.detach()
 
     def _cast(self, c) -> Contacts3D:
         return _as_contacts(c).to(dtype=self.noise.dtype, device=self.noise.device)
@@ -125,13 +110,7 @@ class ProbeScorer3D:
         """EIG of observing the candidate's three force axes, nats: a scalar, or ``per_block`` (2,) = (horizontal:
         alpha_x and alpha_y through F_x and F_y; vertical: alpha_z through F_z)."""
         c = self._cast(contacts)
-        out = []
-        for b, S in enumerate(self.covariance(c)):
-            d = self._row_noise(b, len(c)).rsqrt()
-            eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-            L = psd_safe_cholesky(eye + d[:, None] * S * d[None, :])
-            out.append(torch.log(torch.diagonal(L)).sum())
-        eig = torch.stack(out)
+        eig = torch.stack([information_nats(S, self._row_noise(b, len(c))) for b, S in enumerate(self.covariance(c))])
         return eig if per_block else eig.sum()
 
     def integrated_variance(self, contacts=None, region: Region | None = None, per_map: bool = False) -> Tensor:
@@ -147,9 +126,7 @@ class ProbeScorer3D:
             var = rows.variance(0)
             if c is not None and len(c):
                 ext = rows.extended([c])
-                L = psd_safe_cholesky(ext.cov(1, 1) + torch.diag(self._row_noise(b, len(c))))
-                B = torch.linalg.solve_triangular(L, ext.cov(1, 0), upper=False)
-                var = var - B.pow(2).sum(0)
+                var = variance_after(var, ext.cov(1, 0), ext.cov(1, 1), self._row_noise(b, len(c)))
             out.append(var.reshape(len(BLOCKS[b].maps), N))
         iv = (torch.cat(out) * w).sum(-1) / self.prior_variance
         return iv if per_map else iv.sum()
@@ -157,23 +134,13 @@ class ProbeScorer3D:
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is better) or
         its information gain ("eig", nats, higher is better)."""
-        if criterion not in ("variance", "eig"):
-            raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
-        if criterion == "eig" and region is not None:
-            raise ValueError("region applies to criterion 'variance'; 'eig' is about the probe's own forces")
+        check_criterion(criterion, region)
         with torch.no_grad():
             if criterion == "eig":
                 vals = [self.information_gain(c) for c in candidates]
             else:
                 vals = [self.integrated_variance(c, region) for c in candidates]
         return torch.stack(vals) if vals else torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
-
-    def rank(self, candidates: Sequence, criterion: str = "variance",
-             region: Region | None = None) -> list[tuple[int, float]]:
-        """(index, score) pairs, best first."""
-        s = self.score(candidates, criterion, region).tolist()
-        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
-        return [(i, s[i]) for i in order]
 
     def condition(self, contacts) -> ProbeScorer3D:
         """The belief after observing the candidate's forces (whatever their values: the covariance does not

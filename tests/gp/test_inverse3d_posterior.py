@@ -190,3 +190,21 @@ def test_bad_arguments():
         m.add_data(c.planar(), f)
     with pytest.raises(ValueError, match=r"\(T, 3\)"):
         m.add_data(c, f[:, :2])
+
+
+def test_a_flat_hyperprior_is_said_to_make_the_posterior_improper_as_in_the_planar_model(problem):
+    """The 3-D model shares the planar hyperparameter-posterior mixin: without hyperparameter priors a Laplace
+    posterior warns that it is improper (the planar model's HyperPosteriorWarning), and its draws stay finite and
+    in the guard's bounds."""
+    from irft_torch.gp.hyper import guard
+    from irft_torch.gp.options import MapPrior
+
+    c, f = problem
+    m = InverseRFT3D(c, f, prior=MapPrior(mean="zero", hyperpriors=None))
+    _set(m, *HYPERS)
+    with pytest.warns(guard.HyperPosteriorWarning, match="hyperpriors=None.*improper"):
+        hp = m.fit_hyper_posterior("laplace", n_proposals=32, generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(hp.theta.exp()).all()
+    assert float(hp.covariance.diagonal().max()) <= guard.MAX_LOG_SD**2 * (1 + 1e-9)
+    post = m.stress_map(*query())
+    assert torch.isfinite(post.mean).all() and torch.isfinite(post.variance).all()

@@ -241,7 +241,8 @@ def _merge(theta: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
 
 def _weighted_moments(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     """Mean (P,) and covariance (P, P) (symmetric) of draws x (N, P) with non-negative weights w (N,)."""
-    C = torch.cov(x.mT, correction=0, aweights=w)
+    P = x.shape[-1]
+    C = torch.cov(x.mT, correction=0, aweights=w).reshape(P, P)  # (P, P) for one coordinate too (torch: 0-D)
     return (w[:, None] * x).sum(0) / w.sum(), 0.5 * (C + C.mT)
 
 

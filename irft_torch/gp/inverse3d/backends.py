@@ -158,6 +158,9 @@ class Backend3D(nn.Module):
     def _reset(self) -> None:
         """Forget what depends on the hyperparameters (cached factors)."""
 
+    def forget_draws(self) -> None:
+        """Drop what evaluating a batch of hyperparameter draws kept (nothing here)."""
+
     def with_hypers(self, hypers: RFT3DHyperparameters) -> Backend3D:
         """This backend at other hyperparameters (a hyperparameter posterior's draw): the data and whatever does
         not depend on the hyperparameters are shared (pairs table and data factors; spectral features wherever the

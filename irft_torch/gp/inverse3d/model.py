@@ -11,18 +11,18 @@ import math
 import warnings
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
+from ..hyper.predictions import HyperMixtureMixin
 from ..inputs import _check_dtype
 from ..kernels.priors import register_physical_priors  # K maps: the 3-D model's priors are the planar ones
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import Backend3D
-from .hyper_mixture import HyperMixture3DMixin
 from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .priors import data_scales_3d, prior_centres_3d
@@ -56,7 +56,7 @@ def _as_forces(forces, T: int, dtype, device) -> Tensor:
     return f
 
 
-class InverseRFT3D(HyperMixture3DMixin, nn.Module):
+class InverseRFT3D(HyperMixtureMixin):
     """3-D I-RFT: GP posteriors of alpha_x(beta, gamma), alpha_z(beta, gamma) and alpha_y (a third map over
     (beta, gamma), or a constant) from forces F[t] = sum_k W[t, k] alpha(theta[t, k]) + noise (docs/inverse3d.md).
 
@@ -410,11 +410,17 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
                 mean[s, test], cov[s, test] = ms, 0.5 * (cs + cs.mT)
         return Posterior.of_covariances(mean, cov, None if refit else weights)
 
+    def _at_mode(self) -> None:
+        """Where the hyperparameter posterior leaves the hyperparameters: the basis they need, which the draws'
+        backends start from (as a loaded model's do: save and load give the same mixture)."""
+        self.backend.refresh()
+
     def diagnostics(self, n: int = 21) -> dict:
         """Per map, the share of the canonical square where the posterior std is below half the prior's (what
         the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere. Under "kernel":
         the backend, the kernel's relative error bound per map (3,) (nonzero only where the spectral basis
-        approximates it: ``truncation_error``), the ``tol`` asked for and whether the bound is within it."""
+        approximates it: ``truncation_error``), the ``tol`` asked for and whether the bound is within it; with a
+        hyperparameter posterior whose draws need more harmonics than the cap, "draws" says how many."""
         b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
@@ -428,6 +434,9 @@ class InverseRFT3D(HyperMixture3DMixin, nn.Module):
         err = self.truncation_error()
         out["kernel"] = {"backend": self.backend.describe(), "truncation_error": err.tolist(), "tol": self.tol,
                          "within_tol": bool((err <= self.tol).all())}
+        hp = self.hyper_posterior
+        if hp is not None and "truncated" in hp.extra:
+            out["kernel"]["draws"] = hp.extra["truncated"]
         return out
 
     # ---- persistence -----------------------------------------------------------------------------------------------

@@ -84,6 +84,11 @@ class MapHyperparameters(Module):
         """(K,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
         return None if self.li is None else self.li.variance
 
+    def fixed_labels(self) -> list[str]:
+        """Labels of the coordinates no likelihood sees (a hyperparameter posterior leaves them where they are):
+        none here; a 3-D model's constant alpha_y has some."""
+        return []
+
 
 class RFTHyperparameters(MapHyperparameters):
     """Kernel, likelihood and (optional) physics mean of the two maps, with readable views.

@@ -1,0 +1,99 @@
+r"""What every probe scorer shares, planar (``design.scoring``, K = 2 maps) or 3-D (``design.scoring3d``, K = 3): the
+two criteria's algebra over a candidate's force rows, the belief's readable numbers, checking a criterion, ranking.
+
+For a candidate whose n force rows have posterior covariance S (noise not included, N^2) and noise variances D =
+diag(sigma_i^2), and a region's map points with current variance v_j and covariance C (n x N) with those rows:
+
+    EIG = 1/2 log | I + D^{-1/2} S D^{-1/2} |                      (``information_nats``, nats)
+    v_j after the candidate = v_j - [C^T (S + D)^{-1} C]_jj        (``variance_after``, ``variance_fall``)
+
+A planar model's rows are one force axis per map (a batch of K = 2); a 3-D model's are two blocks, (F_x; F_y) seeing
+alpha_x and alpha_y, F_z seeing alpha_z. Both scorers and the foothold planner (``design.footholds``) form S and C
+from their backends and call these.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from linear_operator.utils.cholesky import psd_safe_cholesky
+from torch import Tensor
+
+from .region import Region
+
+__all__ = ["BeliefScorer", "information_nats", "variance_fall", "variance_after", "check_criterion"]
+
+CRITERIA = ("variance", "eig")
+
+
+def information_nats(S: Tensor, noise: Tensor) -> Tensor:
+    """(...,) the information gain, nats, of observing rows with posterior covariance ``S`` (..., n, n) and noise
+    variances ``noise`` (..., n) (broadcast against S's rows)."""
+    d = noise.rsqrt().expand(S.shape[:-1])
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) * d[..., :, None] * d[..., None, :])
+    return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+
+
+def variance_fall(cross: Tensor, S: Tensor, noise: Tensor) -> Tensor:
+    """(..., N) how much the points' variance falls on observing the rows, diag(C^T (S + D)^{-1} C): ``cross``
+    (..., n, N) the rows' posterior covariance C with the points, ``S`` (..., n, n) the rows' own, ``noise`` (..., n)
+    their noise variances."""
+    nz = noise.expand(S.shape[:-1])
+    L = psd_safe_cholesky(0.5 * (S + S.mT) + torch.diag_embed(nz))
+    return torch.linalg.solve_triangular(L, cross, upper=False).pow(2).sum(-2)
+
+
+def variance_after(variance: Tensor, cross: Tensor, S: Tensor, noise: Tensor) -> Tensor:
+    """(..., N) the points' variance after observing the rows: ``variance`` (..., N) now, less ``variance_fall``."""
+    return variance - variance_fall(cross, S, noise)
+
+
+def check_criterion(criterion: str, region: Region | None) -> None:
+    """Refuse an unknown criterion, and a region with "eig" (the information is about the probe's own forces)."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be 'variance' or 'eig', got {criterion!r}")
+    if criterion == "eig" and region is not None:
+        raise ValueError("region applies to criterion 'variance' (the variance integrated over it); 'eig' is the "
+                         "information about the forces of the probe itself: pass region=None")
+
+
+class BeliefScorer:
+    """The part of a probe scorer that does not depend on the model's form: its belief's numbers (from
+    ``backend.hypers``, detached) and ``rank``. A subclass gives ``backend`` and ``score``."""
+
+    @property
+    def backend(self):
+        raise NotImplementedError
+
+    @property
+    def method(self) -> str:
+        """The belief's backend ("observations", "pairs", "spectral", ...)."""
+        return self.backend.name
+
+    @property
+    def outputscale(self) -> Tensor:
+        """(K,) the RBF kernel's variance of each map, (N/cm^3)^2."""
+        return self.backend.hypers.outputscale.detach()
+
+    @property
+    def prior_variance(self) -> Tensor:
+        """(K,) each map's prior variance, (N/cm^3)^2 (with Li et al.'s term, where the model has it)."""
+        return self.backend.hypers.prior_variance.detach()
+
+    @property
+    def noise(self) -> Tensor:
+        """(K,) the force noise variance of each axis, N^2."""
+        return self.backend.hypers.noise.detach()
+
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
+        raise NotImplementedError
+
+    def rank(self, candidates: Sequence, criterion: str = "variance",
+             region: Region | None = None) -> list[tuple[int, float]]:
+        """(index, score) pairs, best first (the lowest integrated variance, or the highest information gain)."""
+        with torch.no_grad():
+            s = self.score(candidates, criterion, region).tolist()
+        order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
+        return [(i, s[i]) for i in order]
