@@ -1,7 +1,8 @@
 """Can I-RFT learn sand from a rover wheel's own runs? Held-out levels on measured single-wheel data.
 
 Data: the measured rover-wheel runs and meshes (--data DIR, e.g. ../shared/data/rover_wheel; not
-shipped). Run time: 3-D (default) 22 min; --study planar 118 s (31 s with --no-nested-cv).
+shipped). Run time: 3-D (default) about 5 min (306 s, 2026-12-03); --study planar 118 s (31 s with
+--no-nested-cv).
 
     python experiments/validation/wheel_validation.py --data ../shared/data/rover_wheel [--out experiments/results]
         [--study 3d|planar|both]
