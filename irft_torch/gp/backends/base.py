@@ -164,10 +164,7 @@ class RFTBackend(nn.Module):
 
     def log_prior(self) -> Tensor:
         """Sum of the log densities of the hyperparameter priors registered on the shared modules."""
-        total = self.hypers.kernel.raw_outputscale.new_zeros(())
-        for _, module, prior, closure, _ in self.hypers.named_priors():
-            total = total + prior.log_prob(closure(module)).sum()
-        return total
+        return self.hypers.log_prior()
 
     def stale(self) -> bool:
         """Whether the current hyperparameters need ``refresh`` (the spectral basis too small)."""

@@ -97,10 +97,8 @@ class Backend3D(nn.Module):
         return self.negative_log_likelihood().sum() - self.log_prior() / max(self.n_samples, 1)
 
     def log_prior(self) -> Tensor:
-        total = self.hypers.kernel.raw_outputscale.new_zeros(())
-        for _, module, prior, closure, _ in self.hypers.named_priors():
-            total = total + prior.log_prob(closure(module)).sum()
-        return total
+        """Sum of the log densities of the hyperparameter priors registered on the shared modules."""
+        return self.hypers.log_prior()
 
     def posterior(self, c: Contacts3D, joint: bool = False):
         """Posterior of the weighted sums of c: (mean (T, 3), covariance (T, 3, 3)) per sample; with ``joint``,

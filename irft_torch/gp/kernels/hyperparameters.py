@@ -84,6 +84,13 @@ class MapHyperparameters(Module):
         """(K,) prior variances of Li et al.'s 9-function term per map, (N/cm^3)^2, or None without it."""
         return None if self.li is None else self.li.variance
 
+    def log_prior(self) -> Tensor:
+        """Sum of the log densities of the hyperparameter priors registered on these modules (0 without any)."""
+        total = self.kernel.raw_outputscale.new_zeros(())
+        for _, module, prior, closure, _ in self.named_priors():
+            total = total + prior.log_prob(closure(module)).sum()
+        return total
+
     def fixed_labels(self) -> list[str]:
         """Labels of the coordinates no likelihood sees (a hyperparameter posterior leaves them where they are):
         none here; a 3-D model's constant alpha_y has some."""
