@@ -425,14 +425,15 @@ class MixtureScorer(BeliefScorer):
 
     It answers what a ``ProbeScorer`` answers (``score``, ``rank``, ``information_gain``,
     ``integrated_variance``, ``condition``, ``map_variance``, ``covariance``), so ``greedy_design`` and
-    ``optimize_probe`` take it as they take a ``ProbeScorer``.
+    ``optimize_probe`` take it as they take a ``ProbeScorer``. A 3-D model's draws are ``ProbeScorer3D``s (their
+    per-axis scores: 3 maps for the variance, 2 blocks for the information gain).
 
     Args:
-        scorers: one ``ProbeScorer`` per draw.
-        weights: (S,) non-negative, summing to 1.
+        scorers: one ``ProbeScorer`` (or ``ProbeScorer3D``) per draw.
+        weights: (S,) non-negative, summing to 1 (a planar model's also (S, 2), per map).
     """
 
-    def __init__(self, scorers: Sequence[ProbeScorer], weights) -> None:
+    def __init__(self, scorers: Sequence, weights) -> None:
         scorers = list(scorers)
         if not scorers:
             raise ValueError("a MixtureScorer needs at least one scorer")
@@ -457,9 +458,18 @@ class MixtureScorer(BeliefScorer):
         return out
 
     @staticmethod
-    def _build(model, method, noise_scale, tol) -> tuple[list[ProbeScorer], Tensor]:
+    def _build(model, method, noise_scale, tol) -> tuple[list, Tensor]:
+        """One scorer per backend the model predicts with (a ``ProbeScorer``, or a ``ProbeScorer3D`` for a 3-D
+        model) and their weights."""
+        from ..gp.inverse3d import InverseRFT3D
+
         backends, weights = model._weighted_backends()
-        scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
+        if isinstance(model, InverseRFT3D):
+            from .scoring3d import ProbeScorer3D
+
+            scorers: list = [ProbeScorer3D(b) for b in backends]
+        else:
+            scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
         return scorers, weights if weights is not None else torch.ones(1, device=scorers[0].noise.device)
 
     @staticmethod
@@ -467,7 +477,7 @@ class MixtureScorer(BeliefScorer):
         draws = getattr(model, "_draw_backends", None)
         return (id(draws), None if draws is None else tuple(b.n_samples for b in draws))
 
-    def _current(self) -> list[ProbeScorer]:
+    def _current(self) -> list:
         if self._recipe is not None and self._state(self._recipe[0]) != self._draws_of:
             self.scorers, w = self._build(*self._recipe)
             self.weights = w.to(self.scorers[0].noise) / w.sum(0)
@@ -479,9 +489,9 @@ class MixtureScorer(BeliefScorer):
         return self.weights[:, None].expand(-1, 2) if self.weights.ndim == 1 else self.weights
 
     def _average(self, values: list[Tensor], per_axis: bool = True) -> Tensor:
-        """The weighted average of per-map values (..., 2) (each map with its own weights); with
-        ``per_axis`` False the average is summed over the maps."""
-        w = self._per_map().to(values[0])
+        """The weighted average of per-map values (..., K) (with weights per map, (S, 2): each map its own); with
+        ``per_axis`` False the average is summed over the last dimension."""
+        w = (self.weights if self.weights.ndim == 1 else self._per_map()).to(values[0])
         out = sum(wi * v for wi, v in zip(w, values))
         return out if per_axis else out.sum(-1)
 
@@ -492,27 +502,31 @@ class MixtureScorer(BeliefScorer):
 
     @property
     def noise(self) -> Tensor:
-        """(2,) the draws' force noise variances, weighted mean per map, N^2."""
+        """(K,) the draws' force noise variances, weighted mean per axis, N^2."""
         return self._average([s.noise for s in self._current()])
 
     @property
     def outputscale(self) -> Tensor:
-        """(2,) the draws' RBF variances, weighted mean per map, (N/cm^3)^2."""
+        """(K,) the draws' RBF variances, weighted mean per map, (N/cm^3)^2."""
         return self._average([s.outputscale for s in self._current()])
 
     @property
     def prior_variance(self) -> Tensor:
-        """(2,) the draws' prior map variances (with Li et al.'s term, if any), weighted mean per map, (N/cm^3)^2."""
+        """(K,) the draws' prior map variances (with Li et al.'s term, if any), weighted mean per map, (N/cm^3)^2."""
         return self._average([s.prior_variance for s in self._current()])
 
     @property
     def n_draws(self) -> int:
         return len(self._current())
 
-    def covariance(self, contacts) -> Tensor:
-        """(2, T, T) the draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2
-        (the spread of the draws' means is not included: scores depend on the covariances only)."""
+    def covariance(self, contacts):
+        """The draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2 (the spread of
+        the draws' means is not included: scores depend on the covariances only): (2, T, T), or for a 3-D model
+        its blocks [(2T, 2T) rows (F_x; F_y), (T, T) rows F_z]."""
         covs = [s.covariance(contacts) for s in self._current()]
+        if isinstance(covs[0], list):  # 3-D: one weight per draw
+            w3 = self.weights.to(covs[0][0])
+            return [sum(wi * c[b] for wi, c in zip(w3, covs)) for b in range(len(covs[0]))]
         w = self._per_map().to(covs[0])
         return sum(wi[:, None, None] * v for wi, v in zip(w, covs))
 
@@ -538,15 +552,29 @@ class MixtureScorer(BeliefScorer):
         return MixtureScorer([s.condition(contacts) for s in self._current()], self.weights)
 
     def map_variance(self, beta, gamma) -> Tensor:
-        """Current posterior variance of (alpha_x, alpha_z) at angles of broadcast shape S: the mixture's
-        total variance (the draws' variances and the spread of their means), S + (2,)."""
+        """Current posterior variance of the maps ((alpha_x, alpha_z), or a 3-D model's (alpha_x, alpha_y,
+        alpha_z)) at angles of broadcast shape S: the mixture's total variance (the draws' variances and the
+        spread of their means), S + (K,)."""
         scorers = self._current()
-        pts = Contacts.points(beta, gamma, dtype=scorers[0].noise.dtype, device=scorers[0].noise.device)
+        dtype, device = scorers[0].noise.dtype, scorers[0].noise.device
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
-        with torch.no_grad():
-            posts = [s.backend.posterior(pts) for s in scorers]
-        w = self._per_map().to(posts[0].mean)[:, :, None]  # (S, 2, 1) against (S, 2, N)
-        means = torch.stack([p.mean for p in posts])
-        second = (w * (torch.stack([p.variance for p in posts]) + means.pow(2))).sum(0)
+        if len(scorers[0].noise) == 3:  # 3-D: the backends' (N, 3) means and (N, 3, 3) covariances
+            from ..gp.inverse3d import point_contacts
+
+            b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=dtype, device=device),
+                                           torch.as_tensor(gamma, dtype=dtype, device=device))
+            with torch.no_grad():
+                posts = [s.backend.posterior(point_contacts(b, g)) for s in scorers]
+            means = torch.stack([m.T for m, _ in posts])  # (S, 3, N)
+            variances = torch.stack([torch.diagonal(c, dim1=-2, dim2=-1).T for _, c in posts])
+            w = self.weights.to(means)[:, None, None]
+        else:
+            pts = Contacts.points(beta, gamma, dtype=dtype, device=device)
+            with torch.no_grad():
+                planar = [s.backend.posterior(pts) for s in scorers]
+            means = torch.stack([p.mean for p in planar])  # (S, 2, N)
+            variances = torch.stack([p.variance for p in planar])
+            w = self._per_map().to(means)[:, :, None]  # (S, 2, 1) against (S, 2, N)
+        second = (w * (variances + means.pow(2))).sum(0)
         mean = (w * means).sum(0)
-        return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, 2)
+        return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, means.shape[1])

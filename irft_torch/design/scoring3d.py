@@ -34,6 +34,7 @@ from ..gp.inverse3d.joint import BlockRows
 from ..rft.contacts3d import Contacts3D
 from .belief import BeliefScorer, check_criterion, information_nats, variance_after
 from .region import Region
+from .scoring import MixtureScorer
 
 __all__ = ["ProbeScorer3D"]
 
@@ -49,8 +50,9 @@ class ProbeScorer3D(BeliefScorer):
     score candidate ``Contacts3D`` by information gain or expected integrated map variance (module doc).
 
     Build it with ``ProbeScorer3D.from_model(model)`` (``ProbeScorer.from_model`` of a 3-D model points here). A
-    model with a hyperparameter posterior is scored at its fitted (mode) hyperparameters. Scores are not
-    differentiable in the candidates (no gradient-based 3-D design yet).
+    model with a hyperparameter posterior (``hyper_posterior="laplace"``) gives a ``design.MixtureScorer`` instead:
+    one ``ProbeScorer3D`` per draw, every score the draws' weighted average. Scores are not differentiable in the
+    candidates (no gradient-based 3-D design yet).
 
     Attributes:
         outputscale: (3,) the kernel's variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
@@ -66,11 +68,14 @@ class ProbeScorer3D(BeliefScorer):
         self._cache: dict = {}
 
     @classmethod
-    def from_model(cls, model: InverseRFT3D) -> ProbeScorer3D:
-        """The posterior of a (fitted) ``InverseRFT3D``; the scorer follows the model (``add_data``, a refit)."""
+    def from_model(cls, model: InverseRFT3D) -> ProbeScorer3D | MixtureScorer:
+        """The posterior of a (fitted) ``InverseRFT3D``; the scorer follows the model (``add_data``, a refit). With a
+        hyperparameter posterior: a ``MixtureScorer`` over its draws."""
         if not isinstance(model, InverseRFT3D):
             raise TypeError(f"model must be an InverseRFT3D (a planar InverseRFT: design.ProbeScorer), got "
                             f"{type(model).__name__}")
+        if model._weighted_backends()[1] is not None:
+            return MixtureScorer.from_model(model)
         return cls(model.backend, model)
 
     @property
@@ -131,16 +136,21 @@ class ProbeScorer3D(BeliefScorer):
         iv = (torch.cat(out) * w).sum(-1) / self.prior_variance
         return iv if per_map else iv.sum()
 
-    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None) -> Tensor:
+    def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
+              per_axis: bool = False) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is better) or
-        its information gain ("eig", nats, higher is better)."""
+        its information gain ("eig", nats, higher is better); ``per_axis``: (n, 3) per map for "variance", (n, 2)
+        per block for "eig"."""
         check_criterion(criterion, region)
         with torch.no_grad():
             if criterion == "eig":
-                vals = [self.information_gain(c) for c in candidates]
+                vals = [self.information_gain(c, per_axis) for c in candidates]
             else:
-                vals = [self.integrated_variance(c, region) for c in candidates]
-        return torch.stack(vals) if vals else torch.zeros(0, dtype=self.noise.dtype, device=self.noise.device)
+                vals = [self.integrated_variance(c, region, per_axis) for c in candidates]
+        if vals:
+            return torch.stack(vals)
+        width = () if not per_axis else ((3,) if criterion == "variance" else (2,))
+        return torch.zeros(0, *width, dtype=self.noise.dtype, device=self.noise.device)
 
     def condition(self, contacts) -> ProbeScorer3D:
         """The belief after observing the candidate's forces (whatever their values: the covariance does not

@@ -126,3 +126,56 @@ def test_the_scorer_follows_the_model_and_refuses_what_does_not_apply():
 def _planar():
     c = irft.rft.contacts(irft.rft.CToe(0.02, 0.008), irft.rft.rectangle_path(n_steps=20))
     return c, irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
+
+
+def test_a_model_with_a_hyperparameter_posterior_is_scored_over_its_draws():
+    """ProbeScorer.from_model of a 3-D model with a Laplace posterior: a MixtureScorer whose scores are the draws'
+    weighted averages, each draw's computed from the dense reference at that draw's hyperparameters (information
+    gain from the candidate's explicit covariance, integrated variance from a dense model that has also seen it;
+    the map variance is the mixture's total variance, the spread of the draws' means included)."""
+    from irft_torch.design import MixtureScorer
+
+    c, f = turning_toe(T=10)
+    model = InverseRFT3D(c, f, method="pairs")
+    _set(model, LS, OS, NOISE)
+    model.backend.refresh()
+    model.fit_hyper_posterior("laplace", n_proposals=32, n_draws=4, generator=torch.Generator().manual_seed(0))
+    scorer = ProbeScorer.from_model(model)
+    assert isinstance(scorer, MixtureScorer) and scorer.n_draws == len(model._draw_backends) > 1
+    cand = turning_toe(T=8, seed=3)[0][2:7]
+    T = len(cand)
+    region = Region.square(4)
+    pts = point_contacts(region.beta, region.gamma)
+    N = region.beta.numel()
+    both = Contacts3D.cat([c, cand])
+    residual = model._residual(model.train_contacts, model.train_forces)  # what the backends are fitted on
+    eig = iv_now = iv_after = 0
+    means, variances = [], []
+    weights = model.hyper_posterior.weights.to(F64)
+    for w, backend in zip(weights, model._draw_backends):
+        h = backend.hypers
+        ls, os, noise = h.lengthscale.detach(), h.outputscale.detach(), h.noise.detach()
+        _, post = dense(c, residual, ls, os, noise, False)
+        _, S = post(cand)
+        d = noise.repeat_interleave(T).rsqrt()
+        eig = eig + w * 0.5 * torch.linalg.slogdet(torch.eye(3 * T, dtype=F64) + d[:, None] * S * d[None, :])[1]
+        mean, P = post(pts)
+        var = torch.diagonal(P).reshape(3, N)
+        means.append(mean)
+        variances.append(var.T)
+        iv_now = iv_now + w * (var * region.weight).sum(-1) / os
+        _, after = dense(both, torch.cat([residual, torch.zeros(T, 3, dtype=F64)]), ls, os, noise, False)
+        iv_after = iv_after + w * (torch.diagonal(after(pts)[1]).reshape(3, N) * region.weight).sum(-1) / os
+    mode = ProbeScorer3D(model.backend)  # the fitted hyperparameters alone: a different number (the draws matter)
+    assert (mode.integrated_variance(cand, region, per_map=True) - iv_after).abs().max() > 1e-2
+    torch.testing.assert_close(scorer.information_gain(cand), eig, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(scorer.integrated_variance(None, region, per_axis=True), iv_now, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(scorer.integrated_variance(cand, region, per_axis=True), iv_after, rtol=1e-6,
+                               atol=1e-9)
+    torch.testing.assert_close(scorer.score([cand, cand[:2]], "variance", region)[0], iv_after.sum(), rtol=1e-6,
+                               atol=1e-9)
+    m, v = torch.stack(means), torch.stack(variances)  # (S, N, 3)
+    wm = weights[:, None, None]
+    total = (wm * (v + m.pow(2))).sum(0) - (wm * m).sum(0).pow(2)
+    torch.testing.assert_close(scorer.map_variance(region.beta, region.gamma), total, rtol=1e-6, atol=1e-10)
+    assert [i for i, _ in scorer.rank([cand[:2], cand], "eig")] == [1, 0]
