@@ -59,6 +59,35 @@ def test_a_failed_save_leaves_the_previous_model_loadable(tmp_path, models, monk
     assert len(irft.InverseRFT.load(path).train_contacts) == len(small.train_contacts)
 
 
+def test_a_failed_3d_save_leaves_the_previous_model_loadable(tmp_path, monkeypatch):
+    """(was: InverseRFT3D.save wrote with torch.save in place: Ctrl-C or a full disk during a rewrite left a
+    truncated, unreadable file) the same failure halfway through: the old 3-D model loads with its own data, and
+    a folder is a clear error."""
+    from gp.test_inverse3d import turning_toe
+
+    c, f = turning_toe(T=8)
+    small = irft.InverseRFT(c[:4], f[:4], hyper_posterior="map")
+    big = irft.InverseRFT(c, f, hyper_posterior="map")
+    path = tmp_path / "m3.pt"
+    small.save(path)
+    before = path.read_bytes()
+    real = torch.save
+
+    def half_then_fail(obj, fh, *a, **k):
+        real(obj, fh, *a, **k)
+        fh.truncate(fh.tell() // 2)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", half_then_fail)
+    with pytest.raises(OSError, match="cannot save the model to .*the previous file, if any, is unchanged"):
+        big.save(path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and _no_temporaries(tmp_path)
+    assert len(irft.InverseRFT.load(path).train_contacts) == 4
+    with pytest.raises(SaveError, match="it is a folder; give a file name"):
+        small.save(tmp_path)
+
+
 def test_a_file_size_limit_leaves_the_previous_model_loadable(tmp_path, models):
     """ulimit -f (RLIMIT_FSIZE) below the new file's size, in a process of its own: the save fails with
     'File too large' and the old model still loads."""

@@ -13,6 +13,7 @@ import warnings
 import torch
 from torch import Tensor
 
+from ..._files import atomic_write
 from ...rft.contacts3d import Contacts3D
 from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
@@ -448,7 +449,9 @@ class InverseRFT3D(HyperMixtureMixin):
 
     def save(self, path) -> None:
         """Training data (after ``add_data``: all of it), options, hyperparameters and any hyperparameter
-        posterior's draws and weights in one file (``load`` rebuilds the model, predictions the same)."""
+        posterior's draws and weights in one file (``load`` rebuilds the model, predictions the same), written
+        atomically as the planar model's (``_files.atomic_write``: a full disk, Ctrl-C or a crash leaves the
+        previous file loadable; a folder or a missing folder is an ``OSError`` naming the path)."""
         payload = {"format": FORMAT_3D, "contacts": {k: v.cpu() for k, v in self.train_contacts.as_dict().items()},
                    "forces": self.train_forces.cpu(), "options": self._options(),
                    "hypers": {k: v.cpu() for k, v in self.hypers.state_dict().items()}}
@@ -456,7 +459,7 @@ class InverseRFT3D(HyperMixtureMixin):
             payload["hyper_posterior"] = self.hyper_posterior.state()
         if self.mean_scales is not None:
             payload["mean_scales"] = self.mean_scales.cpu()
-        torch.save(payload, path)
+        atomic_write(path, lambda fh: torch.save(payload, fh), "model")
 
     @classmethod
     def load(cls, path, map_location=None) -> InverseRFT3D:
