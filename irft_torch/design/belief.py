@@ -29,7 +29,7 @@ CRITERIA = ("variance", "eig")
 
 def information_nats(S: Tensor, noise: Tensor) -> Tensor:
     """(...,) the information gain, nats, of observing rows with posterior covariance ``S`` (..., n, n) and noise
-    variances ``noise`` (..., n) (broadcast against S's rows)."""
+    variances ``noise`` of each row, (..., n) or a shape that expands to it (one per batch item: (..., 1))."""
     d = noise.rsqrt().expand(S.shape[:-1])
     eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
     L = psd_safe_cholesky(eye + 0.5 * (S + S.mT) * d[..., :, None] * d[..., None, :])

@@ -1,5 +1,6 @@
 """Sequential design: pick probes one after another, each the best given the ones before (planar candidates
-with a ``ProbeScorer`` or ``MixtureScorer``, ``rft.Contacts3D`` candidates with a ``ProbeScorer3D``)."""
+with a ``ProbeScorer`` or ``MixtureScorer``, ``rft.Contacts3D`` candidates with a ``ProbeScorer3D`` or a 3-D
+model's ``MixtureScorer``)."""
 
 from __future__ import annotations
 
@@ -39,7 +40,8 @@ def greedy_design(scorer: ProbeScorer | MixtureScorer | ProbeScorer3D, candidate
     """
     if int(budget) != budget or budget < 0:
         raise ValueError(f"budget must be an integer >= 0, got {budget}")
-    cands = [(_as_contacts_3d if isinstance(scorer, ProbeScorer3D) else _as_contacts)(c) for c in candidates]
+    three_d = isinstance(scorer, ProbeScorer3D) or (isinstance(scorer, MixtureScorer) and scorer.three_d)
+    cands = [(_as_contacts_3d if three_d else _as_contacts)(c) for c in candidates]
     if budget > len(cands):
         warnings.warn(f"budget {budget} is more than the {len(cands)} candidate(s): the design has {len(cands)} "
                       f"step(s)", stacklevel=2)

@@ -187,9 +187,11 @@ class ProbeScorer(BeliefScorer):
         """
         from ..gp.inverse3d import InverseRFT3D
 
-        if isinstance(model, InverseRFT3D):  # a 3-D model: design.scoring3d (its own backend, fixed hyperparameters)
+        if isinstance(model, InverseRFT3D):  # a 3-D model: design.scoring3d (its own backends), over any draws
             if method is not None or noise_scale is not None or tol != "auto":
                 raise ValueError("a 3-D model is scored in its own backend: method, noise_scale and tol do not apply")
+            if model._weighted_backends()[1] is not None:
+                return MixtureScorer.from_model(model)
             from .scoring3d import ProbeScorer3D
 
             return ProbeScorer3D.from_model(model)
@@ -443,6 +445,9 @@ class MixtureScorer(BeliefScorer):
                 or not torch.isfinite(w).all() or (w < 0).any() or (w.sum(0) <= 0).any()):
             raise ValueError(f"weights must be {len(scorers)} non-negative finite numbers (or {len(scorers)} x 2, per "
                              f"map) with a positive sum, got shape {tuple(w.shape)}: {w.tolist()}")
+        if w.ndim == 2 and _three_d(scorers):
+            raise ValueError("weights per map (S x 2) are for a planar model's two maps; a 3-D model's draws take one "
+                             "weight each (S,)")
         self.scorers, self.weights = scorers, w / w.sum(0)
         self._recipe: tuple | None = None  # (model, method, noise_scale, tol) of ``from_model``
         self._draws_of: tuple | None = None  # the model's draws the scorers were built for (``_state``)
@@ -519,6 +524,11 @@ class MixtureScorer(BeliefScorer):
     def n_draws(self) -> int:
         return len(self._current())
 
+    @property
+    def three_d(self) -> bool:
+        """Whether the draws are a 3-D model's (``ProbeScorer3D``s: ``rft.Contacts3D`` candidates, 3 maps)."""
+        return _three_d(self._current())
+
     def covariance(self, contacts):
         """The draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2 (the spread of
         the draws' means is not included: scores depend on the covariances only): (2, T, T), or for a 3-D model
@@ -531,17 +541,20 @@ class MixtureScorer(BeliefScorer):
         return sum(wi[:, None, None] * v for wi, v in zip(w, covs))
 
     def information_gain(self, contacts, per_axis: bool = False) -> Tensor:
-        """Expected information gain averaged over the draws, nats (scalar, or (2,) per map)."""
+        """Expected information gain averaged over the draws, nats (scalar, or (2,) per map; a 3-D model's per
+        block)."""
         return self._average([s.information_gain(contacts, True) for s in self._current()], per_axis)
 
     def integrated_variance(self, contacts=None, region: Region | None = None, per_axis: bool = False) -> Tensor:
         """Expected integrated map variance after the candidate (now, if None), averaged over the draws
-        (each draw's map variance divided by its own prior variance: 2 = the prior, 0 = known)."""
+        (each draw's map variance divided by its own prior variance: 2 = the prior (3 in 3-D), 0 = known;
+        ``per_axis``: per map)."""
         return self._average([s.integrated_variance(contacts, region, True) for s in self._current()], per_axis)
 
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
               per_axis: bool = False) -> Tensor:
-        """Scores (n,) averaged over the draws (see ``ProbeScorer.score``); ``per_axis``: (n, 2)."""
+        """Scores (n,) averaged over the draws (see ``ProbeScorer.score``); ``per_axis``: (n, 2) (a 3-D model's
+        variance: (n, 3), per map)."""
         candidates = list(candidates)
         return self._average([s.score(candidates, criterion, region, per_axis=True) for s in self._current()],
                              per_axis)
@@ -558,7 +571,7 @@ class MixtureScorer(BeliefScorer):
         scorers = self._current()
         dtype, device = scorers[0].noise.dtype, scorers[0].noise.device
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
-        if len(scorers[0].noise) == 3:  # 3-D: the backends' (N, 3) means and (N, 3, 3) covariances
+        if _three_d(scorers):  # the backends' (N, 3) means and (N, 3, 3) covariances
             from ..gp.inverse3d import point_contacts
 
             b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=dtype, device=device),
@@ -578,3 +591,10 @@ class MixtureScorer(BeliefScorer):
         second = (w * (variances + means.pow(2))).sum(0)
         mean = (w * means).sum(0)
         return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, means.shape[1])
+
+
+def _three_d(scorers: Sequence) -> bool:
+    """Whether the scorers are a 3-D model's (``design.scoring3d.ProbeScorer3D``)."""
+    from .scoring3d import ProbeScorer3D
+
+    return isinstance(scorers[0], ProbeScorer3D)

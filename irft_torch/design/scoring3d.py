@@ -34,7 +34,6 @@ from ..gp.inverse3d.joint import BlockRows
 from ..rft.contacts3d import Contacts3D
 from .belief import BeliefScorer, check_criterion, information_nats, variance_after
 from .region import Region
-from .scoring import MixtureScorer
 
 __all__ = ["ProbeScorer3D"]
 
@@ -49,10 +48,10 @@ class ProbeScorer3D(BeliefScorer):
     """The belief of a 3-D model over alpha_x, alpha_y, alpha_z (a ``Backend3D`` at fixed hyperparameters), to
     score candidate ``Contacts3D`` by information gain or expected integrated map variance (module doc).
 
-    Build it with ``ProbeScorer3D.from_model(model)`` (``ProbeScorer.from_model`` of a 3-D model points here). A
-    model with a hyperparameter posterior (``hyper_posterior="laplace"``) gives a ``design.MixtureScorer`` instead:
-    one ``ProbeScorer3D`` per draw, every score the draws' weighted average. Scores are not differentiable in the
-    candidates (no gradient-based 3-D design yet).
+    Build it with ``ProbeScorer.from_model(model)``: a 3-D model gives this scorer, or with a hyperparameter
+    posterior (``hyper_posterior="laplace"``) a ``design.MixtureScorer`` of one ``ProbeScorer3D`` per draw, every
+    score the draws' weighted average. ``ProbeScorer3D.from_model(model)`` scores at the fitted hyperparameters
+    alone. Scores are not differentiable in the candidates (no gradient-based 3-D design yet).
 
     Attributes:
         outputscale: (3,) the kernel's variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
@@ -68,14 +67,12 @@ class ProbeScorer3D(BeliefScorer):
         self._cache: dict = {}
 
     @classmethod
-    def from_model(cls, model: InverseRFT3D) -> ProbeScorer3D | MixtureScorer:
-        """The posterior of a (fitted) ``InverseRFT3D``; the scorer follows the model (``add_data``, a refit). With a
-        hyperparameter posterior: a ``MixtureScorer`` over its draws."""
+    def from_model(cls, model: InverseRFT3D) -> ProbeScorer3D:
+        """The posterior of a (fitted) ``InverseRFT3D`` at its fitted hyperparameters; the scorer follows the model
+        (``add_data``, a refit). Over a hyperparameter posterior's draws: ``ProbeScorer.from_model``."""
         if not isinstance(model, InverseRFT3D):
             raise TypeError(f"model must be an InverseRFT3D (a planar InverseRFT: design.ProbeScorer), got "
                             f"{type(model).__name__}")
-        if model._weighted_backends()[1] is not None:
-            return MixtureScorer.from_model(model)
         return cls(model.backend, model)
 
     @property

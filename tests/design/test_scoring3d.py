@@ -179,3 +179,47 @@ def test_a_model_with_a_hyperparameter_posterior_is_scored_over_its_draws():
     total = (wm * (v + m.pow(2))).sum(0) - (wm * m).sum(0).pow(2)
     torch.testing.assert_close(scorer.map_variance(region.beta, region.gamma), total, rtol=1e-6, atol=1e-10)
     assert [i for i, _ in scorer.rank([cand[:2], cand], "eig")] == [1, 0]
+
+
+def test_greedy_design_takes_a_3d_model_over_its_draws():
+    """greedy_design with the MixtureScorer of a 3-D model with a Laplace posterior: 3-D candidates accepted (they
+    were sent down the planar path), each pick the best on the conditioned mixture, and the picks' information
+    gains adding up to the mixture's joint gain (each draw's chain rule, the weights held)."""
+    c, f = turning_toe(T=10)
+    model = InverseRFT3D(c, f, method="pairs")
+    _set(model, LS, OS, NOISE)
+    model.backend.refresh()
+    model.fit_hyper_posterior("laplace", n_proposals=32, n_draws=4, generator=torch.Generator().manual_seed(0))
+    scorer = ProbeScorer.from_model(model)
+    assert scorer.three_d
+    cands = [turning_toe(T=4, seed=s)[0] for s in (11, 12, 13)]
+    steps = greedy_design(scorer, cands, budget=2, criterion="eig")
+    current = scorer
+    for k, s in enumerate(steps):
+        left = [i for i in range(3) if i not in [t.index for t in steps[:k]]]
+        scores = current.score([cands[i] for i in left], "eig")
+        assert left[int(scores.argmax())] == s.index
+        current = current.condition(cands[s.index])
+    joint = scorer.score([Contacts3D.cat([cands[s.index] for s in steps])], "eig")[0]
+    torch.testing.assert_close(torch.tensor(sum(s.score for s in steps), dtype=F64), joint.to(F64), rtol=1e-7,
+                               atol=1e-10)
+    with pytest.raises(ValueError, match="3-D model's draws take one weight each"):
+        type(scorer)(scorer.scorers, torch.ones(len(scorer.scorers), 2))
+
+
+def test_the_3d_diagnostics_count_the_draws_whose_kernel_is_truncated():
+    """diagnostics()["kernel"]["draws_truncated"]: every draw of a spectral model capped at 2 harmonics per angle
+    is truncated beyond tol (each draw's own bound says so), none with the default cap."""
+    from irft_torch.gp.options import Engine
+
+    c, f = turning_toe(T=10)
+    for cap, expect_all in ((2, True), (30, False)):
+        model = InverseRFT3D(c, f, engine=Engine("spectral", tol=1e-7, max_harmonics=cap))
+        _set(model, LS, OS, NOISE)
+        model.backend.refresh()
+        model.fit_hyper_posterior("laplace", n_proposals=16, n_draws=4, generator=torch.Generator().manual_seed(0))
+        S = len(model._draw_backends)
+        bounds = [float(b.truncation_error().max()) for b in model._draw_backends]
+        assert all(e > 1e-7 for e in bounds) if expect_all else all(e <= 1e-7 for e in bounds)
+        got = model.diagnostics()["kernel"]["draws_truncated"]
+        assert got == (f"{S} of {S}" if expect_all else f"0 of {S}")

@@ -585,3 +585,22 @@ def test_nuts_says_when_pyro_does_not_take_the_laplace_metric(fitted, monkeypatc
     monkeypatch.undo()
     hp = hyper_nuts.nuts(m.backend, n_samples=10, warmup=10, free=["outputscale_z"], processes=1)
     assert hp.extra["metric"] == "laplace"
+
+
+def test_weighted_moments_of_one_coordinate_are_a_one_by_one_covariance():
+    """The importance stages' weighted mean and covariance (P,), (P, P), also for P = 1 (torch.cov returns 0-D
+    there), against the weighted mean and variance written out."""
+    from irft_torch.gp.hyper.importance import _weighted_moments
+
+    g = torch.Generator().manual_seed(0)
+    for P in (1, 3):
+        x = torch.randn(50, P, generator=g, dtype=torch.float64)
+        w = torch.rand(50, generator=g, dtype=torch.float64)
+        mean, cov = _weighted_moments(x, w)
+        wn = w / w.sum()
+        want_mean = (wn[:, None] * x).sum(0)
+        d = x - want_mean
+        assert mean.shape == (P,) and cov.shape == (P, P)
+        torch.testing.assert_close(mean, want_mean, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(cov, (wn[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0), rtol=1e-10,
+                                   atol=1e-14)

@@ -21,9 +21,6 @@ from .guard import HyperPosteriorWarning, said_once
 from .nuts import nuts
 from .posterior import HYPER_POSTERIORS, HyperPosterior, draw_hypers, hyper_spec, laplace
 
-if TYPE_CHECKING:
-    pass
-
 __all__ = ["HyperMixtureMixin", "backends_at_draws", "posterior_over_hypers"]
 
 # what a hyperparameter posterior without priors warns (measured: experiments/validation/wheel_validation.py

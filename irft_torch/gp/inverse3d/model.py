@@ -421,7 +421,7 @@ class InverseRFT3D(HyperMixtureMixin):
         the forces constrain); a ``UserWarning`` for a map the forces do not constrain anywhere. Under "kernel":
         the backend, the kernel's relative error bound per map (3,) (nonzero only where the spectral basis
         approximates it: ``truncation_error``), the ``tol`` asked for and whether the bound is within it; with a
-        hyperparameter posterior whose draws need more harmonics than the cap, "draws" says how many."""
+        hyperparameter posterior, "draws_truncated": how many of its draws' kernels are truncated beyond ``tol``."""
         b = torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=self.dtype, device=self.hypers.outputscale.device)
         beta, gamma = torch.meshgrid(b, b, indexing="ij")
         post = self.stress_map(beta, gamma)
@@ -435,9 +435,9 @@ class InverseRFT3D(HyperMixtureMixin):
         err = self.truncation_error()
         out["kernel"] = {"backend": self.backend.describe(), "truncation_error": err.tolist(), "tol": self.tol,
                          "within_tol": bool((err <= self.tol).all())}
-        hp = self.hyper_posterior
-        if hp is not None and "truncated" in hp.extra:
-            out["kernel"]["draws"] = hp.extra["truncated"]
+        if self._draw_backends is not None:  # the hyperparameter draws whose kernel the basis truncates beyond tol
+            cut = sum(float(b.truncation_error().max()) > self.tol for b in self._draw_backends)
+            out["kernel"]["draws_truncated"] = f"{cut} of {len(self._draw_backends)}"
         return out
 
     # ---- persistence -----------------------------------------------------------------------------------------------
