@@ -9,8 +9,7 @@ import torch
 
 from irft_torch.gp.hyper.posterior import hyper_spec
 from irft_torch.gp.inverse3d import InverseRFT3D, point_contacts
-from irft_torch.gp.inverse3d.priors import data_scales_3d, prior_centres_3d
-from irft_torch.gp.kernels.priors import OUTPUTSCALE_LOG_SD
+from irft_torch.gp.kernels.priors import OUTPUTSCALE_LOG_SD, data_scales_3d, prior_centres_3d
 
 from .test_inverse3d import _set, dense, per_sample, turning_toe
 

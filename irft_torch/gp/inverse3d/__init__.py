@@ -2,7 +2,7 @@
 
 ``InverseRFT3D`` (built by ``irft.InverseRFT`` when given a ``Contacts3D``), its hyperparameters and block
 structure (``hyperparameters``), the backends (``backends``: observations, pairs; ``spectral``; chosen by
-``select``) and the physical priors (``priors``). docs/inverse3d.md.
+``select``); its physical priors are the planar module's (``gp.kernels.priors``, K = 3). docs/inverse3d.md.
 """
 
 from .backends import Backend3D, Observations3D, Pairs3D

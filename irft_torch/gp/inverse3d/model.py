@@ -20,13 +20,12 @@ from ..fit_control import FitDivergedWarning, adam, converged, copy_into, diverg
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
 from ..inputs import _check_dtype
-from ..kernels.priors import register_physical_priors  # K maps: the 3-D model's priors are the planar ones
+from ..kernels.priors import data_scales_3d, prior_centres_3d, register_physical_priors  # K maps, one module
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import Backend3D
 from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
-from .priors import data_scales_3d, prior_centres_3d
 from .select import METHODS_3D, make_backend_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
@@ -75,7 +74,7 @@ class InverseRFT3D(HyperMixtureMixin):
             ``model.mean_scales``), alpha_y's is zero: where the forces do not constrain a map, predictions fall
             back on the scaled generic medium instead of zero; "physics_alpha_y": alpha_y too (its shape the
             generic alpha_x(0, 0)); "zero": every map zero-mean. Why "physics": the rover wheels' held-out forces
-            (docs/inverse3d.md). ``hyperpriors``: "physical" (default, ``gp.inverse3d.priors``) or None;
+            (docs/inverse3d.md). ``hyperpriors``: "physical" (default, ``gp.kernels.priors``) or None;
             ``lengthscale``: the initial lengthscale. Every lengthscale stays above ``LENGTHSCALE_FLOOR_3D`` = 0.21
             (``gp.inverse3d.hyperparameters``: the finest features measured media show; the default spectral basis is
             exact to ``tol`` above it).
@@ -163,7 +162,7 @@ class InverseRFT3D(HyperMixtureMixin):
             self.hypers.outputscale = centres["outputscale"].to(dtype)
             self.hypers.lengthscale = torch.full((3, 1, 4), float(lengthscale), dtype=dtype)
             self.hypers.noise = centres["noise"].to(dtype)
-            if li_basis:  # its prior's centre (``gp.inverse3d.priors``)
+            if li_basis:  # its prior's centre (``gp.kernels.priors``)
                 self.hypers.li.variance = self.hypers.outputscale
         if priors == "physical":
             register_physical_priors(self.hypers, centres)

@@ -67,6 +67,12 @@ MAP taken in log space (no Jacobian term, so the mode is the centre):
 The priors carry no state: their centres are recomputed from the training data whenever a model
 is built (a model file rebuilds the model from its data and the option ``priors``), and their
 buffers are left out of state dicts.
+
+**3-D models** (``gp.inverse3d``, K = 3 maps: alpha_x, alpha_y, alpha_z): the same priors with the third map added
+(``prior_centres_3d``): the outputscale centre as above with zeta the generic map's least-squares scale on all three
+force axes (3-D RFT with alpha_y = alpha_x(0, 0), the rover-wheel authors' form) and rms_c (0.209, 0.136, 0.381)
+(alpha_y's the constant's), s_c per map from ``data_scales_3d``; lengthscales, noise and Li et al.'s term as planar;
+``register_physical_priors`` registers them for any K.
 """
 
 from __future__ import annotations
@@ -80,11 +86,13 @@ from gpytorch.priors import NormalPrior
 from torch import Tensor
 
 from ...rft.contacts import Contacts
+from ...rft.contacts3d import Contacts3D
 from ...rft.forces import forces as rft_forces
+from ...rft.forces3d import forces_3d
 from ...rft.stress_maps import FourierStressMap
 
-__all__ = ["PRIORS", "GENERIC_RMS", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale", "prior_centres",
-           "centres_of_sums",
+__all__ = ["PRIORS", "GENERIC_RMS", "GENERIC_RMS_3D", "LENGTHSCALE_CENTRE", "CentreSums", "medium_scale",
+           "prior_centres", "centres_of_sums", "data_scales_3d", "prior_centres_3d",
            "register_physical_priors", "register_spatial_priors", "residual_terms", "spatial_lengthscale_centre"]
 
 PRIORS = ("physical", None)
@@ -303,3 +311,42 @@ def register_spatial_priors(hypers, lengthscale_centre: float) -> None:
 
 def _log_spatial_variance_ratio(m, c):
     return m.outputscale.log() - c
+
+
+# ---- 3-D models (K = 3 maps) ---------------------------------------------------------------------------------------
+GENERIC_RMS_3D = (GENERIC_RMS[0], 0.136, GENERIC_RMS[1])  # alpha_x, alpha_y (= alpha_x(0, 0)), alpha_z
+
+
+def data_scales_3d(c: Contacts3D, f: Tensor) -> tuple[Tensor, Tensor]:
+    """The data's force scale (3,) N (rms per axis) and stress-per-depth scale (3,) N/cm^3 per map: the rms of
+    the forces the map feeds over the rms of its summed |weights| (a map no force sees takes alpha_x's)."""
+    fs = f.pow(2).mean(0).sqrt().clamp_min(1e-300)
+    fxy = f[:, :2].pow(2).sum(-1).mean().sqrt()
+
+    def per_map(w):
+        s = w.abs().sum(1).pow(2).sum(-1).mean().sqrt() if w.ndim == 3 else w.abs().sum(1).pow(2).mean().sqrt()
+        return s
+
+    sx, sy, sz = per_map(c.weight_x), per_map(c.weight_y), per_map(c.weight_z)
+    mx = fxy / sx.clamp_min(1e-300)
+    my = fxy / sy if float(sy) > 0 else mx
+    mz = fs[2] / sz.clamp_min(1e-300)
+    return fs, torch.stack([mx, my, mz]).clamp_min(1e-300)
+
+
+def medium_scale_3d(c: Contacts3D, f: Tensor) -> float:
+    """Least-squares zeta of the generic map (alpha_y = alpha_x(0, 0)) on all three axes; 0 if it does not
+    project positively."""
+    g = forces_3d(FourierStressMap.generic().to(c.beta.dtype), c)
+    den = float(g.pow(2).sum())
+    return max(float((f * g).sum()) / den, 0.0) if den > 0 else 0.0
+
+
+def prior_centres_3d(c: Contacts3D, f: Tensor, map_scale: Tensor, noise_floor: float) -> dict:
+    rms = torch.tensor(GENERIC_RMS_3D, dtype=f.dtype, device=f.device)
+    ms = map_scale.to(rms)
+    fallback = float((ms / rms).max())
+    zeta = max(medium_scale_3d(c, f), 0.1 * fallback)
+    sigma = torch.maximum(torch.maximum(zeta * rms, ms), JOINT_FRACTION * fallback * rms)
+    noise = (NOISE_RELATIVE * f.pow(2).mean(0)).clamp_min(noise_floor * 10)
+    return {"zeta": zeta, "outputscale": sigma.pow(2), "lengthscale": LENGTHSCALE_CENTRE, "noise": noise}
