@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 
 from ..gp.inverse3d import Backend3D, InverseRFT3D, point_contacts
-from ..gp.inverse3d.hyperparameters import BLOCKS
 from ..gp.inverse3d.joint import BlockRows
+from ..gp.inverse3d.rows import BLOCKS
 from ..rft.contacts3d import Contacts3D
 from .belief import BeliefScorer, check_criterion, information_nats, variance_after
 from .region import Region

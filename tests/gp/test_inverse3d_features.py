@@ -5,8 +5,7 @@ sum_k w_k psi(2 beta_k) x psi(gamma_k) element by element, with repeated angle p
 import torch
 
 from irft_torch.gp.inverse3d.features import SpectralFeatureBank, _distinct_pairs, merged_rows, spectral_features
-from irft_torch.gp.inverse3d.hyperparameters import BLOCKS
-from irft_torch.gp.inverse3d.rows import block_rows
+from irft_torch.gp.inverse3d.rows import BLOCKS, block_rows
 from irft_torch.gp.kernels.fourier import FourierBasis, fourier_features
 from irft_torch.rft import Contacts3D
 

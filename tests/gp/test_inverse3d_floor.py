@@ -1,4 +1,4 @@
-"""The 3-D lengthscale floor (``gp.inverse3d.hyperparameters.LENGTHSCALE_FLOOR_3D``): at the floor the default
+"""The 3-D lengthscale floor (``gp.kernels.hyperparameters.LENGTHSCALE_FLOOR_3D``): at the floor the default
 spectral kernel is the dense RBF to its tolerance (no truncation by the harmonics cap), and a model file written
 with the former floor (0.05) loads with the lengthscales it was saved with."""
 
@@ -9,7 +9,7 @@ import math
 import torch
 
 from irft_torch.gp.inverse3d import InverseRFT3D
-from irft_torch.gp.inverse3d.hyperparameters import LENGTHSCALE_FLOOR_3D
+from irft_torch.gp.kernels.hyperparameters import LENGTHSCALE_FLOOR_3D
 
 from .test_inverse3d import dense, turning_toe
 

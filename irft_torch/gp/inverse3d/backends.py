@@ -41,11 +41,11 @@ from torch import Tensor, nn
 from ...rft.contacts3d import Contacts3D
 from ..backends.weight_space import data_factor_from_rows
 from ..kernels.embedding import embed_angles, rbf
+from ..kernels.hyperparameters import RFT3DHyperparameters
 from ..kernels.li_basis import li_features, weighted_li_features
 from ..kernels.operators import RFTKernelLinearOperator, unique_pairs
 from .features import SpectralFeatureBank, spectral_features
-from .hyperparameters import BLOCKS, RFT3DHyperparameters
-from .rows import block_rows, block_targets
+from .rows import BLOCKS, block_rows, block_targets
 
 __all__ = ["Backend3D", "Observations3D", "WeightSpace3D", "Pairs3D", "block_rows", "block_targets",
            "SpectralFeatureBank", "spectral_features"]

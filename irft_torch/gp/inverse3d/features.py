@@ -12,8 +12,7 @@ from torch import Tensor
 from ...rft.contacts3d import Contacts3D
 from ..kernels.fourier import FourierBasis
 from ..kernels.operators import unique_pairs
-from .hyperparameters import BLOCKS
-from .rows import block_rows
+from .rows import BLOCKS, block_rows
 
 __all__ = ["spectral_features", "merged_rows", "MergedRows", "SpectralFeatureBank", "BankRows", "union_basis"]
 

@@ -21,8 +21,7 @@ from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
 from .backends import Backend3D, Observations3D, Pairs3D, WeightSpace3D, _OffTable, table_columns
-from .hyperparameters import BLOCKS
-from .rows import block_rows
+from .rows import BLOCKS, block_rows
 
 __all__ = ["BlockRows", "joint_block_posterior"]
 

@@ -20,11 +20,12 @@ from ..fit_control import FitDivergedWarning, adam, converged, copy_into, diverg
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
 from ..inputs import _check_dtype
+from ..kernels.hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, RFT3DHyperparameters
+from ..kernels.hyperparameters import MAPS_3D as MAPS
 from ..kernels.priors import data_scales_3d, prior_centres_3d, register_physical_priors  # K maps, one module
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import Backend3D
-from .hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS, RFT3DHyperparameters
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
 from .select import METHODS_3D, make_backend_3d
 
@@ -76,7 +77,7 @@ class InverseRFT3D(HyperMixtureMixin):
             generic alpha_x(0, 0)); "zero": every map zero-mean. Why "physics": the rover wheels' held-out forces
             (docs/inverse3d.md). ``hyperpriors``: "physical" (default, ``gp.kernels.priors``) or None;
             ``lengthscale``: the initial lengthscale. Every lengthscale stays above ``LENGTHSCALE_FLOOR_3D`` = 0.21
-            (``gp.inverse3d.hyperparameters``: the finest features measured media show; the default spectral basis is
+            (``gp.kernels.hyperparameters``: the finest features measured media show; the default spectral basis is
             exact to ``tol`` above it).
         hyper_posterior: "map" (default: predict at the fitted hyperparameters), "laplace" or "nuts": ``fit``
             then also fits the posterior over the hyperparameters (``fit_hyper_posterior``, the planar
@@ -127,7 +128,7 @@ class InverseRFT3D(HyperMixtureMixin):
         _check_dtype(dtype)
         if not (math.isfinite(lengthscale) and lengthscale > LENGTHSCALE_FLOOR_3D):
             raise ValueError(f"lengthscale must be a finite value > {LENGTHSCALE_FLOOR_3D} (the 3-D lengthscale floor, "
-                             f"gp.inverse3d.hyperparameters), got {lengthscale}")
+                             f"gp.kernels.hyperparameters), got {lengthscale}")
         T = len(contacts)
         if T < 2:
             raise ValueError(f"need at least 2 force observations, got {T}")

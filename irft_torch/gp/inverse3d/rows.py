@@ -1,14 +1,39 @@
-"""The rows of a 3-D block: each block's force axes stacked axis-major, with the weights of its maps."""
+"""How a 3-D model's covariance splits into two independent blocks, and the rows of a block: each block's force
+axes stacked axis-major, with the weights of its maps.
+
+The blocks (docs/inverse3d.md): F_z sees alpha_z only; F_x and F_y both see alpha_x (through the element's
+in-plane direction u) and alpha_y (through e1). So the force covariance is block diagonal,
+
+    horizontal (rows F_x then F_y, 2T):  sum_{c in x, y} W_hc K_c W_hc^T + diag(sigma_x^2 I, sigma_y^2 I)
+    vertical   (rows F_z, T):            W_z K_z W_z^T + sigma_z^2 I
+
+and the planar model is the special case where the F_y rows see no map (they add only their own noise term).
+"""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
-from .hyperparameters import Block
 
-__all__ = ["block_rows", "block_targets"]
+__all__ = ["Block", "BLOCKS", "block_rows", "block_targets"]
+
+
+@dataclass(frozen=True)
+class Block:
+    """One independent block of the force covariance: the maps it sees and the force axes of its rows (each
+    axis a group of T rows, in this order, with its own noise variance)."""
+
+    name: str
+    maps: tuple[int, ...]
+    axes: tuple[int, ...]
+
+
+BLOCKS = (Block("horizontal", (0, 1), (0, 1)), Block("vertical", (2,), (2,)))
+
 
 
 def block_rows(c: Contacts3D, block: Block) -> tuple[Tensor, Tensor, list[Tensor]]:

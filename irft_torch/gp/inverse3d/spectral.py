@@ -13,7 +13,7 @@ from ..kernels.fourier import MAX_HARMONICS, FourierBasis
 from ..kernels.li_basis import li_index, with_li_functions
 from .backends import WeightSpace3D
 from .features import BankRows, SpectralFeatureBank, union_basis
-from .hyperparameters import BLOCKS
+from .rows import BLOCKS
 
 __all__ = ["Spectral3D"]
 
