@@ -45,6 +45,7 @@ from ..gp.backends import RFTBackend, make_backend
 from ..gp.backends.base import split_blocks
 from ..gp.backends.observations import PriorBackend
 from ..gp.backends.select import ALIASES
+from ..gp.hyper.mixture import mixture_moments
 from ..gp.kernels.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
 from .belief import BeliefScorer, check_criterion, information_nats, variance_after
@@ -567,30 +568,26 @@ class MixtureScorer(BeliefScorer):
     def map_variance(self, beta, gamma) -> Tensor:
         """Current posterior variance of the maps ((alpha_x, alpha_z), or a 3-D model's (alpha_x, alpha_y,
         alpha_z)) at angles of broadcast shape S: the mixture's total variance (the draws' variances and the
-        spread of their means), S + (K,)."""
+        spread of their means, ``gp.hyper.mixture.mixture_moments``), S + (K,)."""
         scorers = self._current()
         dtype, device = scorers[0].noise.dtype, scorers[0].noise.device
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
-        if _three_d(scorers):  # the backends' (N, 3) means and (N, 3, 3) covariances
-            from ..gp.inverse3d import point_contacts
+        with torch.no_grad():
+            if _three_d(scorers):  # the backends' (N, 3) means and (N, 3, 3) covariances
+                from ..gp.inverse3d import point_contacts
 
-            b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=dtype, device=device),
-                                           torch.as_tensor(gamma, dtype=dtype, device=device))
-            with torch.no_grad():
+                b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=dtype, device=device),
+                                               torch.as_tensor(gamma, dtype=dtype, device=device))
                 posts = [s.backend.posterior(point_contacts(b, g)) for s in scorers]
-            means = torch.stack([m.T for m, _ in posts])  # (S, 3, N)
-            variances = torch.stack([torch.diagonal(c, dim1=-2, dim2=-1).T for _, c in posts])
-            w = self.weights.to(means)[:, None, None]
-        else:
-            pts = Contacts.points(beta, gamma, dtype=dtype, device=device)
-            with torch.no_grad():
+                means = torch.stack([m for m, _ in posts])  # (S, N, 3)
+                variances = torch.stack([torch.diagonal(c, dim1=-2, dim2=-1) for _, c in posts])
+            else:
+                pts = Contacts.points(beta, gamma, dtype=dtype, device=device)
                 planar = [s.backend.posterior(pts) for s in scorers]
-            means = torch.stack([p.mean for p in planar])  # (S, 2, N)
-            variances = torch.stack([p.variance for p in planar])
-            w = self._per_map().to(means)[:, :, None]  # (S, 2, 1) against (S, 2, N)
-        second = (w * (variances + means.pow(2))).sum(0)
-        mean = (w * means).sum(0)
-        return (second - mean.pow(2)).clamp_min(0).T.reshape(*S, means.shape[1])
+                means = torch.stack([p.mean.T for p in planar])  # (S, N, 2)
+                variances = torch.stack([p.variance.T for p in planar])
+        _, var = mixture_moments(means, variances, self.weights)  # weights (S,) or (S, 2) per map
+        return var.reshape(*S, means.shape[-1])
 
 
 def _three_d(scorers: Sequence) -> bool:

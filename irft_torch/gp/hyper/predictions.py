@@ -88,8 +88,9 @@ class HyperMixtureMixin(nn.Module):
         Returns:
             the ``HyperPosterior`` (also ``model.hyper_posterior``; labels such as ``lengthscale_x[sin2b]``,
             ``outputscale_z``, ``noise_x``), None for "map". With ``MapPrior(mean="average")`` the physics-mean
-            companion gets the same and the weights are taken again. Draws whose kernel is truncated are counted
-            in ``hyper_posterior.extra["truncated"]`` (``diagnostics()``), not warned one by one.
+            companion gets the same and the weights are taken again. A planar model's draws whose kernel is
+            truncated are counted in ``hyper_posterior.extra["truncated"]`` (``diagnostics()``), not warned one by
+            one (a 3-D model's: ``diagnostics()["kernel"]["draws_truncated"]``).
         """
         method = self.hyper_method if method is None else method
         if method not in HYPER_POSTERIORS:

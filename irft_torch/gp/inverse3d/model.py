@@ -20,8 +20,7 @@ from ..fit_control import FitDivergedWarning, adam, converged, copy_into, diverg
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
 from ..inputs import _check_dtype
-from ..kernels.hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, RFT3DHyperparameters
-from ..kernels.hyperparameters import MAPS_3D as MAPS
+from ..kernels.hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS_3D, RFT3DHyperparameters
 from ..kernels.priors import data_scales_3d, prior_centres_3d, register_physical_priors  # K maps, one module
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
@@ -428,8 +427,8 @@ class InverseRFT3D(HyperMixtureMixin):
         prior = self.hypers.prior_variance.detach().sqrt()  # with Li et al.'s term: s + v
         share = (post.stddev < 0.5 * prior).reshape(-1, 3).to(self.dtype).mean(0)
         out: dict[str, dict] = {name: {"constrained_share": float(s), "prior_std": float(p)}
-               for name, s, p in zip(MAPS, share, prior)}
-        for name, s in zip(MAPS, share):
+               for name, s, p in zip(MAPS_3D, share, prior)}
+        for name, s in zip(MAPS_3D, share):
             if float(s) == 0:
                 warnings.warn(f"{name} is not constrained by these forces: its posterior is the prior", stacklevel=2)
         err = self.truncation_error()
