@@ -32,6 +32,18 @@ def _no_temporaries(folder):
     return not [p for p in folder.iterdir() if ".tmp" in p.name]
 
 
+def _save_half_then_fail(monkeypatch, failure):
+    """torch.save writes the whole file, cuts it to half and raises ``failure`` (a disk filling up, a Ctrl-C)."""
+    real = torch.save
+
+    def half_then_fail(obj, fh, *a, **k):
+        real(obj, fh, *a, **k)
+        fh.truncate(fh.tell() // 2)
+        raise failure
+
+    monkeypatch.setattr(torch, "save", half_then_fail)
+
+
 @pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()],
                          ids=["disk-full", "ctrl-c"])
 def test_a_failed_save_leaves_the_previous_model_loadable(tmp_path, models, monkeypatch, failure):
@@ -41,14 +53,7 @@ def test_a_failed_save_leaves_the_previous_model_loadable(tmp_path, models, monk
     path = tmp_path / "model.pt"
     small.save(path)
     before = path.read_bytes()
-    real = torch.save
-
-    def half_then_fail(obj, fh, *a, **k):
-        real(obj, fh, *a, **k)
-        fh.truncate(fh.tell() // 2)
-        raise failure
-
-    monkeypatch.setattr(torch, "save", half_then_fail)
+    _save_half_then_fail(monkeypatch, failure)
     with pytest.raises(type(failure)) as e:
         big.save(path)
     if isinstance(failure, OSError):
@@ -71,14 +76,7 @@ def test_a_failed_3d_save_leaves_the_previous_model_loadable(tmp_path, monkeypat
     path = tmp_path / "m3.pt"
     small.save(path)
     before = path.read_bytes()
-    real = torch.save
-
-    def half_then_fail(obj, fh, *a, **k):
-        real(obj, fh, *a, **k)
-        fh.truncate(fh.tell() // 2)
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(torch, "save", half_then_fail)
+    _save_half_then_fail(monkeypatch, OSError(errno.ENOSPC, "No space left on device"))
     with pytest.raises(OSError, match="cannot save the model to .*the previous file, if any, is unchanged"):
         big.save(path)
     monkeypatch.undo()

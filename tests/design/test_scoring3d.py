@@ -128,6 +128,16 @@ def _planar():
     return c, irft.rft.forces(irft.rft.FourierStressMap.generic(), c)
 
 
+def _laplace_model():
+    """A pairs 3-D model at the fixed hyperparameters above with a Laplace posterior over them (4 draws)."""
+    c, f = turning_toe(T=10)
+    model = InverseRFT3D(c, f, method="pairs")
+    _set(model, LS, OS, NOISE)
+    model.backend.refresh()
+    model.fit_hyper_posterior("laplace", n_proposals=32, n_draws=4, generator=torch.Generator().manual_seed(0))
+    return c, f, model
+
+
 def test_a_model_with_a_hyperparameter_posterior_is_scored_over_its_draws():
     """ProbeScorer.from_model of a 3-D model with a Laplace posterior: a MixtureScorer whose scores are the draws'
     weighted averages, each draw's computed from the dense reference at that draw's hyperparameters (information
@@ -135,11 +145,7 @@ def test_a_model_with_a_hyperparameter_posterior_is_scored_over_its_draws():
     the map variance is the mixture's total variance, the spread of the draws' means included)."""
     from irft_torch.design import MixtureScorer
 
-    c, f = turning_toe(T=10)
-    model = InverseRFT3D(c, f, method="pairs")
-    _set(model, LS, OS, NOISE)
-    model.backend.refresh()
-    model.fit_hyper_posterior("laplace", n_proposals=32, n_draws=4, generator=torch.Generator().manual_seed(0))
+    c, f, model = _laplace_model()
     scorer = ProbeScorer.from_model(model)
     assert isinstance(scorer, MixtureScorer) and scorer.n_draws == len(model._draw_backends) > 1
     cand = turning_toe(T=8, seed=3)[0][2:7]
@@ -185,11 +191,7 @@ def test_greedy_design_takes_a_3d_model_over_its_draws():
     """greedy_design with the MixtureScorer of a 3-D model with a Laplace posterior: 3-D candidates accepted (they
     were sent down the planar path), each pick the best on the conditioned mixture, and the picks' information
     gains adding up to the mixture's joint gain (each draw's chain rule, the weights held)."""
-    c, f = turning_toe(T=10)
-    model = InverseRFT3D(c, f, method="pairs")
-    _set(model, LS, OS, NOISE)
-    model.backend.refresh()
-    model.fit_hyper_posterior("laplace", n_proposals=32, n_draws=4, generator=torch.Generator().manual_seed(0))
+    c, f, model = _laplace_model()
     scorer = ProbeScorer.from_model(model)
     assert scorer.three_d
     cands = [turning_toe(T=4, seed=s)[0] for s in (11, 12, 13)]
