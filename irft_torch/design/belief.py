@@ -1,5 +1,6 @@
-r"""What every probe scorer shares, planar (``design.scoring``, K = 2 maps) or 3-D (``design.scoring3d``, K = 3): the
-two criteria's algebra over a candidate's force rows, the belief's readable numbers, checking a criterion, ranking.
+r"""What every probe scorer shares, planar (K = 2 maps) or 3-D (K = 3; ``design.scoring``): the two criteria's
+algebra over a candidate's force rows, the belief's readable numbers, checking a criterion, ranking, following the
+model a scorer was derived from.
 
 For a candidate whose n force rows have posterior covariance S (noise not included, N^2) and noise variances D =
 diag(sigma_i^2), and a region's map points with current variance v_j and covariance C (n x N) with those rows:
@@ -8,12 +9,13 @@ diag(sigma_i^2), and a region's map points with current variance v_j and covaria
     v_j after the candidate = v_j - [C^T (S + D)^{-1} C]_jj        (``variance_after``, ``variance_fall``)
 
 A planar model's rows are one force axis per map (a batch of K = 2); a 3-D model's are two blocks, (F_x; F_y) seeing
-alpha_x and alpha_y, F_z seeing alpha_z. Both scorers and the foothold planner (``design.footholds``) form S and C
-from their backends and call these.
+alpha_x and alpha_y, F_z seeing alpha_z. Each backend gives S and C in one layout (``candidate_rows``: a batch of
+blocks, zero-padded); the scorer (``design.ProbeScorer``) and the foothold planner (``design.footholds``) call these.
 """
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 
 import torch
@@ -22,7 +24,7 @@ from torch import Tensor
 
 from .region import Region
 
-__all__ = ["BeliefScorer", "information_nats", "variance_fall", "variance_after", "check_criterion"]
+__all__ = ["BeliefScorer", "FollowingScorer", "information_nats", "variance_fall", "variance_after", "check_criterion"]
 
 CRITERIA = ("variance", "eig")
 
@@ -97,3 +99,56 @@ class BeliefScorer:
             s = self.score(candidates, criterion, region).tolist()
         order = sorted(range(len(s)), key=(lambda i: s[i]) if criterion == "variance" else (lambda i: -s[i]))
         return [(i, s[i]) for i in order]
+
+
+class FollowingScorer(BeliefScorer):
+    """A scorer of one backend that follows the model it was derived from (``ProbeScorer.from_model``): whenever the
+    model's backend changes (``add_data``, a refit that grows the basis or moves to another backend) the scorer's is
+    derived again (``_derive(*recipe)``, the subclass's) from it in the same way. Pickles with its model."""
+
+    def __init__(self, backend) -> None:
+        self._backend = backend
+        self._recipe: tuple | None = None  # (model, method, tol) of ``from_model``: follow the model
+        self._derived_from: tuple | None = None
+
+    @staticmethod
+    def _derive(model, method, tol, own=None):
+        raise NotImplementedError
+
+    @property
+    def backend(self):
+        """The belief scored (derived again from the model's whenever that changed). The hyperparameters are shared
+        with the model."""
+        if self._recipe is not None and not self._same_state(self._recipe[0].backend, self._derived_from):
+            self._backend = self._derive(*self._recipe)
+            self._derived_from = self._state_of(self._recipe[0].backend)
+        return self._backend
+
+    @staticmethod
+    def _state_of(backend) -> tuple:
+        """What a derived belief depends on: which backend object, its sample count and statistics, the
+        objects held by weak references (an id could be reused by a later object once one is freed; a
+        weak reference to a freed object answers None)."""
+        stats = getattr(backend, "stats", None)
+        return weakref.ref(backend), backend.n_samples, None if stats is None else weakref.ref(stats)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if state.get("_derived_from") is not None:  # weak references do not pickle; the model comes along
+            current = self._same_state(self._recipe[0].backend, self._derived_from)
+            state["_derived_from"] = ("current",) if current else None  # None: derived again on first use
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._derived_from == ("current",):
+            self._derived_from = self._state_of(self._recipe[0].backend)
+
+    @staticmethod
+    def _same_state(backend, state: tuple | None) -> bool:
+        """Whether ``backend`` is still the one (with the same sample count and statistics) of ``state``."""
+        if state is None:
+            return False
+        stats = getattr(backend, "stats", None)
+        return (state[0]() is backend and state[1] == backend.n_samples
+                and (stats is None if state[2] is None else state[2]() is stats))

@@ -1,6 +1,5 @@
 """Sequential design: pick probes one after another, each the best given the ones before (planar candidates
-with a ``ProbeScorer`` or ``MixtureScorer``, ``rft.Contacts3D`` candidates with a ``ProbeScorer3D`` or a 3-D
-model's ``MixtureScorer``)."""
+with a planar model's ``ProbeScorer`` or ``MixtureScorer``, ``rft.Contacts3D`` candidates with a 3-D model's)."""
 
 from __future__ import annotations
 
@@ -12,8 +11,6 @@ import torch
 
 from .region import Region, _as_contacts
 from .scoring import MixtureScorer, ProbeScorer
-from .scoring3d import ProbeScorer3D
-from .scoring3d import _as_contacts as _as_contacts_3d
 
 __all__ = ["DesignStep", "greedy_design"]
 
@@ -28,7 +25,7 @@ class DesignStep:
     integrated_variance: float
 
 
-def greedy_design(scorer: ProbeScorer | MixtureScorer | ProbeScorer3D, candidates: Sequence, budget: int,
+def greedy_design(scorer: ProbeScorer | MixtureScorer, candidates: Sequence, budget: int,
                   criterion: str = "variance",
                   region: Region | None = None) -> list[DesignStep]:
     """Pick ``budget`` probes one after another, each the best given the ones before (the belief is
@@ -40,8 +37,7 @@ def greedy_design(scorer: ProbeScorer | MixtureScorer | ProbeScorer3D, candidate
     """
     if int(budget) != budget or budget < 0:
         raise ValueError(f"budget must be an integer >= 0, got {budget}")
-    three_d = isinstance(scorer, ProbeScorer3D) or (isinstance(scorer, MixtureScorer) and scorer.three_d)
-    cands = [(_as_contacts_3d if three_d else _as_contacts)(c) for c in candidates]
+    cands = [_as_contacts(c, scorer.three_d) for c in candidates]
     if budget > len(cands):
         warnings.warn(f"budget {budget} is more than the {len(cands)} candidate(s): the design has {len(cands)} "
                       f"step(s)", stacklevel=2)

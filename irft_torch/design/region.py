@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ..rft.contacts import Contacts
+from ..rft.contacts3d import Contacts3D
 from ..rft.stress_maps import mirror_to_canonical
 
 __all__ = ["Region"]
@@ -64,8 +65,12 @@ class Region:
         return Contacts(self.beta[:, None], self.gamma[:, None], one, one)
 
 
-def _as_contacts(c) -> Contacts:
-    """A Contacts, or anything with a ``contacts()`` method (an ``rft.Probe``)."""
+def _as_contacts(c, three_d: bool = False) -> Contacts | Contacts3D:
+    """A Contacts, or anything with a ``contacts()`` method (an ``rft.Probe``); ``three_d``: an ``rft.Contacts3D``."""
+    if three_d:
+        if not isinstance(c, Contacts3D):
+            raise TypeError(f"a 3-D candidate must be an rft.Contacts3D (rft.contacts_3d), got {type(c).__name__}")
+        return c
     if isinstance(c, Contacts):
         out = c
     elif hasattr(c, "contacts"):

@@ -15,25 +15,21 @@ with v_a(theta_j) the current map variance at the region's points theta_j, k_aj 
 covariance between the map there and the probe's forces, r_j the region's weights (summing to 1)
 and s_a the prior variance, so IV is 2 for the prior and 0 for maps known exactly.
 
-Every posterior number comes from the belief's backend (``posterior``, ``cross_covariance``,
-``block_covariance``, ``posterior_root``, ``condition``), in the way botorch's
-``qNegIntegratedPosteriorVariance`` sits on a model's ``posterior`` and ``fantasize``; the scorer
-factors only each candidate's own small matrix (S_a + sigma_a^2 I, or its F x F Woodbury form) for its
-score. Heteroscedastic noise: a candidate's samples are whitened by their
-``noise_scale`` exactly as ``InverseRFT`` whitens training samples.
+Every posterior number comes from the belief's backend (``candidate_rows``, ``region_rows``,
+``posterior_root``, ``condition``: a planar or a 3-D one, ``ProbeScorer3D``), as botorch's
+``qNegIntegratedPosteriorVariance`` sits on a model's ``posterior`` and ``fantasize``; the scorer factors only
+each candidate's own small matrix (S_a + sigma_a^2 I, or its F x F Woodbury form). Heteroscedastic noise: a
+candidate's samples are whitened by their ``noise_scale`` exactly as ``InverseRFT`` whitens training samples.
 
 Example:
     >>> scorer = ProbeScorer.from_model(model)              # or ProbeScorer.prior(...)
     >>> scores = scorer.score([p.contacts() for p in probes], criterion="variance")
-    >>> steps = greedy_design(scorer, probes, budget=3)
-
-A model with a hyperparameter posterior gives a ``MixtureScorer``: the same scores averaged over its draws.
+    >>> steps = greedy_design(scorer, probes, budget=3)    # a hyperparameter posterior: a MixtureScorer
 """
 
 from __future__ import annotations
 
 import warnings
-import weakref
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, cast
 
@@ -48,15 +44,14 @@ from ..gp.backends.select import ALIASES
 from ..gp.hyper.mixture import mixture_moments
 from ..gp.kernels.hyperparameters import RFTHyperparameters
 from ..rft.contacts import Contacts
-from .belief import BeliefScorer, check_criterion, information_nats, variance_after
+from .belief import BeliefScorer, FollowingScorer, check_criterion, information_nats, variance_after
 from .force_noise import force_relative
 from .region import Region, _as_contacts
 
 if TYPE_CHECKING:
     from ..gp.backends.spectral import SpectralBackend
-    from .scoring3d import ProbeScorer3D
 
-__all__ = ["Region", "ProbeScorer", "MixtureScorer", "force_relative", "SCORING_TOL"]
+__all__ = ["Region", "ProbeScorer", "ProbeScorer3D", "MixtureScorer", "force_relative", "SCORING_TOL"]
 
 
 NoiseScale = Callable[[Contacts], Tensor] | Tensor | None
@@ -65,7 +60,7 @@ SCORE_ROWS = 2_000  # candidate force samples scored at once (best measured: 1,0
 
 
 # ---- the scorer --------------------------------------------------------------------------------
-class ProbeScorer(BeliefScorer):
+class ProbeScorer(FollowingScorer):
     """The current belief over alpha_x, alpha_z (a backend with fixed hyperparameters), to score many
     candidate probes.
 
@@ -90,52 +85,10 @@ class ProbeScorer(BeliefScorer):
     """
 
     def __init__(self, backend: RFTBackend, noise_scale: NoiseScale = None) -> None:
-        self._backend = backend
-        self._recipe: tuple | None = None  # (model, method, tol) of ``from_model``: follow the model
-        self._derived_from: tuple | None = None
+        super().__init__(backend)
         self.noise_scale = noise_scale
-        self._regions: dict[int, tuple[Region, Contacts, Tensor]] = {}
+        self._regions: dict[int, tuple[Region, object, Tensor]] = {}
         self._square: Region | None = None
-
-    @property
-    def backend(self) -> RFTBackend:
-        """The belief scored. A scorer from ``from_model`` follows its model: whenever the model's
-        backend changes (``add_data``, a refit that grows the basis or moves to another backend) the
-        scorer's is derived again from it in the same way (the model's own; cut from its spectral
-        statistics; or rebuilt on its data). The hyperparameters are shared with the model."""
-        if self._recipe is not None and not self._same_state(self._recipe[0].backend, self._derived_from):
-            self._backend = self._derive(*self._recipe)
-            self._derived_from = self._state_of(self._recipe[0].backend)
-        return self._backend
-
-    @staticmethod
-    def _state_of(backend: RFTBackend) -> tuple:
-        """What a derived belief depends on: which backend object, its sample count and statistics, the
-        objects held by weak references (an id could be reused by a later object once one is freed; a
-        weak reference to a freed object answers None)."""
-        stats = getattr(backend, "stats", None)
-        return weakref.ref(backend), backend.n_samples, None if stats is None else weakref.ref(stats)
-
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        if state.get("_derived_from") is not None:  # weak references do not pickle; the model comes along
-            current = self._same_state(self._recipe[0].backend, self._derived_from)
-            state["_derived_from"] = ("current",) if current else None  # None: derived again on first use
-        return state
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        if self._derived_from == ("current",):
-            self._derived_from = self._state_of(self._recipe[0].backend)
-
-    @staticmethod
-    def _same_state(backend: RFTBackend, state: tuple | None) -> bool:
-        """Whether ``backend`` is still the one (with the same sample count and statistics) of ``state``."""
-        if state is None:
-            return False
-        stats = getattr(backend, "stats", None)
-        return (state[0]() is backend and state[1] == backend.n_samples
-                and (stats is None if state[2] is None else state[2]() is stats))
 
     @staticmethod
     def _derive(model, method: str | None, tol, own: RFTBackend | None = None) -> RFTBackend:
@@ -188,13 +141,11 @@ class ProbeScorer(BeliefScorer):
         """
         from ..gp.inverse3d import InverseRFT3D
 
-        if isinstance(model, InverseRFT3D):  # a 3-D model: design.scoring3d (its own backends), over any draws
+        if isinstance(model, InverseRFT3D):  # a 3-D model: ProbeScorer3D (its own backends), over any draws
             if method is not None or noise_scale is not None or tol != "auto":
                 raise ValueError("a 3-D model is scored in its own backend: method, noise_scale and tol do not apply")
             if model._weighted_backends()[1] is not None:
                 return MixtureScorer.from_model(model)
-            from .scoring3d import ProbeScorer3D
-
             return ProbeScorer3D.from_model(model)
         if grid_size is not None:
             warnings.warn("grid_size belongs to the retired grid belief and is ignored", FutureWarning, stacklevel=2)
@@ -259,9 +210,8 @@ class ProbeScorer(BeliefScorer):
     # ---- candidates --------------------------------------------------------------------------------
     def _cast(self, c) -> Contacts:
         """The candidate on the belief's dtype and device, whitened by its noise scale."""
-        c = _as_contacts(c)
-        c = c.to(dtype=self.noise.dtype, device=self.noise.device)
-        if self.noise_scale is None:
+        c = _as_contacts(c, self.three_d).to(dtype=self.noise.dtype, device=self.noise.device)
+        if self.three_d or self.noise_scale is None:
             return c
         s = self.noise_scale(c) if callable(self.noise_scale) else self.noise_scale
         s = torch.as_tensor(s, dtype=c.beta.dtype, device=c.beta.device)
@@ -271,6 +221,11 @@ class ProbeScorer(BeliefScorer):
             raise ValueError(f"noise_scale must give positive finite (T,) or (T, 2) scales for T = {len(c)}, "
                              f"got shape {tuple(s.shape)}")
         return Contacts(c.beta, c.gamma, c.weight_x / s[:, :1], c.weight_z / s[:, 1:])
+
+    @property
+    def three_d(self) -> bool:
+        """Whether the belief is a 3-D model's (``rft.Contacts3D`` candidates, 3 maps)."""
+        return self.backend.contacts_type is not Contacts
 
     def covariance(self, contacts) -> Tensor:
         """Posterior covariance (2, T, T) of a candidate's (whitened) forces, noise not included, N^2."""
@@ -291,7 +246,7 @@ class ProbeScorer(BeliefScorer):
         with torch.no_grad():
             return backend, backend.n_samples, torch.cat([p.detach().reshape(-1) for p in backend.hypers.parameters()])
 
-    def _region(self, region: Region | None) -> tuple[Region, Contacts, Tensor]:
+    def _region(self, region: Region | None) -> tuple[Region, object, Tensor]:
         key = self._belief_key()
         old = self.__dict__.get("_cache_key")
         if (old is None or old[0] is not key[0] or old[1] != key[1]
@@ -304,9 +259,9 @@ class ProbeScorer(BeliefScorer):
             region = self._square
         rid = id(region)  # the cache holds the region, so its id is not reused while cached
         if rid not in self._regions or self._regions[rid][0] is not region:
-            r = region.contacts().to(dtype=self.noise.dtype, device=self.noise.device)
             with torch.no_grad():
-                var = self.backend.posterior(r).variance  # (2, N)
+                r = self.backend.region_rows(region)  # the maps at its points, as the backend's rows
+                var = self.backend.region_variance(r)  # (2, N), or a 3-D model's blocks (2, 2N)
             self._regions[rid] = (region, r, var)
         return self._regions[rid]
 
@@ -316,7 +271,7 @@ class ProbeScorer(BeliefScorer):
         the two maps (scalar: 2 = the prior, 0 = known), or ``per_axis`` (2,) = (alpha_x, alpha_z)."""
         if contacts is None:
             region, _, var = self._region(region)
-            iv = (var * region.weight.to(var)).sum(-1) / self._prior_over(region)
+            iv = (self.backend.fold_maps(var) * region.weight.to(var)).sum(-1) / self._prior_over(region)
         else:
             iv = self._score_batch([self._cast(contacts)], "variance", region)[0]
         return iv if per_axis else iv.sum()
@@ -328,7 +283,8 @@ class ProbeScorer(BeliefScorer):
         check_criterion(criterion, region)
         cands = [self._cast(c) for c in candidates]
         if not cands:
-            return torch.zeros((0, 2) if per_axis else 0, dtype=self.noise.dtype, device=self.noise.device)
+            width = len(self.prior_variance) if criterion == "variance" else self.backend.n_blocks
+            return torch.zeros((0, width) if per_axis else 0, dtype=self.noise.dtype, device=self.noise.device)
         # Batches of candidates of similar length (shortest first, so that padding to the longest wastes
         # little), each at most SCORE_ROWS rows and SCORE_ROWS^2 / 10 padded block entries: one covariance
         # product and one Cholesky per batch.
@@ -348,22 +304,21 @@ class ProbeScorer(BeliefScorer):
         return torch.stack(scores)
 
     def _score_batch(self, cands: list[Contacts], criterion: str, region: Region | None) -> Tensor:
-        """The scores (B, 2), per map, of candidates already cast, at once: every candidate's own posterior
-        covariance (``backend.block_covariance``), zero-padded to the longest (a padded row is a
-        noise-only observation of nothing: it adds 0 to the information gain and to the variance
-        reduction)."""
+        """The scores (B, K) per map ("variance"; per block, "eig": the same for a planar model) of candidates
+        already cast, at once: every candidate's own posterior covariance (``backend.candidate_rows``), zero-padded
+        to the longest (a padded row is a noise-only observation of nothing: it adds 0 to the information gain
+        and to the variance reduction)."""
         sizes = [len(c) for c in cands]
-        both = Contacts.cat(cands)
         F = self.backend.root_size()
         if F is not None and F < max(sizes):
-            return self._score_root_batch(self.backend.posterior_root(both), sizes, criterion, region)
-        S = self.backend.block_covariance(both, sizes)  # (B, 2, T, T)
+            return self._score_root_batch(self.backend.posterior_root(Contacts.cat(cands)), sizes, criterion, region)
         if criterion == "eig":
-            return information_nats(S, self.noise[:, None])
-        region, rc, var = self._region(region)
-        w = region.weight.to(var)
-        kb = split_blocks(self.backend.cross_covariance(rc, both), sizes, dim=-1)  # (B, 2, N, T)
-        return (variance_after(var, kb.mT, S, self.noise[:, None]) * w).sum(-1) / self._prior_over(region)  # (B, 2)
+            S, noise, _ = self.backend.candidate_rows(cands)  # (B, 2, n, n)
+            return information_nats(S, noise)
+        region, rows, var = self._region(region)
+        S, noise, cross = self.backend.candidate_rows(cands, rows)
+        after = self.backend.fold_maps(variance_after(var, cross, S, noise))  # (B, K, N)
+        return (after * region.weight.to(var)).sum(-1) / self._prior_over(region)
 
     def _score_root_batch(self, Z: Tensor, sizes: list[int], criterion: str, region: Region | None) -> Tensor:
         """The same scores in the root's F dimensions (fewer than a candidate's samples): with Z_i (T_i, F)
@@ -405,15 +360,81 @@ class ProbeScorer(BeliefScorer):
         """The belief after observing the candidate's forces (whatever their values): a new scorer;
         this one and the model are unchanged."""
         with torch.no_grad():
-            return ProbeScorer(self.backend.condition(self._cast(contacts)), self.noise_scale)
+            return type(self)(self.backend.condition(self._cast(contacts)), self.noise_scale)
 
     def map_variance(self, beta, gamma) -> Tensor:
-        """Current posterior variance of (alpha_x, alpha_z) at angles of broadcast shape S: S + (2,)."""
-        pts = Contacts.points(beta, gamma, dtype=self.noise.dtype, device=self.noise.device)
+        """Current posterior variance of the maps ((alpha_x, alpha_z); a 3-D model's (alpha_x, alpha_y, alpha_z)) at
+        angles of broadcast shape S: S + (K,)."""
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
         with torch.no_grad():
-            v = self.backend.posterior(pts).variance
-        return v.T.reshape(*S, 2)
+            _, var = self.backend.map_moments(beta, gamma)
+        return var.reshape(*S, var.shape[-1])
+
+
+class ProbeScorer3D(ProbeScorer):
+    r"""A 3-D model's belief over alpha_x, alpha_y, alpha_z (a ``gp.inverse3d.Backend3D`` at fixed hyperparameters),
+    scoring ``rft.Contacts3D`` candidates: a ``ProbeScorer`` on the 3-D backend, whose ``information_gain`` is per
+    block (``per_block``) and ``integrated_variance`` per map (``per_map``, 3 maps).
+
+    The force covariance is two independent blocks (docs/inverse3d.md): horizontal, rows (F_x; F_y) seeing alpha_x
+    and alpha_y, and vertical, rows F_z seeing alpha_z (the planar model: two one-map blocks). With S_b the
+    candidate's block-b rows' posterior covariance (2T x 2T, T x T) and D_b their noise variances,
+    EIG = sum_b 1/2 log |I + D_b^{-1/2} S_b D_b^{-1/2}| (nats), and IV = sum_c (the region's weighted variance of map
+    c after the candidate) / s_c (s_c its prior variance, Li et al.'s term included): 3 for the prior, 0 for maps
+    known exactly (``design.belief``; the backend gives S, the region's rows and their covariances,
+    ``Backend3D.candidate_rows``). A 3-D model with a hyperparameter posterior gives a ``MixtureScorer`` of these
+    from ``ProbeScorer.from_model``; ``ProbeScorer3D.from_model`` scores at the fitted hyperparameters alone. Scores
+    are not differentiable in the candidates (no gradient-based 3-D design yet).
+
+    Attributes:
+        outputscale: (3,) the kernel's variances s_c of (alpha_x, alpha_y, alpha_z), (N/cm^3)^2.
+        prior_variance: (3,) the maps' prior variances (s_c, plus Li et al.'s v_c with ``kernel="li"``).
+        noise: (3,) force-noise variances of (F_x, F_y, F_z), N^2.
+    """
+
+    def __init__(self, backend, noise_scale: NoiseScale = None) -> None:
+        from ..gp.inverse3d import Backend3D
+
+        if not isinstance(backend, Backend3D):
+            raise TypeError(f"backend must be a gp.inverse3d.Backend3D, got {type(backend).__name__}")
+        if noise_scale is not None:
+            raise ValueError("a 3-D model is scored with unit noise scale: noise_scale does not apply")
+        super().__init__(cast(RFTBackend, backend))  # the same questions answered (``Backend3D.candidate_rows``)
+
+    @classmethod
+    def from_model(cls, model) -> ProbeScorer3D:  # type: ignore[override]
+        """The posterior of a (fitted) ``InverseRFT3D`` at its fitted hyperparameters; the scorer follows the model
+        (``add_data``, a refit). Over a hyperparameter posterior's draws: ``ProbeScorer.from_model``."""
+        from ..gp.inverse3d import InverseRFT3D
+
+        if not isinstance(model, InverseRFT3D):
+            raise TypeError(f"model must be an InverseRFT3D (a planar InverseRFT: design.ProbeScorer), got "
+                            f"{type(model).__name__}")
+        out = cls(model.backend)
+        out._recipe, out._derived_from = (model, None, None), cls._state_of(model.backend)
+        return out
+
+    @staticmethod
+    def _derive(model, method, tol, own=None):
+        return model.backend if own is None else own  # a 3-D model is scored in its own backend
+
+    def covariance(self, contacts) -> list[Tensor]:  # type: ignore[override]
+        """Posterior covariances of a candidate's force rows, noise not included, N^2: [(2T, 2T) rows (F_x; F_y),
+        (T, T) rows F_z]."""
+        S, _, _ = self.backend.candidate_rows([self._cast(contacts)])
+        T = len(contacts)
+        return [S[0, 0, :2 * T, :2 * T], S[0, 1, :T, :T]]
+
+    def information_gain(self, contacts, per_block: bool = False) -> Tensor:
+        """EIG of observing the candidate's three force axes, nats: a scalar, or ``per_block`` (2,) = (horizontal,
+        vertical)."""
+        return super().information_gain(contacts, per_block)
+
+    def integrated_variance(self, contacts=None, region: Region | None = None, per_map: bool = False) -> Tensor:
+        """Expected integrated map variance over ``region`` (default the whole square, 16 x 16) after the candidate
+        (now, if None), each map's divided by its prior variance: a scalar (3 = the prior, 0 = known), or
+        ``per_map`` (3,) = (alpha_x, alpha_y, alpha_z)."""
+        return super().integrated_variance(contacts, region, per_map)
 
 
 # ---- averaged over a hyperparameter posterior ------------------------------------------------
@@ -446,7 +467,7 @@ class MixtureScorer(BeliefScorer):
                 or not torch.isfinite(w).all() or (w < 0).any() or (w.sum(0) <= 0).any()):
             raise ValueError(f"weights must be {len(scorers)} non-negative finite numbers (or {len(scorers)} x 2, per "
                              f"map) with a positive sum, got shape {tuple(w.shape)}: {w.tolist()}")
-        if w.ndim == 2 and _three_d(scorers):
+        if w.ndim == 2 and scorers[0].three_d:
             raise ValueError("weights per map (S x 2) are for a planar model's two maps; a 3-D model's draws take one "
                              "weight each (S,)")
         self.scorers, self.weights = scorers, w / w.sum(0)
@@ -471,8 +492,6 @@ class MixtureScorer(BeliefScorer):
 
         backends, weights = model._weighted_backends()
         if isinstance(model, InverseRFT3D):
-            from .scoring3d import ProbeScorer3D
-
             scorers: list = [ProbeScorer3D(b) for b in backends]
         else:
             scorers = [ProbeScorer(ProbeScorer._derive(model, method, tol, own=b), noise_scale) for b in backends]
@@ -528,7 +547,7 @@ class MixtureScorer(BeliefScorer):
     @property
     def three_d(self) -> bool:
         """Whether the draws are a 3-D model's (``ProbeScorer3D``s: ``rft.Contacts3D`` candidates, 3 maps)."""
-        return _three_d(self._current())
+        return self._current()[0].three_d
 
     def covariance(self, contacts):
         """The draws' posterior covariances of the candidate's forces, weighted mean per axis, N^2 (the spread of
@@ -570,28 +589,10 @@ class MixtureScorer(BeliefScorer):
         alpha_z)) at angles of broadcast shape S: the mixture's total variance (the draws' variances and the
         spread of their means, ``gp.hyper.mixture.mixture_moments``), S + (K,)."""
         scorers = self._current()
-        dtype, device = scorers[0].noise.dtype, scorers[0].noise.device
         S = torch.broadcast_shapes(torch.as_tensor(beta).shape, torch.as_tensor(gamma).shape)
         with torch.no_grad():
-            if _three_d(scorers):  # the backends' (N, 3) means and (N, 3, 3) covariances
-                from ..gp.inverse3d import point_contacts
-
-                b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=dtype, device=device),
-                                               torch.as_tensor(gamma, dtype=dtype, device=device))
-                posts = [s.backend.posterior(point_contacts(b, g)) for s in scorers]
-                means = torch.stack([m for m, _ in posts])  # (S, N, 3)
-                variances = torch.stack([torch.diagonal(c, dim1=-2, dim2=-1) for _, c in posts])
-            else:
-                pts = Contacts.points(beta, gamma, dtype=dtype, device=device)
-                planar = [s.backend.posterior(pts) for s in scorers]
-                means = torch.stack([p.mean.T for p in planar])  # (S, N, 2)
-                variances = torch.stack([p.variance.T for p in planar])
+            moments = [s.backend.map_moments(beta, gamma) for s in scorers]  # (N, K) each
+        means, variances = torch.stack([m for m, _ in moments]), torch.stack([v for _, v in moments])  # (S, N, K)
         _, var = mixture_moments(means, variances, self.weights)  # weights (S,) or (S, 2) per map
         return var.reshape(*S, means.shape[-1])
 
-
-def _three_d(scorers: Sequence) -> bool:
-    """Whether the scorers are a 3-D model's (``design.scoring3d.ProbeScorer3D``)."""
-    from .scoring3d import ProbeScorer3D
-
-    return isinstance(scorers[0], ProbeScorer3D)

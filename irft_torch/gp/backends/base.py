@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from ...rft.contacts import Contacts
@@ -183,6 +184,42 @@ class RFTBackend(nn.Module):
     def truncation_error(self) -> Tensor:
         """(2,) bound on |k - k_used| / outputscale, per map: 0 for the exact-arithmetic backends."""
         return self.hypers.kernel.outputscale.detach().new_zeros(2)
+
+    # ---- what a probe scorer asks (``design.ProbeScorer``); a 3-D backend answers the same (``gp.inverse3d``) ------
+    contacts_type = Contacts
+    n_blocks = 2  # independent blocks of the force covariance: the x rows (alpha_x), the z rows (alpha_z)
+
+    def region_rows(self, region) -> Contacts:
+        """The maps at a region's points (``beta``, ``gamma`` (N,), in the canonical square) as point evaluations
+        (N, 1) with weight 1 on both axes."""
+        dt = self.hypers.noise
+        one = torch.ones_like(region.beta, dtype=dt.dtype, device=dt.device)[:, None]
+        return Contacts(region.beta.to(dt)[:, None], region.gamma.to(dt)[:, None], one, one)
+
+    def region_variance(self, rows: Contacts) -> Tensor:
+        """(2, N) the maps' posterior variance at ``region_rows``' points, (N/cm^3)^2."""
+        return self.posterior(rows).variance
+
+    def candidate_rows(self, cands: list[Contacts], rows: Contacts | None = None) -> tuple:
+        """Each candidate's force rows per axis, zero-padded to the longest (``block_covariance``): S (B, 2, T, T)
+        their posterior covariance (noise not included), the rows' noise variances (2, 1), and their posterior
+        covariance (B, 2, T, N) with ``rows`` (``region_rows``), or None. Differentiable in the candidates."""
+        sizes = [len(c) for c in cands]
+        both = Contacts.cat(cands)
+        S = self.block_covariance(both, sizes)
+        cross = None if rows is None else split_blocks(self.cross_covariance(rows, both), sizes, dim=-1).mT
+        return S, self.hypers.noise.detach()[:, None], cross
+
+    @staticmethod
+    def fold_maps(x: Tensor) -> Tensor:
+        """(..., 2, N) values of ``region_rows``' rows per map: already (alpha_x, alpha_z)."""
+        return x
+
+    def map_moments(self, beta, gamma) -> tuple[Tensor, Tensor]:
+        """Posterior mean and variance (N, 2) of (alpha_x, alpha_z) at angles of any broadcast shape (N of them)."""
+        dt = self.hypers.noise
+        post = self.posterior(Contacts.points(beta, gamma, dtype=dt.dtype, device=dt.device))
+        return post.mean.T, post.variance.T
 
     def describe(self) -> str:
         return f"{self.name}: T={self.n_samples}"

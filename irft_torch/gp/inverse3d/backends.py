@@ -45,7 +45,8 @@ from ..kernels.hyperparameters import RFT3DHyperparameters
 from ..kernels.li_basis import li_features, weighted_li_features
 from ..kernels.operators import RFTKernelLinearOperator, unique_pairs
 from .features import SpectralFeatureBank, spectral_features
-from .rows import BLOCKS, block_rows, block_targets
+from .joint import BlockRows
+from .rows import BLOCKS, block_rows, block_targets, point_contacts
 
 __all__ = ["Backend3D", "Observations3D", "WeightSpace3D", "Pairs3D", "block_rows", "block_targets",
            "SpectralFeatureBank", "spectral_features"]
@@ -173,6 +174,70 @@ class Backend3D(nn.Module):
     def truncation_error(self) -> Tensor:
         return self.hypers.kernel.outputscale.detach().new_zeros(3)
 
+    def condition(self, contacts: Contacts3D, forces: Tensor | None = None) -> Backend3D:
+        """A new backend that has also seen these samples (without forces: as if they equalled their posterior mean;
+        the covariance does not depend on them); this one is unchanged."""
+        new = self.with_hypers(self.hypers)
+        with torch.no_grad():
+            new.add_data(contacts, self.posterior(contacts)[0] if forces is None else forces)
+        return new
+
+    # ---- what a probe scorer asks (``design.ProbeScorer``), in the planar backends' terms ---------------------------
+    contacts_type = Contacts3D
+    n_blocks = len(BLOCKS)
+
+    def root_size(self) -> None:
+        return None
+
+    def region_rows(self, region) -> list[BlockRows]:
+        """The maps at a region's points (``beta``, ``gamma`` (N,)) as each block's rows (horizontal: alpha_x at
+        every point, then alpha_y; vertical: alpha_z)."""
+        h = self.hypers.noise
+        return [BlockRows(self, b, [point_contacts(region.beta.to(h), region.gamma.to(h))]) for b in range(2)]
+
+    def region_variance(self, rows: list[BlockRows]) -> Tensor:
+        """(2, n') those rows' posterior variances per block, zero-padded to the longest."""
+        var = [r.variance(0) for r in rows]
+        return torch.stack([torch.nn.functional.pad(v, (0, max(len(u) for u in var) - len(v))) for v in var])
+
+    def candidate_rows(self, cands: list[Contacts3D], rows: list[BlockRows] | None = None) -> tuple:
+        """Each candidate's force rows per block, zero-padded to the longest (a padded row has noise 1 and no
+        covariance: it adds nothing to a score): S (B, 2, n, n) their posterior covariance (noise not included),
+        noise (B, 2, n) each row's noise variance, and their posterior covariance (B, 2, n, n') with ``rows``
+        (``region_rows``), or None."""
+        nz = self.hypers.noise.detach()
+        n = max([len(bl.axes) * len(c) for c in cands for bl in BLOCKS] + [0])
+        S, noise = nz.new_zeros(len(cands), 2, n, n), nz.new_ones(len(cands), 2, n)
+        cross = None if rows is None else nz.new_zeros(len(cands), 2, n, max(len(r.rows[0][0]) for r in rows))
+        for i, c in enumerate(cands):
+            for b, block in enumerate(BLOCKS):
+                k = len(block.axes) * len(c)
+                noise[i, b, :k] = torch.cat([nz[a].expand(len(c)) for a in block.axes])
+                if rows is None:
+                    S[i, b, :k, :k] = BlockRows(self, b, [c]).cov(0, 0)
+                else:
+                    ext = rows[b].extended([c])
+                    S[i, b, :k, :k] = ext.cov(1, 1)
+                    cr = ext.cov(1, 0)
+                    cross[i, b, :k, :cr.shape[1]] = cr
+        return S, noise, cross
+
+    @staticmethod
+    def fold_maps(x: Tensor) -> Tensor:
+        """(..., 2, n') values of ``region_rows``' rows -> (..., 3, N) per map (alpha_x, alpha_y, alpha_z)."""
+        N = x.shape[-1] // 2
+        return torch.cat([x[..., b, :len(bl.maps) * N].unflatten(-1, (len(bl.maps), N)) for b, bl in enumerate(BLOCKS)],
+                         -2)
+
+    def map_moments(self, beta, gamma) -> tuple[Tensor, Tensor]:
+        """Posterior mean and variance (N, 3) of the maps at angles of any broadcast shape (N of them), N/cm^3 and
+        (N/cm^3)^2."""
+        h = self.hypers.noise
+        b, g = torch.broadcast_tensors(torch.as_tensor(beta).to(h), torch.as_tensor(gamma).to(h))
+        mean, cov = self.posterior(point_contacts(b, g))
+        return mean, torch.diagonal(cov, dim1=-2, dim2=-1)
+
+
     def stale(self) -> bool:
         return False
 
@@ -237,12 +302,16 @@ class Observations3D(Backend3D):
             self._factor_cache = (key, out)
         return self._factor_cache[1]
 
-    def _block_posterior(self, b, c, full):
+    def _part_rows(self, b: int, part: Contacts3D) -> tuple:
+        """Block b's rows q of ``part`` with their posterior mean (n,) and data part G = L^{-1} K(train, q) (r, n)
+        (``joint.BlockRows``); no features (None: the prior through the kernel)."""
         L, alpha = self._factor()[b]
-        q = block_rows(c, BLOCKS[b])
+        q = block_rows(part, BLOCKS[b])
         Kqt = self._cross(b, q, self._train[b], same=False)
-        mean = Kqt @ alpha
-        V = torch.linalg.solve_triangular(L, Kqt.mT, upper=False)
+        return q, Kqt @ alpha, torch.linalg.solve_triangular(L, Kqt.mT, upper=False), None
+
+    def _block_posterior(self, b, c, full):
+        q, mean, V, _ = self._part_rows(b, c)
         A, T = len(BLOCKS[b].axes), len(c)
         if full:
             cov = self._cross(b, q, q, same=True) - V.mT @ V
@@ -350,16 +419,24 @@ class WeightSpace3D(Backend3D):
             self._post_cache = (self._factors, key, out)
         return self._post_cache[2][b]
 
-    def _block_posterior(self, b, c, full):
+    def _part_rows(self, b: int, part: Contacts3D) -> tuple:
+        """Block b's rows q of ``part``, their posterior mean (n,), data part G = H Sigma Phi_q^T (r, n) and features
+        (Phi_q Sigma, Phi_q) (``joint.BlockRows``)."""
         H, v = self._terms(b)
-        Phi = self._features(c, b)
+        Phi = self._features(part, b)
         C = self._sigma(b, Phi, detach=True)  # Phi Sigma
-        mean = C @ v
-        G = H @ C.mT
+        return block_rows(part, BLOCKS[b]), C @ v, H @ C.mT, (C, Phi)
+
+    def _block_posterior(self, b, c, full):
+        q, mean, G, feat = self._part_rows(b, c)
+        A, T = len(BLOCKS[b].axes), len(c)
+        if feat is None:  # pairs at angles off the table: the prior through the kernel
+            cov = self._cross(b, q, q, same=True) - G.mT @ G
+            return (mean, 0.5 * (cov + cov.mT)) if full else (mean, _sample_blocks(cov, A, T))
+        C, Phi = feat
         if full:
             cov = C @ Phi.mT - G.mT @ G
             return mean, 0.5 * (cov + cov.mT)
-        A, T = len(BLOCKS[b].axes), len(c)
         Cs, Ps, Gs = C.reshape(A, T, -1), Phi.reshape(A, T, -1), G.reshape(G.shape[0], A, T)
         prior = torch.einsum("atf,btf->tab", Cs, Ps)
         return mean, prior - torch.einsum("rat,rbt->tab", Gs, Gs)
@@ -437,12 +514,14 @@ class Pairs3D(WeightSpace3D):
                 start += U
         return torch.cat(out, -1)
 
-    def _block_posterior(self, b, c, full):
+    def _part_rows(self, b: int, part: Contacts3D) -> tuple:
         try:
-            return super()._block_posterior(b, c, full)
-        except _OffTable:
-            # queries at pairs the data never saw: the exact answer through the observations algebra
-            return _observation_posterior(self, b, c, full)
+            return super()._part_rows(b, part)
+        except _OffTable:  # angles the table does not hold: Cov(q, u) through the kernel, the same H and v
+            H, v = self._terms(b)
+            q = block_rows(part, BLOCKS[b])
+            C = table_columns(self, b, q)
+            return q, C @ v, H @ C.mT, None
 
 
 class _OffTable(Exception):
@@ -463,17 +542,3 @@ def table_columns(backend: Pairs3D, b: int, q: tuple) -> Tensor:
             st = backend._structure(beta, gamma, ws[i], tb, tg, ones)
             cols.append(backend._term(m, st, (beta, gamma, ws[i]), (tb, tg, ones), detach=True))
     return torch.cat(cols, -1)
-
-
-def _observation_posterior(backend: Pairs3D, b: int, c: Contacts3D, full: bool):
-    """Exact posterior of query rows whose angles are off the pairs table: prior cross-covariances with the
-    table's map values, through the same H, v (u = map values at the table)."""
-    H, v = backend._terms(b)
-    q = block_rows(c, BLOCKS[b])
-    C = table_columns(backend, b, q)
-    mean = C @ v
-    G = H @ C.mT
-    cov = backend._cross(b, q, q, same=True) - G.mT @ G
-    if full:
-        return mean, 0.5 * (cov + cov.mT)
-    return mean, _sample_blocks(cov, len(BLOCKS[b].axes), len(c))

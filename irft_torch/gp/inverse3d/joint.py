@@ -9,7 +9,8 @@ Every backend writes the posterior covariance of two row sets q_i, q_j of a bloc
 
 with P the prior covariance and G_i (r x n_i) the data's part: observations G = L^{-1} K(train, q) (L the
 training rows' Cholesky); weight space G = H Sigma Phi_q^T with P = Phi_i Sigma Phi_j^T (``backends`` module
-doc); pairs at angles off its table G = H Cov(u, q) with P from the kernel. ``BlockRows`` holds those parts.
+doc); pairs at angles off its table G = H Cov(u, q) with P from the kernel. ``BlockRows`` holds those parts (each
+backend gives its own, ``Backend3D._part_rows``).
 """
 
 from __future__ import annotations
@@ -20,8 +21,6 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
-from .backends import Backend3D, Observations3D, Pairs3D, WeightSpace3D, _OffTable, table_columns
-from .rows import BLOCKS, block_rows
 
 __all__ = ["BlockRows", "joint_block_posterior"]
 
@@ -31,9 +30,7 @@ class BlockRows:
     ``Contacts3D`` parts under a backend's posterior: ``mean(i)`` (n_i,) and ``cov(i, j)`` (n_i, n_j), N and N^2
     (a point evaluation's rows read the maps, ``model.point_contacts``). Hyperparameters fixed, no gradient."""
 
-    def __init__(self, backend: Backend3D, b: int, parts: list[Contacts3D]) -> None:
-        if not isinstance(backend, (Observations3D, WeightSpace3D)):
-            raise TypeError(f"no joint posterior for a {type(backend).__name__}")
+    def __init__(self, backend, b: int, parts: list[Contacts3D]) -> None:
         self.backend, self.b = backend, b
         self.rows: list[tuple] = []
         self._means: list[Tensor] = []
@@ -51,25 +48,8 @@ class BlockRows:
         return new
 
     def _append(self, part: Contacts3D) -> None:
-        backend, b = self.backend, self.b
-        q = block_rows(part, BLOCKS[b])
-        feat = None
         with torch.no_grad():
-            if isinstance(backend, Observations3D):
-                L, alpha = backend._factor()[b]
-                K = backend._cross(b, q, backend._train[b], same=False)
-                mean, G = K @ alpha, torch.linalg.solve_triangular(L, K.mT, upper=False)
-            else:
-                H, v = backend._terms(b)
-                try:
-                    Phi = backend._features(part, b)
-                except _OffTable:  # pairs: angles the table does not hold
-                    assert isinstance(backend, Pairs3D)
-                    C = table_columns(backend, b, q)
-                else:
-                    C = backend._sigma(b, Phi, detach=True)
-                    feat = (C, Phi)
-                mean, G = C @ v, H @ C.mT
+            q, mean, G, feat = self.backend._part_rows(self.b, part)
         self.rows.append(q)
         self._means.append(mean)
         self._G.append(G)
@@ -97,7 +77,7 @@ class BlockRows:
         return (f[0] * f[1]).sum(-1) - self._G[i].pow(2).sum(0)
 
 
-def joint_block_posterior(backend: Backend3D, b: int, parts: list[Contacts3D]) -> tuple[Tensor, Tensor]:
+def joint_block_posterior(backend, b: int, parts: list[Contacts3D]) -> tuple[Tensor, Tensor]:
     """Mean (n,) and covariance (n, n) of block b's rows of all ``parts``, part after part (each part's rows
     axis-major, as ``rows.block_rows``)."""
     rows = BlockRows(backend, b, parts)

@@ -15,7 +15,6 @@ from torch import Tensor
 
 from ..._files import atomic_write
 from ...rft.contacts3d import Contacts3D
-from ...rft.stress_maps import mirror_to_canonical
 from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
@@ -26,6 +25,7 @@ from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
 from .backends import Backend3D
 from .mean import MEAN_MAPS, fit_mean_scales, shape_forces_3d
+from .rows import point_contacts
 from .select import METHODS_3D, make_backend_3d
 
 __all__ = ["InverseRFT3D", "Posterior3D", "point_contacts", "FORMAT_3D"]
@@ -34,15 +34,6 @@ FORMAT_3D = "irft_torch.InverseRFT3D/1"
 
 
 Posterior3D = Posterior  # one posterior type for every model (``gp.posterior.Posterior``, K = 3 axes here)
-
-
-def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
-    """Map evaluations as one-element functionals (N, 1): the F_x row reads alpha_x (times the mirror sign of
-    angles outside the canonical square), the F_y row alpha_y, the F_z row alpha_z."""
-    bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
-    one, zero = torch.ones_like(bc), torch.zeros_like(bc)
-    return Contacts3D(bc[:, None], gc[:, None], torch.stack([sx, zero], -1)[:, None],
-                      torch.stack([zero, one], -1)[:, None], one[:, None])
 
 
 def _as_forces(forces, T: int, dtype, device) -> Tensor:

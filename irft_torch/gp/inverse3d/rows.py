@@ -18,8 +18,9 @@ import torch
 from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
+from ...rft.stress_maps import mirror_to_canonical
 
-__all__ = ["Block", "BLOCKS", "block_rows", "block_targets"]
+__all__ = ["Block", "BLOCKS", "block_rows", "block_targets", "point_contacts"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,14 @@ class Block:
 
 BLOCKS = (Block("horizontal", (0, 1), (0, 1)), Block("vertical", (2,), (2,)))
 
+
+def point_contacts(beta: Tensor, gamma: Tensor) -> Contacts3D:
+    """Map evaluations as one-element functionals (N, 1): the F_x row reads alpha_x (times the mirror sign of
+    angles outside the canonical square), the F_y row alpha_y, the F_z row alpha_z."""
+    bc, gc, sx = mirror_to_canonical(beta.reshape(-1), gamma.reshape(-1))
+    one, zero = torch.ones_like(bc), torch.zeros_like(bc)
+    return Contacts3D(bc[:, None], gc[:, None], torch.stack([sx, zero], -1)[:, None],
+                      torch.stack([zero, one], -1)[:, None], one[:, None])
 
 
 def block_rows(c: Contacts3D, block: Block) -> tuple[Tensor, Tensor, list[Tensor]]:
