@@ -167,6 +167,9 @@ class FitControl:
     whether that was said, and the training contacts' distinct angle pairs (kept until ``forget_data``)."""
 
     def __init__(self) -> None:
+        self.converged_stop = False  # the last ``run`` stopped on convergence (a polish may follow)
+        self.diverged = False  # the last ``run`` ended with a FitDivergedWarning
+        self.best_state: tuple | None = None  # the last ``run``'s best iterate, ``kept_state``'s (loss, state, step)
         self.held_cost: float | None = None  # the step cost "auto" holds with nearly noise-free data (adapt)
         self.hold_said = False  # the hold's warning was given
         self._n_pairs: int | None = None  # the training contacts' distinct angle pairs (pair_count)
@@ -176,9 +179,12 @@ class FitControl:
         """The training data changed (``add_data``, a moved surface): the pair count is counted again."""
         self._n_pairs = None
 
-    def run(self, model, n_iter: int, lr: float, progress: bool) -> list[float]:
-        """``InverseRFT.fit``'s Adam loop (its docstring): the losses per step; the model left at the best iterate,
-        its backend adapted."""
+    def run(self, model, n_iter: int, lr: float, progress: bool, stop_at_convergence: bool | None = None
+            ) -> list[float]:
+        """``InverseRFT.fit``'s Adam loop (its docstring; ``InverseRFT3D.fit``'s too): the losses per step; the model
+        left at the best iterate, its backend adapted. ``stop_at_convergence``: stop once 25 steps gain less than
+        ``CONVERGED_NATS`` (a polish follows; default: with the Laplace posterior and no learned surface)."""
+        self.converged_stop = self.diverged = False
         model.train()
         surface = [] if model.surface is None else [("surface.offset", model.surface.offset)]
         named = [*model.hypers.named_parameters(), *surface]
@@ -186,7 +192,8 @@ class FitControl:
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
         best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
         bar = progress_bar(int(n_iter), f"I-RFT fit ({model.method})", progress)
-        polish_follows = model.hyper_method == "laplace" and model.surface is None
+        polish_follows = (model.hyper_method == "laplace" and model.surface is None) if stop_at_convergence is None \
+            else stop_at_convergence
         step = 0
         model.backend.in_fit = True
         try:
@@ -216,7 +223,8 @@ class FitControl:
                 if progress:
                     bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
                 if polish_follows and converged(history, model.backend.n_samples):
-                    break  # the Laplace step polishes to the mode (L-BFGS, Newton) from here
+                    self.converged_stop = True
+                    break  # the polish (Laplace's, L-BFGS) goes to the mode from here
         except KeyboardInterrupt:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
                           FitInterruptedWarning, stacklevel=3)
@@ -233,7 +241,8 @@ class FitControl:
                 model._rebuild_backend()
             bar.close()
             model.eval()
-        self.keep_best(model, self.kept_state(model, best, named, kept), history, lr)
+        self.best_state = self.kept_state(model, best, named, kept)
+        self.diverged = self.keep_best(model, self.best_state, history, lr)
         if model.surface is None and model.backend.stale():
             self.adapt(model)
         return history
@@ -260,13 +269,14 @@ class FitControl:
 
     @staticmethod
     def keep_best(model, best: tuple, history: list[float], lr: float, quiet: bool = False, stacklevel: int = 4
-                  ) -> None:
+                  ) -> bool:
         """Restore the best iterate (loss, state, step) where the loss ended above it and warn where it diverged
-        (``divergence``; ``stacklevel``: the warning's, at the user's call by default from ``run``)."""
+        (``divergence``; ``stacklevel``: the warning's, at the user's call by default from ``run``). Returns whether
+        it diverged."""
         value, state, step = best
         restore, message = divergence(value, step if state is not None else -1, history, lr)
         if not restore:
-            return
+            return False
         with torch.no_grad():
             model.hypers.load_state_dict({k: v for k, v in state.items() if k != "surface.offset"})
             if "surface.offset" in state:
@@ -275,6 +285,7 @@ class FitControl:
             model._rebuild_backend()
         if message is not None and not quiet:
             warnings.warn(message, FitDivergedWarning, stacklevel=stacklevel)
+        return message is not None
 
     def adapt(self, model) -> None:
         """The hyperparameters moved so that the backend must adapt (the spectral basis must grow), or

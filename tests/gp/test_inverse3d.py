@@ -340,7 +340,7 @@ def test_ctrl_c_in_the_polish_keeps_the_values_before_it_and_says_so():
             start.append(float(out))
         return out
 
-    import irft_torch.gp.inverse3d.model as model_module
+    import irft_torch.gp.fit_control as model_module  # the fit's loop (the planar one)
 
     converged = model_module.converged
 

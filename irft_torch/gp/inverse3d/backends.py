@@ -174,6 +174,14 @@ class Backend3D(nn.Module):
     def truncation_error(self) -> Tensor:
         return self.hypers.kernel.outputscale.detach().new_zeros(3)
 
+    def loss_and_grad(self) -> None:
+        """No closed-form gradient (the fit loop takes ``loss()`` and autograd)."""
+        return None
+
+    def shrink(self) -> bool:
+        """The spectral bases do not shrink back during a fit (they grow with ``refresh``)."""
+        return False
+
     def condition(self, contacts: Contacts3D, forces: Tensor | None = None) -> Backend3D:
         """A new backend that has also seen these samples (without forces: as if they equalled their posterior mean;
         the covariance does not depend on them); this one is unchanged."""

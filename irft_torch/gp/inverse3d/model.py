@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..._files import atomic_write
 from ...rft.contacts3d import Contacts3D
-from ..fit_control import FitDivergedWarning, adam, converged, copy_into, divergence, lbfgs_polish, progress_bar
+from ..fit_control import FitControl, lbfgs_polish
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
 from ..inputs import _check_dtype
@@ -164,7 +164,11 @@ class InverseRFT3D(HyperMixtureMixin):
         self.backend: Backend3D = make_backend_3d(method, self.hypers, c, residual, tol=tol,
                                                   features=features, max_harmonics=self.max_harmonics)
         self.loss_history: list[float] = []
+        self.fit_control = FitControl()  # the planar model's Adam loop and guards (gp.fit_control)
         self.eval()
+
+    auto = False  # the backend chosen at construction stays (the fit loop does not move a 3-D model between spaces)
+    surface = None  # no learned surface offset
 
     # ---- the prior mean -----------------------------------------------------------------------------------------
     def mean_forces(self, contacts: Contacts3D) -> Tensor:
@@ -198,53 +202,22 @@ class InverseRFT3D(HyperMixtureMixin):
         """The exact marginal likelihood's mode (MAP with the priors): at most ``n_iter`` Adam steps, stopped where 25
         steps gain less than ``CONVERGED_NATS`` of log posterior; from there L-BFGS to the mode (``lbfgs_polish``;
         with "laplace", its own polish). A fit that uses its ``n_iter`` steps before that ends
-        at Adam's iterate. Ctrl-C keeps what was learned. As the planar fit: the model ends at the best iterate the
+        at Adam's iterate. Ctrl-C keeps what was learned. The planar fit's loop (``gp.fit_control.FitControl``, held
+        as ``fit_control``), so as the planar fit: the model ends at the best iterate the
         loss saw (the loss rose above it, or turned NaN or inf: the fit stops there), and a rise of more than 0.1
         (or 10 %) is a ``FitDivergedWarning`` suggesting a smaller lr (and no polish follows). Returns Adam's
         losses per step (per sample), then the loss L-BFGS ended at where it ran."""
         if int(n_iter) != n_iter or n_iter < 0 or not math.isfinite(lr) or lr <= 0:
             raise ValueError(f"need an integer n_iter >= 0 and lr > 0, got n_iter={n_iter}, lr={lr}")
-        params = [p for p in self.hypers.parameters() if p.requires_grad]
-        opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]
-        best = (math.inf, -1)  # loss, step of the values in ``kept``
-        stopped = False  # Adam converged: the mode is near (L-BFGS or the Laplace step from here)
-        bar = progress_bar(int(n_iter), f"I-RFT 3-D fit ({self.method})", progress)
-        try:
-            for step in bar:
-                opt.zero_grad(set_to_none=True)
-                loss = self.backend.loss()
-                value = loss.item()
-                history.append(value)
-                if not math.isfinite(value):
-                    break  # NaN or inf: the best iterate is restored below
-                if value < best[0]:
-                    copy_into(kept, params)
-                    best = (value, step)
-                loss.backward()
-                opt.step()
-                if step % 10 == 9 and self.backend.stale():
-                    self.backend.refresh()
-                if converged(history, self.backend.n_samples):
-                    stopped = True
-                    break
-        except KeyboardInterrupt:
-            stopped = False
-            warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps", stacklevel=2)
-        finally:
-            bar.close()
-        restore, message = divergence(*best, history, lr)
-        if restore:
-            copy_into(params, kept)
-            self.backend.refresh()
-        if message is not None:
-            warnings.warn(message, FitDivergedWarning, stacklevel=2)
-        if self.backend.stale():
-            self.backend.refresh()
-        if stopped and message is None and self.hyper_method != "laplace":  # (Laplace polishes to the mode itself)
+        control = self.fit_control
+        history = control.run(self, int(n_iter), float(lr), progress, stop_at_convergence=True)
+        if control.converged_stop and not control.diverged and self.hyper_method != "laplace":  # (Laplace polishes)
+            params = [p for p in self.hypers.parameters() if p.requires_grad]
             try:
                 value, evals = lbfgs_polish(params, self.backend.loss, self.backend.n_samples, self.backend.refresh)
                 if not math.isfinite(value):  # Adam's last step left no finite loss: its best iterate
-                    copy_into(params, kept)
+                    with torch.no_grad():
+                        self.hypers.load_state_dict(control.best_state[1])
                     self.backend.refresh()
                 elif evals:
                     history.append(value)
