@@ -26,7 +26,6 @@ with L L^T = sigma^2 I + A.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
@@ -378,7 +377,3 @@ class WeightSpaceBackend(RFTBackend):
         """Whether weight_x = +-weight_z with one sign per row (a toe that does not turn)."""
         return cls._row_sign(c) is not None
 
-
-
-def log2pi() -> float:
-    return math.log(2 * math.pi)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ...rft.contacts3d import Contacts3D
 
-__all__ = ["BlockRows", "joint_block_posterior"]
+__all__ = ["BlockRows"]
 
 
 class BlockRows:
@@ -76,12 +76,3 @@ class BlockRows:
             return torch.diagonal(self.cov(i, i))
         return (f[0] * f[1]).sum(-1) - self._G[i].pow(2).sum(0)
 
-
-def joint_block_posterior(backend, b: int, parts: list[Contacts3D]) -> tuple[Tensor, Tensor]:
-    """Mean (n,) and covariance (n, n) of block b's rows of all ``parts``, part after part (each part's rows
-    axis-major, as ``rows.block_rows``)."""
-    rows = BlockRows(backend, b, parts)
-    n = len(parts)
-    mean = torch.cat([rows.mean(i) for i in range(n)])
-    cov = torch.cat([torch.cat([rows.cov(i, j) for j in range(n)], -1) for i in range(n)], -2)
-    return mean, cov
