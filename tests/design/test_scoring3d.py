@@ -225,3 +225,18 @@ def test_the_3d_diagnostics_count_the_draws_whose_kernel_is_truncated():
         assert all(e > 1e-7 for e in bounds) if expect_all else all(e <= 1e-7 for e in bounds)
         got = model.diagnostics()["kernel"]["draws_truncated"]
         assert got == (f"{S} of {S}" if expect_all else f"0 of {S}")
+
+
+@pytest.mark.parametrize("method", ["observations", "pairs", "spectral"])
+def test_an_empty_candidate_teaches_nothing(method):
+    """A candidate of no samples beside one with samples: information gain exactly 0 and the integrated variance
+    unchanged (it was an error on the observations backend), the other scored as alone."""
+    c, f, model = _model(method, "map")
+    scorer = ProbeScorer.from_model(model)
+    cand = turning_toe(T=6, seed=4)[0]
+    eig = scorer.score([cand[:0], cand], "eig")
+    iv = scorer.score([cand[:0], cand], "variance")
+    assert float(eig[0]) == 0.0
+    torch.testing.assert_close(iv[0], scorer.integrated_variance(), rtol=1e-12, atol=0)
+    torch.testing.assert_close(eig[1], scorer.information_gain(cand), rtol=1e-12, atol=0)
+    torch.testing.assert_close(iv[1], scorer.integrated_variance(cand), rtol=1e-12, atol=0)

@@ -220,6 +220,8 @@ class Backend3D(nn.Module):
         for i, c in enumerate(cands):
             for b, block in enumerate(BLOCKS):
                 k = len(block.axes) * len(c)
+                if k == 0:  # a candidate of no samples: nothing observed (its rows stay padding)
+                    continue
                 noise[i, b, :k] = torch.cat([nz[a].expand(len(c)) for a in block.axes])
                 if rows is None:
                     S[i, b, :k, :k] = BlockRows(self, b, [c]).cov(0, 0)
