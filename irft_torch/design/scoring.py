@@ -279,7 +279,8 @@ class ProbeScorer(FollowingScorer):
     def score(self, candidates: Sequence, criterion: str = "variance", region: Region | None = None,
               per_axis: bool = False) -> Tensor:
         """Scores (n,) of several candidates: the integrated variance after each ("variance", lower is
-        better) or its information gain ("eig", nats, higher is better); ``per_axis``: (n, 2), per map."""
+        better) or its information gain ("eig", nats, higher is better); ``per_axis``: (n, 2), per map (a 3-D
+        model: (n, 3) per map for "variance", (n, 2) per block for "eig")."""
         check_criterion(criterion, region)
         cands = [self._cast(c) for c in candidates]
         if not cands:
@@ -393,8 +394,10 @@ class ProbeScorer3D(ProbeScorer):
     """
 
     def __init__(self, backend, noise_scale: NoiseScale = None) -> None:
-        from ..gp.inverse3d import Backend3D
+        from ..gp.inverse3d import Backend3D, InverseRFT3D
 
+        if isinstance(noise_scale, InverseRFT3D):  # the former ProbeScorer3D(backend, model)
+            raise TypeError("ProbeScorer3D(backend) takes no model: ProbeScorer3D.from_model(model) follows one")
         if not isinstance(backend, Backend3D):
             raise TypeError(f"backend must be a gp.inverse3d.Backend3D, got {type(backend).__name__}")
         if noise_scale is not None:

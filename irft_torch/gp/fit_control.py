@@ -1,8 +1,8 @@
 """What steers an ``InverseRFT`` fit beyond Adam's step: the backend following the hyperparameters
 (``method="auto"`` moving to a cheaper space, the spectral basis growing, and held when nearly
 noise-free data would make each step many times dearer) and the best iterate kept when the loss
-diverges: ``FitControl``, an object each ``InverseRFT`` holds (``model.fit_control``), whose ``run`` is the
-fit's Adam loop."""
+diverges: ``FitControl``, an object each ``InverseRFT`` and ``InverseRFT3D`` holds (``model.fit_control``), whose
+``run`` is the fit's Adam loop."""
 
 from __future__ import annotations
 
@@ -162,9 +162,11 @@ class FitInterruptedWarning(UserWarning):
 
 
 class FitControl:
-    """The fit's adaptation and guards for one model (see the module): an object ``InverseRFT`` holds as
-    ``fit_control``, each call given the model. Its own state: the step cost held with nearly noise-free data and
-    whether that was said, and the training contacts' distinct angle pairs (kept until ``forget_data``)."""
+    """The fit's adaptation and guards for one model (see the module): an object ``InverseRFT`` (and
+    ``InverseRFT3D``) holds as ``fit_control``, each call given the model. Its own state: the step cost held with
+    nearly noise-free data and whether that was said, the training contacts' distinct angle pairs (kept until
+    ``forget_data``), and what the last ``run`` ended with (``converged_stop``, ``diverged``, ``best_state``: what
+    a polish after it needs)."""
 
     def __init__(self) -> None:
         self.converged_stop = False  # the last ``run`` stopped on convergence (a polish may follow)
@@ -191,7 +193,7 @@ class FitControl:
         params = [p for _, p in named]
         opt, history, kept = adam(params, lr), [], [p.detach().clone() for p in params]  # kept: the best iterate
         best: tuple[float, int] = (math.inf, -1)  # loss, step of the values in ``kept``
-        bar = progress_bar(int(n_iter), f"I-RFT fit ({model.method})", progress)
+        bar = progress_bar(int(n_iter), f"{type(model).__name__} fit ({model.method})", progress)
         polish_follows = (model.hyper_method == "laplace" and model.surface is None) if stop_at_convergence is None \
             else stop_at_convergence
         step = 0
@@ -229,7 +231,10 @@ class FitControl:
             warnings.warn(f"fit interrupted after {len(history)} steps; the model keeps those steps",
                           FitInterruptedWarning, stacklevel=3)
         except (NotPSDError, torch.linalg.LinAlgError) as e:
-            self.keep_best(model, self.kept_state(model, best, named, kept), history, lr, quiet=True)
+            self.best_state = self.kept_state(model, best, named, kept)
+            self.keep_best(model, self.best_state, history, lr, quiet=True)
+            if model.surface is None:
+                model.backend.refresh()  # the restored hyperparameters' basis
             raise NotPSDError(
                 f"the force covariance W K W^T + noise is not positive definite (step {step}); hyperparameters "
                 f"then: {model.hyperparameters()}. Try a lower lr, a larger noise floor, or float64 (the model holds "

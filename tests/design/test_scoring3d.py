@@ -1,4 +1,4 @@
-"""Probe scores of 3-D models (design.scoring3d) against the dense 3-D reference of tests/gp/test_inverse3d: the
+"""Probe scores of 3-D models (design.ProbeScorer3D) against the dense 3-D reference of tests/gp/test_inverse3d: the
 information gain from the candidate's explicit posterior force covariance, the integrated variance from the dense
 posterior of a model that has also seen the candidate (its forces do not matter), on every backend and both forms
 of alpha_y."""

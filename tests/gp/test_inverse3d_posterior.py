@@ -243,6 +243,7 @@ def test_the_scoring_questions_match_the_dense_reference(problem, method):
             torch.testing.assert_close(cross[i, blk, :k, :len(pidx[blk])], P[idx[blk]][:, pidx[blk]], rtol=rtol,
                                        atol=1e-12)
     mean, var = m.backend.map_moments(b, g)
+    assert all(torch.equal(x, y) for x, y in zip(m.backend.map_moments(b.tolist(), g.tolist()), (mean, var)))
     want_mean, want_cov = post(pts)
     torch.testing.assert_close(mean, want_mean, rtol=rtol, atol=1e-10)
     torch.testing.assert_close(var, torch.diagonal(want_cov).reshape(3, N).T, rtol=rtol, atol=1e-12)

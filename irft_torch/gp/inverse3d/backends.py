@@ -151,6 +151,11 @@ class Backend3D(nn.Module):
         self._data_changed(contacts, forces)
         self._reset()
 
+    def _part_rows(self, b: int, part: Contacts3D) -> tuple:
+        """Block b's rows q of ``part`` (``rows.block_rows``), their posterior mean (n,), the data's part G (r, n) of
+        their covariance and, where the prior is in features, (Phi_q Sigma, Phi_q), else None (``joint.BlockRows``)."""
+        raise NotImplementedError
+
     def _data_changed(self, contacts: Contacts3D, forces: Tensor) -> None:
         """Bring the hyperparameter-free structures up to the data after ``add_data`` appended (contacts, forces)."""
 
@@ -243,7 +248,8 @@ class Backend3D(nn.Module):
         """Posterior mean and variance (N, 3) of the maps at angles of any broadcast shape (N of them), N/cm^3 and
         (N/cm^3)^2."""
         h = self.hypers.noise
-        b, g = torch.broadcast_tensors(torch.as_tensor(beta).to(h), torch.as_tensor(gamma).to(h))
+        b, g = torch.broadcast_tensors(torch.as_tensor(beta, dtype=h.dtype, device=h.device),
+                                       torch.as_tensor(gamma, dtype=h.dtype, device=h.device))
         mean, cov = self.posterior(point_contacts(b, g))
         return mean, torch.diagonal(cov, dim1=-2, dim2=-1)
 
