@@ -15,10 +15,13 @@ from ..rft.contacts import Contacts
 __all__: list[str] = []
 
 
-def _as_forces(forces, T: int, dtype, device) -> Tensor:
+def _as_forces(forces, T: int, dtype, device, axes: tuple[str, ...] = ("F_x", "F_z")) -> Tensor:
+    """(T, K) forces in N, one column per force axis named in ``axes`` (the 3-D model's: F_x, F_y, F_z)."""
     f = torch.as_tensor(forces, dtype=dtype, device=device)
-    if f.ndim != 2 or f.shape[-1] != 2:
-        raise ValueError(f"forces must be (T, 2) = (F_x, F_z) in N, got shape {tuple(f.shape)}")
+    K = len(axes)
+    if f.ndim != 2 or f.shape[-1] != K:
+        where = " for Contacts3D" if K == 3 else ""
+        raise ValueError(f"forces must be (T, {K}) = ({', '.join(axes)}) in N{where}, got shape {tuple(f.shape)}")
     if f.shape[0] != T:
         raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T} time steps")
     bad = ~torch.isfinite(f)

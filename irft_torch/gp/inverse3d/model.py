@@ -18,8 +18,8 @@ from ...rft.contacts3d import Contacts3D
 from ..fit_control import FitControl, lbfgs_polish
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
-from ..inputs import _check_dtype
-from ..kernels.hyperparameters import ALPHA_Y, LENGTHSCALE_FLOOR_3D, MAPS_3D, RFT3DHyperparameters
+from ..inputs import _as_forces, _check_dtype
+from ..kernels.hyperparameters import ALPHA_Y, AXES_3D, LENGTHSCALE_FLOOR_3D, MAPS_3D, RFT3DHyperparameters
 from ..kernels.priors import data_scales_3d, prior_centres_3d, register_physical_priors  # K maps, one module
 from ..options import Engine, MapPrior, grouped_3d, options_3d
 from ..posterior import Posterior
@@ -34,17 +34,6 @@ FORMAT_3D = "irft_torch.InverseRFT3D/1"
 
 
 Posterior3D = Posterior  # one posterior type for every model (``gp.posterior.Posterior``, K = 3 axes here)
-
-
-def _as_forces(forces, T: int, dtype, device) -> Tensor:
-    f = torch.as_tensor(forces, dtype=dtype, device=device)
-    if f.ndim != 2 or f.shape[-1] != 3:
-        raise ValueError(f"forces must be (T, 3) = (F_x, F_y, F_z) in N for Contacts3D, got shape {tuple(f.shape)}")
-    if f.shape[0] != T:
-        raise ValueError(f"forces has {f.shape[0]} samples but contacts has {T}")
-    if not torch.isfinite(f).all():
-        raise ValueError("forces contains NaN or inf; mask or drop those samples")
-    return f
 
 
 class InverseRFT3D(HyperMixtureMixin):
@@ -124,7 +113,7 @@ class InverseRFT3D(HyperMixtureMixin):
             raise ValueError(f"need at least 2 force observations, got {T}")
         device = contacts.beta.device
         c = contacts.to(dtype=dtype, device=device)
-        f = _as_forces(forces, T, dtype, device)
+        f = _as_forces(forces, T, dtype, device, AXES_3D)
         if not (c.weight_z != 0).any() and not (c.weight_x != 0).any():
             raise ValueError("contacts carry no weight: no element is in contact, nothing to learn")
         if float(f.abs().max()) > 1e4:
@@ -247,7 +236,7 @@ class InverseRFT3D(HyperMixtureMixin):
         if not isinstance(contacts, Contacts3D):
             raise TypeError(f"contacts must be a Contacts3D, got {type(contacts).__name__}")
         c = contacts.to(dtype=self.dtype, device=self._device)
-        f = _as_forces(forces, len(c), self.dtype, self._device)
+        f = _as_forces(forces, len(c), self.dtype, self._device, AXES_3D)
         r = self._residual(c, f)
         if self._draw_backends is not None and self.hyper_posterior is not None:  # before the shared data move
             add_data_to_draws(self.hyper_posterior, self._draw_backends, c, r)
