@@ -256,3 +256,17 @@ def test_the_scoring_questions_match_the_dense_reference(problem, method):
     torch.testing.assert_close(after.map_moments(b, g)[1], torch.diagonal(post_after(pts)[1]).reshape(3, N).T,
                                rtol=rtol, atol=1e-12)
 
+
+
+def test_bad_query_angles_are_clear_errors_as_in_the_planar_model(problem):
+    """NaN angles, shapes that do not broadcast and angles in degrees: the 3-D model's map queries say so (they
+    gave NaN maps, a bare broadcasting error and nothing)."""
+    c, f = problem
+    m = InverseRFT3D(c, f, method="pairs", hyper_posterior="map")
+    b, g = query()
+    with pytest.raises(ValueError, match="gamma contains NaN"):
+        m.stress_map(b, g.clone().index_fill_(0, torch.tensor([1]), float("nan")))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        m.sample_maps(b, g[:3])
+    with pytest.warns(UserWarning, match="degrees"):
+        m.stress_map(b * 60, g)

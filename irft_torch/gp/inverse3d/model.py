@@ -18,7 +18,7 @@ from ...rft.contacts3d import Contacts3D
 from ..fit_control import FitControl, lbfgs_polish
 from ..hyper.posterior import HYPER_POSTERIORS, HyperPosterior, add_data_to_draws
 from ..hyper.predictions import HyperMixtureMixin
-from ..inputs import _as_forces, _check_dtype
+from ..inputs import _as_forces, _check_angles, _check_dtype
 from ..kernels.hyperparameters import ALPHA_Y, AXES_3D, LENGTHSCALE_FLOOR_3D, MAPS_3D, RFT3DHyperparameters
 from ..kernels.priors import data_scales_3d, prior_centres_3d, register_physical_priors  # K maps, one module
 from ..options import Engine, MapPrior, grouped_3d, options_3d
@@ -272,9 +272,14 @@ class InverseRFT3D(HyperMixtureMixin):
         return Posterior.of_covariances(torch.stack(means), torch.stack(covs), weights)
 
     def _angles(self, beta, gamma) -> tuple[Tensor, Tensor, torch.Size]:
+        """Query angles (rad) broadcast together, checked as the planar model checks them (shapes that do not
+        broadcast, NaN or inf: a ValueError naming the argument; a turn or more: a warning, degrees?)."""
         beta = torch.as_tensor(beta, dtype=self.dtype, device=self._device)
         gamma = torch.as_tensor(gamma, dtype=self.dtype, device=self._device)
-        S = torch.broadcast_shapes(beta.shape, gamma.shape)
+        S = torch.Size(_check_angles(beta, gamma, "the model's map"))
+        for name, v in (("beta", beta), ("gamma", gamma)):
+            if not torch.isfinite(v).all():
+                raise ValueError(f"{name} contains NaN or inf")
         beta, gamma = torch.broadcast_tensors(beta, gamma)
         return beta, gamma, S
 
