@@ -270,3 +270,20 @@ def test_bad_query_angles_are_clear_errors_as_in_the_planar_model(problem):
         m.sample_maps(b, g[:3])
     with pytest.warns(UserWarning, match="degrees"):
         m.stress_map(b * 60, g)
+
+
+def test_cross_validation_groups_are_any_labels_checked_as_in_the_planar_model(problem):
+    """Groups named by strings give the same held-out predictions as the same groups numbered (each sample
+    predicted from the other groups, so the labels only group); one label, NaN labels or a wrong length: a
+    ValueError naming groups."""
+    c, f = problem
+    m = InverseRFT3D(c, f, method="pairs", hyper_posterior="map")
+    numbered = torch.arange(len(c)) // 5
+    named = [f"run {int(k)}" for k in numbered]
+    a, b = m.cross_validate(numbered), m.cross_validate(named)
+    torch.testing.assert_close(a.mean, b.mean, rtol=0, atol=0)
+    torch.testing.assert_close(a.covariance, b.covariance, rtol=0, atol=0)
+    for bad, match in ((torch.zeros(len(c)), "at least 2"), (torch.full((len(c),), float("nan")), "NaN"),
+                       (numbered[:-1], "one label per training sample")):
+        with pytest.raises(ValueError, match=match):
+            m.cross_validate(bad)

@@ -336,20 +336,19 @@ class InverseRFT3D(HyperMixtureMixin):
                        include_noise: bool = False) -> Posterior:
         """Each group of training samples predicted from the other groups: at this model's fitted
         hyperparameters (default; with a hyperparameter posterior, the mixture over its draws) or by a model like
-        this one fitted on the others (``refit``). Returns the held-out ``Posterior`` (T, 3) in the training
-        order."""
-        g = torch.as_tensor(groups, device=self._device)
+        this one fitted on the others (``refit``). ``groups``: (T,) one label per training sample, any sortable
+        values (run numbers, names), checked as the planar model checks them. Returns the held-out ``Posterior``
+        (T, 3) in the training order."""
+        from ..cross_validation import _group_index
+
         T = len(self.train_contacts)
-        if g.shape != (T,):
-            raise ValueError(f"groups must be ({T},) labels, one per training sample, got {tuple(g.shape)}")
+        index, labels = _group_index(groups, T, self._device)
         backends, weights = self._weighted_backends()
         S = 1 if refit else len(backends)
         mean = self.train_forces.new_zeros(S, T, 3)
         cov = self.train_forces.new_zeros(S, T, 3, 3)
-        for label in g.unique():
-            test = g == label
-            if bool(test.all()):
-                raise ValueError("cross_validate needs at least two groups")
+        for label in range(len(labels)):
+            test = index == label
             ctr, ftr = self.train_contacts[~test], self.train_forces[~test]
             if refit:
                 m = InverseRFT3D(ctr, ftr, **grouped_3d(self._options()))
