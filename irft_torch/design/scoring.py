@@ -394,14 +394,13 @@ class ProbeScorer3D(ProbeScorer):
     """
 
     def __init__(self, backend, noise_scale: NoiseScale = None) -> None:
-        from ..gp.inverse3d import Backend3D, InverseRFT3D
+        from ..gp.inverse3d import Backend3D
 
-        if isinstance(noise_scale, InverseRFT3D):  # the former ProbeScorer3D(backend, model)
-            raise TypeError("ProbeScorer3D(backend) takes no model: ProbeScorer3D.from_model(model) follows one")
         if not isinstance(backend, Backend3D):
             raise TypeError(f"backend must be a gp.inverse3d.Backend3D, got {type(backend).__name__}")
-        if noise_scale is not None:
-            raise ValueError("a 3-D model is scored with unit noise scale: noise_scale does not apply")
+        if noise_scale is not None:  # (also the former ProbeScorer3D(backend, model))
+            raise TypeError("ProbeScorer3D(backend) takes no model and no noise_scale (a 3-D model is scored with "
+                            "unit noise scale; ProbeScorer3D.from_model(model) follows a model)")
         super().__init__(cast(RFTBackend, backend))  # the same questions answered (``Backend3D.candidate_rows``)
 
     @classmethod

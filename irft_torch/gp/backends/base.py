@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor, nn
 
 from ...rft.contacts import Contacts
@@ -190,11 +189,10 @@ class RFTBackend(nn.Module):
     n_blocks = 2  # independent blocks of the force covariance: the x rows (alpha_x), the z rows (alpha_z)
 
     def region_rows(self, region) -> Contacts:
-        """The maps at a region's points (``beta``, ``gamma`` (N,), in the canonical square) as point evaluations
-        (N, 1) with weight 1 on both axes."""
+        """A region's points (``design.Region``) as point evaluations of both maps (``region.contacts()``), on the
+        hyperparameters' dtype and device."""
         dt = self.hypers.noise
-        one = torch.ones_like(region.beta, dtype=dt.dtype, device=dt.device)[:, None]
-        return Contacts(region.beta.to(dt)[:, None], region.gamma.to(dt)[:, None], one, one)
+        return region.contacts().to(dtype=dt.dtype, device=dt.device)
 
     def region_variance(self, rows: Contacts) -> Tensor:
         """(2, N) the maps' posterior variance at ``region_rows``' points, (N/cm^3)^2."""

@@ -206,7 +206,8 @@ class Backend3D(nn.Module):
         """The maps at a region's points (``beta``, ``gamma`` (N,)) as each block's rows (horizontal: alpha_x at
         every point, then alpha_y; vertical: alpha_z)."""
         h = self.hypers.noise
-        return [BlockRows(self, b, [point_contacts(region.beta.to(h), region.gamma.to(h))]) for b in range(2)]
+        pts = point_contacts(region.beta.to(h), region.gamma.to(h))
+        return [BlockRows(self, b, [pts]) for b in range(len(BLOCKS))]
 
     def region_variance(self, rows: list[BlockRows]) -> Tensor:
         """(2, n') those rows' posterior variances per block, zero-padded to the longest."""
