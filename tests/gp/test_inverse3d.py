@@ -174,7 +174,7 @@ def assert_predictions_match(model, post, rtol):
 
 def test_planar_motion_is_the_planar_model():
     """A C-toe in the x-z plane: alpha_x and alpha_z posteriors, forces and the loss are the planar model's, the
-    F_y rows adding only their own noise term (F_y here pure noise)."""
+    F_y rows adding only their own noise term (F_y here pure noise); on every backend."""
     toe = CToe(0.02, 0.008, n_segments=6)
     path = spline_path([(-0.2, 0.0), (-0.1, -0.05), (0.1, 0.0), (0.2, -0.05)], n_steps=30)
     c2 = contacts(toe, path)
@@ -182,7 +182,7 @@ def test_planar_motion_is_the_planar_model():
     c3 = contacts_3d(Mesh.from_toe(toe), surface=0.0, **planar_motion(path))
     fy = 0.01 * torch.randn(len(c2), generator=torch.Generator().manual_seed(0))
     f3 = torch.stack([f2[:, 0], fy, f2[:, 1]], -1)
-    for method in ("observations", "pairs"):
+    for method in ("observations", "pairs", "spectral"):
         m2 = irft.InverseRFT(c2, f2, method=method, priors=None, hyper_posterior="map", li_basis=False)
         m3 = irft.InverseRFT(c3, f3, method=method, priors=None, prior_mean="zero", hyper_posterior="map",
                              li_basis=False)  # the planar default
