@@ -223,10 +223,18 @@ def planar_options(prior, engine, surface, flat: dict, spatial: bool = False) ->
     return p, e, surface
 
 
+_PLANAR_ONLY = {"locations": "a map that changes over the ground", "surface": "a learned surface offset",
+                "noise_scale": "a per-sample noise scale", "statistics": "a recording's precomputed statistics"}
+
+
 def options_3d(prior, engine, flat: dict) -> tuple[MapPrior, Engine]:
     """``InverseRFT3D``'s choices resolved (MapPrior with the 3-D defaults, Engine); ``flat``: the deprecated
     keywords given (warned once, here)."""
     owner = "InverseRFT3D"
+    for key, what in _PLANAR_ONLY.items():  # None: not asked (code that builds either model may pass it)
+        if key in flat and flat.pop(key) is not None:
+            raise TypeError(f"{owner}() takes no {key}=: {what} is planar only (a planar model: "
+                            f"InverseRFT(contacts, forces, {key}=...) with rft.Contacts and (T, 2) forces)")
     _split_flat(owner, flat, ("li_basis", "prior_mean", "priors", "lengthscale") + _ENGINE_KEYS, prior, engine, None)
     p, e = _with_flat(_as_prior(prior, owner), _as_engine(engine, owner), flat)
     if flat:

@@ -246,6 +246,11 @@ def test_bad_input():
     empty = Contacts3D(c.beta, c.gamma, c.weight_x * 0, c.weight_y * 0, c.weight_z * 0)
     with pytest.raises(ValueError, match="no element"):
         InverseRFT3D(empty, f)
+    for key, value in (("locations", torch.zeros(4, 2)), ("surface", True), ("noise_scale", torch.ones(4)),
+                       ("statistics", object())):  # the planar model's options, refused by name (None: not asked)
+        with pytest.raises(TypeError, match=f"no {key}=: .* planar only"):
+            irft.InverseRFT(c, f, **{key: value})
+        InverseRFT3D(c, f, **{key: None})
 
 
 def test_a_diverging_3d_fit_keeps_its_best_iterate_and_says_so():
