@@ -1,7 +1,7 @@
 """What issue 34's fixes cost or save, each against a reference measured in the same run.
 
-Data: simulated (the simulated leg on a virtual CAN bus). Run time: not measured as a whole; its record, ingest,
-fit loop 27.6 s and predict_forces at T = 10^6 14.7 s (docs/faults.md, 2026-11-26).
+Data: simulated (the simulated leg on a virtual CAN bus). Run time: 53 s as a whole (2 cores, 2026-12-03); its record,
+ingest, fit loop 27.6 s and predict_forces at T = 10^6 14.7 s (docs/faults.md, 2026-11-26).
 
     python experiments/benchmarks/bench_faults.py [--quick] [--out experiments/results]
 

@@ -1,6 +1,7 @@
 """The live estimator's latency and throughput (hardware.LiveEstimator), on this machine.
 
-Data: the simulated leg walking on python-can's virtual bus. Run time: not measured here.
+Data: the simulated leg walking on python-can's virtual bus. Run time: about 100 s with the
+defaults (2 cores, 2026-12-03).
 
 1. Latency, end of stance -> updated estimate: a model holding ``--history`` stances (1,000 by default:
    ~150,000 force samples) is streamed the stances of the simulated leg walking in real time on python-can's

@@ -1,7 +1,7 @@
 """Calibration harness: the posterior intervals on media and motions nobody tuned for (issue 30).
 
 Data: simulated (the harness' families of media and motions, irft_torch.studies.calibration).
-Run time: about 11 min for the default 48 fits on 2 cores; --quick not measured here.
+Run time: about 11 min for the default 48 fits on 2 cores; --quick 139 s (2 cores, 2026-12-03).
 
 Families of media x motions x noise levels (``irft_torch.studies.calibration`` says what each is), one
 fit per case, scored twice from the same fit: the MAP plug-in and the Laplace hyperparameter

@@ -1,6 +1,7 @@
 """Active probing: do designed probes teach the maps faster than the paper's four configurations?
 
-Data: simulated (three media, forward RFT). Run time: --quick about 9 s; full: not measured here.
+Data: simulated (three media, forward RFT). Run time: --quick about 9 s; full about 8 min (487 s,
+2 cores, 2026-12-03).
 
     python experiments/validation/active_probing.py [--out experiments/results] [--quick] [--seeds 0 1]
 

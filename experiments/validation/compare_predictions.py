@@ -1,7 +1,8 @@
 """Is a change worse than the reference beyond what the choice of held-out runs alone could make? Two runs of a
 real-data study, paired run by run.
 
-Data: two output folders of dem_validation.py or wheel_validation.py --study planar. Run time: not measured here.
+Data: two output folders of dem_validation.py or wheel_validation.py --study planar. Run time: about 3 s on two
+dem_validation.py outputs (2 cores, 2026-12-03).
 
     python experiments/validation/compare_predictions.py REFERENCE CANDIDATE [--unit fold|run] [--models "I-RFT,..."]
 

@@ -2,7 +2,8 @@
 and leave-one-gamma-out on independent DEM plate-intrusion simulations.
 
 Data: the DEM plate-intrusion runs (--data DIR, e.g. ../shared/data/dem_plate_intrusion; not shipped).
-Run time: 38-40 s on 2 cores (2026-11-25, with the grouped-CV row; 30-36 s before it); --cv-refit 109 s.
+Run time: about 2 min (123 s on 2 cores, 2026-12-03, with the default model since 2026-11-28: Li et al.'s term and
+the Laplace posterior; 38-40 s on 2026-11-25 before it); --cv-refit 109 s on 2026-11-25, not measured since.
 
     python experiments/validation/dem_validation.py --data ../shared/data/dem_plate_intrusion
         [--out experiments/results]

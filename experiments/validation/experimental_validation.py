@@ -1,6 +1,6 @@
 """The paper's experimental analysis (Section V-B) on the simulated leg (or your own datasets).
 
-Data: the simulated leg (or your datasets, --datasets). Run time: --quick 21 s; full: not measured here.
+Data: the simulated leg (or your datasets, --datasets). Run time: --quick 21 s; full about 35 s (2 cores, 2026-12-03).
 
     python experiments/validation/experimental_validation.py [--out experiments/results] [--quick]
     python experiments/validation/experimental_validation.py --datasets I1.npz I2.npz C1.npz C2.npz   # a real leg's

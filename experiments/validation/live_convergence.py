@@ -1,7 +1,7 @@
 """The live map converging while the simulated leg walks (``hardware.LiveEstimator``, as ``irft live --simulate``).
 
-Data: the simulated leg walking in real time on a virtual bus. Run time: not measured here (the walk is
-real time: --strides, default 60, of 0.3 s each).
+Data: the simulated leg walking in real time on a virtual bus. Run time: about 23 s with the
+defaults (2 cores, 2026-12-03): the walk is real time (--strides, default 60, of 0.3 s each).
 
 The leg walks ``--strides`` strides in real time on python-can's virtual bus through sand whose stress map is
 Li et al.'s generic map x (``--scale-x``, ``--scale-z``). After each stance the estimator publishes its map at

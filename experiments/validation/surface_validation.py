@@ -1,6 +1,6 @@
 """The free surface's height learned with the maps, on simulated data whose truth is known.
 
-Data: simulated plates. Run time: about 20 s for 2 seeds; the default 5 seeds not measured here.
+Data: simulated plates. Run time: about 24 s for the default 5 seeds (2 cores, 2026-12-03).
 
     python experiments/validation/surface_validation.py [--seeds 5] [--out experiments/results]
 
