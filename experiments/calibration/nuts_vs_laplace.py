@@ -1,7 +1,7 @@
 """Is the Laplace mixture what fails on narrow slices? NUTS against Laplace on the calibration harness' cases.
 
 Data: simulated (the harness' cases; needs pyro-ppl). Run time: not timed whole; the defaults' 8 cases (4 rotating-leg,
-4 strokes) at NUTS's about 11 min per rotating-leg case and 25-60 s per 40-sample stroke: about 50 min.
+4 strokes) at NUTS's about 11 min per rotating-leg case and 25-60 s per 40-sample stroke: about 50 min (estimated).
 
 The harness (``docs/calibration.md``) finds the Laplace mixture of the zero-mean model short of the bar on
 generic-shaped media seen through a narrow slice of the square (the rotating leg, 40-sample strokes). Either

@@ -1,6 +1,6 @@
 """Real-world log faults against an oracle: 10^3 edited logs per class through ``irft ingest``.
 
-Data: simulated leg logs, edited. Run time: about 9 min (538 s on 2 cores; `--n 100`: 58 s).
+Data: simulated leg logs, edited. Run time: about 9 min (538 s, 2 cores, 2026-12-03; `--n 100`: 58 s).
 
     python experiments/validation/fault_fuzz.py [--n 1000] [--seed 0] [--out experiments/results]
 
